@@ -1,0 +1,28 @@
+"""td3-jax: TD3 and DDPG on thousands of vectorised environments, in compiled JAX programs.
+
+The public, stable functional API::
+
+    import td3_jax as tj
+    agent = tj.td3(tj.TD3Config(), observation_size, action_size)
+    state = agent.init(key)
+    state, metrics = agent.update(state, tj.Transition(obs, action, reward, next_obs, done), key)
+    buf = tj.replay.add(tj.replay.init(capacity, example_transition), transitions)
+    batch = tj.replay.sample(buf, key, batch_size)
+"""
+
+from td3_jax import noise, replay
+from td3_jax.td3 import DDPGConfig, TD3Config, ddpg, td3
+from td3_jax.types import Agent, AgentState, Transition
+
+__all__ = [
+    "Agent",
+    "AgentState",
+    "DDPGConfig",
+    "TD3Config",
+    "Transition",
+    "ddpg",
+    "noise",
+    "replay",
+    "td3",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,72 @@
+"""Pytrees shared by the whole library: transitions, agent state and the agent itself."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import optax
+from flax import struct
+
+Params = Any
+PRNGKey = jax.Array
+Metrics = dict[str, jax.Array]
+
+
+class Transition(NamedTuple):
+    """One environment transition, or a batch of them along leading axes.
+
+    Attributes:
+      obs: ``[..., obs_size]`` observation the action was taken in.
+      action: ``[..., action_size]`` action taken, in the actor's range ``[-max_action, max_action]``.
+      reward: ``[...]`` reward received.
+      next_obs: ``[..., obs_size]`` observation after the step. At an episode end this is the true
+        last observation of the episode, never the first observation of the next one.
+      done: ``[...]`` 1.0 where the episode *terminated* (no bootstrapping), 0.0 otherwise. A
+        time-limit truncation is not a termination: it has ``done = 0`` so the target bootstraps.
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    next_obs: jax.Array
+    done: jax.Array
+
+
+@struct.dataclass
+class AgentState:
+    """Everything an actor-critic agent learns, as one pytree.
+
+    ``critic_params`` hold all critic heads stacked along a leading axis (2 for TD3, 1 for DDPG).
+    ``step`` counts the ``update`` calls done so far (an int32 scalar).
+    """
+
+    actor_params: Params
+    critic_params: Params
+    target_actor_params: Params
+    target_critic_params: Params
+    actor_opt_state: optax.OptState
+    critic_opt_state: optax.OptState
+    step: jax.Array
+
+
+class Agent(NamedTuple):
+    """An actor-critic algorithm as a bundle of pure functions (the optax shape).
+
+    Attributes:
+      init: ``init(key) -> AgentState``.
+      update: ``update(state, batch: Transition, key) -> (state, metrics)``; one gradient step
+        on a batch ``[batch_size, ...]``. Pure: jit, vmap and scan it.
+      act: ``act(actor_params, obs[..., obs_size]) -> action[..., action_size]``, deterministic.
+      actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
+      critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``.
+      config: the config the agent was built from.
+    """
+
+    init: Callable[[PRNGKey], AgentState]
+    update: Callable[[AgentState, Transition, PRNGKey], tuple[AgentState, Metrics]]
+    act: Callable[[Params, jax.Array], jax.Array]
+    actor_apply: Callable[[Params, jax.Array], jax.Array]
+    critic_apply: Callable[[Params, jax.Array, jax.Array], jax.Array]
+    config: Any
