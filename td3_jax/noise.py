@@ -52,9 +52,7 @@ class OUState:
 
 def ou_init(action_size: int, params: OUParams = OUParams()) -> OUState:
     """A process at rest at ``mu`` (call again at each episode start, as the seed does)."""
-    return OUState(
-        x=jnp.full((action_size,), params.mu, jnp.float32), t=jnp.zeros((), jnp.int32)
-    )
+    return OUState(x=jnp.full((action_size,), params.mu, jnp.float32), t=jnp.zeros((), jnp.int32))
 
 
 def ou_sigma(params: OUParams, t: jax.Array) -> jax.Array:
@@ -63,7 +61,9 @@ def ou_sigma(params: OUParams, t: jax.Array) -> jax.Array:
     return params.max_sigma - (params.max_sigma - params.min_sigma) * frac
 
 
-def ou_step(key: PRNGKey, state: OUState, params: OUParams = OUParams()) -> tuple[OUState, jax.Array]:
+def ou_step(
+    key: PRNGKey, state: OUState, params: OUParams = OUParams()
+) -> tuple[OUState, jax.Array]:
     """One step ``x <- x + theta * (mu - x) + sigma(t) * N(0, 1)``; returns ``(state, x)``."""
     sigma = ou_sigma(params, state.t)
     dx = params.theta * (params.mu - state.x) + sigma * jax.random.normal(

@@ -59,9 +59,7 @@ def init(capacity: int, example_transition: Any) -> ReplayBuffer:
     data = jax.tree.map(
         lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.result_type(x)), example_transition
     )
-    return ReplayBuffer(
-        data=data, position=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32)
-    )
+    return ReplayBuffer(data=data, position=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32))
 
 
 def add(buffer: ReplayBuffer, transitions: Any) -> ReplayBuffer:

@@ -179,9 +179,7 @@ def _actor_critic(
         )
         return state, actor_loss
 
-    def update(
-        state: AgentState, batch: Transition, key: PRNGKey
-    ) -> tuple[AgentState, Metrics]:
+    def update(state: AgentState, batch: Transition, key: PRNGKey) -> tuple[AgentState, Metrics]:
         target = target_values(state, batch, key)
         (critic_loss, q), grads = jax.value_and_grad(critic_loss_fn, has_aux=True)(
             state.critic_params, batch, target

@@ -1,0 +1,305 @@
+"""The training configuration, its validation and the named presets."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+from td3_jax.noise import OUParams
+from td3_jax.td3 import DDPGConfig, TD3Config
+
+
+class ConfigError(ValueError):
+    """A setting that cannot work; the CLI prints it as one line and exits with code 2."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything one training run needs. Sizes are static; the run compiles once for them.
+
+    An *iteration* is ``steps_per_iter`` vectorised environment steps (each one step in every one
+    of ``num_envs`` environments, so ``num_envs * steps_per_iter`` transitions) followed by
+    ``updates_per_iter`` gradient updates on batches of ``batch_size``.
+    """
+
+    env: str = "gymnax/Pendulum-v1"
+    """Environment as SOURCE/NAME: brax/ant, playground/CheetahRun, gymnax/Pendulum-v1, ..."""
+    algo: Literal["td3", "ddpg"] = "td3"
+    """Algorithm."""
+    seed: int = 0
+    """Random seed of the run."""
+    num_envs: int = 16
+    """Environments stepped in parallel."""
+    total_steps: int = 40_000
+    """Environment steps (summed over environments); rounded up to whole evaluation chunks."""
+    steps_per_iter: int = 1
+    """Vectorised environment steps per iteration."""
+    updates_per_iter: int = 8
+    """Gradient updates per iteration (after warm-up)."""
+    batch_size: int = 256
+    """Transitions per gradient update."""
+    buffer_size: int = 1_000_000
+    """Replay capacity in transitions (capped at the run's total steps)."""
+    warmup_steps: int = 2_000
+    """Environment steps with uniform random actions and no updates at the start."""
+    eval_every: int = 4_000
+    """Environment steps between evaluations (one compiled chunk); also the checkpoint period."""
+    eval_envs: int = 16
+    """Episodes per evaluation (one per environment, deterministic policy)."""
+    episode_length: int | None = None
+    """Time limit in steps; default: the environment's own (1000 for Brax/Playground)."""
+    env_backend: str = "mjx"
+    """Brax backend (mjx, generalized, positional, spring) or Playground impl (jax, warp)."""
+    normalize_obs: bool = True
+    """Normalise observations with running statistics kept in the train state."""
+    exploration: Literal["gaussian", "ou"] = "gaussian"
+    """Exploration noise: gaussian (std expl_noise) or ou (Ornstein-Uhlenbeck)."""
+    expl_noise: float = 0.1
+    """Gaussian exploration std, as a fraction of the action range."""
+    ou_theta: float = 0.15
+    """OU mean reversion."""
+    ou_sigma: float = 0.3
+    """OU initial sigma."""
+    ou_min_sigma: float = 0.3
+    """OU final sigma (linear decay over ou_decay_period steps per environment)."""
+    ou_decay_period: int = 100_000
+    """OU decay period in steps."""
+    hidden_sizes: tuple[int, ...] | None = None
+    """Hidden layer widths of actor and critics; default: the algorithm's (TD3 400 300, DDPG 256 256)."""
+    actor_lr: float | None = None
+    """Actor Adam learning rate; default: the algorithm's (TD3 1e-3, DDPG 1e-4)."""
+    critic_lr: float | None = None
+    """Critic Adam learning rate; default 1e-3."""
+    discount: float = 0.99
+    """Discount factor."""
+    tau: float | None = None
+    """Polyak rate of the targets; default: the algorithm's (TD3 0.005, DDPG 0.01)."""
+    policy_noise: float = 0.2
+    """TD3 target smoothing noise std."""
+    noise_clip: float = 0.5
+    """TD3 target smoothing noise clip."""
+    policy_freq: int = 2
+    """TD3 actor and target update period (in updates)."""
+    keep_checkpoints: int = 3
+    """Checkpoints kept on disk (the newest ones)."""
+
+    # Derived quantities --------------------------------------------------------------------
+    @property
+    def env_steps_per_iter(self) -> int:
+        return self.num_envs * self.steps_per_iter
+
+    @property
+    def iters_per_chunk(self) -> int:
+        return max(1, self.eval_every // self.env_steps_per_iter)
+
+    @property
+    def num_chunks(self) -> int:
+        return max(
+            1, math.ceil(self.total_steps / (self.iters_per_chunk * self.env_steps_per_iter))
+        )
+
+    @property
+    def replay_capacity(self) -> int:
+        return min(
+            self.buffer_size, self.num_chunks * self.iters_per_chunk * self.env_steps_per_iter
+        )
+
+    def agent_config(self) -> TD3Config | DDPGConfig:
+        """The agent's config: these settings where given, the algorithm's defaults otherwise."""
+        given = {
+            k: v
+            for k, v in dict(
+                hidden_sizes=self.hidden_sizes,
+                actor_lr=self.actor_lr,
+                critic_lr=self.critic_lr,
+                tau=self.tau,
+                discount=self.discount,
+            ).items()
+            if v is not None
+        }
+        if self.algo == "ddpg":
+            return DDPGConfig(**given)
+        return TD3Config(
+            policy_noise=self.policy_noise,
+            noise_clip=self.noise_clip,
+            policy_freq=self.policy_freq,
+            **given,
+        )
+
+    def ou_params(self) -> OUParams:
+        return OUParams(
+            theta=self.ou_theta,
+            max_sigma=self.ou_sigma,
+            min_sigma=self.ou_min_sigma,
+            decay_period=float(self.ou_decay_period),
+        )
+
+
+def validate(cfg: TrainConfig) -> TrainConfig:
+    """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work."""
+    positive = [
+        "num_envs",
+        "steps_per_iter",
+        "batch_size",
+        "buffer_size",
+        "eval_every",
+        "eval_envs",
+        "policy_freq",
+        "keep_checkpoints",
+    ]
+    for name in positive:
+        value = getattr(cfg, name)
+        if value <= 0:
+            raise ConfigError(f"--{name.replace('_', '-')} must be positive, got {value}")
+    for name in ["total_steps", "warmup_steps", "updates_per_iter"]:
+        value = getattr(cfg, name)
+        if value < 0:
+            raise ConfigError(f"--{name.replace('_', '-')} must not be negative, got {value}")
+    if cfg.algo not in ("td3", "ddpg"):
+        raise ConfigError(f"unknown algorithm {cfg.algo!r}; choose td3 or ddpg")
+    if cfg.episode_length is not None and cfg.episode_length <= 0:
+        raise ConfigError(f"--episode-length must be positive, got {cfg.episode_length}")
+    if cfg.env_steps_per_iter > cfg.replay_capacity:
+        raise ConfigError(
+            f"one iteration adds {cfg.env_steps_per_iter} transitions but the replay buffer holds "
+            f"only {cfg.replay_capacity}"
+        )
+    if cfg.batch_size > cfg.replay_capacity:
+        raise ConfigError(
+            f"--batch-size {cfg.batch_size} is larger than the replay buffer "
+            f"({cfg.replay_capacity} transitions)"
+        )
+    if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
+        raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
+    for name in ["expl_noise", "policy_noise", "noise_clip", "ou_sigma", "ou_min_sigma"]:
+        if getattr(cfg, name) < 0:
+            raise ConfigError(f"--{name.replace('_', '-')} must not be negative")
+    if not 0.0 <= cfg.discount <= 1.0:
+        raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")
+    if cfg.tau is not None and not 0.0 < cfg.tau <= 1.0:
+        raise ConfigError(f"--tau must be in (0, 1], got {cfg.tau}")
+    return cfg
+
+
+PRESETS: dict[str, dict] = {
+    # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
+    # 200 steps, one update per step from the moment the buffer holds a batch.
+    "seed-ddpg-pendulum": dict(
+        env="gymnax/Pendulum-v1",
+        algo="ddpg",
+        num_envs=1,
+        total_steps=20_000,
+        updates_per_iter=1,
+        batch_size=128,
+        buffer_size=50_000,
+        warmup_steps=128,
+        eval_every=2_000,
+        eval_envs=10,
+        exploration="ou",
+        normalize_obs=False,
+    ),
+    # The TD3 paper: one environment, 25k-step random warm-up... scaled to its published recipe.
+    "td3-classic": dict(
+        algo="td3",
+        num_envs=1,
+        total_steps=1_000_000,
+        updates_per_iter=1,
+        batch_size=256,
+        warmup_steps=25_000,
+        eval_every=5_000,
+        eval_envs=10,
+        expl_noise=0.1,
+        hidden_sizes=(256, 256),
+        actor_lr=3e-4,
+        critic_lr=3e-4,
+        normalize_obs=False,
+    ),
+    # Default CPU demo: TD3 on Pendulum with a handful of environments (a few minutes on 2 cores).
+    "pendulum": dict(
+        env="gymnax/Pendulum-v1",
+        algo="td3",
+        num_envs=16,
+        total_steps=40_000,
+        updates_per_iter=8,
+        batch_size=256,
+        warmup_steps=2_000,
+        eval_every=4_000,
+        hidden_sizes=(256, 256),
+        actor_lr=1e-3,
+        critic_lr=1e-3,
+    ),
+    # Small MJX task that learns on a CPU in minutes.
+    "inverted-pendulum": dict(
+        env="brax/inverted_pendulum",
+        algo="td3",
+        num_envs=128,
+        total_steps=25_600,
+        updates_per_iter=16,
+        batch_size=256,
+        warmup_steps=2_560,
+        eval_every=5_120,
+        eval_envs=16,
+        episode_length=200,
+        hidden_sizes=(64, 64),
+        actor_lr=1e-3,
+        critic_lr=1e-3,
+    ),
+    # GPU defaults for Brax locomotion with thousands of environments.
+    "ant": dict(
+        env="brax/ant",
+        algo="td3",
+        num_envs=4096,
+        total_steps=20_000_000,
+        updates_per_iter=8,
+        batch_size=8192,
+        warmup_steps=409_600,
+        eval_every=1_638_400,
+        eval_envs=128,
+        buffer_size=4_000_000,
+        hidden_sizes=(256, 256),
+        actor_lr=3e-4,
+        critic_lr=3e-4,
+        discount=0.99,
+        tau=0.005,
+    ),
+    "halfcheetah": dict(
+        env="brax/halfcheetah",
+        algo="td3",
+        num_envs=4096,
+        total_steps=20_000_000,
+        updates_per_iter=8,
+        batch_size=8192,
+        warmup_steps=409_600,
+        eval_every=1_638_400,
+        eval_envs=128,
+        buffer_size=4_000_000,
+        hidden_sizes=(256, 256),
+        actor_lr=3e-4,
+        critic_lr=3e-4,
+    ),
+    "humanoid": dict(
+        env="brax/humanoid",
+        algo="td3",
+        num_envs=4096,
+        total_steps=30_000_000,
+        updates_per_iter=8,
+        batch_size=8192,
+        warmup_steps=409_600,
+        eval_every=1_638_400,
+        eval_envs=128,
+        buffer_size=4_000_000,
+        hidden_sizes=(512, 256),
+        actor_lr=3e-4,
+        critic_lr=3e-4,
+    ),
+}
+
+
+def preset(name: str | None) -> TrainConfig:
+    """The config of a named preset (the defaults for ``None``)."""
+    if name is None:
+        return TrainConfig()
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
+    return TrainConfig(**PRESETS[name])

@@ -1,0 +1,173 @@
+"""The small environment interface and correct auto-reset, shared by every adapter.
+
+An adapter (Brax, Playground, gymnax) supplies an :class:`Environment`: two pure functions over
+one environment, ``reset_fn(key) -> (inner, obs)`` and ``step_fn(inner, action, key) -> (inner,
+obs, reward, terminated)``, plus sizes, the episode length and the action bounds. This module
+adds what every source needs, in one place:
+
+* actions: the agent acts in ``[-1, 1]^action_size``; :func:`step` rescales to the
+  environment's ``[low, high]`` bounds per dimension (the seed's ``NormalizedEnv``);
+* time limit: after ``episode_length`` steps an episode is *truncated* (``done = 0`` in the
+  stored transition, so the target bootstraps); a *termination* from the environment gives
+  ``done = 1``;
+* auto-reset: an episode that ends restarts from a fresh random state drawn with a new key
+  (never a cached first state), while the returned transition keeps the true last observation;
+* episode return and length of finished episodes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+ResetFn = Callable[[jax.Array], tuple[Any, jax.Array]]
+StepFn = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, jax.Array]]
+
+
+@dataclasses.dataclass(frozen=True)
+class Environment:
+    """One environment of a source, as pure functions (vmapped by :func:`reset` / :func:`step`).
+
+    Attributes:
+      name: ``SOURCE/NAME`` as given on the command line.
+      observation_size: length of the flat observation vector.
+      action_size: length of the action vector.
+      episode_length: the time limit in steps (truncation, not termination).
+      action_low, action_high: ``[action_size]`` bounds of the environment's own action space.
+      reset_fn: ``reset_fn(key) -> (inner_state, obs[obs_size])``.
+      step_fn: ``step_fn(inner, env_action[action_size], key) -> (inner, obs, reward,
+        terminated)``; ``terminated`` is a true termination, not a time limit.
+    """
+
+    name: str
+    observation_size: int
+    action_size: int
+    episode_length: int
+    action_low: np.ndarray
+    action_high: np.ndarray
+    reset_fn: ResetFn = dataclasses.field(repr=False)
+    step_fn: StepFn = dataclasses.field(repr=False)
+
+    def to_env_action(self, action: jax.Array) -> jax.Array:
+        """Maps an agent action in ``[-1, 1]`` to ``[low, high]``: ``low + (a + 1) (high - low) / 2``."""
+        low = jnp.asarray(self.action_low, jnp.float32)
+        high = jnp.asarray(self.action_high, jnp.float32)
+        return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+
+
+@struct.dataclass
+class EnvState:
+    """State of a batch of environments (every leaf has a leading ``num_envs`` axis).
+
+    Attributes:
+      inner: the source's own state (physics data, ...).
+      obs: ``[num_envs, obs_size]`` current observation.
+      key: ``[num_envs]`` PRNG keys, split at every step (stochastic steps and fresh resets).
+      steps: ``[num_envs]`` int32 steps taken in the current episode.
+      episode_return: ``[num_envs]`` float32 return so far in the current episode.
+    """
+
+    inner: Any
+    obs: jax.Array
+    key: jax.Array
+    steps: jax.Array
+    episode_return: jax.Array
+
+
+class StepResult(NamedTuple):
+    """What one batched step returns besides the new state (all ``[num_envs, ...]``).
+
+    ``next_obs`` is the observation the step produced; where an episode ended it is the true
+    last observation, while the new state's ``obs`` is already the first one of the next episode.
+    ``finished_return``/``finished_length`` are meaningful where ``terminated | truncated``.
+    """
+
+    next_obs: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    finished_return: jax.Array
+    finished_length: jax.Array
+
+
+def _strong(tree: Any) -> Any:
+    """Same values with strong (non-weak) dtypes, so reset and step states type-match exactly."""
+    return jax.tree.map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), tree)
+
+
+def _select(mask: jax.Array, on_true: Any, on_false: Any) -> Any:
+    """Per-environment ``where`` over two pytrees with leading ``num_envs`` axes."""
+
+    def pick(a, b):
+        m = mask.reshape(mask.shape + (1,) * (b.ndim - mask.ndim))
+        return jnp.where(m, a, b).astype(b.dtype)
+
+    return jax.tree.map(pick, on_true, on_false)
+
+
+def _reset_batch(env: Environment, keys: jax.Array) -> tuple[Any, jax.Array]:
+    inner, obs = jax.vmap(env.reset_fn)(keys)
+    return _strong(inner), obs.astype(jnp.float32)
+
+
+def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
+    """``num_envs`` environments, each from its own random initial state."""
+    reset_keys, state_keys = jnp.split(jax.random.split(key, 2 * num_envs), 2)
+    inner, obs = _reset_batch(env, reset_keys)
+    return EnvState(
+        inner=inner,
+        obs=obs,
+        key=state_keys,
+        steps=jnp.zeros((num_envs,), jnp.int32),
+        episode_return=jnp.zeros((num_envs,), jnp.float32),
+    )
+
+
+def step(env: Environment, state: EnvState, action: jax.Array) -> tuple[EnvState, StepResult]:
+    """Steps every environment with ``action [num_envs, action_size]`` in ``[-1, 1]``.
+
+    Environments whose episode ended (termination or time limit) restart from a fresh random
+    state drawn with a new key. The resets are computed only on steps where at least one
+    environment ended (a ``lax.cond`` over the whole batch).
+    """
+    keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
+    next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
+    inner, obs, reward, terminated = jax.vmap(env.step_fn)(
+        state.inner, env.to_env_action(action), step_key
+    )
+    inner, obs = _strong(inner), obs.astype(jnp.float32)
+    reward = reward.astype(jnp.float32)
+    terminated = terminated.astype(bool)
+    steps = state.steps + 1
+    truncated = (steps >= env.episode_length) & ~terminated
+    ended = terminated | truncated
+    episode_return = state.episode_return + reward
+
+    def with_resets(carry):
+        inner, obs = carry
+        fresh_inner, fresh_obs = _reset_batch(env, reset_key)
+        return _select(ended, fresh_inner, inner), _select(ended, fresh_obs, obs)
+
+    new_inner, new_obs = jax.lax.cond(jnp.any(ended), with_resets, lambda c: c, (inner, obs))
+    new_state = EnvState(
+        inner=new_inner,
+        obs=new_obs,
+        key=next_key,
+        steps=jnp.where(ended, 0, steps),
+        episode_return=jnp.where(ended, 0.0, episode_return),
+    )
+    result = StepResult(
+        next_obs=obs,
+        reward=reward,
+        terminated=terminated,
+        truncated=truncated,
+        finished_return=episode_return,
+        finished_length=steps,
+    )
+    return new_state, result

@@ -1,0 +1,54 @@
+"""gymnax environments with a continuous (Box) action space, e.g. ``gymnax/Pendulum-v1``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from td3_jax.envs.base import Environment
+
+CONTINUOUS = ("Pendulum-v1", "MountainCarContinuous-v0")
+
+
+def names() -> list[str]:
+    return list(CONTINUOUS)
+
+
+def make(name: str, *, episode_length: int | None = None) -> Environment:
+    """A gymnax environment driven through ``reset_env``/``step_env`` (no gymnax auto-reset).
+
+    gymnax's ``done`` mixes termination and the time limit; the time-limit part is removed here
+    (our wrapper applies the limit itself and treats it as truncation).
+    """
+    import gymnax
+    from gymnax.environments import spaces
+
+    if name not in CONTINUOUS:
+        raise ValueError(f"gymnax/{name} is not a continuous-action gymnax environment")
+    env, params = gymnax.make(name)
+    space = env.action_space(params)
+    if not isinstance(space, spaces.Box):  # pragma: no cover - guarded by CONTINUOUS
+        raise ValueError(f"gymnax/{name} has no continuous action space")
+    limit = int(params.max_steps_in_episode)
+    action_size = int(np.prod(space.shape))
+    obs_size = int(np.prod(env.observation_space(params).shape))
+
+    def reset_fn(key):
+        obs, state = env.reset_env(key, params)
+        return state, obs.reshape(obs_size)
+
+    def step_fn(state, action, key):
+        action = action.reshape(space.shape)
+        obs, state, reward, done, _ = env.step_env(key, state, action, params)
+        terminated = done & (state.time < limit)
+        return state, obs.reshape(obs_size), reward, terminated
+
+    return Environment(
+        name=f"gymnax/{name}",
+        observation_size=obs_size,
+        action_size=action_size,
+        episode_length=int(episode_length or limit),
+        action_low=np.broadcast_to(np.asarray(space.low, np.float32), (action_size,)).copy(),
+        action_high=np.broadcast_to(np.asarray(space.high, np.float32), (action_size,)).copy(),
+        reset_fn=reset_fn,
+        step_fn=step_fn,
+    )

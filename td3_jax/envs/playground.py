@@ -1,0 +1,57 @@
+"""MuJoCo Playground DM Control Suite tasks (``playground/NAME``), optional extra.
+
+Loaded with ``impl="jax"`` (MJX in pure JAX) by default; Playground's default ``"warp"`` needs
+warp-lang. Install with ``pip install 'td3-jax[playground]'``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from td3_jax.envs.base import Environment
+
+
+def _suite():
+    try:
+        from mujoco_playground import dm_control_suite
+    except ImportError as err:  # pragma: no cover - depends on the optional extra
+        raise ImportError(
+            "playground environments need MuJoCo Playground: pip install 'td3-jax[playground]'"
+        ) from err
+    return dm_control_suite
+
+
+def names() -> list[str]:
+    """DM Control Suite task names, or an empty list when Playground is not installed."""
+    try:
+        return sorted(_suite().ALL_ENVS)
+    except ImportError:
+        return []
+
+
+def make(name: str, *, impl: str = "jax", episode_length: int | None = None) -> Environment:
+    """A Playground DM Control Suite task; its ``done`` is a termination (rare in the suite)."""
+    suite = _suite()
+    config = suite.get_default_config(name)
+    env = suite.load(name, config=config, config_overrides={"impl": impl})
+    length = int(episode_length or config.episode_length)
+
+    def reset_fn(key):
+        state = env.reset(key)
+        return state, state.obs
+
+    def step_fn(state, action, key):
+        del key
+        state = env.step(state, action)
+        return state, state.obs, state.reward, state.done > 0.5
+
+    return Environment(
+        name=f"playground/{name}",
+        observation_size=int(env.observation_size),
+        action_size=int(env.action_size),
+        episode_length=length,
+        action_low=-np.ones(env.action_size, np.float32),
+        action_high=np.ones(env.action_size, np.float32),
+        reset_fn=reset_fn,
+        step_fn=step_fn,
+    )

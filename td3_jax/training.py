@@ -1,0 +1,252 @@
+"""The compiled training program: ``chunk(train_state) -> (train_state, metrics)``.
+
+One chunk is a ``jax.lax.scan`` over iterations of {act in every environment, step them all,
+write the transitions to the ring buffer, take ``updates_per_iter`` gradient updates}. Nothing in
+it touches the host. :func:`make_trainer` builds the pure pieces for a config; the host loop in
+:mod:`td3_jax.run` only calls them, logs, evaluates and checkpoints. Because every piece is a
+pure function of the :class:`TrainState` pytree, seeds are a ``jax.vmap`` over it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from td3_jax import envs, noise, normalization, replay
+from td3_jax.config import TrainConfig
+from td3_jax.td3 import ddpg, td3
+from td3_jax.types import Agent, AgentState, Transition
+
+
+@struct.dataclass
+class TrainState:
+    """The whole state of a run; checkpointing it is enough to resume exactly."""
+
+    agent: AgentState
+    buffer: replay.ReplayBuffer
+    env_state: envs.EnvState
+    obs_stats: normalization.RunningStats
+    ou_state: noise.OUState
+    key: jax.Array
+    env_steps: jax.Array  # int32 transitions collected so far (summed over environments)
+    iteration: jax.Array  # int32 iterations done
+
+
+class Trainer(NamedTuple):
+    """Pure functions of one configuration.
+
+    Attributes:
+      env: the environment.
+      agent: the TD3/DDPG agent.
+      init: ``init(key) -> TrainState``.
+      chunk: ``chunk(state) -> (state, metrics)``: ``config.iters_per_chunk`` iterations.
+      evaluate: ``evaluate(state, key) -> returns[eval_envs]``: one deterministic episode per
+        evaluation environment.
+    """
+
+    config: TrainConfig
+    env: envs.Environment
+    agent: Agent
+    init: Callable[[jax.Array], TrainState]
+    chunk: Callable[[TrainState], tuple[TrainState, dict[str, jax.Array]]]
+    evaluate: Callable[[TrainState, jax.Array], jax.Array]
+
+
+def make_agent(cfg: TrainConfig, env: envs.Environment) -> Agent:
+    build = ddpg if cfg.algo == "ddpg" else td3
+    return build(cfg.agent_config(), env.observation_size, env.action_size)
+
+
+def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Trainer:
+    """Builds the pure training pieces for ``cfg`` (the environment is made if not given)."""
+    env = env or envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
+    agent = make_agent(cfg, env)
+    ou_params = cfg.ou_params()
+    num_envs, batch_size = cfg.num_envs, cfg.batch_size
+
+    def normalize(stats, obs):
+        return normalization.normalize(stats, obs) if cfg.normalize_obs else obs
+
+    def init(key: jax.Array) -> TrainState:
+        agent_key, env_key, key = jax.random.split(key, 3)
+        env_state = envs.reset(env, env_key, num_envs)
+        example = Transition(
+            obs=jnp.zeros((env.observation_size,), jnp.float32),
+            action=jnp.zeros((env.action_size,), jnp.float32),
+            reward=jnp.zeros((), jnp.float32),
+            next_obs=jnp.zeros((env.observation_size,), jnp.float32),
+            done=jnp.zeros((), jnp.float32),
+        )
+        return TrainState(
+            agent=agent.init(agent_key),
+            buffer=replay.init(cfg.replay_capacity, example),
+            env_state=env_state,
+            obs_stats=normalization.init(env.observation_size),
+            ou_state=jax.vmap(lambda _: noise.ou_init(env.action_size, ou_params))(
+                jnp.arange(num_envs)
+            ),
+            key=key,
+            env_steps=jnp.zeros((), jnp.int32),
+            iteration=jnp.zeros((), jnp.int32),
+        )
+
+    def explore(state: TrainState, key: jax.Array) -> tuple[jax.Array, noise.OUState]:
+        """Actions [num_envs, action_size] in [-1, 1]: random during warm-up, noisy policy after."""
+        random_key, noise_key = jax.random.split(key)
+        obs = normalize(state.obs_stats, state.env_state.obs)
+        policy = agent.act(state.agent.actor_params, obs)
+        noise_keys = jax.random.split(noise_key, num_envs)
+        ou_state = state.ou_state
+        if cfg.exploration == "ou":
+            ou_state, noisy = jax.vmap(lambda k, s, a: noise.ou_action(k, s, a, ou_params))(
+                noise_keys, ou_state, policy
+            )
+        else:
+            noisy = jax.vmap(lambda k, a: noise.gaussian(k, a, cfg.expl_noise))(noise_keys, policy)
+        uniform = jax.random.uniform(random_key, policy.shape, minval=-1.0, maxval=1.0)
+        action = jnp.where(state.env_steps < cfg.warmup_steps, uniform, noisy)
+        return action, ou_state
+
+    def env_step(state: TrainState, _) -> tuple[TrainState, dict[str, jax.Array]]:
+        key, act_key = jax.random.split(state.key)
+        action, ou_state = explore(state, act_key)
+        obs = state.env_state.obs
+        env_state, result = envs.step(env, state.env_state, action)
+        transition = Transition(
+            obs=obs,
+            action=action,
+            reward=result.reward,
+            next_obs=result.next_obs,
+            done=result.terminated.astype(jnp.float32),
+        )
+        ended = result.terminated | result.truncated
+        state = state.replace(
+            buffer=replay.add(state.buffer, transition),
+            env_state=env_state,
+            obs_stats=normalization.update(state.obs_stats, obs),
+            ou_state=noise.ou_reset(ou_state, ended[:, None], ou_params),
+            key=key,
+            env_steps=state.env_steps + num_envs,
+        )
+        metrics = {
+            "episodes": jnp.sum(ended).astype(jnp.float32),
+            "return_sum": jnp.sum(jnp.where(ended, result.finished_return, 0.0)),
+            "length_sum": jnp.sum(jnp.where(ended, result.finished_length, 0)).astype(jnp.float32),
+            "reward_mean": jnp.mean(result.reward),
+        }
+        return state, metrics
+
+    def gradient_step(carry, key):
+        agent_state, buffer, stats = carry
+        sample_key, update_key = jax.random.split(key)
+        batch = replay.sample(buffer, sample_key, batch_size)
+        batch = batch._replace(
+            obs=normalize(stats, batch.obs), next_obs=normalize(stats, batch.next_obs)
+        )
+        agent_state, metrics = agent.update(agent_state, batch, update_key)
+        return (agent_state, buffer, stats), metrics
+
+    def updates(agent_state: AgentState, buffer, stats, key) -> tuple[AgentState, dict]:
+        keys = jax.random.split(key, cfg.updates_per_iter)
+        (agent_state, _, _), metrics = jax.lax.scan(
+            gradient_step, (agent_state, buffer, stats), keys
+        )
+        metrics = {k: jnp.sum(v) for k, v in metrics.items()}
+        metrics["updates"] = jnp.asarray(cfg.updates_per_iter, jnp.float32)
+        return agent_state, metrics
+
+    def no_updates(agent_state: AgentState, buffer, stats, key):
+        del buffer, stats, key
+        return agent_state, zero_update_metrics
+
+    def iteration(state: TrainState, _) -> tuple[TrainState, dict[str, jax.Array]]:
+        state, env_metrics = jax.lax.scan(env_step, state, None, length=cfg.steps_per_iter)
+        env_metrics = {
+            k: (jnp.mean(v) if k == "reward_mean" else jnp.sum(v)) for k, v in env_metrics.items()
+        }
+        key, update_key = jax.random.split(state.key)
+        learning = (state.env_steps >= cfg.warmup_steps) & (state.buffer.size >= batch_size)
+        if cfg.updates_per_iter > 0:
+            agent_state, update_metrics = jax.lax.cond(
+                learning,
+                updates,
+                no_updates,
+                state.agent,
+                state.buffer,
+                state.obs_stats,
+                update_key,
+            )
+        else:
+            agent_state, update_metrics = state.agent, zero_update_metrics
+        state = state.replace(agent=agent_state, key=key, iteration=state.iteration + 1)
+        return state, {**env_metrics, **update_metrics}
+
+    def chunk(state: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
+        state, per_iter = jax.lax.scan(iteration, state, None, length=cfg.iters_per_chunk)
+        totals = {k: jnp.sum(v) for k, v in per_iter.items()}
+        n_updates = jnp.maximum(totals["updates"], 1.0)
+        n_actor = jnp.maximum(totals["actor_updated"], 1.0)
+        n_episodes = jnp.maximum(totals["episodes"], 1.0)
+        metrics = {
+            "critic_loss": totals["critic_loss"] / n_updates,
+            "actor_loss": totals["actor_loss"] / n_actor,
+            "q_mean": totals["q_mean"] / n_updates,
+            "target_mean": totals["target_mean"] / n_updates,
+            "updates": totals["updates"],
+            "train_episodes": totals["episodes"],
+            "train_return_mean": jnp.where(
+                totals["episodes"] > 0, totals["return_sum"] / n_episodes, jnp.nan
+            ),
+            "train_length_mean": jnp.where(
+                totals["episodes"] > 0, totals["length_sum"] / n_episodes, jnp.nan
+            ),
+            "reward_mean": jnp.mean(per_iter["reward_mean"]),
+            "params_finite": _all_finite(state.agent).astype(jnp.float32),
+        }
+        return state, metrics
+
+    def evaluate(state: TrainState, key: jax.Array) -> jax.Array:
+        env_state = envs.reset(env, key, cfg.eval_envs)
+
+        def body(carry, _):
+            env_state, returns, alive = carry
+            obs = normalize(state.obs_stats, env_state.obs)
+            action = agent.act(state.agent.actor_params, obs)
+            env_state, result = envs.step(env, env_state, action)
+            returns = returns + jnp.where(alive, result.reward, 0.0)
+            alive = alive & ~(result.terminated | result.truncated)
+            return (env_state, returns, alive), None
+
+        init_carry = (
+            env_state,
+            jnp.zeros((cfg.eval_envs,), jnp.float32),
+            jnp.ones((cfg.eval_envs,), bool),
+        )
+        (_, returns, _), _ = jax.lax.scan(body, init_carry, None, length=env.episode_length)
+        return returns
+
+    # The update metrics' structure, for the branch that skips the updates.
+    example_state = jax.eval_shape(init, jax.random.PRNGKey(0))
+    update_shapes = jax.eval_shape(
+        updates,
+        example_state.agent,
+        example_state.buffer,
+        example_state.obs_stats,
+        jax.random.PRNGKey(0),
+    )[1]
+    zero_update_metrics = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), update_shapes)
+
+    return Trainer(cfg, env, agent, init, chunk, evaluate)
+
+
+def _all_finite(tree: Any) -> jax.Array:
+    leaves = [
+        jnp.all(jnp.isfinite(x))
+        for x in jax.tree.leaves(tree)
+        if jnp.issubdtype(x.dtype, jnp.floating)
+    ]
+    return jnp.all(jnp.stack(leaves))
