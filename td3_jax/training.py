@@ -196,7 +196,7 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
             "actor_loss": totals["actor_loss"] / n_actor,
             "q_mean": totals["q_mean"] / n_updates,
             "target_mean": totals["target_mean"] / n_updates,
-            "updates": totals["updates"],
+            "chunk_updates": totals["updates"],
             "train_episodes": totals["episodes"],
             "train_return_mean": jnp.where(
                 totals["episodes"] > 0, totals["return_sum"] / n_episodes, jnp.nan

@@ -1,0 +1,3 @@
+from td3_jax.cli import main
+
+main()

@@ -1,0 +1,192 @@
+"""``td3-jax``: train, evaluate and plot from the command line.
+
+Subcommands: ``train`` (flags from :class:`~td3_jax.config.TrainConfig`), ``eval``, ``plot``,
+``envs``, ``presets``. Bad settings print one line and exit with code 2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from td3_jax.config import PRESETS, ConfigError, TrainConfig, preset
+
+USAGE = """\
+usage: td3-jax {train,eval,plot,envs,presets} [FLAGS]
+
+Train TD3/DDPG on thousands of vectorised environments inside one compiled JAX program.
+
+subcommands:
+  train     train an agent:  td3-jax train --env brax/ant --preset ant --out runs/ant
+  eval      evaluate a run's newest checkpoint:  td3-jax eval --run runs/ant
+  plot      redraw a run's curve.png from its metrics.jsonl
+  envs      list the environment names this installation knows
+  presets   list the presets and what they set
+
+`td3-jax SUBCOMMAND --help` lists a subcommand's flags.
+"""
+
+PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainCommand(TrainConfig):
+    """Train TD3 or DDPG. Flags not given take the preset's value, else the default shown."""
+
+    out: Path = Path("runs/latest")
+    """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/."""
+    resume: bool = False
+    """Continue the run in --out exactly where its newest checkpoint left it."""
+    preset: PresetName | None = None  # type: ignore[valid-type]
+    """Named settings to start from (see `td3-jax presets`); other flags override them."""
+    quiet: bool = False
+    """No live progress display."""
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalCommand:
+    """Evaluate the newest checkpoint of a run with the deterministic policy."""
+
+    run: Path
+    """Run directory written by `td3-jax train`."""
+    episodes: int = 32
+    """Episodes (one per vectorised environment)."""
+    seed: int = 12345
+    """Seed of the evaluation environments."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PlotCommand:
+    """Redraw curve.png of a run from its metrics.jsonl."""
+
+    run: Path
+    """Run directory written by `td3-jax train`."""
+
+
+def _flag_value(args: list[str], flag: str) -> str | None:
+    for i, arg in enumerate(args):
+        if arg == flag and i + 1 < len(args):
+            return args[i + 1]
+        if arg.startswith(flag + "="):
+            return arg.split("=", 1)[1]
+    return None
+
+
+def _train_defaults(args: list[str]) -> TrainCommand:
+    """Defaults for the flags: the saved run config on --resume, else the preset's, else ours."""
+    from td3_jax.run import CONFIG_FILE, load_config
+
+    out = _flag_value(args, "--out")
+    if "--resume" in args and out and (Path(out) / CONFIG_FILE).exists():
+        base = load_config(Path(out))
+        name = None
+    else:
+        name = _flag_value(args, "--preset")
+        base = preset(name) if name in PRESETS or name is None else TrainConfig()
+    return TrainCommand(**dataclasses.asdict(base), preset=name)
+
+
+def train_main(args: list[str]) -> None:
+    from td3_jax.run import train
+
+    command = tyro.cli(TrainCommand, args=args, default=_train_defaults(args), prog="td3-jax train")
+    cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
+    records = train(cfg, command.out, resume=command.resume, progress=not command.quiet)
+    if records:
+        last = records[-1]
+        print(
+            f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
+            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}; outputs in {command.out}"
+        )
+
+
+def eval_main(args: list[str]) -> None:
+    import jax
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    from td3_jax.run import load_config, restore_state, return_stats
+    from td3_jax.training import make_trainer
+
+    command = tyro.cli(EvalCommand, args=args, prog="td3-jax eval")
+    if command.episodes <= 0:
+        raise ConfigError(f"--episodes must be positive, got {command.episodes}")
+    cfg = dataclasses.replace(load_config(command.run), eval_envs=command.episodes)
+    trainer = make_trainer(cfg)
+    state, meta, _ = restore_state(trainer, command.run)
+    returns = np.asarray(jax.jit(trainer.evaluate)(state, jax.random.PRNGKey(command.seed)))
+    stats = return_stats(returns)
+    table = Table(title=f"{cfg.algo} on {cfg.env}, {meta['env_steps']} env steps")
+    for column in ("episodes", "mean", "std", "min", "max"):
+        table.add_column(column, justify="right")
+    table.add_row(
+        str(len(returns)),
+        *(f"{stats['eval_return_' + k]:.1f}" for k in ("mean", "std", "min", "max")),
+    )
+    Console().print(table)
+
+
+def plot_main(args: list[str]) -> None:
+    from td3_jax.logger import plot_curve
+
+    command = tyro.cli(PlotCommand, args=args, prog="td3-jax plot")
+    path = plot_curve(command.run)
+    if path is None:
+        raise ConfigError(f"{command.run} has no metrics.jsonl to plot")
+    print(path)
+
+
+def envs_main(args: list[str]) -> None:
+    from td3_jax import envs
+
+    print("\n".join(envs.known_names()))
+
+
+def presets_main(args: list[str]) -> None:
+    for name, values in PRESETS.items():
+        settings = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in values.items())
+        print(f"{name}: {settings}")
+
+
+COMMANDS = {
+    "train": train_main,
+    "eval": eval_main,
+    "plot": plot_main,
+    "envs": envs_main,
+    "presets": presets_main,
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``td3-jax`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        return
+    command = COMMANDS.get(argv[0])
+    if command is None:
+        print(f"td3-jax: error: unknown subcommand {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
+        sys.exit(2)
+    from td3_jax.checkpoint import CheckpointError
+    from td3_jax.envs import UnknownEnvironmentError
+    from td3_jax.run import NonFiniteError
+
+    try:
+        command(argv[1:])
+    except (ConfigError, UnknownEnvironmentError, CheckpointError) as err:
+        print(f"td3-jax: error: {err}", file=sys.stderr)
+        sys.exit(2)
+    except NonFiniteError as err:
+        print(f"td3-jax: error: {err}", file=sys.stderr)
+        sys.exit(3)
+    except KeyboardInterrupt:
+        print(
+            "td3-jax: interrupted; the newest checkpoint is kept (resume with --resume)",
+            file=sys.stderr,
+        )
+        sys.exit(130)

@@ -1,0 +1,91 @@
+"""Run outputs: ``metrics.jsonl``, TensorBoard event files and ``curve.png``."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+
+class MetricsLogger:
+    """Appends one JSON object per evaluation to ``metrics.jsonl`` and mirrors it to TensorBoard.
+
+    On resume, records beyond the restored checkpoint (written after it, then lost with the
+    stop) are dropped first, so the file never holds an evaluation twice.
+    """
+
+    def __init__(self, out_dir: Path, resume_env_steps: int | None = None):
+        self.path = Path(out_dir) / "metrics.jsonl"
+        kept = [
+            r
+            for r in read_metrics(self.path)
+            if resume_env_steps is not None and r["env_steps"] <= resume_env_steps
+        ]
+        with self.path.open("w") as f:
+            for record in kept:
+                f.write(json.dumps(record) + "\n")
+        from tensorboardX import SummaryWriter
+
+        self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"))
+
+    def write(self, record: dict[str, Any]) -> None:
+        with self.path.open("a") as f:
+            f.write(json.dumps(_jsonable(record)) + "\n")
+        step = int(record["env_steps"])
+        for key, value in record.items():
+            if isinstance(value, int | float) and key != "env_steps" and math.isfinite(value):
+                self._tb.add_scalar(key, value, step)
+        self._tb.flush()
+
+    def close(self) -> None:
+        self._tb.close()
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """The records of a ``metrics.jsonl`` (an empty list when there is none yet)."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def plot_curve(out_dir: Path) -> Path | None:
+    """Writes ``curve.png``: evaluation return against env steps and against wall-clock time."""
+    records = read_metrics(Path(out_dir) / "metrics.jsonl")
+    if not records:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [r["env_steps"] for r in records]
+    wall = [r["wall_time_s"] for r in records]
+    mean = [r["eval_return_mean"] for r in records]
+    std = [r["eval_return_std"] for r in records]
+    lower = [m - s for m, s in zip(mean, std, strict=True)]
+    upper = [m + s for m, s in zip(mean, std, strict=True)]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, x, label in ((axes[0], steps, "environment steps"), (axes[1], wall, "wall-clock (s)")):
+        ax.plot(x, mean, marker="o", ms=3)
+        ax.fill_between(x, lower, upper, alpha=0.25)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("evaluation return (mean ± std)")
+    fig.suptitle(records[-1].get("env", ""))
+    fig.tight_layout()
+    path = Path(out_dir) / "curve.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _jsonable(record: dict[str, Any]) -> dict[str, Any]:
+    """Floats stay floats; NaN and infinities become null (JSON has no such numbers)."""
+    out = {}
+    for key, value in record.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            value = None
+        out[key] = value
+    return out
