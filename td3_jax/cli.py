@@ -45,6 +45,8 @@ class TrainCommand(TrainConfig):
     """Named settings to start from (see `td3-jax presets`); other flags override them."""
     quiet: bool = False
     """No live progress display."""
+    time_budget_s: float | None = None
+    """Stop after the first evaluation past this wall-clock budget (compile included)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,12 +97,19 @@ def train_main(args: list[str]) -> None:
 
     command = tyro.cli(TrainCommand, args=args, default=_train_defaults(args), prog="td3-jax train")
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
-    records = train(cfg, command.out, resume=command.resume, progress=not command.quiet)
+    records = train(
+        cfg,
+        command.out,
+        resume=command.resume,
+        progress=not command.quiet,
+        time_budget_s=command.time_budget_s,
+    )
     if records:
         last = records[-1]
         print(
             f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
-            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}; outputs in {command.out}"
+            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}; "
+            f"outputs in {command.out}"
         )
 
 

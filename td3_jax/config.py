@@ -66,7 +66,7 @@ class TrainConfig:
     ou_decay_period: int = 100_000
     """OU decay period in steps."""
     hidden_sizes: tuple[int, ...] | None = None
-    """Hidden layer widths of actor and critics; default: the algorithm's (TD3 400 300, DDPG 256 256)."""
+    """Hidden widths of actor and critics; default: the algorithm's (TD3 400 300, DDPG 256 256)."""
     actor_lr: float | None = None
     """Actor Adam learning rate; default: the algorithm's (TD3 1e-3, DDPG 1e-4)."""
     critic_lr: float | None = None
@@ -83,6 +83,8 @@ class TrainConfig:
     """TD3 actor and target update period (in updates)."""
     keep_checkpoints: int = 3
     """Checkpoints kept on disk (the newest ones)."""
+    checkpoint_every: int = 1
+    """Evaluations between checkpoints (the last chunk is always checkpointed)."""
 
     # Derived quantities --------------------------------------------------------------------
     @property
@@ -147,6 +149,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         "eval_envs",
         "policy_freq",
         "keep_checkpoints",
+        "checkpoint_every",
     ]
     for name in positive:
         value = getattr(cfg, name)

@@ -72,6 +72,7 @@ def train(
     resume: bool = False,
     progress: bool = True,
     stop_after_chunks: int | None = None,
+    time_budget_s: float | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` into ``out_dir``; returns the evaluation records written this call.
 
@@ -79,6 +80,8 @@ def train(
       resume: continue from the newest checkpoint in ``out_dir`` (which must exist).
       progress: show a live progress display.
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call; for tests.
+      time_budget_s: stop after the first chunk that ends past this many seconds of the run's
+        wall-clock (compile included; counted across resumes). The run stays resumable.
     """
     validate(cfg)
     out_dir = Path(out_dir)
@@ -114,6 +117,12 @@ def train(
         for index in range(start_chunk, cfg.num_chunks):
             if stop_after_chunks is not None and index - start_chunk >= stop_after_chunks:
                 break
+            if (
+                records
+                and time_budget_s is not None
+                and records[-1]["wall_time_s"] >= time_budget_s
+            ):
+                break
             chunk_start = time.perf_counter()
             state, metrics = chunk(state)
             metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
@@ -134,9 +143,15 @@ def train(
             }
             logger.write(record)
             records.append(record)
-            checkpointer.save(
-                index + 1, state, {"wall_time_s": record["wall_time_s"], "env_steps": env_steps}
+            last_chunk = (
+                index + 1 == cfg.num_chunks
+                or (stop_after_chunks is not None and index + 1 - start_chunk >= stop_after_chunks)
+                or (time_budget_s is not None and record["wall_time_s"] >= time_budget_s)
             )
+            if last_chunk or (index + 1) % cfg.checkpoint_every == 0:
+                checkpointer.save(
+                    index + 1, state, {"wall_time_s": record["wall_time_s"], "env_steps": env_steps}
+                )
             display.update(record)
     finally:
         display.close()

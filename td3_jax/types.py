@@ -19,7 +19,7 @@ class Transition(NamedTuple):
 
     Attributes:
       obs: ``[..., obs_size]`` observation the action was taken in.
-      action: ``[..., action_size]`` action taken, in the actor's range ``[-max_action, max_action]``.
+      action: ``[..., action_size]`` action taken, in ``[-max_action, max_action]``.
       reward: ``[...]`` reward received.
       next_obs: ``[..., obs_size]`` observation after the step. At an episode end this is the true
         last observation of the episode, never the first observation of the next one.

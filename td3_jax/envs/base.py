@@ -55,7 +55,7 @@ class Environment:
     step_fn: StepFn = dataclasses.field(repr=False)
 
     def to_env_action(self, action: jax.Array) -> jax.Array:
-        """Maps an agent action in ``[-1, 1]`` to ``[low, high]``: ``low + (a + 1) (high - low) / 2``."""
+        """Maps an agent action in ``[-1, 1]`` to ``[low, high]`` per dimension."""
         low = jnp.asarray(self.action_low, jnp.float32)
         high = jnp.asarray(self.action_high, jnp.float32)
         return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
