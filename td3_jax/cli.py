@@ -116,28 +116,48 @@ def train_main(args: list[str]) -> None:
 def eval_main(args: list[str]) -> None:
     import jax
     import numpy as np
-    from rich.console import Console
-    from rich.table import Table
 
-    from td3_jax.run import load_config, restore_state, return_stats
-    from td3_jax.training import make_trainer
+    from td3_jax.population import make_population
+    from td3_jax.run import load_config, load_members, population_stats, restore_state
 
     command = tyro.cli(EvalCommand, args=args, prog="td3-jax eval")
     if command.episodes <= 0:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
     cfg = dataclasses.replace(load_config(command.run), eval_envs=command.episodes)
-    trainer = make_trainer(cfg)
-    state, meta, _ = restore_state(trainer, command.run)
-    returns = np.asarray(jax.jit(trainer.evaluate)(state, jax.random.PRNGKey(command.seed)))
-    stats = return_stats(returns)
-    table = Table(title=f"{cfg.algo} on {cfg.env}, {meta['env_steps']} env steps")
-    for column in ("episodes", "mean", "std", "min", "max"):
-        table.add_column(column, justify="right")
-    table.add_row(
-        str(len(returns)),
-        *(f"{stats['eval_return_' + k]:.1f}" for k in ("mean", "std", "min", "max")),
+    population = load_members(command.run, cfg)
+    program = make_population(cfg, population)
+    state, meta, _ = restore_state(program, command.run)
+    keys = jax.random.split(jax.random.PRNGKey(command.seed), len(population))
+    returns = np.asarray(jax.jit(program.evaluate)(state, keys))
+    title = (
+        f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
+        f"{command.episodes} episodes each"
     )
-    Console().print(table)
+    rows = [(m.label() or f"seed={m.seed}", returns[i]) for i, m in enumerate(population)]
+    print_returns_table(title, rows, population_stats(returns) if len(population) > 1 else None)
+
+
+def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
+    """Per-member mean/std/min/max of episode returns, then the statistics over members."""
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in ("member", "mean", "std", "min", "max"):
+        table.add_column(column, justify="right")
+    for label, returns in rows:
+        r = np.asarray(returns)
+        table.add_row(label, *(f"{v:.1f}" for v in (r.mean(), r.std(), r.min(), r.max())))
+    console = Console()
+    console.print(table)
+    if aggregate:
+        console.print(
+            f"over {len(rows)} members: mean {aggregate['eval_return_mean']:.1f} "
+            f"[95% CI {aggregate['eval_return_ci95_low']:.1f}, "
+            f"{aggregate['eval_return_ci95_high']:.1f}], median "
+            f"{aggregate['eval_return_median']:.1f}, IQM {aggregate['eval_return_iqm']:.1f}"
+        )
 
 
 def plot_main(args: list[str]) -> None:

@@ -28,7 +28,9 @@ class TrainConfig:
     algo: Literal["td3", "ddpg"] = "td3"
     """Algorithm."""
     seed: int = 0
-    """Random seed of the run."""
+    """Random seed of the run (of its first member with --seeds K)."""
+    seeds: int = 1
+    """Independent seeds (seed, seed+1, ...) trained side by side in one compiled program."""
     num_envs: int = 16
     """Environments stepped in parallel."""
     total_steps: int = 40_000
@@ -142,6 +144,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work."""
     positive = [
         "num_envs",
+        "seeds",
         "steps_per_iter",
         "batch_size",
         "buffer_size",

@@ -1,4 +1,8 @@
-"""The host loop: call the compiled chunk, evaluate, log, checkpoint. Nothing else."""
+"""The host loop: call the compiled chunk, evaluate, log, checkpoint. Nothing else.
+
+A run trains a *population* (:mod:`td3_jax.population`): one seed by default, ``--seeds K``
+seeds, or every combination of a sweep times the seeds, all in one compiled program.
+"""
 
 from __future__ import annotations
 
@@ -10,22 +14,28 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+from td3_jax import stats
 from td3_jax.checkpoint import Checkpointer, CheckpointError
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
-from td3_jax.training import Trainer, TrainState, make_trainer
+from td3_jax.population import Member, Population, make_population, members
 
 CONFIG_FILE = "config.json"
+MEMBERS_FILE = "members.json"
 
 
 class NonFiniteError(RuntimeError):
     """A loss or parameter became NaN/inf; the run stopped and kept its last good checkpoint."""
 
 
-def save_config(cfg: TrainConfig, out_dir: Path) -> None:
-    (Path(out_dir) / CONFIG_FILE).write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+def save_config(cfg: TrainConfig, population: list[Member], out_dir: Path) -> None:
+    out_dir = Path(out_dir)
+    (out_dir / CONFIG_FILE).write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
+    listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
+    (out_dir / MEMBERS_FILE).write_text(json.dumps(listing, indent=2) + "\n")
 
 
 def load_config(out_dir: Path) -> TrainConfig:
@@ -33,19 +43,43 @@ def load_config(out_dir: Path) -> TrainConfig:
     path = Path(out_dir) / CONFIG_FILE
     if not path.exists():
         raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory")
-    raw = json.loads(path.read_text())
+    try:
+        raw = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{path} is not valid JSON ({err})") from err
     if raw.get("hidden_sizes") is not None:
         raw["hidden_sizes"] = tuple(raw["hidden_sizes"])
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     return TrainConfig(**{k: v for k, v in raw.items() if k in known})
 
 
-def eval_key(cfg: TrainConfig, chunk_index: int) -> jax.Array:
-    """The evaluation key after chunk ``chunk_index``: independent of stops and resumes."""
-    return jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1_000_003), chunk_index)
+def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
+    """The members of a run directory (its seeds and swept settings)."""
+    path = Path(out_dir) / MEMBERS_FILE
+    if not path.exists():
+        return members(cfg)
+    return [
+        Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
+        for m in json.loads(path.read_text())
+    ]
+
+
+def eval_keys(population: list[Member], chunk_index: int) -> jax.Array:
+    """Evaluation keys after chunk ``chunk_index``, one per member, independent of resumes.
+
+    A member's key depends only on its seed, so seed k of a K-seed run is evaluated exactly like
+    a single-seed run of that seed.
+    """
+    return jnp.stack(
+        [
+            jax.random.fold_in(jax.random.PRNGKey(m.seed + 1_000_003), chunk_index)
+            for m in population
+        ]
+    )
 
 
 def return_stats(returns: np.ndarray) -> dict[str, float]:
+    """Mean, std, min and max of one member's episode returns."""
     returns = np.asarray(returns, np.float64)
     return {
         "eval_return_mean": float(returns.mean()),
@@ -55,12 +89,25 @@ def return_stats(returns: np.ndarray) -> dict[str, float]:
     }
 
 
-def restore_state(trainer: Trainer, out_dir: Path) -> tuple[TrainState, dict, int]:
-    """The newest checkpoint of a run directory, checked against the trainer's state layout."""
-    checkpointer = Checkpointer(Path(out_dir) / "checkpoints", trainer.config.keep_checkpoints)
+def population_stats(returns: np.ndarray) -> dict[str, float]:
+    """Statistics over members of their mean episode return (``returns[members, episodes]``).
+
+    ``eval_return_mean/median/iqm/ci95_*`` are over the members' means; ``eval_return_std`` is
+    the standard deviation of the members' means; ``min``/``max`` are over every episode.
+    """
+    summary = stats.summary(np.asarray(returns, np.float64).mean(axis=1))
+    return {
+        **{f"eval_return_{k}": v for k, v in summary.items()},
+        "eval_return_min": float(np.min(returns)),
+        "eval_return_max": float(np.max(returns)),
+    }
+
+
+def restore_state(population: Population, out_dir: Path, keep: int = 3):
+    """The newest checkpoint of a run directory, checked against the population's state layout."""
+    checkpointer = Checkpointer(Path(out_dir) / "checkpoints", keep)
     try:
-        abstract = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
-        return checkpointer.restore(abstract)
+        return checkpointer.restore(population.abstract_state)
     finally:
         checkpointer.close()
 
@@ -71,47 +118,48 @@ def train(
     *,
     resume: bool = False,
     progress: bool = True,
+    sweep: dict[str, list[float]] | None = None,
     stop_after_chunks: int | None = None,
     time_budget_s: float | None = None,
 ) -> list[dict[str, Any]]:
-    """Trains ``cfg`` into ``out_dir``; returns the evaluation records written this call.
+    """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
+
+    Returns the evaluation records written by this call (also appended to metrics.jsonl).
 
     Args:
-      resume: continue from the newest checkpoint in ``out_dir`` (which must exist).
+      resume: continue from the newest checkpoint in ``out_dir`` (which must exist); the
+        members are those saved in the run directory.
       progress: show a live progress display.
+      sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
+        trains ``cfg.seeds`` seeds, all in one program.
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call; for tests.
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock (compile included; counted across resumes). The run stays resumable.
     """
     validate(cfg)
     out_dir = Path(out_dir)
-    trainer = make_trainer(cfg)
+    population = load_members(out_dir, cfg) if resume else members(cfg, sweep)
+    program = make_population(cfg, population)
     checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
+    start = time.perf_counter()
     if resume:
         if checkpointer.latest_step() is None:
             raise CheckpointError(f"--resume given but {out_dir / 'checkpoints'} has no checkpoint")
-        abstract = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
-        state, meta, start_chunk = checkpointer.restore(abstract)
-        state = jax.device_put(state, jax.devices()[0])
+        state, meta, start_chunk = checkpointer.restore(program.abstract_state)
         wall_offset = float(meta["wall_time_s"])
     else:
         if checkpointer.latest_step() is not None:
             raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
         out_dir.mkdir(parents=True, exist_ok=True)
         start_chunk, wall_offset = 0, 0.0
-    save_config(cfg, out_dir)
-    logger = MetricsLogger(
-        out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg) if resume else None
-    )
-
-    start = time.perf_counter()
-    if not resume:
-        state = jax.device_put(
-            jax.jit(trainer.init)(jax.random.PRNGKey(cfg.seed)), jax.devices()[0]
-        )
-    chunk = jax.jit(trainer.chunk, donate_argnums=0)
-    evaluate = jax.jit(trainer.evaluate)
-    records = []
+        state = jax.jit(program.init)()
+    # Committed device arrays: the chunk then sees identical argument types on every call.
+    state = jax.device_put(state, jax.devices()[0])
+    save_config(cfg, population, out_dir)
+    logger = MetricsLogger(out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg))
+    chunk = jax.jit(program.chunk, donate_argnums=0)
+    evaluate = jax.jit(program.evaluate)
+    records: list[dict[str, Any]] = []
     display = _Progress(cfg, start_chunk, enabled=progress)
     try:
         for index in range(start_chunk, cfg.num_chunks):
@@ -125,33 +173,24 @@ def train(
                 break
             chunk_start = time.perf_counter()
             state, metrics = chunk(state)
-            metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+            metrics = {k: np.asarray(v, np.float64) for k, v in jax.device_get(metrics).items()}
             chunk_seconds = time.perf_counter() - chunk_start
-            env_steps = int(state.env_steps)
-            _check_finite(metrics, env_steps, checkpointer.latest_step(), cfg)
-            returns = np.asarray(evaluate(state, eval_key(cfg, index)))
-            record = {
-                "env": cfg.env,
-                "algo": cfg.algo,
-                "seed": cfg.seed,
-                "env_steps": env_steps,
-                "updates": int(state.agent.step),
-                "wall_time_s": wall_offset + time.perf_counter() - start,
-                **return_stats(returns),
-                "env_steps_per_s": steps_per_chunk(cfg) / chunk_seconds,
-                **{k: v for k, v in metrics.items() if k != "params_finite"},
-            }
+            env_steps = int(state.env_steps[0])
+            _check_finite(metrics, population, env_steps, checkpointer.latest_step(), cfg)
+            returns = np.asarray(evaluate(state, eval_keys(population, index)))
+            record = _record(cfg, population, state, metrics, returns, env_steps)
+            record["wall_time_s"] = wall_offset + time.perf_counter() - start
+            record["env_steps_per_s"] = len(population) * steps_per_chunk(cfg) / chunk_seconds
             logger.write(record)
             records.append(record)
-            last_chunk = (
+            last = (
                 index + 1 == cfg.num_chunks
                 or (stop_after_chunks is not None and index + 1 - start_chunk >= stop_after_chunks)
                 or (time_budget_s is not None and record["wall_time_s"] >= time_budget_s)
             )
-            if last_chunk or (index + 1) % cfg.checkpoint_every == 0:
-                checkpointer.save(
-                    index + 1, state, {"wall_time_s": record["wall_time_s"], "env_steps": env_steps}
-                )
+            if last or (index + 1) % cfg.checkpoint_every == 0:
+                meta = {"wall_time_s": record["wall_time_s"], "env_steps": env_steps}
+                checkpointer.save(index + 1, state, meta)
             display.update(record)
     finally:
         display.close()
@@ -162,13 +201,48 @@ def train(
 
 
 def steps_per_chunk(cfg: TrainConfig) -> int:
+    """Environment steps of one member in one chunk."""
     return cfg.iters_per_chunk * cfg.env_steps_per_iter
 
 
-def _check_finite(metrics: dict, env_steps: int, last_checkpoint: int | None, cfg: TrainConfig):
-    bad = [k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k])]
-    if metrics["params_finite"] < 1.0:
-        bad.append("parameters")
+def _record(cfg, population, state, metrics, returns, env_steps) -> dict[str, Any]:
+    record: dict[str, Any] = {
+        "env": cfg.env,
+        "algo": cfg.algo,
+        "seed": cfg.seed,
+        "members": len(population),
+        "env_steps": env_steps,
+        "updates": int(state.agent.step[0]),
+    }
+    scalars = {k: float(np.mean(v)) for k, v in metrics.items() if k != "params_finite"}
+    if len(population) == 1:
+        return {**record, **return_stats(returns[0]), **scalars}
+    record.update(population_stats(returns))
+    record.update(scalars)
+    record["per_member"] = [
+        {
+            "seed": m.seed,
+            **dict(m.overrides),
+            **return_stats(returns[i]),
+            "critic_loss": float(metrics["critic_loss"][i]),
+            "actor_loss": float(metrics["actor_loss"][i]),
+        }
+        for i, m in enumerate(population)
+    ]
+    return record
+
+
+def _check_finite(metrics, population, env_steps, last_checkpoint, cfg) -> None:
+    bad = []
+    for i, member in enumerate(population):
+        names = [
+            k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])
+        ]
+        if metrics["params_finite"][i] < 1.0:
+            names.append("parameters")
+        if names:
+            who = f" ({member.label()})" if len(population) > 1 else ""
+            bad.append(", ".join(names) + who)
     if bad:
         kept = (
             f"the last good checkpoint (after {last_checkpoint * steps_per_chunk(cfg)} env steps) "
@@ -177,7 +251,7 @@ def _check_finite(metrics: dict, env_steps: int, last_checkpoint: int | None, cf
             else "no checkpoint had been written yet"
         )
         raise NonFiniteError(
-            f"non-finite {', '.join(bad)} in the chunk ending at env step {env_steps}; "
+            f"non-finite {'; '.join(bad)} in the chunk ending at env step {env_steps}; "
             f"stopped, {kept}"
         )
 
