@@ -16,12 +16,14 @@ import tyro
 from td3_jax.config import PRESETS, ConfigError, TrainConfig, preset
 
 USAGE = """\
-usage: td3-jax {train,eval,plot,envs,presets} [FLAGS]
+usage: td3-jax {train,sweep,eval,plot,envs,presets} [FLAGS]
 
 Train TD3/DDPG on thousands of vectorised environments inside one compiled JAX program.
 
 subcommands:
   train     train an agent:  td3-jax train --env brax/ant --preset ant --out runs/ant
+  sweep     train every combination of float settings x seeds in one program:
+              td3-jax sweep --sweep-actor-lr 1e-3 3e-4 --sweep-tau 0.005 0.01 --seeds 4
   eval      evaluate a run's newest checkpoint:  td3-jax eval --run runs/ant
   plot      redraw a run's curve.png from its metrics.jsonl
   envs      list the environment names this installation knows
@@ -47,6 +49,34 @@ class TrainCommand(TrainConfig):
     """No live progress display."""
     time_budget_s: float | None = None
     """Stop after the first evaluation past this wall-clock budget (compile included)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepCommand(TrainCommand):
+    """Train every combination of the swept values x --seeds seeds, all in one program.
+
+    Ends with a table of final evaluation returns per setting, ranked, with 95% bootstrap CIs
+    over seeds. Settings not swept take their single value (preset, flag or default).
+    """
+
+    sweep_actor_lr: tuple[float, ...] = ()
+    """Actor learning rates to try."""
+    sweep_critic_lr: tuple[float, ...] = ()
+    """Critic learning rates to try."""
+    sweep_tau: tuple[float, ...] = ()
+    """Target Polyak rates to try."""
+    sweep_discount: tuple[float, ...] = ()
+    """Discounts to try."""
+    sweep_expl_noise: tuple[float, ...] = ()
+    """Gaussian exploration scales to try."""
+    sweep_policy_noise: tuple[float, ...] = ()
+    """TD3 target smoothing noise scales to try."""
+    sweep_noise_clip: tuple[float, ...] = ()
+    """TD3 target smoothing clips to try."""
+    sweep_ou_sigma: tuple[float, ...] = ()
+    """OU sigmas to try."""
+    sweep_ou_theta: tuple[float, ...] = ()
+    """OU thetas to try."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,7 +108,7 @@ def _flag_value(args: list[str], flag: str) -> str | None:
     return None
 
 
-def _train_defaults(args: list[str]) -> TrainCommand:
+def _train_defaults(args: list[str], command_type: type = TrainCommand) -> TrainCommand:
     """Defaults for the flags: the saved run config on --resume, else the preset's, else ours."""
     from td3_jax.run import CONFIG_FILE, load_config
 
@@ -89,28 +119,79 @@ def _train_defaults(args: list[str]) -> TrainCommand:
     else:
         name = _flag_value(args, "--preset")
         base = preset(name) if name in PRESETS or name is None else TrainConfig()
-    return TrainCommand(**dataclasses.asdict(base), preset=name)
+    return command_type(**dataclasses.asdict(base), preset=name)
 
 
-def train_main(args: list[str]) -> None:
+def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.run import train
 
-    command = tyro.cli(TrainCommand, args=args, default=_train_defaults(args), prog="td3-jax train")
+    command_type = SweepCommand if sweeping else TrainCommand
+    prog = "td3-jax sweep" if sweeping else "td3-jax train"
+    command = tyro.cli(
+        command_type, args=args, default=_train_defaults(args, command_type), prog=prog
+    )
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
+    sweep = None
+    if sweeping:
+        sweep = {
+            f.name.removeprefix("sweep_"): list(getattr(command, f.name))
+            for f in dataclasses.fields(SweepCommand)
+            if f.name.startswith("sweep_") and getattr(command, f.name)
+        }
+        if not sweep and not command.resume:
+            raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
     records = train(
         cfg,
         command.out,
         resume=command.resume,
         progress=not command.quiet,
+        sweep=sweep,
         time_budget_s=command.time_budget_s,
     )
-    if records:
-        last = records[-1]
-        print(
-            f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
-            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}; "
-            f"outputs in {command.out}"
+    if not records:
+        print(f"nothing to do: the run in {command.out} is complete")
+        return
+    last = records[-1]
+    print(
+        f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
+        f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}; "
+        f"outputs in {command.out}"
+    )
+    if sweeping and "per_member" in last:
+        print_sweep_ranking(last)
+
+
+def sweep_main(args: list[str]) -> None:
+    train_main(args, sweeping=True)
+
+
+def print_sweep_ranking(record: dict) -> None:
+    """Final returns per swept setting (mean over its seeds), best first, with 95% CIs."""
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    from td3_jax import stats
+
+    groups: dict[tuple, list[float]] = {}
+    for member in record["per_member"]:
+        setting = tuple(sorted(member.get("settings", {}).items()))
+        groups.setdefault(setting, []).append(member["eval_return_mean"])
+    rows = []
+    for setting, returns in groups.items():
+        summary = stats.summary(np.asarray(returns))
+        rows.append((setting, len(returns), summary))
+    rows.sort(key=lambda row: row[2]["mean"], reverse=True)
+    table = Table(title=f"final evaluation return after {record['env_steps']} env steps")
+    for column in ("rank", "setting", "seeds", "mean", "95% CI", "IQM"):
+        table.add_column(column, justify="right")
+    for rank, (setting, n, summary) in enumerate(rows, 1):
+        label = " ".join(f"{k}={v:g}" for k, v in setting)
+        interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
+        table.add_row(
+            str(rank), label, str(n), f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"
         )
+    Console().print(table)
 
 
 def eval_main(args: list[str]) -> None:
@@ -184,6 +265,7 @@ def presets_main(args: list[str]) -> None:
 
 COMMANDS = {
     "train": train_main,
+    "sweep": sweep_main,
     "eval": eval_main,
     "plot": plot_main,
     "envs": envs_main,

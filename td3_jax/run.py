@@ -222,7 +222,7 @@ def _record(cfg, population, state, metrics, returns, env_steps) -> dict[str, An
     record["per_member"] = [
         {
             "seed": m.seed,
-            **dict(m.overrides),
+            "settings": dict(m.overrides),
             **return_stats(returns[i]),
             "critic_loss": float(metrics["critic_loss"][i]),
             "actor_loss": float(metrics["actor_loss"][i]),

@@ -250,3 +250,33 @@ def _all_finite(tree: Any) -> jax.Array:
         if jnp.issubdtype(x.dtype, jnp.floating)
     ]
     return jnp.all(jnp.stack(leaves))
+
+
+def make_train(
+    cfg: TrainConfig, env: envs.Environment | None = None
+) -> Callable[[jax.Array], tuple[TrainState, dict[str, jax.Array]]]:
+    """The whole run as one pure function ``train(key) -> (final_state, metrics)``.
+
+    ``metrics`` has a leading axis of ``cfg.num_chunks`` (one entry per evaluation) and holds
+    the chunk metrics plus ``eval_returns [num_chunks, eval_envs]``. ``jax.vmap(train)(keys)``
+    trains one independent agent per key in one program (the purejaxrl shape)::
+
+        train = jax.jit(jax.vmap(make_train(TrainConfig(...))))
+        states, metrics = train(jax.random.split(jax.random.PRNGKey(0), 8))
+
+    Unlike ``td3-jax train`` it writes nothing and cannot be resumed; use it inside your own
+    programs.
+    """
+    trainer = make_trainer(cfg, env)
+
+    def train(key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        init_key, eval_key = jax.random.split(key)
+
+        def chunk_and_evaluate(state, index):
+            state, metrics = trainer.chunk(state)
+            returns = trainer.evaluate(state, jax.random.fold_in(eval_key, index))
+            return state, {**metrics, "eval_returns": returns}
+
+        return jax.lax.scan(chunk_and_evaluate, trainer.init(init_key), jnp.arange(cfg.num_chunks))
+
+    return train
