@@ -1,0 +1,211 @@
+"""Tests of the training configuration (``td3_jax.config``): validation, presets, derived sizes.
+
+The derived quantities are checked against values worked out by hand in the comments, and the
+agent defaults against the numbers of the TD3 paper and the seed DDPG tutorial.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from td3_jax.config import PRESETS, ConfigError, TrainConfig, preset, validate
+from td3_jax.td3 import DDPGConfig, TD3Config
+
+# A small valid configuration to derive broken ones from (only one field changed each time).
+SMALL = TrainConfig(
+    num_envs=4,
+    total_steps=1_000,
+    batch_size=32,
+    buffer_size=500,
+    warmup_steps=100,
+    eval_every=200,
+    hidden_sizes=(16, 16),
+)
+
+
+def test_defaults_validate():
+    cfg = TrainConfig()
+    assert validate(cfg) is cfg
+
+
+def test_small_config_validates():
+    assert validate(SMALL) is SMALL
+
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        # batch larger than the buffer
+        (dict(buffer_size=16, batch_size=32), "batch"),
+        # batch larger than the buffer once it is capped at the run's total steps (1 chunk = 8)
+        (dict(num_envs=1, eval_every=8, total_steps=8, batch_size=16), "batch"),
+        (dict(num_envs=0), "num-envs"),
+        (dict(num_envs=-3), "num-envs"),
+        (dict(total_steps=-1), "total-steps"),
+        (dict(warmup_steps=-1), "warmup-steps"),
+        # one iteration (32 envs x 1 step) adds more than the 16-transition buffer
+        (dict(num_envs=32, buffer_size=16, batch_size=8), "iteration"),
+        # ... or 4 envs x 8 steps per iteration
+        (dict(steps_per_iter=8, buffer_size=16, batch_size=8), "iteration"),
+        (dict(discount=-0.01), "discount"),
+        (dict(discount=1.01), "discount"),
+        (dict(hidden_sizes=(0,)), "hidden-sizes"),
+        (dict(hidden_sizes=(16, 0)), "hidden-sizes"),
+        (dict(hidden_sizes=()), "hidden-sizes"),
+        (dict(batch_size=0), "batch-size"),
+        (dict(eval_every=0), "eval-every"),
+        (dict(tau=0.0), "tau"),
+        (dict(tau=1.5), "tau"),
+        (dict(episode_length=0), "episode-length"),
+        (dict(algo="sac"), "algorithm"),
+    ],
+)
+def test_validate_rejects(changes, match):
+    cfg = dataclasses.replace(SMALL, **changes)
+    with pytest.raises(ConfigError, match=match):
+        validate(cfg)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        dict(discount=0.0),
+        dict(discount=1.0),
+        dict(total_steps=0),
+        dict(warmup_steps=0),
+        dict(tau=1.0),
+        # batch exactly the buffer's size, one iteration exactly filling it
+        dict(num_envs=32, buffer_size=32, batch_size=32),
+        dict(hidden_sizes=(1,)),
+    ],
+)
+def test_validate_accepts_edge_values(changes):
+    cfg = dataclasses.replace(SMALL, **changes)
+    assert validate(cfg) is cfg
+
+
+def test_config_error_is_a_value_error():
+    assert issubclass(ConfigError, ValueError)
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_every_preset_builds_a_valid_config(name):
+    cfg = TrainConfig(**PRESETS[name])
+    assert validate(cfg) is cfg
+    assert preset(name) == cfg
+    for key, value in PRESETS[name].items():
+        assert getattr(cfg, key) == value
+
+
+def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
+    assert preset(None) == TrainConfig()
+    with pytest.raises(ConfigError, match="unknown preset 'nope'"):
+        preset("nope")
+
+
+@pytest.mark.parametrize(
+    "cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity",
+    [
+        # defaults: 16 envs x 1 step = 16 per iteration; 4000 // 16 = 250 iterations per chunk
+        # (4000 steps); 40000 / 4000 = 10 chunks; capacity min(1e6, 10 * 4000) = 40000.
+        (TrainConfig(), 16, 250, 10, 40_000),
+        # 3 envs x 2 steps = 6; 100 // 6 = 16 iterations (96 steps) per chunk;
+        # ceil(1000 / 96) = 11 chunks (1056 steps); capacity min(500, 1056) = 500.
+        (
+            TrainConfig(
+                num_envs=3, steps_per_iter=2, eval_every=100, total_steps=1_000, buffer_size=500
+            ),
+            6,
+            16,
+            11,
+            500,
+        ),
+        # eval_every below one iteration: still one iteration (64 steps) per chunk;
+        # ceil(100 / 64) = 2 chunks; capacity min(1e6, 128) = 128.
+        (TrainConfig(num_envs=64, eval_every=10, total_steps=100), 64, 1, 2, 128),
+        # total_steps 0 still runs one chunk: 8 envs, 40 // 8 = 5 iterations, 40 steps.
+        (TrainConfig(num_envs=8, eval_every=40, total_steps=0), 8, 5, 1, 40),
+        # total_steps an exact multiple of a chunk: 1 env, 2000 per chunk, 10 chunks.
+        (TrainConfig(**PRESETS["seed-ddpg-pendulum"]), 1, 2_000, 10, 20_000),
+    ],
+)
+def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity):
+    assert cfg.env_steps_per_iter == env_steps_per_iter
+    assert cfg.iters_per_chunk == iters_per_chunk
+    assert cfg.num_chunks == num_chunks
+    assert cfg.replay_capacity == replay_capacity
+    # The chunks cover at least total_steps environment steps.
+    assert num_chunks * iters_per_chunk * env_steps_per_iter >= cfg.total_steps
+
+
+def test_agent_config_td3_defaults():
+    agent = TrainConfig(algo="td3").agent_config()
+    assert isinstance(agent, TD3Config)
+    assert tuple(agent.hidden_sizes) == (400, 300)
+    assert agent.tau == pytest.approx(0.005)
+    assert agent.actor_lr == pytest.approx(1e-3)
+    assert agent.critic_lr == pytest.approx(1e-3)
+    assert agent.discount == pytest.approx(0.99)
+    assert agent.policy_noise == pytest.approx(0.2)
+    assert agent.noise_clip == pytest.approx(0.5)
+    assert agent.policy_freq == 2
+
+
+def test_agent_config_ddpg_defaults():
+    agent = TrainConfig(algo="ddpg").agent_config()
+    assert isinstance(agent, DDPGConfig)
+    assert tuple(agent.hidden_sizes) == (256, 256)
+    assert agent.actor_lr == pytest.approx(1e-4)
+    assert agent.critic_lr == pytest.approx(1e-3)
+    assert agent.tau == pytest.approx(1e-2)
+    assert agent.discount == pytest.approx(0.99)
+
+
+@pytest.mark.parametrize("algo, cls", [("td3", TD3Config), ("ddpg", DDPGConfig)])
+def test_agent_config_uses_given_values(algo, cls):
+    cfg = TrainConfig(
+        algo=algo,
+        hidden_sizes=(32, 8, 4),
+        actor_lr=3e-4,
+        critic_lr=2e-4,
+        tau=0.25,
+        discount=0.9,
+        policy_noise=0.3,
+        noise_clip=0.7,
+        policy_freq=5,
+    )
+    agent = cfg.agent_config()
+    assert isinstance(agent, cls)
+    assert tuple(agent.hidden_sizes) == (32, 8, 4)
+    assert agent.actor_lr == pytest.approx(3e-4)
+    assert agent.critic_lr == pytest.approx(2e-4)
+    assert agent.tau == pytest.approx(0.25)
+    assert agent.discount == pytest.approx(0.9)
+    if algo == "td3":
+        assert agent.policy_noise == pytest.approx(0.3)
+        assert agent.noise_clip == pytest.approx(0.7)
+        assert agent.policy_freq == 5
+
+
+def test_agent_config_mixes_given_and_default_values():
+    # Only the learning rate given: DDPG keeps its own hidden sizes and tau.
+    agent = TrainConfig(algo="ddpg", actor_lr=5e-4).agent_config()
+    assert agent.actor_lr == pytest.approx(5e-4)
+    assert tuple(agent.hidden_sizes) == (256, 256)
+    assert agent.tau == pytest.approx(1e-2)
+    # Only tau given: TD3 keeps (400, 300) and its actor learning rate.
+    agent = TrainConfig(algo="td3", tau=0.05).agent_config()
+    assert agent.tau == pytest.approx(0.05)
+    assert tuple(agent.hidden_sizes) == (400, 300)
+    assert agent.actor_lr == pytest.approx(1e-3)
+
+
+def test_ou_params_follow_the_config():
+    cfg = TrainConfig(ou_theta=0.2, ou_sigma=0.4, ou_min_sigma=0.1, ou_decay_period=1234)
+    params = cfg.ou_params()
+    assert params.theta == pytest.approx(0.2)
+    assert params.max_sigma == pytest.approx(0.4)
+    assert params.min_sigma == pytest.approx(0.1)
+    assert params.decay_period == pytest.approx(1234.0)

@@ -1,0 +1,524 @@
+"""Tests of the environment interface and its auto-reset (``td3_jax.envs``).
+
+Most of the auto-reset semantics are checked on a tiny hand-made "counter" environment whose
+every value can be worked out by hand; the adapters are then checked against their sources:
+gymnax's Pendulum against gymnax's own ``step_env`` and the Pendulum reward formula, Brax's
+inverted pendulum (MJX backend, slow on CPU: one shared rollout) against its termination rule.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from td3_jax import envs
+from td3_jax.envs import Environment, UnknownEnvironmentError
+
+# ---------------------------------------------------------------------------------------------
+# A deterministic 1-D counter environment.
+#
+# obs = [position, step_count]; reset draws position ~ U[-1, 1) from its key; a step adds the
+# (rescaled) action to the position and rewards the new position; the episode terminates when
+# |position| > THRESHOLD.
+# ---------------------------------------------------------------------------------------------
+
+THRESHOLD = 5.0
+
+
+def counter_env(episode_length: int, low=(-2.0,), high=(2.0,)) -> Environment:
+    def reset_fn(key):
+        position = jax.random.uniform(key, (), minval=-1.0, maxval=1.0)
+        inner = {"position": position, "count": jnp.zeros((), jnp.int32)}
+        return inner, jnp.stack([position, 0.0])
+
+    def step_fn(inner, action, key):
+        del key
+        position = inner["position"] + action[0]
+        count = inner["count"] + 1
+        obs = jnp.stack([position, count.astype(jnp.float32)])
+        return {"position": position, "count": count}, obs, position, jnp.abs(position) > THRESHOLD
+
+    return Environment(
+        name="test/counter",
+        observation_size=2,
+        action_size=len(low),
+        episode_length=episode_length,
+        action_low=np.asarray(low, np.float32),
+        action_high=np.asarray(high, np.float32),
+        reset_fn=reset_fn,
+        step_fn=step_fn,
+    )
+
+
+def jitted(env: Environment):
+    return jax.jit(functools.partial(envs.step, env)), jax.jit(
+        functools.partial(envs.reset, env), static_argnums=1
+    )
+
+
+def host(tree):
+    return jax.tree.map(np.asarray, jax.device_get(tree))
+
+
+def const_action(num_envs: int, value: float) -> jax.Array:
+    return jnp.full((num_envs, 1), value, jnp.float32)
+
+
+# Action rescaling ------------------------------------------------------------------------------
+
+
+def test_to_env_action_rescales_and_clips():
+    env = counter_env(4, low=(-2.0,), high=(2.0,))
+    agent = jnp.asarray([[0.5], [-1.0], [1.0], [0.0], [-0.5], [3.0], [-7.0], [1.0001]])
+    expected = np.asarray([[1.0], [-2.0], [2.0], [0.0], [-1.0], [2.0], [-2.0], [2.0]])
+    np.testing.assert_allclose(env.to_env_action(agent), expected, atol=1e-6)
+
+
+def test_to_env_action_is_per_dimension():
+    env = counter_env(4, low=(0.0, -1.0), high=(10.0, 3.0))
+    agent = jnp.asarray([[0.0, 0.0], [1.0, -1.0], [-1.0, 1.0], [0.5, -0.5], [5.0, -5.0]])
+    expected = np.asarray([[5.0, 1.0], [10.0, -1.0], [0.0, 3.0], [7.5, 0.0], [10.0, -1.0]])
+    np.testing.assert_allclose(env.to_env_action(agent), expected, atol=1e-6)
+
+
+def test_step_applies_the_rescaled_action():
+    env = counter_env(10)
+    step, reset = jitted(env)
+    state = reset(jax.random.PRNGKey(0), 4)
+    p0 = np.asarray(state.obs[:, 0])
+    action = jnp.asarray([[0.5], [-1.0], [3.0], [-0.25]])
+    _, result = host(step(state, action))
+    moved = p0 + np.asarray([1.0, -2.0, 2.0, -0.5])
+    np.testing.assert_allclose(result.next_obs[:, 0], moved, atol=1e-6)
+    np.testing.assert_allclose(result.reward, moved, atol=1e-6)
+
+
+# Reset -----------------------------------------------------------------------------------------
+
+
+def test_reset_draws_a_fresh_state_per_environment():
+    env = counter_env(4)
+    _, reset = jitted(env)
+    state = host(reset(jax.random.PRNGKey(0), 8))
+    positions = state.obs[:, 0]
+    assert len(np.unique(positions)) == 8
+    assert np.all((positions >= -1.0) & (positions < 1.0))
+    np.testing.assert_array_equal(state.obs[:, 1], 0.0)
+    np.testing.assert_array_equal(state.steps, 0)
+    np.testing.assert_array_equal(state.episode_return, 0.0)
+    assert len({tuple(k) for k in state.key}) == 8  # every environment has its own key
+    # ... and not the key its initial state was drawn from (that would repeat the start).
+    redrawn = np.asarray(jax.vmap(env.reset_fn)(jnp.asarray(state.key))[1])
+    assert not np.any(np.all(redrawn == state.obs, axis=-1))
+    assert state.obs.dtype == np.float32 and state.steps.dtype == np.int32
+    # Deterministic in the key, different for another key.
+    np.testing.assert_array_equal(host(reset(jax.random.PRNGKey(0), 8)).obs, state.obs)
+    assert not np.any(host(reset(jax.random.PRNGKey(1), 8)).obs[:, 0] == positions)
+
+
+# Truncation --------------------------------------------------------------------------------
+
+
+def test_truncation_exactly_at_episode_length():
+    n, length = 3, 4
+    env = counter_env(length)
+    step, reset = jitted(env)
+    state = reset(jax.random.PRNGKey(3), n)
+    p0 = np.asarray(state.obs[:, 0])
+    # Agent actions 0.25, -0.25, 0.5, 0 are env actions 0.5, -0.5, 1, 0; positions (= rewards)
+    # p0 + 0.5, p0, p0 + 1, p0 + 1; the return is 4 p0 + 2.5.
+    agent_actions = [0.25, -0.25, 0.5, 0.0]
+    positions = [p0 + 0.5, p0, p0 + 1.0, p0 + 1.0]
+    for t in range(length):
+        state, result = step(state, const_action(n, agent_actions[t]))
+        state, result = host(state), host(result)
+        np.testing.assert_allclose(result.reward, positions[t], atol=1e-6)
+        np.testing.assert_array_equal(result.terminated, False)
+        if t < length - 1:
+            np.testing.assert_array_equal(result.truncated, False)
+            np.testing.assert_array_equal(state.steps, t + 1)
+            np.testing.assert_allclose(state.episode_return, sum(positions[: t + 1]), atol=1e-5)
+            # No episode ended: the state continues from the step's observation.
+            np.testing.assert_array_equal(state.obs, result.next_obs)
+    # The time limit: truncated, not terminated.
+    np.testing.assert_array_equal(result.truncated, True)
+    np.testing.assert_array_equal(result.finished_length, length)
+    np.testing.assert_allclose(result.finished_return, 4 * p0 + 2.5, atol=1e-5)
+    # next_obs is the true last observation [p0 + 1, 4] ...
+    np.testing.assert_allclose(result.next_obs[:, 0], p0 + 1.0, atol=1e-6)
+    np.testing.assert_array_equal(result.next_obs[:, 1], 4.0)
+    # ... while the state already holds a fresh first observation of the next episode.
+    np.testing.assert_array_equal(state.obs[:, 1], 0.0)
+    assert np.all((state.obs[:, 0] >= -1.0) & (state.obs[:, 0] < 1.0))
+    assert not np.any(state.obs[:, 0] == p0), "reset must not reuse the first initial state"
+    np.testing.assert_array_equal(state.inner["count"], 0)
+    np.testing.assert_array_equal(state.inner["position"], state.obs[:, 0])
+    np.testing.assert_array_equal(state.steps, 0)
+    np.testing.assert_array_equal(state.episode_return, 0.0)
+
+
+def test_consecutive_resets_use_fresh_keys():
+    n, length = 6, 2
+    env = counter_env(length)
+    step, reset = jitted(env)
+    state = reset(jax.random.PRNGKey(5), n)
+    starts = [np.asarray(state.obs[:, 0])]
+    for _ in range(4):  # four episodes of two zero-action steps
+        for t in range(length):
+            before = state
+            state, result = step(state, const_action(n, 0.0))
+            result = host(result)
+            assert bool(np.all(result.truncated)) == (t == length - 1)
+        # No key is used twice: neither the ended episode's key nor the new one redraws the start.
+        for key in (before.key, state.key):
+            redrawn = np.asarray(jax.vmap(env.reset_fn)(key)[1])
+            assert not np.any(np.all(redrawn == np.asarray(state.obs), axis=-1))
+        np.testing.assert_allclose(result.finished_return, 2 * starts[-1], atol=1e-6)
+        starts.append(np.asarray(state.obs[:, 0]))
+    starts = np.stack(starts)  # [episodes, envs]
+    for env_index in range(n):
+        # Every episode of an environment starts somewhere new (never a cached start) ...
+        assert len(np.unique(starts[:, env_index])) == len(starts)
+    for episode in range(len(starts)):
+        # ... and environments resetting together reset to different states.
+        assert len(np.unique(starts[episode])) == n
+
+
+# Termination ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("length", [3, 10])
+def test_termination(length):
+    # Env action +2 per step from p0 in [-1, 1): p0 + 2, p0 + 4 (<= 5), p0 + 6 > 5: terminated
+    # at step 3, which is also the time limit for length 3: a termination, not a truncation.
+    n = 4
+    env = counter_env(length)
+    step, reset = jitted(env)
+    state = reset(jax.random.PRNGKey(7), n)
+    p0 = np.asarray(state.obs[:, 0])
+    for t in range(3):
+        state, result = host(step(state, const_action(n, 1.0)))
+        np.testing.assert_array_equal(result.terminated, t == 2)
+        np.testing.assert_array_equal(result.truncated, False)
+    np.testing.assert_array_equal(result.finished_length, 3)
+    np.testing.assert_allclose(result.finished_return, 3 * p0 + 12.0, atol=1e-5)
+    np.testing.assert_allclose(result.next_obs[:, 0], p0 + 6.0, atol=1e-6)
+    np.testing.assert_array_equal(result.next_obs[:, 1], 3.0)
+    assert np.all(np.abs(state.obs[:, 0]) < 1.0)
+    np.testing.assert_array_equal(state.obs[:, 1], 0.0)
+    np.testing.assert_array_equal(state.steps, 0)
+    np.testing.assert_array_equal(state.episode_return, 0.0)
+    assert result.terminated.dtype == np.bool_ and result.truncated.dtype == np.bool_
+
+
+def test_only_the_finished_environments_reset():
+    # Env 0 pushes +2 per step (terminates at step 3); env 1 stands still (truncated at 5).
+    env = counter_env(5)
+    step, reset = jitted(env)
+    state = reset(jax.random.PRNGKey(11), 2)
+    p0 = np.asarray(state.obs[:, 0])
+    action = jnp.asarray([[1.0], [0.0]])
+    ended_at = {}
+    for t in range(1, 7):
+        state, result = host(step(state, action))
+        for i in np.flatnonzero(result.terminated | result.truncated):
+            ended_at.setdefault(int(i), (t, bool(result.terminated[i]), result))
+        if t == 3:
+            assert result.terminated.tolist() == [True, False]
+            # Env 1 carries on: same observation, its step count and return keep growing.
+            np.testing.assert_array_equal(state.obs[1], result.next_obs[1])
+            np.testing.assert_allclose(state.obs[1], [p0[1], 3.0], atol=1e-6)
+            assert state.steps.tolist() == [0, 3]
+            np.testing.assert_allclose(state.episode_return[1], 3 * p0[1], atol=1e-5)
+    t0, terminated0, _ = ended_at[0]
+    t1, terminated1, result1 = ended_at[1]
+    assert (t0, terminated0) == (3, True)
+    assert (t1, terminated1) == (5, False)
+    assert result1.truncated.tolist() == [False, True]
+    assert result1.finished_length[1] == 5
+    np.testing.assert_allclose(result1.finished_return[1], 5 * p0[1], atol=1e-5)
+    # At step 5 env 0 is two steps into its second episode and was not reset again.
+    assert not result1.terminated[0] and not result1.truncated[0]
+    assert result1.finished_length[0] == 2
+
+
+def test_step_keys_are_fresh_per_environment_and_step():
+    def reset_fn(key):
+        del key
+        return jnp.zeros(()), jnp.zeros((1,))
+
+    def step_fn(inner, action, key):
+        noise = jax.random.uniform(key, ())
+        return inner, noise[None], noise, jnp.asarray(False)
+
+    env = Environment("test/noise", 1, 1, 100, -np.ones(1), np.ones(1), reset_fn, step_fn)
+    step, reset = jitted(env)
+    state = reset(jax.random.PRNGKey(0), 5)
+    draws = []
+    for _ in range(3):
+        state, result = step(state, jnp.zeros((5, 1)))
+        draws.append(np.asarray(result.reward))
+    assert len(np.unique(np.concatenate(draws))) == 15
+
+
+# gymnax Pendulum -------------------------------------------------------------------------------
+
+PENDULUM_ENVS, PENDULUM_STEPS = 4, 210
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    """A 210-step rollout of 4 Pendulums, with gymnax's own step of the same states alongside."""
+    import gymnax
+
+    env = envs.make("gymnax/Pendulum-v1")
+    reference, params = gymnax.make("Pendulum-v1")
+
+    def rollout(key):
+        reset_key, action_key, dummy_key = jax.random.split(key, 3)
+        state = envs.reset(env, reset_key, PENDULUM_ENVS)
+        # Mostly inside [-1, 1] (so rescaling matters), some beyond (so clipping matters).
+        actions = jax.random.uniform(
+            action_key, (PENDULUM_STEPS, PENDULUM_ENVS, 1), minval=-1.3, maxval=1.3
+        )
+        dummy_keys = jax.random.split(dummy_key, PENDULUM_ENVS)
+
+        def body(state, action):
+            # gymnax's own step of the same inner state, with the action rescaled by hand.
+            torque = 2.0 * jnp.clip(action, -1.0, 1.0)
+            ref_obs, _, ref_reward, _, _ = jax.vmap(reference.step_env, in_axes=(0, 0, 0, None))(
+                dummy_keys, state.inner, torque, params
+            )
+            new_state, result = envs.step(env, state, action)
+            out = dict(
+                obs=state.obs,
+                torque=torque[:, 0],
+                result=result,
+                ref_obs=ref_obs,
+                ref_reward=ref_reward,
+                new_obs=new_state.obs,
+                new_steps=new_state.steps,
+                new_return=new_state.episode_return,
+                new_time=new_state.inner.time,
+            )
+            return new_state, out
+
+        return jax.lax.scan(body, state, actions)[1]
+
+    return env, host(jax.jit(rollout)(jax.random.PRNGKey(42)))
+
+
+def test_pendulum_spec(pendulum):
+    env, _ = pendulum
+    assert env.name == "gymnax/Pendulum-v1"
+    assert (env.observation_size, env.action_size, env.episode_length) == (3, 1, 200)
+    np.testing.assert_array_equal(env.action_low, [-2.0])
+    np.testing.assert_array_equal(env.action_high, [2.0])
+
+
+def test_pendulum_is_only_truncated_at_200(pendulum):
+    _, out = pendulum
+    result = out["result"]
+    assert not result.terminated.any()
+    truncated_steps = np.flatnonzero(result.truncated.any(axis=1))
+    assert truncated_steps.tolist() == [199]
+    assert result.truncated[199].all()
+    np.testing.assert_array_equal(result.finished_length[199], 200)
+    np.testing.assert_allclose(
+        result.finished_return[199], result.reward[:200].sum(axis=0), rtol=1e-4
+    )
+    # After the time limit: counters, return and gymnax's own clock start again from 0.
+    np.testing.assert_array_equal(out["new_steps"][199], 0)
+    np.testing.assert_array_equal(out["new_return"][199], 0.0)
+    np.testing.assert_array_equal(out["new_time"][199], 0)
+    np.testing.assert_array_equal(out["new_steps"][209], 10)
+    np.testing.assert_array_equal(out["new_time"][209], 10)
+
+
+def test_pendulum_matches_gymnax(pendulum):
+    _, out = pendulum
+    result = out["result"]
+    # The same rewards and observations as gymnax's step_env with the rescaled action ...
+    np.testing.assert_allclose(result.reward, out["ref_reward"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(result.next_obs, out["ref_obs"], rtol=1e-6, atol=1e-6)
+    # ... and as the Pendulum reward written out: -(theta^2 + 0.1 theta_dot^2 + 0.001 u^2),
+    # theta and theta_dot read off the observation [cos, sin, theta_dot] the action was taken in.
+    cos, sin, theta_dot = out["obs"][..., 0], out["obs"][..., 1], out["obs"][..., 2]
+    theta = np.arctan2(sin, cos)
+    expected = -(theta**2 + 0.1 * theta_dot**2 + 0.001 * out["torque"] ** 2)
+    np.testing.assert_allclose(result.reward, expected, rtol=1e-4, atol=1e-4)
+
+
+def test_pendulum_truncation_keeps_the_last_observation(pendulum):
+    _, out = pendulum
+    result = out["result"]
+    # At the limit next_obs is gymnax's observation of the last step, the state's is a reset one.
+    np.testing.assert_allclose(result.next_obs[199], out["ref_obs"][199], rtol=1e-6, atol=1e-6)
+    assert not np.any(np.all(out["new_obs"][199] == result.next_obs[199], axis=-1))
+    assert not np.any(np.all(out["new_obs"][199] == out["obs"][0], axis=-1))
+    # The next step starts from that reset observation.
+    np.testing.assert_array_equal(out["obs"][200], out["new_obs"][199])
+    # Elsewhere the state continues from next_obs.
+    np.testing.assert_array_equal(out["new_obs"][:199], result.next_obs[:199])
+
+
+# Brax inverted pendulum (MJX) ------------------------------------------------------------------
+
+BRAX_ENVS, BRAX_STEPS = 16, 40
+
+
+@pytest.fixture(scope="module")
+def brax_rollout():
+    """One shared 40-step rollout of 16 inverted pendulums under random bang-bang actions.
+
+    MJX on CPU is slow: the reset and the step are each compiled once for the whole module.
+    """
+    env = envs.make("brax/inverted_pendulum")
+    reset = jax.jit(functools.partial(envs.reset, env), static_argnums=1)
+    step = jax.jit(functools.partial(envs.step, env))
+    # Put the initial state on the device explicitly (as td3_jax.run does). Eager reset outputs
+    # are *uncommitted* arrays while the jitted step's outputs are committed, and that
+    # difference alone would cost the step a second compile. Note that jax.device_put(x) with
+    # no device leaves arrays uncommitted: the device has to be named.
+    state = jax.device_put(reset(jax.random.PRNGKey(0), BRAX_ENVS), jax.devices()[0])
+    initial = state
+    signs = jax.random.rademacher(jax.random.PRNGKey(1), (BRAX_STEPS, BRAX_ENVS, 1), jnp.float32)
+    steps = []
+    for t in range(BRAX_STEPS):
+        previous = state
+        state, result = step(state, signs[t])
+        steps.append(host(dict(obs=previous.obs, result=result, state=state)))
+    return dict(
+        env=env,
+        initial=initial,
+        final=state,
+        steps=steps,
+        cache_size=step._cache_size(),
+    )
+
+
+def test_brax_spec(brax_rollout):
+    env = brax_rollout["env"]
+    assert env.name == "brax/inverted_pendulum"
+    assert (env.observation_size, env.action_size, env.episode_length) == (4, 1, 1000)
+    np.testing.assert_array_equal(env.action_low, [-1.0])
+    np.testing.assert_array_equal(env.action_high, [1.0])
+
+
+def test_brax_step_compiles_once(brax_rollout):
+    # The step was fed its own output 40 times; a state whose types drift (weak types, dtypes,
+    # commitment) between reset and step would have been compiled again.
+    assert brax_rollout["cache_size"] == 1
+
+    def kind(x):
+        t = jax.typeof(x)
+        return t.shape, t.dtype, t.weak_type
+
+    initial, final = brax_rollout["initial"], brax_rollout["final"]
+    assert jax.tree.structure(initial) == jax.tree.structure(final)
+    assert [kind(x) for x in jax.tree.leaves(initial)] == [kind(x) for x in jax.tree.leaves(final)]
+
+
+def test_brax_falling_pole_terminates(brax_rollout):
+    terminated = np.stack([s["result"].terminated for s in brax_rollout["steps"]])
+    truncated = np.stack([s["result"].truncated for s in brax_rollout["steps"]])
+    assert not truncated.any()  # episode_length 1000
+    assert terminated.any(axis=0).all(), "every pole should fall under bang-bang actions"
+    assert terminated.sum() >= BRAX_ENVS * 2  # and fall again after its reset
+
+
+def test_brax_episode_bookkeeping(brax_rollout):
+    # An independent count of each environment's steps since its last reset.
+    count = np.zeros(BRAX_ENVS, np.int64)
+    ret = np.zeros(BRAX_ENVS, np.float64)
+    for record in brax_rollout["steps"]:
+        result, state = record["result"], record["state"]
+        count += 1
+        ret += result.reward
+        ended = result.terminated | result.truncated
+        np.testing.assert_array_equal(result.finished_length[ended], count[ended])
+        np.testing.assert_allclose(result.finished_return[ended], ret[ended], rtol=1e-5)
+        # The pole is rewarded 1 per step alive, so the return equals the length.
+        np.testing.assert_allclose(result.reward, 1.0)
+        count[ended], ret[ended] = 0, 0.0
+        np.testing.assert_array_equal(state.steps, count)
+        np.testing.assert_allclose(state.episode_return, ret, rtol=1e-5)
+
+
+def test_brax_terminal_observation_is_the_fallen_pole(brax_rollout):
+    # Brax's inverted pendulum: obs = [cart, angle, cart velocity, angle velocity], terminated
+    # when |angle| > 0.2; a reset starts within 0.01 of upright and at rest.
+    seen = 0
+    for record in brax_rollout["steps"]:
+        result, state = record["result"], record["state"]
+        done = result.terminated
+        np.testing.assert_array_equal(done, np.abs(result.next_obs[:, 1]) > 0.2)
+        np.testing.assert_array_equal(state.obs[~done], result.next_obs[~done])
+        if done.any():
+            seen += int(done.sum())
+            assert np.all(np.abs(state.obs[done]) <= 0.0101)
+            fresh = state.obs[done]
+            assert len({tuple(o) for o in fresh}) == len(fresh)  # different fresh states
+            assert not np.any(np.all(fresh == brax_rollout["steps"][0]["obs"][done], axis=-1))
+    assert seen > 0
+
+
+# Names ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["nope/x", "brax/nope", "gymnax/CartPole-v1", "gymnax"])
+def test_unknown_environment(name):
+    with pytest.raises(UnknownEnvironmentError) as err:
+        envs.make(name)
+    message = str(err.value)
+    assert repr(name) in message
+    assert "brax/ant" in message and "gymnax/Pendulum-v1" in message
+    assert isinstance(err.value, ValueError)
+
+
+def test_known_names():
+    names = envs.known_names()
+    assert "brax/inverted_pendulum" in names and "gymnax/MountainCarContinuous-v0" in names
+    assert all(n.count("/") == 1 for n in names)
+
+
+# MuJoCo Playground -----------------------------------------------------------------------------
+
+SLOW = pytest.mark.skipif(
+    os.environ.get("TD3_JAX_SLOW") != "1",
+    reason="compiling a Playground MJX step takes ~30 s on CPU; set TD3_JAX_SLOW=1",
+)
+
+
+@pytest.fixture(scope="module")
+def cheetah():
+    pytest.importorskip("mujoco_playground")
+    return envs.make("playground/CheetahRun")
+
+
+def test_playground_cheetah_spec(cheetah):
+    assert cheetah.name == "playground/CheetahRun"
+    assert "playground/CheetahRun" in envs.known_names()
+    assert (cheetah.observation_size, cheetah.action_size, cheetah.episode_length) == (17, 6, 1000)
+    np.testing.assert_array_equal(cheetah.action_low, -np.ones(6))
+    np.testing.assert_array_equal(cheetah.action_high, np.ones(6))
+
+
+@SLOW
+def test_playground_cheetah_reset_and_step(cheetah):
+    def reset_and_step(key):
+        state = envs.reset(cheetah, key, 2)
+        return state, *envs.step(cheetah, state, jnp.full((2, 6), 0.5))
+
+    state, new_state, result = host(jax.jit(reset_and_step)(jax.random.PRNGKey(0)))
+    assert state.obs.shape == (2, 17) and result.next_obs.shape == (2, 17)
+    assert not np.array_equal(state.obs[0], state.obs[1])
+    assert np.all(np.isfinite(result.next_obs)) and np.all(np.isfinite(result.reward))
+    assert not result.terminated.any() and not result.truncated.any()
+    np.testing.assert_array_equal(new_state.steps, 1)
+    np.testing.assert_array_equal(new_state.obs, result.next_obs)
