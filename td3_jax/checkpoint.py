@@ -51,11 +51,15 @@ class Checkpointer:
         )
         self._manager.wait_until_finished()
 
-    def restore(self, abstract_state: Any, step: int | None = None) -> tuple[Any, dict, int]:
+    def restore(
+        self, abstract_state: Any, step: int | None = None, shardings: Any = None
+    ) -> tuple[Any, dict, int]:
         """Restores ``(state, meta, step)`` from checkpoint ``step`` (default: the newest).
 
         ``abstract_state`` gives the expected structure, shapes and dtypes (``jax.eval_shape`` of
         the trainer's ``init``); a checkpoint that differs raises :class:`CheckpointError`.
+        ``shardings`` (a matching pytree of ``jax.sharding.Sharding``) places the restored arrays
+        directly, so a checkpoint written on one device count restores onto another.
         """
         step = self.latest_step() if step is None else step
         if step is None:
@@ -81,7 +85,15 @@ class Checkpointer:
                 f"checkpoint {self.directory / str(step)} does not match this run's "
                 f"configuration ({diff})"
             )
-        target = _stored_leaves(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
+        if shardings is None:
+            target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state)
+        else:
+            target = jax.tree.map(
+                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
+                abstract_state,
+                shardings,
+            )
+        target = _stored_leaves(target)
         try:
             restored = self._manager.restore(
                 step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target))

@@ -49,6 +49,14 @@ class TrainCommand(TrainConfig):
     """No live progress display."""
     time_budget_s: float | None = None
     """Stop after the first evaluation past this wall-clock budget (compile included)."""
+    devices: int | None = None
+    """Data-parallel over this many devices (default: all); num_envs and batch stay global."""
+    coordinator_address: str | None = None
+    """Several hosts: the coordinator's host:port (or env JAX_COORDINATOR_ADDRESS)."""
+    num_processes: int | None = None
+    """Several hosts: the number of processes (or env JAX_NUM_PROCESSES)."""
+    process_id: int | None = None
+    """Several hosts: this process's index (or env JAX_PROCESS_ID)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,9 +148,13 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         }
         if not sweep and not command.resume:
             raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
+    from td3_jax.sharding import initialize_distributed
+
+    initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     records = train(
         cfg,
         command.out,
+        devices=command.devices,
         resume=command.resume,
         progress=not command.quiet,
         sweep=sweep,

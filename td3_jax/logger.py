@@ -15,8 +15,11 @@ class MetricsLogger:
     stop) are dropped first, so the file never holds an evaluation twice.
     """
 
-    def __init__(self, out_dir: Path, resume_env_steps: int | None = None):
+    def __init__(self, out_dir: Path, resume_env_steps: int | None = None, enabled: bool = True):
+        self.enabled = enabled
         self.path = Path(out_dir) / "metrics.jsonl"
+        if not enabled:  # another process writes the logs
+            return
         kept = [
             r
             for r in read_metrics(self.path)
@@ -30,6 +33,8 @@ class MetricsLogger:
         self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"))
 
     def write(self, record: dict[str, Any]) -> None:
+        if not self.enabled:
+            return
         with self.path.open("a") as f:
             f.write(json.dumps(_jsonable(record)) + "\n")
         step = int(record["env_steps"])
@@ -39,7 +44,8 @@ class MetricsLogger:
         self._tb.flush()
 
     def close(self) -> None:
-        self._tb.close()
+        if self.enabled:
+            self._tb.close()
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:

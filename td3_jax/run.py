@@ -22,6 +22,7 @@ from td3_jax.checkpoint import Checkpointer, CheckpointError
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import Member, Population, make_population, members
+from td3_jax.sharding import check_divisible, make_mesh, state_shardings
 
 CONFIG_FILE = "config.json"
 MEMBERS_FILE = "members.json"
@@ -103,13 +104,20 @@ def population_stats(returns: np.ndarray) -> dict[str, float]:
     }
 
 
-def restore_state(population: Population, out_dir: Path, keep: int = 3):
+def restore_state(population: Population, out_dir: Path, keep: int = 3, shardings=None):
     """The newest checkpoint of a run directory, checked against the population's state layout."""
     checkpointer = Checkpointer(Path(out_dir) / "checkpoints", keep)
     try:
-        return checkpointer.restore(population.abstract_state)
+        return checkpointer.restore(population.abstract_state, shardings=shardings)
     finally:
         checkpointer.close()
+
+
+def host_value(x: jax.Array) -> np.ndarray:
+    """A replicated array's value on this host (also when it spans several processes)."""
+    if getattr(x, "is_fully_addressable", True):
+        return np.asarray(jax.device_get(x))
+    return np.asarray(x.addressable_data(0))
 
 
 def train(
@@ -121,6 +129,7 @@ def train(
     sweep: dict[str, list[float]] | None = None,
     stop_after_chunks: int | None = None,
     time_budget_s: float | None = None,
+    devices: int | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
@@ -135,32 +144,45 @@ def train(
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call; for tests.
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock (compile included; counted across resumes). The run stays resumable.
+      devices: data-parallel over this many devices (default: all; see :mod:`td3_jax.sharding`).
+        num_envs and batch_size stay global, so the numbers do not depend on the device count.
     """
     validate(cfg)
+    mesh = make_mesh(devices)
+    check_divisible(cfg, mesh.size)
+    writer = jax.process_index() == 0  # several processes: one writes the logs
     out_dir = Path(out_dir)
     population = load_members(out_dir, cfg) if resume else members(cfg, sweep)
     program = make_population(cfg, population)
+    shardings = state_shardings(program.abstract_state, mesh)
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
     start = time.perf_counter()
     if resume:
         if checkpointer.latest_step() is None:
             raise CheckpointError(f"--resume given but {out_dir / 'checkpoints'} has no checkpoint")
-        state, meta, start_chunk = checkpointer.restore(program.abstract_state)
+        state, meta, start_chunk = checkpointer.restore(program.abstract_state, shardings=shardings)
         wall_offset = float(meta["wall_time_s"])
     else:
         if checkpointer.latest_step() is not None:
             raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
         out_dir.mkdir(parents=True, exist_ok=True)
         start_chunk, wall_offset = 0, 0.0
-        state = jax.jit(program.init)()
-    # Committed device arrays: the chunk then sees identical argument types on every call.
-    state = jax.device_put(state, jax.devices()[0])
-    save_config(cfg, population, out_dir)
-    logger = MetricsLogger(out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg))
-    chunk = jax.jit(program.chunk, donate_argnums=0)
-    evaluate = jax.jit(program.evaluate)
+        state = jax.jit(program.init, out_shardings=shardings)()
+    if writer:
+        save_config(cfg, population, out_dir)
+    logger = MetricsLogger(
+        out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg), enabled=writer
+    )
+    chunk = jax.jit(
+        program.chunk,
+        in_shardings=(shardings,),
+        out_shardings=(shardings, replicated),
+        donate_argnums=0,
+    )
+    evaluate = jax.jit(program.evaluate, out_shardings=replicated)
     records: list[dict[str, Any]] = []
-    display = _Progress(cfg, start_chunk, enabled=progress)
+    display = _Progress(cfg, start_chunk, enabled=progress and writer)
     try:
         for index in range(start_chunk, cfg.num_chunks):
             if stop_after_chunks is not None and index - start_chunk >= stop_after_chunks:
@@ -173,14 +195,17 @@ def train(
                 break
             chunk_start = time.perf_counter()
             state, metrics = chunk(state)
-            metrics = {k: np.asarray(v, np.float64) for k, v in jax.device_get(metrics).items()}
+            metrics = {k: host_value(v) for k, v in metrics.items()}
             chunk_seconds = time.perf_counter() - chunk_start
-            env_steps = int(state.env_steps[0])
+            env_steps = int(metrics.pop("env_steps")[0])
+            updates = int(metrics.pop("agent_steps")[0])
+            metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
             _check_finite(metrics, population, env_steps, checkpointer.latest_step(), cfg)
-            returns = np.asarray(evaluate(state, eval_keys(population, index)))
-            record = _record(cfg, population, state, metrics, returns, env_steps)
+            returns = host_value(evaluate(state, eval_keys(population, index)))
+            record = _record(cfg, population, updates, metrics, returns, env_steps)
             record["wall_time_s"] = wall_offset + time.perf_counter() - start
             record["env_steps_per_s"] = len(population) * steps_per_chunk(cfg) / chunk_seconds
+            record["devices"] = mesh.size
             logger.write(record)
             records.append(record)
             last = (
@@ -196,7 +221,8 @@ def train(
         display.close()
         logger.close()
         checkpointer.close()
-        plot_curve(out_dir)
+        if writer:
+            plot_curve(out_dir)
     return records
 
 
@@ -205,14 +231,14 @@ def steps_per_chunk(cfg: TrainConfig) -> int:
     return cfg.iters_per_chunk * cfg.env_steps_per_iter
 
 
-def _record(cfg, population, state, metrics, returns, env_steps) -> dict[str, Any]:
+def _record(cfg, population, updates, metrics, returns, env_steps) -> dict[str, Any]:
     record: dict[str, Any] = {
         "env": cfg.env,
         "algo": cfg.algo,
         "seed": cfg.seed,
         "members": len(population),
         "env_steps": env_steps,
-        "updates": int(state.agent.step[0]),
+        "updates": updates,
     }
     scalars = {k: float(np.mean(v)) for k, v in metrics.items() if k != "params_finite"}
     if len(population) == 1:

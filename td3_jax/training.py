@@ -206,6 +206,8 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
             ),
             "reward_mean": jnp.mean(per_iter["reward_mean"]),
             "params_finite": _all_finite(state.agent).astype(jnp.float32),
+            "env_steps": state.env_steps,
+            "agent_steps": state.agent.step,
         }
         return state, metrics
 

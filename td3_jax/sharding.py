@@ -1,0 +1,105 @@
+"""Data parallelism over devices with ``jax.sharding`` (GSPMD): nothing hand-written.
+
+The train state is placed on a 1-D device mesh with axis ``"data"``: environment states, OU
+noise states and the replay buffer are split along their environment / capacity axis; everything
+else (parameters, targets, optimiser states, normaliser, keys, counters) is replicated. The
+chunk is the same program as on one device, jitted with these shardings; XLA partitions it and
+inserts the collectives (the gradient and normaliser reductions over the sharded batch, the
+gathers of sampled rows). The math is the one-device math: num_envs and batch_size are global,
+and the random draws are the same, so a run on D devices gives the one-device numbers up to
+float reassociation.
+
+Several hosts: call :func:`initialize_distributed` first (``jax.distributed.initialize``); the
+mesh then spans every process's devices and each process drives its local ones.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from td3_jax.config import ConfigError, TrainConfig
+
+AXIS = "data"
+_SPLIT = (".env_state", ".ou_state", ".buffer.data")
+
+
+def make_mesh(num_devices: int | None = None) -> Mesh:
+    """A 1-D mesh over the first ``num_devices`` devices (default: all, across processes)."""
+    devices = jax.devices()
+    if num_devices is not None:
+        if not 0 < num_devices <= len(devices):
+            raise ConfigError(f"--devices {num_devices} asked, {len(devices)} available")
+        devices = devices[:num_devices]
+    return Mesh(np.array(devices), (AXIS,))
+
+
+def check_divisible(cfg: TrainConfig, num_devices: int) -> None:
+    """Global sizes must split evenly over the devices; one clear error otherwise."""
+    for name, value in (
+        ("--num-envs", cfg.num_envs),
+        ("the replay capacity", cfg.replay_capacity),
+    ):
+        if value % num_devices:
+            raise ConfigError(
+                f"{name} ({value}) must be divisible by the number of devices ({num_devices})"
+            )
+
+
+def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -> Any:
+    """NamedShardings for a train state: split env/buffer leaves, replicate the rest.
+
+    Args:
+      abstract_state: the state or its ``jax.eval_shape``.
+      member_axis: leaves carry a leading population axis (as in :mod:`td3_jax.population`);
+        the split axis is then the second one.
+    """
+    axis = 1 if member_axis else 0
+    size = mesh.shape[AXIS]
+
+    def spec(path, leaf) -> NamedSharding:
+        name = jax.tree_util.keystr(path)
+        split = (
+            any(part in name for part in _SPLIT)
+            and len(leaf.shape) > axis
+            and leaf.shape[axis] % size == 0
+        )
+        if split:
+            return NamedSharding(mesh, PartitionSpec(*([None] * axis), AXIS))
+        return NamedSharding(mesh, PartitionSpec())
+
+    return jax.tree_util.tree_map_with_path(spec, abstract_state)
+
+
+def initialize_distributed(
+    coordinator_address: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+) -> bool:
+    """Starts JAX's multi-controller runtime when asked to; returns whether it did.
+
+    Flags win over the standard environment variables (``JAX_COORDINATOR_ADDRESS``,
+    ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``); with neither, nothing happens (one process).
+    On CPU the collectives go through gloo.
+    """
+    coordinator_address = coordinator_address or os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if not coordinator_address:
+        return False
+    if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
+        num_processes = int(os.environ["JAX_NUM_PROCESSES"])
+    if process_id is None and "JAX_PROCESS_ID" in os.environ:
+        process_id = int(os.environ["JAX_PROCESS_ID"])
+    try:
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    except Exception:  # pragma: no cover - option absent in some jax versions
+        pass
+    jax.distributed.initialize(
+        coordinator_address=coordinator_address,
+        num_processes=num_processes,
+        process_id=process_id,
+    )
+    return True
