@@ -1,0 +1,457 @@
+"""The ``td3-jax`` command line, end to end.
+
+Real processes (``python -m td3_jax``) where the exit status, the streams and the absence of a
+traceback matter; ``td3_jax.cli.main`` in-process (catching ``SystemExit``) for the cheaper
+checks. One tiny training run (module-scoped) serves every assertion about run outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import shutil
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from td3_jax import cli
+from td3_jax import run as run_module
+from td3_jax.config import PRESETS, TrainConfig
+
+DOCUMENTED_FLAGS = [
+    "--env",
+    "--algo",
+    "--num-envs",
+    "--total-steps",
+    "--seed",
+    "--out",
+    "--resume",
+    "--preset",
+]
+RECORD_KEYS = {
+    "env_steps",
+    "wall_time_s",
+    "eval_return_mean",
+    "eval_return_std",
+    "critic_loss",
+    "actor_loss",
+    "env_steps_per_s",
+}
+TINY_FLAGS = [
+    "--env",
+    "gymnax/Pendulum-v1",
+    "--num-envs",
+    "4",
+    "--total-steps",
+    "128",
+    "--eval-every",
+    "64",
+    "--warmup-steps",
+    "32",
+    "--batch-size",
+    "16",
+    "--updates-per-iter",
+    "1",
+    "--hidden-sizes",
+    "16",
+    "16",
+    "--eval-envs",
+    "2",
+    "--episode-length",
+    "16",
+    "--seed",
+    "7",
+]
+EPISODE = 16
+PENDULUM_WORST_STEP = -16.3  # -(pi^2 + 0.1 * 8^2 + 0.001 * 2^2)
+
+
+def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "td3_jax", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def main(args: list[str], capsys) -> tuple[int, str, str]:
+    """Runs ``cli.main(args)`` in-process: (exit code, stdout, stderr)."""
+    capsys.readouterr()
+    try:
+        cli.main(args)
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str, *needles: str) -> None:
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("td3-jax: error: "), err
+    for needle in needles:
+        assert needle in lines[0], (needle, err)
+
+
+def read_records(run_dir: Path) -> list[dict]:
+    text = (run_dir / "metrics.jsonl").read_text()
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def tensorboard_scalars(run_dir: Path) -> dict[str, dict[int, float]]:
+    """Scalars of the run's event files, parsed from the TFRecord framing."""
+    from tensorboardX.proto import event_pb2
+
+    scalars: dict[str, dict[int, float]] = {}
+    for path in sorted((run_dir / "tensorboard").glob("events.out.tfevents.*")):
+        data, pos = path.read_bytes(), 0
+        while pos < len(data):
+            (length,) = struct.unpack("<Q", data[pos : pos + 8])
+            event = event_pb2.Event()
+            event.ParseFromString(data[pos + 12 : pos + 12 + length])
+            pos += 12 + length + 4
+            for value in event.summary.value:
+                scalars.setdefault(value.tag, {})[event.step] = value.simple_value
+    return scalars
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "run"
+    proc = td3_jax("train", *TINY_FLAGS, "--out", str(out), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+# --------------------------------------------------------------------------------------------
+# help
+# --------------------------------------------------------------------------------------------
+
+
+def test_top_level_help():
+    proc = td3_jax("--help")
+    assert proc.returncode == 0
+    assert "Traceback" not in proc.stderr
+    for word in ("train", "eval", "plot", "envs", "presets", "--env", "--preset", "--out"):
+        assert word in proc.stdout, word
+    assert "td3-jax SUBCOMMAND --help" in proc.stdout
+
+
+def test_train_help_lists_the_documented_flags():
+    proc = td3_jax("train", "--help")
+    assert proc.returncode == 0
+    assert "Traceback" not in proc.stderr
+    for flag in DOCUMENTED_FLAGS:
+        assert re.search(rf"(^|\s){re.escape(flag)}\b", proc.stdout), flag
+    assert "ddpg" in proc.stdout and "seed-ddpg-pendulum" in proc.stdout
+
+
+# --------------------------------------------------------------------------------------------
+# impossible settings
+# --------------------------------------------------------------------------------------------
+
+BAD_TRAIN = {
+    "batch-larger-than-buffer": (
+        ["--batch-size", "100000", "--total-steps", "1000"],
+        "--batch-size",
+    ),
+    "no-envs": (["--num-envs", "0"], "--num-envs"),
+    "negative-steps": (["--total-steps", "-5"], "--total-steps"),
+    "unknown-env": (["--env", "gymnax/NoSuchTask-v0"], "gymnax/NoSuchTask-v0"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_TRAIN))
+def test_impossible_train_settings_exit_2(case, tmp_path, capsys):
+    flags, needle = BAD_TRAIN[case]
+    out = tmp_path / "run"
+    code, _, err = main(["train", *flags, "--out", str(out), "--quiet"], capsys)
+    assert_one_line_error(code, err, needle)
+    assert not out.exists(), "a refused run must not leave a run directory behind"
+    if case == "unknown-env":
+        # The message lists the names that do exist.
+        for known in ("gymnax/Pendulum-v1", "brax/inverted_pendulum", "brax/ant"):
+            assert known in err
+
+
+def test_impossible_setting_in_a_real_process(tmp_path):
+    proc = td3_jax("train", "--num-envs", "0", "--out", str(tmp_path / "run"))
+    assert_one_line_error(proc.returncode, proc.stderr, "--num-envs must be positive")
+
+
+def test_unknown_algo_exits_2_without_traceback(tmp_path):
+    proc = td3_jax("train", "--algo", "foo", "--out", str(tmp_path / "run"))
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert "foo" in proc.stderr and "td3" in proc.stderr and "ddpg" in proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="td3_jax/cli.py train_main: tyro reports a bad --algo choice in a multi-line rich "
+    "box, not the documented one-line 'td3-jax: error: ...' message",
+)
+def test_unknown_algo_message_is_one_line(tmp_path, capsys):
+    code, _, err = main(["train", "--algo", "foo", "--out", str(tmp_path / "run")], capsys)
+    assert_one_line_error(code, err, "foo")
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="td3_jax/cli.py _train_defaults: an unknown --preset falls back to TrainConfig() "
+    "and is passed to tyro as the default, so tyro accepts it and the run trains with the "
+    "defaults (exit 0) instead of exiting 2",
+)
+def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
+    calls = []
+    # Guard: never start the real (minutes-long) default run if the preset is accepted.
+    monkeypatch.setattr(run_module, "train", lambda cfg, out, **kw: calls.append(cfg) or [])
+    out = tmp_path / "run"
+    code, _, err = main(["train", "--preset", "no-such-preset", "--out", str(out)], capsys)
+    assert not calls, "training started with an unknown preset"
+    assert_one_line_error(code, err, "no-such-preset")
+    for name in PRESETS:
+        assert name in err
+
+
+def test_resume_of_an_empty_dir_exits_2(tmp_path, capsys):
+    code, _, err = main(["train", "--resume", "--out", str(tmp_path), "--quiet"], capsys)
+    assert_one_line_error(code, err, "--resume", "no checkpoint")
+    assert not (tmp_path / "metrics.jsonl").exists()
+
+
+def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("not a run\n")
+    code, _, err = main(["eval", "--run", str(tmp_path)], capsys)
+    assert_one_line_error(code, err, "not a td3-jax run directory")
+    code, _, err = main(["eval", "--run", str(tmp_path / "missing")], capsys)
+    assert_one_line_error(code, err, "not a td3-jax run directory")
+
+
+def test_unknown_subcommand_exits_2(capsys):
+    code, _, err = main(["fly"], capsys)
+    assert code == 2
+    assert "unknown subcommand 'fly'" in err and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------------------------
+# a finished tiny run
+# --------------------------------------------------------------------------------------------
+
+
+def test_train_writes_every_output(finished_run):
+    out, proc = finished_run
+    assert "Traceback" not in proc.stderr
+    assert re.search(r"done: 128 env steps .* eval return -?\d+\.\d ± \d+\.\d", proc.stdout)
+
+    config = json.loads((out / "config.json").read_text())
+    assert config["num_envs"] == 4 and config["total_steps"] == 128 and config["seed"] == 7
+    assert config["hidden_sizes"] == [16, 16] and config["episode_length"] == 16
+    assert config["algo"] == "td3" and config["env"] == "gymnax/Pendulum-v1"
+    assert set(config) == {f.name for f in dataclasses.fields(TrainConfig)}
+
+    records = read_records(out)
+    assert [r["env_steps"] for r in records] == [64, 128]
+    for record in records:
+        assert RECORD_KEYS <= set(record)
+        for key in RECORD_KEYS:
+            assert isinstance(record[key], int | float) and math.isfinite(record[key]), key
+        assert EPISODE * PENDULUM_WORST_STEP <= record["eval_return_mean"] <= 0
+        assert record["eval_return_std"] >= 0 and record["env_steps_per_s"] > 0
+    assert records[0]["wall_time_s"] < records[1]["wall_time_s"]
+    # warm-up 32 steps = 8 iterations; one update per iteration from then on.
+    assert [r["updates"] for r in records] == [16 - 8 + 1, 32 - 8 + 1]
+
+    scalars = tensorboard_scalars(out)
+    for key in ("eval_return_mean", "eval_return_std", "critic_loss", "actor_loss"):
+        assert sorted(scalars[key]) == [64, 128], key
+        for record in records:
+            assert math.isclose(
+                scalars[key][record["env_steps"]], record[key], rel_tol=1e-5, abs_tol=1e-5
+            )
+
+    assert (out / "curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    steps = sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps == [1, 2]
+
+
+def test_eval_prints_mean_and_std(finished_run):
+    out, _ = finished_run
+    proc = td3_jax("eval", "--run", str(out), "--episodes", "4")
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    header = next(line for line in proc.stdout.splitlines() if "mean" in line)
+    cells = [c.strip() for c in re.split(r"[│┃|]", header) if c.strip()]
+    assert cells[-4:] == ["mean", "std", "min", "max"]
+    # (rich wraps a title to the table's width)
+    assert re.search(r"128\s+env\s+steps", proc.stdout)
+    assert re.search(r"\b4\s+episodes", proc.stdout) or "episodes" in cells
+    row = next(line for line in proc.stdout.splitlines() if re.search(r"-\d+\.\d", line))
+    values = [c.strip() for c in re.split(r"[│┃|]", row) if c.strip()]
+    mean, std, low, high = (float(v) for v in values[-4:])
+    assert low <= mean <= high and std >= 0
+    assert EPISODE * PENDULUM_WORST_STEP <= low and high <= 0
+
+
+def test_second_train_to_the_same_out_exits_2(finished_run, capsys):
+    out, _ = finished_run
+    before = {p: (out / p).read_bytes() for p in ("metrics.jsonl", "config.json")}
+    code, _, err = main(["train", *TINY_FLAGS, "--seed", "8", "--out", str(out), "--quiet"], capsys)
+    assert_one_line_error(code, err, "--resume")
+    assert {p: (out / p).read_bytes() for p in before} == before  # nothing clobbered
+
+
+def test_resume_of_a_finished_run_adds_nothing(finished_run, capsys):
+    out, _ = finished_run
+    records = read_records(out)
+    code, _, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
+    assert code == 0, err
+    assert "Traceback" not in err
+    assert read_records(out) == records
+    steps = sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit())
+    assert steps == [1, 2]
+
+
+def test_plot_redraws_the_curve(finished_run, capsys):
+    out, _ = finished_run
+    (out / "curve.png").unlink()
+    code, stdout, _ = main(["plot", "--run", str(out)], capsys)
+    assert code == 0
+    assert stdout.strip().endswith("curve.png")
+    assert (out / "curve.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_envs_and_presets_listings(capsys):
+    code, stdout, _ = main(["envs"], capsys)
+    assert code == 0
+    names = stdout.split()
+    assert "gymnax/Pendulum-v1" in names and "brax/inverted_pendulum" in names
+    code, stdout, _ = main(["presets"], capsys)
+    assert code == 0
+    for name in PRESETS:
+        assert re.search(rf"^{re.escape(name)}: ", stdout, re.M), name
+    assert "--batch-size 128" in stdout
+
+
+def _copy_run(finished_run, tmp_path) -> Path:
+    src, _ = finished_run
+    dst = tmp_path / "copy"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_corrupted_checkpoint_metadata_exits_2(finished_run, tmp_path, capsys):
+    run_dir = _copy_run(finished_run, tmp_path)
+    (run_dir / "checkpoints" / "2" / "meta" / "metadata").write_text("{not json")
+    code, _, err = main(["eval", "--run", str(run_dir), "--episodes", "2"], capsys)
+    assert_one_line_error(code, err, "checkpoints/2", "corrupt")
+    records = read_records(run_dir)
+    code, _, err = main(["train", "--resume", "--out", str(run_dir), "--quiet"], capsys)
+    assert_one_line_error(code, err, "checkpoints/2", "corrupt")
+    assert read_records(run_dir) == records
+
+
+def _garble_arrays(run_dir: Path) -> None:
+    for path in (run_dir / "checkpoints" / "2" / "state").rglob("*"):
+        if path.is_file() and path.parent.name == "d":
+            size = path.stat().st_size
+            path.write_bytes(bytes((i * 37 + 11) % 256 for i in range(size)))
+
+
+def test_corrupted_checkpoint_arrays_exit_2(finished_run, tmp_path):
+    run_dir = _copy_run(finished_run, tmp_path)
+    _garble_arrays(run_dir)
+    for args in (["eval", "--run", str(run_dir)], ["train", "--resume", "--out", str(run_dir)]):
+        proc = td3_jax(*args)
+        assert proc.returncode == 2, proc.stderr
+        errors = [line for line in proc.stderr.splitlines() if line.startswith("td3-jax: error:")]
+        assert len(errors) == 1, proc.stderr
+        assert "checkpoints/2" in errors[0] and "corrupt" in errors[0]
+
+
+@pytest.mark.xfail(
+    strict=False,  # a race: about half of the runs print the tracebacks
+    reason="td3_jax/checkpoint.py Checkpointer.restore: after a failed array read, orbax / "
+    "tensorstore callbacks still pending hit the closed asyncio loop and print 'Traceback ... "
+    "RuntimeError: Event loop is closed' to stderr after the one-line error",
+)
+def test_corrupted_checkpoint_arrays_message_is_clean(finished_run, tmp_path):
+    run_dir = _copy_run(finished_run, tmp_path)
+    _garble_arrays(run_dir)
+    proc = td3_jax("eval", "--run", str(run_dir))
+    assert_one_line_error(proc.returncode, proc.stderr, "corrupt")
+
+
+def test_checkpoint_of_another_configuration_exits_2(finished_run, tmp_path, capsys):
+    run_dir = _copy_run(finished_run, tmp_path)
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps({**config, "hidden_sizes": [32, 32]}))
+    code, _, err = main(["eval", "--run", str(run_dir)], capsys)
+    assert_one_line_error(code, err, "does not match")
+
+
+# --------------------------------------------------------------------------------------------
+# presets
+# --------------------------------------------------------------------------------------------
+
+
+def _capture_train(monkeypatch) -> list:
+    """Replaces the training loop by one that only records and saves the resolved config."""
+    calls = []
+
+    def fake_train(cfg, out_dir, **kwargs):
+        calls.append((cfg, Path(out_dir), kwargs))
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        config = json.dumps(dataclasses.asdict(cfg))
+        (Path(out_dir) / "config.json").write_text(config)
+        return []
+
+    monkeypatch.setattr(run_module, "train", fake_train)
+    return calls
+
+
+def test_preset_keeps_its_values_and_flags_override(tmp_path, capsys, monkeypatch):
+    calls = _capture_train(monkeypatch)
+    out = tmp_path / "run"
+    args = ["train", "--preset", "seed-ddpg-pendulum", "--total-steps", "400", "--out", str(out)]
+    code, _, err = main([*args, "--quiet"], capsys)
+    assert code == 0, err
+    ((cfg, out_dir, kwargs),) = calls
+    assert out_dir == out and kwargs["resume"] is False and kwargs["progress"] is False
+
+    config = json.loads((out / "config.json").read_text())
+    assert config["algo"] == "ddpg"
+    assert config["batch_size"] == 128
+    assert config["exploration"] == "ou"
+    assert config["total_steps"] == 400
+    expected = {**dataclasses.asdict(TrainConfig()), **PRESETS["seed-ddpg-pendulum"]}
+    expected["total_steps"] = 400
+    assert config == expected
+
+    # A flag given after the preset wins over the preset's value, the others stay.
+    calls.clear()
+    code, _, err = main([*args, "--batch-size", "64", "--algo", "td3"], capsys)
+    assert code == 0, err
+    cfg = calls[0][0]
+    assert (cfg.batch_size, cfg.algo, cfg.exploration, cfg.num_envs) == (64, "td3", "ou", 1)
+
+
+def test_resume_uses_the_saved_config(finished_run, tmp_path, capsys, monkeypatch):
+    run_dir = _copy_run(finished_run, tmp_path)
+    saved = json.loads((run_dir / "config.json").read_text())
+    calls = _capture_train(monkeypatch)
+    code, _, err = main(["train", "--resume", "--out", str(run_dir), "--quiet"], capsys)
+    assert code == 0, err
+    cfg, _, kwargs = calls[0]
+    assert kwargs["resume"] is True
+    assert json.loads(json.dumps(dataclasses.asdict(cfg))) == saved
