@@ -19,6 +19,9 @@ import jax.numpy as jnp
 import orbax.checkpoint as ocp
 
 logging.getLogger("absl").setLevel(logging.ERROR)
+# After a failed read of a corrupt checkpoint, tensorstore callbacks still in flight can hit the
+# closed event loop; asyncio would log each as a traceback. The CheckpointError says it all.
+logging.getLogger("asyncio").setLevel(logging.CRITICAL)
 
 
 class CheckpointError(RuntimeError):

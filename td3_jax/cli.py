@@ -107,6 +107,25 @@ class PlotCommand:
     """Run directory written by `td3-jax train`."""
 
 
+def _parse(command_type: type, args: list[str], prog: str, default=None):
+    """``tyro.cli`` whose parse errors become one ``ConfigError`` line (tyro draws a box)."""
+    import contextlib
+    import io
+    import re
+
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            return tyro.cli(command_type, args=args, default=default, prog=prog)
+    except SystemExit as exit_:
+        if exit_.code in (0, None):
+            raise
+        text = re.sub(r"[\u2500-\u257f]+", " ", captured.getvalue())  # box-drawing characters
+        lines = [" ".join(line.split()) for line in text.splitlines()]
+        lines = [line for line in lines if line and not line.startswith(("usage:", "For full"))]
+        raise ConfigError("; ".join(lines) or f"could not parse {' '.join(args)}") from None
+
+
 def _flag_value(args: list[str], flag: str) -> str | None:
     for i, arg in enumerate(args):
         if arg == flag and i + 1 < len(args):
@@ -126,7 +145,7 @@ def _train_defaults(args: list[str], command_type: type = TrainCommand) -> Train
         name = None
     else:
         name = _flag_value(args, "--preset")
-        base = preset(name) if name in PRESETS or name is None else TrainConfig()
+        base = preset(name)  # ConfigError listing the presets for an unknown name
     return command_type(**dataclasses.asdict(base), preset=name)
 
 
@@ -135,9 +154,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     command_type = SweepCommand if sweeping else TrainCommand
     prog = "td3-jax sweep" if sweeping else "td3-jax train"
-    command = tyro.cli(
-        command_type, args=args, default=_train_defaults(args, command_type), prog=prog
-    )
+    command = _parse(command_type, args, prog, default=_train_defaults(args, command_type))
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
     sweep = None
     if sweeping:
@@ -213,7 +230,7 @@ def eval_main(args: list[str]) -> None:
     from td3_jax.population import make_population
     from td3_jax.run import load_config, load_members, population_stats, restore_state
 
-    command = tyro.cli(EvalCommand, args=args, prog="td3-jax eval")
+    command = _parse(EvalCommand, args, "td3-jax eval")
     if command.episodes <= 0:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
     cfg = dataclasses.replace(load_config(command.run), eval_envs=command.episodes)
@@ -256,7 +273,7 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
 def plot_main(args: list[str]) -> None:
     from td3_jax.logger import plot_curve
 
-    command = tyro.cli(PlotCommand, args=args, prog="td3-jax plot")
+    command = _parse(PlotCommand, args, "td3-jax plot")
     path = plot_curve(command.run)
     if path is None:
         raise ConfigError(f"{command.run} has no metrics.jsonl to plot")

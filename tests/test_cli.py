@@ -196,22 +196,11 @@ def test_unknown_algo_exits_2_without_traceback(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="td3_jax/cli.py train_main: tyro reports a bad --algo choice in a multi-line rich "
-    "box, not the documented one-line 'td3-jax: error: ...' message",
-)
 def test_unknown_algo_message_is_one_line(tmp_path, capsys):
     code, _, err = main(["train", "--algo", "foo", "--out", str(tmp_path / "run")], capsys)
     assert_one_line_error(code, err, "foo")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="td3_jax/cli.py _train_defaults: an unknown --preset falls back to TrainConfig() "
-    "and is passed to tyro as the default, so tyro accepts it and the run trains with the "
-    "defaults (exit 0) instead of exiting 2",
-)
 def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
     calls = []
     # Guard: never start the real (minutes-long) default run if the preset is accepted.
