@@ -43,6 +43,10 @@ class TrainConfig:
     """Transitions per gradient update."""
     buffer_size: int = 1_000_000
     """Replay capacity in transitions (capped at the run's total steps)."""
+    replay_shards: int = 1
+    """Split the replay ring into this many slices, each filled by its own group of environments
+    and giving batch_size/replay_shards rows of every batch (stratified uniform sampling). With a
+    multiple of the device count, inserts and sampling stay on each device."""
     warmup_steps: int = 2_000
     """Environment steps with uniform random actions and no updates at the start."""
     eval_every: int = 4_000
@@ -176,6 +180,17 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"--batch-size {cfg.batch_size} is larger than the replay buffer "
             f"({cfg.replay_capacity} transitions)"
         )
+    if cfg.replay_shards <= 0:
+        raise ConfigError(f"--replay-shards must be positive, got {cfg.replay_shards}")
+    for name, value in (
+        ("--num-envs", cfg.num_envs),
+        ("--batch-size", cfg.batch_size),
+        ("the replay capacity", cfg.replay_capacity),
+    ):
+        if value % cfg.replay_shards:
+            raise ConfigError(
+                f"{name} ({value}) must be divisible by --replay-shards ({cfg.replay_shards})"
+            )
     if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
         raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
     for name in ["expl_noise", "policy_noise", "noise_clip", "ou_sigma", "ou_min_sigma"]:

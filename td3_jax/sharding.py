@@ -1,7 +1,9 @@
 """Data parallelism over devices with ``jax.sharding`` (GSPMD): nothing hand-written.
 
 The train state is placed on a 1-D device mesh with axis ``"data"``: environment states, OU
-noise states and the replay buffer are split along their environment / capacity axis; everything
+noise states and the replay buffer are split along their environment / slice axis (with
+``--replay-shards`` a multiple of the device count each device holds whole slices of the ring,
+so inserts and sampling need no traffic between devices); everything
 else (parameters, targets, optimiser states, normaliser, keys, counters) is replicated. The
 chunk is the same program as on one device, jitted with these shardings; XLA partitions it and
 inserts the collectives (the gradient and normaliser reductions over the sharded batch, the
@@ -40,10 +42,11 @@ def make_mesh(num_devices: int | None = None) -> Mesh:
 
 def check_divisible(cfg: TrainConfig, num_devices: int) -> None:
     """Global sizes must split evenly over the devices; one clear error otherwise."""
-    for name, value in (
-        ("--num-envs", cfg.num_envs),
-        ("the replay capacity", cfg.replay_capacity),
-    ):
+    slice_rows = cfg.replay_capacity // cfg.replay_shards
+    checks = [("--num-envs", cfg.num_envs)]
+    if cfg.replay_shards % num_devices:
+        checks.append(("each replay slice (capacity / --replay-shards)", slice_rows))
+    for name, value in checks:
         if value % num_devices:
             raise ConfigError(
                 f"{name} ({value}) must be divisible by the number of devices ({num_devices})"
@@ -63,6 +66,13 @@ def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -
 
     def spec(path, leaf) -> NamedSharding:
         name = jax.tree_util.keystr(path)
+        if ".buffer.data" in name:
+            # [members, shards, capacity / shards, ...]: whole slices per device when the shard
+            # count allows (device-local inserts and samples), else split every slice.
+            for buffer_axis in (axis, axis + 1):
+                if leaf.shape[buffer_axis] % size == 0:
+                    return NamedSharding(mesh, PartitionSpec(*([None] * buffer_axis), AXIS))
+            return NamedSharding(mesh, PartitionSpec())
         split = (
             any(part in name for part in _SPLIT)
             and len(leaf.shape) > axis

@@ -27,7 +27,7 @@ class TrainState:
     """The whole state of a run; checkpointing it is enough to resume exactly."""
 
     agent: AgentState
-    buffer: replay.ReplayBuffer
+    buffer: replay.ReplayBuffer  # leaves [replay_shards, capacity / replay_shards, ...]
     env_state: envs.EnvState
     obs_stats: normalization.RunningStats
     ou_state: noise.OUState
@@ -68,6 +68,18 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
     ou_params = cfg.ou_params()
     num_envs, batch_size = cfg.num_envs, cfg.batch_size
 
+    shards = cfg.replay_shards
+
+    def group_by_shard(tree):
+        """``[num_envs, ...] -> [shards, num_envs / shards, ...]``: env group g fills slice g."""
+        return jax.tree.map(lambda x: x.reshape(shards, -1, *x.shape[1:]), tree)
+
+    def sample(buffer, key):
+        """``batch_size / shards`` uniform rows from every slice, as one ``[batch_size]`` batch."""
+        keys = key[None] if shards == 1 else jax.random.split(key, shards)
+        rows = jax.vmap(lambda b, k: replay.sample(b, k, batch_size // shards))(buffer, keys)
+        return jax.tree.map(lambda x: x.reshape(batch_size, *x.shape[2:]), rows)
+
     def normalize(stats, obs):
         return normalization.normalize(stats, obs) if cfg.normalize_obs else obs
 
@@ -83,7 +95,9 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
         )
         return TrainState(
             agent=agent.init(agent_key),
-            buffer=replay.init(cfg.replay_capacity, example),
+            buffer=jax.vmap(lambda _: replay.init(cfg.replay_capacity // shards, example))(
+                jnp.arange(shards)
+            ),
             env_state=env_state,
             obs_stats=normalization.init(env.observation_size),
             ou_state=jax.vmap(lambda _: noise.ou_init(env.action_size, ou_params))(
@@ -125,7 +139,7 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
         )
         ended = result.terminated | result.truncated
         state = state.replace(
-            buffer=replay.add(state.buffer, transition),
+            buffer=jax.vmap(replay.add)(state.buffer, group_by_shard(transition)),
             env_state=env_state,
             obs_stats=normalization.update(state.obs_stats, obs),
             ou_state=noise.ou_reset(ou_state, ended[:, None], ou_params),
@@ -143,7 +157,7 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
     def gradient_step(carry, key):
         agent_state, buffer, stats = carry
         sample_key, update_key = jax.random.split(key)
-        batch = replay.sample(buffer, sample_key, batch_size)
+        batch = sample(buffer, sample_key)
         batch = batch._replace(
             obs=normalize(stats, batch.obs), next_obs=normalize(stats, batch.next_obs)
         )
@@ -169,7 +183,8 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
             k: (jnp.mean(v) if k == "reward_mean" else jnp.sum(v)) for k, v in env_metrics.items()
         }
         key, update_key = jax.random.split(state.key)
-        learning = (state.env_steps >= cfg.warmup_steps) & (state.buffer.size >= batch_size)
+        stored = jnp.sum(state.buffer.size)
+        learning = (state.env_steps >= cfg.warmup_steps) & (stored >= batch_size)
         if cfg.updates_per_iter > 0:
             agent_state, update_metrics = jax.lax.cond(
                 learning,

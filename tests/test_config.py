@@ -209,3 +209,18 @@ def test_ou_params_follow_the_config():
     assert params.max_sigma == pytest.approx(0.4)
     assert params.min_sigma == pytest.approx(0.1)
     assert params.decay_period == pytest.approx(1234.0)
+
+
+def test_replay_shards_must_divide_envs_batch_and_capacity():
+    from td3_jax.config import ConfigError, TrainConfig, validate
+
+    ok = TrainConfig(num_envs=8, batch_size=64, buffer_size=512, replay_shards=4)
+    assert validate(ok) is ok
+    for bad in (
+        dict(num_envs=6, batch_size=64, buffer_size=512, replay_shards=4),
+        dict(num_envs=8, batch_size=66, buffer_size=512, replay_shards=4),
+        dict(num_envs=8, batch_size=64, buffer_size=510, replay_shards=4),
+        dict(num_envs=8, batch_size=64, buffer_size=512, replay_shards=0),
+    ):
+        with pytest.raises(ConfigError, match="replay-shards"):
+            validate(TrainConfig(**bad))

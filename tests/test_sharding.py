@@ -72,7 +72,7 @@ def four_device_runs(tmp_path_factory):
     out = tmp_path_factory.mktemp("sharding")
     result = _python(
         f"""
-        import json, jax
+        import dataclasses, json, jax
         from jax.sharding import PartitionSpec
         from td3_jax.config import TrainConfig
         from td3_jax.population import make_population, members
@@ -83,6 +83,14 @@ def four_device_runs(tmp_path_factory):
         train(cfg, "{out}/d1", progress=False, devices=1)
         train(cfg, "{out}/resumed", progress=False, devices=4, stop_after_chunks=1)
         train(cfg, "{out}/resumed", progress=False, devices=1, resume=True)
+        sliced = dataclasses.replace(cfg, replay_shards=4)
+        train(sliced, "{out}/sliced_d4", progress=False, devices=4)
+        train(sliced, "{out}/sliced_d1", progress=False, devices=1)
+        sliced_program = make_population(sliced, members(sliced))
+        sliced_state = jax.jit(
+            sliced_program.init,
+            out_shardings=state_shardings(sliced_program.abstract_state, make_mesh(4)),
+        )()
         program = make_population(cfg, members(cfg))
         shardings = state_shardings(program.abstract_state, make_mesh(4))
         state = jax.jit(program.init, out_shardings=shardings)()
@@ -94,6 +102,10 @@ def four_device_runs(tmp_path_factory):
             ],
             "env_shard_rows": [s.data.shape[1] for s in state.env_state.obs.addressable_shards],
             "actor_spec": list(jax.tree.leaves(state.agent.actor_params)[0].sharding.spec),
+            "sliced_buffer_spec": list(sliced_state.buffer.data.obs.sharding.spec),
+            "sliced_shard_shapes": [
+                list(x.data.shape) for x in sliced_state.buffer.data.obs.addressable_shards
+            ],
         }}))
         """,
         devices=4,
@@ -104,9 +116,13 @@ def four_device_runs(tmp_path_factory):
 def test_state_is_split_along_envs_and_buffer(four_device_runs):
     _, info = four_device_runs
     assert info["devices"] == 4
-    assert info["buffer_spec"] == [None, "data"]  # [member, capacity, ...]: capacity split
+    # [member, replay_shards=1, capacity, obs]: one slice, its rows split over the devices
+    assert info["buffer_spec"] == [None, None, "data"]
     capacity = 512  # replay capacity = min(buffer_size, total steps)
-    assert info["buffer_shard_rows"] == [capacity // 4] * 4
+    assert info["buffer_shard_rows"] == [1] * 4  # shape[1] is the (unsplit) slice axis
+    # --replay-shards 4: each device holds one whole slice of 512 / 4 rows
+    assert info["sliced_buffer_spec"] == [None, "data"]
+    assert info["sliced_shard_shapes"] == [[1, 1, capacity // 4, 3]] * 4
     assert info["env_shard_rows"] == [TINY["num_envs"] // 4] * 4
     assert info["actor_spec"] == []  # parameters replicated
 
@@ -116,6 +132,11 @@ def test_four_devices_give_the_one_device_numbers(four_device_runs):
     d4, d1 = _records(out / "d4"), _records(out / "d1")
     assert [r["devices"] for r in d4] == [4, 4] and [r["devices"] for r in d1] == [1, 1]
     _assert_same_numbers(d4, d1, rtol=1e-3)
+
+
+def test_replay_slices_on_four_devices_give_the_one_device_numbers(four_device_runs):
+    out, _ = four_device_runs
+    _assert_same_numbers(_records(out / "sliced_d4"), _records(out / "sliced_d1"), rtol=1e-3)
 
 
 def test_checkpoint_from_four_devices_resumes_on_one(four_device_runs):
