@@ -5,7 +5,7 @@ rows of every gradient batch, so D devices run D times the work of one. Reports,
 device count, env steps/s and gradient updates/s of the compiled chunk (second call, compile
 excluded) and the speed-up over one device measured in the same command.
 
-Usage: python benchmarks/scaling.py --preset ant --devices 1 2 4 --out scaling.jsonl
+Usage: python benchmarks/scaling.py --preset ant --devices 1 2 4 [--replay-shards 1] --out F
 """
 
 from __future__ import annotations
@@ -52,10 +52,17 @@ def main() -> None:
     parser.add_argument("--envs-per-device", type=int, default=4096)
     parser.add_argument("--batch-per-device", type=int, default=8192)
     parser.add_argument("--iters", type=int, default=200)
+    parser.add_argument(
+        "--replay-shards",
+        type=int,
+        default=None,
+        help="replay slices (default: the largest device count, so sampling is device-local)",
+    )
     parser.add_argument("--out", default="scaling.jsonl")
     args = parser.parse_args()
     counts = args.devices or [n for n in (1, 2, 4, 8) if n <= jax.device_count()]
     base = preset(args.preset)
+    shards = args.replay_shards or max(counts)
     rows, single = [], None
     for d in counts:
         n = args.envs_per_device * d
