@@ -73,6 +73,7 @@ def main() -> None:
             warmup_steps=0,
             eval_every=n * args.iters,
             buffer_size=n * args.iters * 2,
+            replay_shards=shards,
         )
         steps_per_s, updates_per_s = measure(cfg, d)
         single = single or (steps_per_s, updates_per_s)
@@ -82,6 +83,7 @@ def main() -> None:
             "num_envs": n,
             "batch_size": cfg.batch_size,
             "updates_per_iter": cfg.updates_per_iter,
+            "replay_shards": shards,
             "env_steps_per_s": steps_per_s,
             "updates_per_s": updates_per_s,
             "speedup_env_steps": steps_per_s / single[0],
