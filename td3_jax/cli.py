@@ -288,7 +288,11 @@ def envs_main(args: list[str]) -> None:
 
 def presets_main(args: list[str]) -> None:
     for name, values in PRESETS.items():
-        settings = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in values.items())
+        settings = " ".join(
+            f"--{k.replace('_', '-')} "
+            + (" ".join(map(str, v)) if isinstance(v, tuple) else str(v))
+            for k, v in values.items()
+        )
         print(f"{name}: {settings}")
 
 

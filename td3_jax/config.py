@@ -203,6 +203,23 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     return cfg
 
 
+# Shared by the Brax locomotion presets: 4096 envs, 8 updates of batch 8192 per iteration (a
+# replay ratio of 16 sampled rows per new transition), a 400k-step random warm-up, 4M buffer.
+_GPU_LOCOMOTION = dict(
+    algo="td3",
+    num_envs=4096,
+    total_steps=20_000_000,
+    updates_per_iter=8,
+    batch_size=8192,
+    warmup_steps=409_600,
+    eval_every=1_638_400,
+    eval_envs=128,
+    buffer_size=4_000_000,
+    hidden_sizes=(256, 256),
+    actor_lr=3e-4,
+    critic_lr=3e-4,
+)
+
 PRESETS: dict[str, dict] = {
     # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
     # 200 steps, one update per step from the moment the buffer holds a batch.
@@ -266,53 +283,11 @@ PRESETS: dict[str, dict] = {
         actor_lr=1e-3,
         critic_lr=1e-3,
     ),
-    # GPU defaults for Brax locomotion with thousands of environments.
-    "ant": dict(
-        env="brax/ant",
-        algo="td3",
-        num_envs=4096,
-        total_steps=20_000_000,
-        updates_per_iter=8,
-        batch_size=8192,
-        warmup_steps=409_600,
-        eval_every=1_638_400,
-        eval_envs=128,
-        buffer_size=4_000_000,
-        hidden_sizes=(256, 256),
-        actor_lr=3e-4,
-        critic_lr=3e-4,
-        discount=0.99,
-        tau=0.005,
-    ),
-    "halfcheetah": dict(
-        env="brax/halfcheetah",
-        algo="td3",
-        num_envs=4096,
-        total_steps=20_000_000,
-        updates_per_iter=8,
-        batch_size=8192,
-        warmup_steps=409_600,
-        eval_every=1_638_400,
-        eval_envs=128,
-        buffer_size=4_000_000,
-        hidden_sizes=(256, 256),
-        actor_lr=3e-4,
-        critic_lr=3e-4,
-    ),
+    # GPU defaults for Brax locomotion with thousands of environments (see _GPU_LOCOMOTION).
+    "ant": dict(_GPU_LOCOMOTION, env="brax/ant"),
+    "halfcheetah": dict(_GPU_LOCOMOTION, env="brax/halfcheetah"),
     "humanoid": dict(
-        env="brax/humanoid",
-        algo="td3",
-        num_envs=4096,
-        total_steps=30_000_000,
-        updates_per_iter=8,
-        batch_size=8192,
-        warmup_steps=409_600,
-        eval_every=1_638_400,
-        eval_envs=128,
-        buffer_size=4_000_000,
-        hidden_sizes=(512, 256),
-        actor_lr=3e-4,
-        critic_lr=3e-4,
+        _GPU_LOCOMOTION, env="brax/humanoid", total_steps=30_000_000, hidden_sizes=(512, 256)
     ),
 }
 

@@ -61,6 +61,33 @@ class Environment:
         return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
 
 
+def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
+    """Wraps an environment with Brax's API (``reset(key)``/``step(state, action)`` returning a
+    state with ``obs``, ``reward`` and ``done``; actions in ``[-1, 1]``), as Brax and MuJoCo
+    Playground environments have. Without their episode wrappers, ``done`` is a termination.
+    """
+
+    def reset_fn(key):
+        state = env.reset(key)
+        return state, state.obs
+
+    def step_fn(state, action, key):
+        del key  # these environments step deterministically
+        state = env.step(state, action)
+        return state, state.obs, state.reward, state.done > 0.5
+
+    return Environment(
+        name=name,
+        observation_size=int(env.observation_size),
+        action_size=int(env.action_size),
+        episode_length=int(episode_length),
+        action_low=-np.ones(env.action_size, np.float32),
+        action_high=np.ones(env.action_size, np.float32),
+        reset_fn=reset_fn,
+        step_fn=step_fn,
+    )
+
+
 @struct.dataclass
 class EnvState:
     """State of a batch of environments (every leaf has a leading ``num_envs`` axis).

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
-
-from td3_jax.envs.base import Environment
+from td3_jax.envs.base import Environment, from_mjx_style
 
 
 def names() -> list[str]:
@@ -24,22 +22,4 @@ def make(name: str, *, backend: str = "mjx", episode_length: int = 1000, **kwarg
 
     env = envs.get_environment(name, backend=backend, **kwargs)
 
-    def reset_fn(key):
-        state = env.reset(key)
-        return state, state.obs
-
-    def step_fn(state, action, key):
-        del key  # Brax steps are deterministic
-        state = env.step(state, action)
-        return state, state.obs, state.reward, state.done > 0.5
-
-    return Environment(
-        name=f"brax/{name}",
-        observation_size=int(env.observation_size),
-        action_size=int(env.action_size),
-        episode_length=int(episode_length),
-        action_low=-np.ones(env.action_size, np.float32),
-        action_high=np.ones(env.action_size, np.float32),
-        reset_fn=reset_fn,
-        step_fn=step_fn,
-    )
+    return from_mjx_style(f"brax/{name}", env, episode_length)

@@ -6,9 +6,7 @@ warp-lang. Install with ``pip install 'td3-jax[playground]'``.
 
 from __future__ import annotations
 
-import numpy as np
-
-from td3_jax.envs.base import Environment
+from td3_jax.envs.base import Environment, from_mjx_style
 
 
 def _suite():
@@ -36,22 +34,4 @@ def make(name: str, *, impl: str = "jax", episode_length: int | None = None) -> 
     env = suite.load(name, config=config, config_overrides={"impl": impl})
     length = int(episode_length or config.episode_length)
 
-    def reset_fn(key):
-        state = env.reset(key)
-        return state, state.obs
-
-    def step_fn(state, action, key):
-        del key
-        state = env.step(state, action)
-        return state, state.obs, state.reward, state.done > 0.5
-
-    return Environment(
-        name=f"playground/{name}",
-        observation_size=int(env.observation_size),
-        action_size=int(env.action_size),
-        episode_length=length,
-        action_low=-np.ones(env.action_size, np.float32),
-        action_high=np.ones(env.action_size, np.float32),
-        reset_fn=reset_fn,
-        step_fn=step_fn,
-    )
+    return from_mjx_style(f"playground/{name}", env, length)
