@@ -1,0 +1,778 @@
+"""Brax PPO, Brax SAC and td3-jax on one environment, each for the same wall-clock budget.
+
+Usage (from the project root):
+
+  python3 benchmarks/compare.py --env ant --budget-s 120 --out DIR \\
+      [--algos ppo sac td3] [--td3-preset ant] [--td3-flag KEY=VALUE ...] \\
+      [--ppo-flag KEY=VALUE ...] [--sac-flag KEY=VALUE ...] [--sac-recipe playground-dmc] \\
+      [--num-evals 40] [--seed N] [--smoke]
+
+Environments: ``ant``, ``halfcheetah``, ``humanoid`` (Brax, MJX backend) and any MuJoCo Playground
+DM Control Suite task such as ``CheetahRun`` (loaded with ``impl="jax"``).
+
+Each algorithm runs in its own fresh Python process (spawned one after the other), so none
+inherits another's compiled code or GPU memory. Its clock starts just before the environment is
+created and the train function is called: environment creation, tracing, compilation and the
+evaluations are all inside the measured wall-clock. An algorithm stops at its first evaluation
+past ``--budget-s`` (or when its own run length ends, whichever comes first):
+
+* Brax PPO / SAC (``brax.training.agents.{ppo,sac}.train.train``): ``progress_fn`` records
+  ``(wall_s, num_steps, metrics["eval/episode_reward"])`` at every evaluation and raises a private
+  exception once past the budget. Brax evaluates ``num_eval_envs`` (128) episodes, stochastic
+  policy (Brax's default), between training epochs; ``--num-evals`` sets how many evaluations a
+  full run makes (Brax's published recipes use 10 or 20, too few points inside a short budget).
+* td3-jax: ``td3_jax.run.train(cfg, DIR/td3_<env>, progress=False, time_budget_s=budget)`` with
+  ``cfg`` = the preset (``--td3-preset``, default: the env's, halfcheetah's for Playground) with
+  ``env``, ``checkpoint_every=10**9`` and ``--td3-flag`` settings. An evaluation (deterministic
+  policy, ``eval_envs`` episodes) follows every chunk of ``eval_every`` steps. td3's own
+  ``wall_time_s`` starts only after its environment is made, so each evaluation is stamped on
+  this script's clock instead, and the run is stopped on that clock the same way (a private
+  exception raised from its metrics logger).
+
+SAC settings: Brax publishes SAC settings only for hopper and walker2d, so for ant, halfcheetah
+and humanoid ``--sac-recipe`` picks MuJoCo Playground's tuned Brax SAC config (default) or the Brax
+colab's hopper entry; see ``SAC_RECIPES``.
+
+Writes ``DIR/compare_<env>.csv`` (algorithm, env, wall_s, env_steps, eval_return,
+eval_return_std), ``DIR/compare_<env>.png`` (eval return against wall-clock, one line per
+algorithm), ``DIR/compare_<env>.json`` (date, device, versions, the exact settings of each
+algorithm and their sources, status) and prints a table: per algorithm, the return of the last
+evaluation at or before 1/4, 1/2, 3/4 and all of the budget, and the best return within it.
+
+``--smoke`` shrinks every algorithm to a few environments and a few hundred steps, only to check
+on a CPU that the code paths run; its numbers mean nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import csv
+import dataclasses
+import datetime as dt
+import json
+import multiprocessing
+import os
+import platform
+import sys
+import time
+import traceback
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+for _path in (str(ROOT), str(HERE)):  # td3_jax and brax_shim importable without installing
+    if _path not in sys.path:
+        sys.path.insert(0, _path)
+
+ALGOS = ("ppo", "sac", "td3")
+BRAX_ENVS = ("ant", "halfcheetah", "humanoid")
+
+# Brax PPO, published settings: google/brax, notebooks/training.ipynb (the Brax training colab),
+# cell "Training some pre-included Brax environments", dict `train_fn` ("We determined some
+# reasonable hyperparameters offline and share them here"), entries for ant, humanoid and
+# halfcheetah; ppo.train's defaults for everything not listed (network sizes, clipping 0.3,
+# GAE 0.95, 128 eval envs, stochastic eval).
+BRAX_PPO: dict[str, dict[str, Any]] = {
+    "ant": dict(
+        num_timesteps=50_000_000,
+        num_evals=10,
+        reward_scaling=10,
+        episode_length=1000,
+        normalize_observations=True,
+        action_repeat=1,
+        unroll_length=5,
+        num_minibatches=32,
+        num_updates_per_batch=4,
+        discounting=0.97,
+        learning_rate=3e-4,
+        entropy_cost=1e-2,
+        num_envs=4096,
+        batch_size=2048,
+        seed=1,
+    ),
+    "humanoid": dict(
+        num_timesteps=50_000_000,
+        num_evals=10,
+        reward_scaling=0.1,
+        episode_length=1000,
+        normalize_observations=True,
+        action_repeat=1,
+        unroll_length=10,
+        num_minibatches=32,
+        num_updates_per_batch=8,
+        discounting=0.97,
+        learning_rate=3e-4,
+        entropy_cost=1e-3,
+        num_envs=2048,
+        batch_size=1024,
+        seed=1,
+    ),
+    "halfcheetah": dict(
+        num_timesteps=50_000_000,
+        num_evals=20,
+        reward_scaling=1,
+        episode_length=1000,
+        normalize_observations=True,
+        action_repeat=1,
+        unroll_length=20,
+        num_minibatches=32,
+        num_updates_per_batch=8,
+        discounting=0.95,
+        learning_rate=3e-4,
+        entropy_cost=0.001,
+        num_envs=2048,
+        batch_size=512,
+        seed=3,
+    ),
+}
+BRAX_PPO_SOURCE = (
+    "google/brax notebooks/training.ipynb (Brax training colab), train_fn dict, entry for the env"
+)
+
+# Brax SAC. The Brax colab publishes SAC settings only for hopper and walker2d (ant, humanoid and
+# halfcheetah get PPO there), so there is no Brax-published SAC recipe for these environments.
+# Two published recipes for brax.training's SAC on MJX, selectable with --sac-recipe:
+#   playground-dmc (default): MuJoCo Playground's tuned Brax SAC config for DM Control Suite,
+#     mujoco_playground/config/dm_control_suite_params.py brax_sac_config() (playground 0.2.0),
+#     with the environment's episode length 1000; the Playground tasks read it from that module.
+#   brax-hopper: the Brax colab's SAC entry for hopper (same notebook as BRAX_PPO).
+SAC_RECIPES: dict[str, dict[str, Any]] = {
+    "playground-dmc": dict(
+        num_timesteps=5_000_000,
+        num_evals=10,
+        reward_scaling=1.0,
+        episode_length=1000,
+        normalize_observations=True,
+        action_repeat=1,
+        discounting=0.99,
+        learning_rate=1e-3,
+        num_envs=128,
+        batch_size=512,
+        grad_updates_per_step=8,
+        max_replay_size=1048576 * 4,
+        min_replay_size=8192,
+        network_factory=dict(q_network_layer_norm=True),
+    ),
+    "brax-hopper": dict(
+        num_timesteps=6_553_600,
+        num_evals=20,
+        reward_scaling=30,
+        episode_length=1000,
+        normalize_observations=True,
+        action_repeat=1,
+        discounting=0.997,
+        learning_rate=6e-4,
+        num_envs=128,
+        batch_size=512,
+        grad_updates_per_step=64,
+        max_devices_per_host=1,
+        max_replay_size=1048576,
+        min_replay_size=8192,
+        seed=1,
+    ),
+}
+SAC_SOURCES = {
+    "playground-dmc": "mujoco_playground/config/dm_control_suite_params.py brax_sac_config() "
+    "(Playground's tuned Brax SAC for DM Control; no Brax-published SAC recipe for this env)",
+    "brax-hopper": "google/brax notebooks/training.ipynb (Brax training colab), train_fn['hopper']",
+}
+# Playground's DM Control PPO config, copied from brax_ppo_config() of the same module; used only
+# if the installed Playground lacks mujoco_playground.config.dm_control_suite_params.
+PLAYGROUND_PPO_FALLBACK = dict(
+    num_timesteps=60_000_000,
+    num_evals=10,
+    reward_scaling=10.0,
+    episode_length=1000,
+    normalize_observations=True,
+    action_repeat=1,
+    unroll_length=30,
+    num_minibatches=32,
+    num_updates_per_batch=16,
+    discounting=0.995,
+    learning_rate=1e-3,
+    entropy_cost=1e-2,
+    num_envs=2048,
+    batch_size=1024,
+    num_resets_per_eval=10,
+)
+
+# --smoke: a few environments and a few hundred steps, only to run every code path on a CPU.
+SMOKE = {
+    "ppo": dict(
+        num_timesteps=1_600,
+        num_evals=3,
+        num_envs=8,
+        batch_size=8,
+        num_minibatches=2,
+        unroll_length=5,
+        num_updates_per_batch=2,
+        episode_length=50,
+        num_eval_envs=8,
+    ),
+    "sac": dict(
+        num_timesteps=1_000,
+        num_evals=3,
+        num_envs=8,
+        batch_size=32,
+        grad_updates_per_step=1,
+        min_replay_size=128,
+        max_replay_size=4_096,
+        episode_length=50,
+        num_eval_envs=8,
+    ),
+    "td3": dict(
+        num_envs=8,
+        total_steps=800,
+        eval_every=400,
+        warmup_steps=100,
+        batch_size=32,
+        buffer_size=4_096,
+        updates_per_iter=1,
+        eval_envs=8,
+        episode_length=50,
+    ),
+}
+
+# td3-jax preset per environment (--td3-preset overrides); Playground tasks borrow halfcheetah's.
+TD3_PRESET = {"ant": "ant", "halfcheetah": "halfcheetah", "humanoid": "humanoid"}
+TD3_PRESET_DEFAULT = "halfcheetah"
+
+TIME_ZERO = (
+    "just before the environment is created and the train function is called, in a fresh "
+    "process: environment creation, tracing, compilation and evaluations are all included"
+)
+
+
+class _BudgetReached(Exception):
+    """Raised from a Brax progress_fn to stop training once the wall-clock budget has passed."""
+
+
+# --------------------------------------------------------------------------------------------
+# Settings
+# --------------------------------------------------------------------------------------------
+
+
+def parse_flags(items: list[str] | None, what: str) -> dict[str, str]:
+    """``["KEY=VALUE", ...]`` as a dict of strings (values are converted later)."""
+    flags = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"{what}: expected KEY=VALUE, got {item!r}")
+        flags[key.strip().replace("-", "_")] = value.strip()
+    return flags
+
+
+def literal(value: str) -> Any:
+    """A Python literal (``50_000_000``, ``3e-4``, ``True``, ``(256, 256)``), else the string."""
+    try:
+        return ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return value
+
+
+def td3_overrides(flags: dict[str, str]) -> dict[str, Any]:
+    """--td3-flag values converted to the types of td3_jax.config.TrainConfig's fields."""
+    from td3_jax.config import TrainConfig
+
+    fields = {f.name: str(f.type) for f in dataclasses.fields(TrainConfig)}
+    out: dict[str, Any] = {}
+    for key, raw in flags.items():
+        if key not in fields:
+            raise SystemExit(f"--td3-flag: unknown setting {key!r}; known: {', '.join(fields)}")
+        kind = fields[key]
+        if raw.lower() == "none" and "None" in kind:
+            out[key] = None
+        elif "tuple" in kind:
+            out[key] = tuple(int(v) for v in raw.replace(",", " ").split())
+        elif kind.startswith("bool"):
+            if raw.lower() not in ("true", "false", "1", "0"):
+                raise SystemExit(f"--td3-flag {key}: expected true or false, got {raw!r}")
+            out[key] = raw.lower() in ("true", "1")
+        elif "float" in kind:
+            out[key] = float(raw)
+        elif "int" in kind:
+            number = float(raw.replace("_", ""))
+            if number != int(number):
+                raise SystemExit(f"--td3-flag {key}: expected an integer, got {raw!r}")
+            out[key] = int(number)
+        else:
+            out[key] = raw
+    return out
+
+
+def is_brax_env(env: str) -> bool:
+    return env in BRAX_ENVS
+
+
+def env_id(env: str) -> str:
+    """td3-jax's name of the environment."""
+    return f"brax/{env}" if is_brax_env(env) else f"playground/{env}"
+
+
+# --------------------------------------------------------------------------------------------
+# Workers (each runs in a fresh spawned process)
+# --------------------------------------------------------------------------------------------
+
+
+def _device() -> dict[str, Any]:
+    import jax
+
+    device = jax.devices()[0]
+    return {
+        "platform": device.platform,
+        "device_kind": device.device_kind,
+        "device_count": jax.device_count(),
+    }
+
+
+def _announce(algo: str, source: str, settings: dict[str, Any]) -> None:
+    listing = " ".join(f"{k}={v}" for k, v in settings.items())
+    print(f"[{algo}] settings from {source}: {listing}", flush=True)
+
+
+def _brax_settings(job: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """The keyword arguments of ppo.train / sac.train for this job, and where they come from."""
+    algo, env = job["algo"], job["env"]
+    if is_brax_env(env):
+        if algo == "ppo":
+            settings, source = dict(BRAX_PPO[env]), BRAX_PPO_SOURCE
+        else:
+            settings = dict(SAC_RECIPES[job["sac_recipe"]])
+            source = SAC_SOURCES[job["sac_recipe"]]
+    else:
+        try:
+            from mujoco_playground.config import dm_control_suite_params as params
+
+            config = (params.brax_ppo_config if algo == "ppo" else params.brax_sac_config)(env)
+            settings = config.to_dict()
+            source = (
+                f"mujoco_playground.config.dm_control_suite_params.brax_{algo}_config({env!r}) "
+                f"(playground {_version('playground')})"
+            )
+        except ImportError:
+            settings = dict(
+                PLAYGROUND_PPO_FALLBACK if algo == "ppo" else SAC_RECIPES["playground-dmc"]
+            )
+            source = "copy of Playground's DM Control config (module not installed)"
+    published = dict(settings)
+    if job["num_evals"] is not None:
+        settings["num_evals"] = job["num_evals"]
+    if job["smoke"]:
+        settings.update(SMOKE[algo])
+    if job["seed"] is not None:
+        settings["seed"] = job["seed"]
+    settings.update({k: literal(v) for k, v in job["flags"].items()})
+    return {"published": published, "used": settings}, source
+
+
+def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
+    import brax_shim
+
+    result["shimmed"] = brax_shim.install()
+    import functools
+
+    import numpy as np
+
+    algo, env_name, budget = job["algo"], job["env"], job["budget_s"]
+    settings, source = _brax_settings(job)
+    result["settings"], result["source"] = settings, source
+    _announce(algo, source, settings["used"])
+    kwargs = dict(settings["used"])
+    if algo == "ppo":
+        from brax.training.agents.ppo import networks as nets
+        from brax.training.agents.ppo import train as agent
+
+        make_networks = nets.make_ppo_networks
+    else:
+        from brax.training.agents.sac import networks as nets
+        from brax.training.agents.sac import train as agent
+
+        make_networks = nets.make_sac_networks
+        # Playground's SAC config has num_resets_per_eval, which sac.train does not take.
+        kwargs.pop("num_resets_per_eval", None)
+    factory = kwargs.pop("network_factory", None)
+    if factory:
+        kwargs["network_factory"] = functools.partial(make_networks, **dict(factory))
+
+    rows = result["rows"]
+
+    def progress(num_steps, metrics):
+        wall = time.perf_counter() - start
+        ret = float(np.asarray(metrics["eval/episode_reward"]))
+        std = metrics.get("eval/episode_reward_std")
+        rows.append(
+            dict(
+                wall_s=wall,
+                env_steps=int(num_steps),
+                eval_return=ret,
+                eval_return_std=None if std is None else float(np.asarray(std)),
+            )
+        )
+        print(f"[{algo}] {wall:7.1f} s  {int(num_steps):>12,} steps  return {ret:9.1f}", flush=True)
+        if wall >= budget:
+            raise _BudgetReached
+
+    start = time.perf_counter()
+    if is_brax_env(env_name):
+        from brax import envs
+
+        environment = envs.get_environment(env_name, backend="mjx")
+    else:
+        from mujoco_playground import dm_control_suite, wrapper
+
+        environment = dm_control_suite.load(env_name, config_overrides={"impl": "jax"})
+        if not hasattr(wrapper, "wrap_for_brax_training"):
+            raise RuntimeError("this Playground has no wrapper.wrap_for_brax_training")
+        kwargs["wrap_env_fn"] = wrapper.wrap_for_brax_training
+    try:
+        agent.train(environment=environment, progress_fn=progress, **kwargs)
+        result["stopped_by"] = "run length"
+    except _BudgetReached:
+        result["stopped_by"] = "budget"
+    result["wall_s_total"] = time.perf_counter() - start
+
+
+def td3_config(job: dict[str, Any]):
+    """The td3-jax TrainConfig of a job (validated) and the settings changed from the preset."""
+    from td3_jax import config as td3_config
+
+    overrides: dict[str, Any] = {} if is_brax_env(job["env"]) else {"env_backend": "jax"}
+    if job["smoke"]:
+        overrides.update(SMOKE["td3"])
+    if job["seed"] is not None:
+        overrides["seed"] = job["seed"]
+    overrides.update(td3_overrides(job["flags"]))
+    try:
+        cfg = dataclasses.replace(
+            td3_config.preset(job["td3_preset"]),
+            env=env_id(job["env"]),
+            checkpoint_every=10**9,
+            **overrides,
+        )
+        return td3_config.validate(cfg), overrides
+    except td3_config.ConfigError as err:
+        raise SystemExit(f"td3-jax settings: {err}") from err
+
+
+def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
+    from td3_jax import run as td3_run
+
+    cfg, overrides = td3_config(job)
+    result["settings"] = {"preset": job["td3_preset"], "used": dataclasses.asdict(cfg)}
+    result["source"] = f"td3_jax.config.PRESETS[{job['td3_preset']!r}] + flags"
+    _announce("td3", result["source"], {"env": cfg.env, **overrides})
+    run_dir = Path(job["out"]) / f"td3_{job['env']}"
+    if run_dir.exists():
+        run_dir = run_dir.with_name(f"{run_dir.name}_{time.strftime('%Y%m%d-%H%M%S')}")
+    result["run_dir"] = str(run_dir)
+
+    # td3's own wall_time_s starts only after its environment is made (which, for Brax, runs an
+    # eager env.reset: tens of seconds). Stamp every evaluation with this process's clock instead,
+    # started before the environment is made like the Brax runs, and stop on that clock: raise
+    # from the logger once past the budget, as the Brax runs raise from progress_fn.
+    budget, rows = job["budget_s"], result["rows"]
+
+    class StampedLogger(td3_run.MetricsLogger):
+        def write(self, record):
+            wall = time.perf_counter() - start
+            record["compare_wall_s"] = wall
+            out = super().write(record)
+            steps, ret = int(record["env_steps"]), float(record["eval_return_mean"])
+            rows.append(
+                dict(
+                    wall_s=wall,
+                    env_steps=steps,
+                    eval_return=ret,
+                    eval_return_std=float(record["eval_return_std"]),
+                    td3_wall_time_s=float(record["wall_time_s"]),
+                )
+            )
+            print(f"[td3] {wall:7.1f} s  {steps:>12,} steps  return {ret:9.1f}", flush=True)
+            if wall >= budget:
+                raise _BudgetReached
+            return out
+
+    td3_run.MetricsLogger = StampedLogger
+    start = time.perf_counter()
+    try:
+        td3_run.train(cfg, run_dir, progress=False, time_budget_s=budget)
+        result["stopped_by"] = "run length"
+    except _BudgetReached:
+        result["stopped_by"] = "budget"
+    result["wall_s_total"] = time.perf_counter() - start
+
+
+def _worker(job: dict[str, Any]) -> None:
+    """Runs one algorithm and writes its result JSON (also when it fails)."""
+    result: dict[str, Any] = {"algo": job["algo"], "rows": [], "status": "ok"}
+    try:
+        result["device"] = _device()
+        (_run_td3 if job["algo"] == "td3" else _run_brax)(job, result)
+    except BaseException as err:  # report every failure, then exit non-zero
+        result["status"] = "failed"
+        result["error"] = f"{type(err).__name__}: {err}"
+        result["traceback"] = traceback.format_exc()
+        print(f"[{job['algo']}] FAILED: {result['error']}", flush=True)
+    Path(job["result_path"]).write_text(json.dumps(result, indent=2, default=str) + "\n")
+    if result["status"] != "ok":
+        sys.exit(1)
+
+
+# --------------------------------------------------------------------------------------------
+# Output
+# --------------------------------------------------------------------------------------------
+
+
+def _version(name: str) -> str | None:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def versions() -> dict[str, Any]:
+    names = ["jax", "jaxlib", "brax", "mujoco", "mujoco-mjx", "playground", "flax", "optax"]
+    found = {n: _version(n) for n in names}
+    found["td3-jax"] = _version("td3-jax")
+    found["python"] = platform.python_version()
+    return found
+
+
+def write_csv(path: Path, env: str, results: dict[str, dict]) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            ["algorithm", "env", "wall_s", "env_steps", "eval_return", "eval_return_std"]
+        )
+        for algo, result in results.items():
+            for row in result["rows"]:
+                std = row.get("eval_return_std")
+                writer.writerow(
+                    [
+                        algo,
+                        env,
+                        f"{row['wall_s']:.3f}",
+                        row["env_steps"],
+                        f"{row['eval_return']:.4f}",
+                        "" if std is None else f"{std:.4f}",
+                    ]
+                )
+
+
+def plot(path: Path, env: str, budget: float, results: dict[str, dict], device: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = {"ppo": "Brax PPO", "sac": "Brax SAC", "td3": "td3-jax TD3"}
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for algo, result in results.items():
+        rows = result["rows"]
+        if rows:
+            ax.plot(
+                [r["wall_s"] for r in rows],
+                [r["eval_return"] for r in rows],
+                marker="o",
+                markersize=3,
+                label=labels.get(algo, algo),
+            )
+    ax.axvline(budget, color="grey", linestyle="--", linewidth=1, label=f"budget {budget:g} s")
+    ax.set_xlabel("wall-clock s (start-up and compile included)")
+    ax.set_ylabel("eval episode return")
+    ax.set_title(f"{env} on {device}")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def time_points(budget: float) -> list[float]:
+    return [budget * f for f in (0.25, 0.5, 0.75, 1.0)]
+
+
+def at_or_before(rows: list[dict], t: float) -> dict | None:
+    before = [r for r in rows if r["wall_s"] <= t]
+    return before[-1] if before else None
+
+
+def table(results: dict[str, dict], budget: float) -> str:
+    points = time_points(budget)
+    head = ["algorithm", "first eval s"] + [f"@{p:g} s" for p in points]
+    head += ["best (s)", "steps @budget"]
+    lines = ["| " + " | ".join(head) + " |", "| --- |" + " ---: |" * (len(head) - 1)]
+    for algo, result in results.items():
+        rows = sorted(result["rows"], key=lambda r: r["wall_s"])
+        cells = [algo]
+        if result["status"] != "ok" and not rows:
+            cells += ["failed"] + [""] * (len(head) - 2)
+            lines.append("| " + " | ".join(cells) + " |")
+            continue
+        cells.append(f"{rows[0]['wall_s']:.1f}" if rows else "-")
+        for p in points:
+            row = at_or_before(rows, p)
+            cells.append("-" if row is None else f"{row['eval_return']:.1f}")
+        within = [r for r in rows if r["wall_s"] <= budget]
+        if within:
+            best = max(within, key=lambda r: r["eval_return"])
+            cells.append(f"{best['eval_return']:.1f} ({best['wall_s']:.0f})")
+            cells.append(f"{within[-1]['env_steps']:,}")
+        else:
+            cells += ["-", "-"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--env", required=True, help="ant, halfcheetah, humanoid or CheetahRun")
+    parser.add_argument("--budget-s", type=float, required=True, help="wall-clock per algorithm")
+    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    parser.add_argument("--td3-preset", default=None, help="td3-jax preset (default: per env)")
+    parser.add_argument(
+        "--td3-flag",
+        action="extend",
+        nargs="+",
+        default=[],
+        help="td3-jax TrainConfig KEY=VALUE ...",
+    )
+    parser.add_argument(
+        "--ppo-flag", action="extend", nargs="+", default=[], help="brax ppo.train KEY=VALUE ..."
+    )
+    parser.add_argument(
+        "--sac-flag", action="extend", nargs="+", default=[], help="brax sac.train KEY=VALUE ..."
+    )
+    parser.add_argument(
+        "--sac-recipe",
+        choices=sorted(SAC_RECIPES),
+        default="playground-dmc",
+        help="SAC settings for the Brax envs (Brax publishes none for them; see the source)",
+    )
+    parser.add_argument(
+        "--num-evals",
+        type=int,
+        default=40,
+        help="evaluations over a whole Brax PPO/SAC run (0: keep the published number)",
+    )
+    parser.add_argument("--seed", type=int, default=None, help="seed of every algorithm")
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes: a CPU code-path check")
+    args = parser.parse_args(argv)
+
+    env = args.env.removeprefix("brax/").removeprefix("playground/")
+    if env.lower() in BRAX_ENVS:
+        env = env.lower()
+    else:  # importing Playground does not start a JAX backend (the workers own the GPU)
+        from mujoco_playground import dm_control_suite
+
+        if env not in dm_control_suite.ALL_ENVS:
+            known = ", ".join([*BRAX_ENVS, *sorted(dm_control_suite.ALL_ENVS)])
+            parser.error(f"unknown environment {args.env!r}; known: {known}")
+    if args.budget_s <= 0:
+        parser.error("--budget-s must be positive")
+    flags = {
+        "ppo": parse_flags(args.ppo_flag, "--ppo-flag"),
+        "sac": parse_flags(args.sac_flag, "--sac-flag"),
+        "td3": parse_flags(args.td3_flag, "--td3-flag"),
+    }
+    td3_preset = args.td3_preset or TD3_PRESET.get(env, TD3_PRESET_DEFAULT)
+    if "td3" in args.algos:  # bad td3 settings fail here, before any run starts
+        td3_config(
+            dict(
+                env=env, smoke=args.smoke, seed=args.seed, flags=flags["td3"], td3_preset=td3_preset
+            )
+        )
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    parts = out / f"compare_{env}_parts"
+    parts.mkdir(exist_ok=True)
+
+    started = dt.datetime.now(dt.UTC)
+    context = multiprocessing.get_context("spawn")
+    results: dict[str, dict] = {}
+    for algo in args.algos:
+        result_path = parts / f"{algo}.json"
+        result_path.unlink(missing_ok=True)
+        job = dict(
+            algo=algo,
+            env=env,
+            budget_s=args.budget_s,
+            smoke=args.smoke,
+            seed=args.seed,
+            flags=flags[algo],
+            num_evals=args.num_evals or None,
+            sac_recipe=args.sac_recipe,
+            td3_preset=td3_preset,
+            out=str(out),
+            result_path=str(result_path),
+        )
+        print(f"== {algo} on {env}, budget {args.budget_s:g} s", flush=True)
+        process = context.Process(target=_worker, args=(job,), name=f"compare-{algo}")
+        process.start()
+        process.join()
+        if result_path.exists():
+            results[algo] = json.loads(result_path.read_text())
+        else:
+            results[algo] = {
+                "algo": algo,
+                "rows": [],
+                "status": "failed",
+                "error": f"worker process ended with exit code {process.exitcode} and no result",
+            }
+            print(f"[{algo}] FAILED: {results[algo]['error']}", flush=True)
+
+    devices = [r["device"] for r in results.values() if r.get("device")]
+    device = devices[0]["device_kind"] if devices else "unknown device"
+    stem = out / f"compare_{env}"
+    write_csv(stem.with_suffix(".csv"), env, results)
+    plot(stem.with_suffix(".png"), env, args.budget_s, results, device)
+    summary = {
+        "date": started.isoformat(timespec="seconds"),
+        "command": [Path(sys.executable).name, *sys.argv],
+        "env": env,
+        "budget_s": args.budget_s,
+        "smoke": args.smoke,
+        "time_zero": TIME_ZERO,
+        "device": devices[0] if devices else None,
+        "host": {"machine": platform.machine(), "cpus": os.cpu_count()},
+        "versions": versions(),
+        "algorithms": {
+            algo: {key: value for key, value in result.items() if key not in ("rows", "algo")}
+            | {
+                "evals": len(result["rows"]),
+                "evals_within_budget": sum(r["wall_s"] <= args.budget_s for r in result["rows"]),
+            }
+            for algo, result in results.items()
+        },
+    }
+    stem.with_suffix(".json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+
+    print()
+    print(
+        f"{env}, budget {args.budget_s:g} s per algorithm, {device}"
+        + (" (SMOKE)" if args.smoke else "")
+    )
+    print("eval return of the last evaluation at or before each time (compile included):")
+    print(table(results, args.budget_s))
+    for name in (".csv", ".png", ".json"):
+        print(f"wrote {stem.with_suffix(name)}")
+    failed = [a for a, r in results.items() if r["status"] != "ok"]
+    for algo in failed:
+        print(f"{algo} failed: {results[algo].get('error')}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
