@@ -76,9 +76,12 @@ def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
         state = env.step(state, action)
         return state, state.obs, state.reward, state.done > 0.5
 
+    # Brax's env.observation_size runs an unjitted reset op by op (tens of seconds for MJX);
+    # the shape of a traced reset gives the same number without running anything.
+    obs_shape = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape
     return Environment(
         name=name,
-        observation_size=int(env.observation_size),
+        observation_size=int(obs_shape[-1]),
         action_size=int(env.action_size),
         episode_length=int(episode_length),
         action_low=-np.ones(env.action_size, np.float32),
