@@ -78,7 +78,7 @@ class Checkpointer:
         if saved != expected:
             diff = next(
                 (
-                    f"{w[0]}: saved {s}, expected {w}"
+                    f"{w[0]}: saved {s[1]} {s[2]}, expected {w[1]} {w[2]}"
                     for s, w in zip(saved or [], expected, strict=False)
                     if s != w
                 ),

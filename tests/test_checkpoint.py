@@ -153,7 +153,8 @@ def test_only_the_newest_checkpoints_are_kept(tmp_path, abstract, state):
         (dict(hidden_sizes=(16,)), ["actor_params", "Dense_0", "[8]", "[16]"]),
         (dict(num_envs=4), ["env_state", "[2]", "[4]"]),
         (dict(algo="ddpg"), ["critic_params", "[2, 8]", "[1, 8]"]),  # one critic, not two
-        (dict(total_steps=64, eval_every=64), ["buffer", "[16, 3]", "[64, 3]"]),
+        # the buffer is [replay_shards, capacity / replay_shards, ...]
+        (dict(total_steps=64, eval_every=64), ["buffer", "[1, 16, 3]", "[1, 64, 3]"]),
     ],
 )
 def test_restore_with_a_different_config_raises(tmp_path, state, changes, details):
