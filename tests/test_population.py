@@ -1,0 +1,129 @@
+"""Seeds and sweeps as one vmapped program, and the statistics over seeds."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from td3_jax import stats
+from td3_jax.cli import main as cli_main
+from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.population import members
+from td3_jax.run import train
+from td3_jax.training import make_train
+
+TINY = TrainConfig(
+    num_envs=4,
+    total_steps=256,
+    eval_every=128,
+    warmup_steps=32,
+    batch_size=32,
+    updates_per_iter=2,
+    hidden_sizes=(16, 16),
+    eval_envs=2,
+    buffer_size=256,
+)
+COMPARED = ("eval_return_mean", "critic_loss", "actor_loss")
+
+
+def _close(a: float, b: float) -> bool:
+    return a == pytest.approx(b, rel=2e-3, abs=2e-3)
+
+
+@pytest.fixture(scope="module")
+def three_seeds(tmp_path_factory):
+    out = tmp_path_factory.mktemp("seeds")
+    cfg = dataclasses.replace(TINY, seed=5, seeds=3)
+    return cfg, train(cfg, out, progress=False)
+
+
+def test_seed_k_of_a_population_is_the_single_seed_run(three_seeds, tmp_path):
+    cfg, records = three_seeds
+    for k in range(cfg.seeds):
+        single = train(dataclasses.replace(cfg, seed=cfg.seed + k, seeds=1), tmp_path / f"s{k}",
+                       progress=False)  # fmt: skip
+        for batched, alone in zip(records, single, strict=True):
+            member = batched["per_member"][k]
+            assert member["seed"] == cfg.seed + k
+            for key in COMPARED:
+                assert _close(member[key], alone[key]), (k, key, member[key], alone[key])
+
+
+def test_population_record_carries_the_statistics_over_seeds(three_seeds):
+    _, records = three_seeds
+    last = records[-1]
+    means = np.array([m["eval_return_mean"] for m in last["per_member"]])
+    assert last["members"] == 3
+    assert last["eval_return_mean"] == pytest.approx(means.mean())
+    assert last["eval_return_median"] == pytest.approx(np.median(means))
+    assert last["eval_return_iqm"] == pytest.approx(stats.iqm(means))
+    assert last["eval_return_ci95_low"] <= last["eval_return_mean"] <= last["eval_return_ci95_high"]
+    assert (
+        means.min() <= last["eval_return_ci95_low"] and last["eval_return_ci95_high"] <= means.max()
+    )
+
+
+def test_a_swept_value_trains_like_a_run_configured_with_it(tmp_path):
+    """Hyperparameters traced through vmap give the numbers of the constant-config run."""
+    sweep = {"actor_lr": [1e-3, 1e-2], "tau": [0.005, 0.05]}
+    records = train(TINY, tmp_path / "sweep", progress=False, sweep=sweep)
+    population = members(TINY, sweep)
+    assert len(population) == 4 and len(records[-1]["per_member"]) == 4
+    for index in (1, 2):  # two different combinations are enough
+        settings = records[-1]["per_member"][index]["settings"]
+        assert settings == dict(population[index].overrides)
+        alone = train(dataclasses.replace(TINY, **settings), tmp_path / f"alone{index}",
+                      progress=False)  # fmt: skip
+        for key in COMPARED:
+            assert _close(records[-1]["per_member"][index][key], alone[-1][key]), key
+
+
+def test_sweep_of_an_unknown_setting_is_refused():
+    with pytest.raises(ConfigError, match="cannot sweep"):
+        members(TINY, {"batch_size": [32, 64]})
+
+
+def test_sweep_command_prints_a_ranked_table(tmp_path, capsys):
+    cli_main([
+        "sweep", "--sweep-actor-lr", "1e-3", "1e-2", "--seeds", "2", "--out", str(tmp_path / "s"),
+        "--num-envs", "4", "--total-steps", "128", "--eval-every", "128", "--warmup-steps", "32",
+        "--batch-size", "32", "--updates-per-iter", "2", "--hidden-sizes", "16", "16",
+        "--eval-envs", "2", "--buffer-size", "256", "--quiet",
+    ])  # fmt: skip
+    out = capsys.readouterr().out
+    assert "rank" in out and "95% CI" in out
+    assert "actor_lr=0.001" in out and "actor_lr=0.01" in out
+    assert out.index("1 ") < out.index("2 ")
+
+
+def test_make_train_vmaps_over_keys():
+    train_fn = make_train(TINY)
+    states, metrics = jax.jit(jax.vmap(train_fn))(jax.random.split(jax.random.PRNGKey(0), 2))
+    assert metrics["eval_returns"].shape == (2, TINY.num_chunks, TINY.eval_envs)
+    assert states.env_steps.tolist() == [256, 256]
+    # one key alone gives the same numbers as its row of the vmapped run
+    _, alone = jax.jit(train_fn)(jax.random.split(jax.random.PRNGKey(0), 2)[1])
+    np.testing.assert_allclose(metrics["critic_loss"][1], alone["critic_loss"], rtol=2e-3)
+
+
+def test_iqm_matches_a_trimmed_mean_by_hand():
+    assert stats.iqm([1, 2, 3, 4, 5, 6, 7, 8]) == pytest.approx(np.mean([3, 4, 5, 6]))
+    assert stats.iqm(np.arange(100)) == pytest.approx(np.mean(np.arange(25, 75)))
+    # n not divisible by 4: the boundary values count by the fraction inside [25%, 75%]
+    assert stats.iqm([0, 10, 100]) == pytest.approx((0 * 1 / 12 + 10 * 1 / 3 + 100 * 1 / 12) / 0.5)
+    assert stats.iqm([1000, 1, 2, 3]) == pytest.approx(2.5)  # robust to the outlier
+
+
+def test_bootstrap_ci_covers_the_mean_and_narrows_with_more_seeds():
+    rng = np.random.default_rng(0)
+    small, large = rng.normal(10, 2, 8), rng.normal(10, 2, 512)
+    lo_s, hi_s = stats.bootstrap_ci(small)
+    lo_l, hi_l = stats.bootstrap_ci(large)
+    assert lo_s <= small.mean() <= hi_s and lo_l <= large.mean() <= hi_l
+    assert hi_l - lo_l < (hi_s - lo_s) / 4
+    # the normal-theory 95% interval of the mean, 2 * 1.96 * sigma / sqrt(n), for the large sample
+    assert hi_l - lo_l == pytest.approx(2 * 1.96 * large.std() / np.sqrt(512), rel=0.15)
+    assert stats.bootstrap_ci([3.0]) == (3.0, 3.0)
