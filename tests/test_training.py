@@ -148,6 +148,11 @@ def explore() -> CountedRun:
     return run_chunks(EXPLORE, 3)
 
 
+def ring(buffer):
+    """The one replay slice of a ``replay_shards=1`` buffer (leaves ``[1, capacity, ...]``)."""
+    return jax.tree.map(lambda x: x[0], buffer)
+
+
 def rows(buffer_data, chunk_rows: slice | None = None):
     """Buffer rows reshaped to [steps, num_envs, ...] (rows must be in write order)."""
     sel = chunk_rows or slice(None)
@@ -215,7 +220,9 @@ def test_updates_wait_for_a_full_batch(learn):
     state = host(learn.states[1])
     state = state.replace(
         env_steps=np.asarray(10_000, np.int32),
-        buffer=state.buffer.replace(position=np.zeros((), np.int32), size=np.zeros((), np.int32)),
+        buffer=state.buffer.replace(
+            position=np.zeros((1,), np.int32), size=np.zeros((1,), np.int32)
+        ),
     )
     step_before = int(state.agent.step)
     out, metrics = learn.chunk(jax.device_put(state))
@@ -233,13 +240,13 @@ def test_updates_wait_for_a_full_batch(learn):
 def test_buffer_holds_min_of_steps_and_capacity(learn):
     assert LEARN.replay_capacity == 160
     for i in (1, 2, 3):
-        buf = learn.states[i].buffer
+        buf = ring(learn.states[i].buffer)
         steps = int(learn.states[i].env_steps)
         assert steps == 96 * i
         assert int(buf.size) == min(steps, LEARN.replay_capacity)
         assert int(buf.position) == steps % LEARN.replay_capacity
     # Before wrap-around, the unwritten slots are still zero and the written ones are not.
-    buf1 = learn.states[1].buffer
+    buf1 = ring(learn.states[1].buffer)
     assert np.all(buf1.data.obs[96:] == 0)
     assert np.all(np.any(buf1.data.obs[:96] != 0, axis=-1))
 
@@ -254,7 +261,7 @@ def _wrap(x):
 
 def test_stored_transitions_pendulum(learn):
     """done is 0 (time limits only), next_obs is the true successor, even at episode ends."""
-    data = rows(learn.states[1].buffer.data, slice(0, 96))  # [24 steps, 4 envs, ...]
+    data = rows(ring(learn.states[1].buffer.data), slice(0, 96))  # [24 steps, 4 envs, ...]
     obs, action, reward, next_obs, done = (
         data.obs,
         data.action,
@@ -372,7 +379,7 @@ def _policy(run: CountedRun, obs: np.ndarray) -> np.ndarray:
 
 def test_warmup_actions_are_uniform(explore):
     assert int(explore.states[-1].agent.step) == 0
-    data = rows(explore.states[1].buffer.data, slice(0, 96))  # all of chunk 1: warm-up
+    data = rows(ring(explore.states[1].buffer.data), slice(0, 96))  # all of chunk 1: warm-up
     actions = data.action[..., 0]  # [24, 4]
     flat = np.sort(actions.ravel())
     assert flat.min() >= -1.0 and flat.max() <= 1.0
@@ -403,13 +410,13 @@ def test_ou_exploration_after_warmup_and_reset_at_episode_end(explore):
 
     # Post-warm-up actions are clip(policy(obs) + OU state): the last action of chunk 3 used the
     # OU value still held in the state.
-    data3 = rows(s3.buffer.data, slice(192, 288))  # chunk 3's transitions
+    data3 = rows(ring(s3.buffer.data), slice(192, 288))  # chunk 3's transitions
     last_obs, last_action = data3.obs[-1], data3.action[-1]
     expected = np.clip(_policy(explore, last_obs) + s3.ou_state.x, -1.0, 1.0)
     np.testing.assert_allclose(last_action, expected, atol=1e-5)
 
     # OU noise is temporally correlated and centred on the policy.
-    data2 = rows(s2.buffer.data, slice(96, 192))
+    data2 = rows(ring(s2.buffer.data), slice(96, 192))
     residual = data2.action[..., 0] - _policy(explore, data2.obs)[..., 0]
     unclipped = np.abs(data2.action[..., 0]) < 1.0
     assert unclipped.mean() > 0.5
@@ -488,6 +495,6 @@ def test_obs_stats_are_part_of_the_state(learn):
     stats = learn.states[1].obs_stats
     assert isinstance(stats, RunningStats)
     assert float(stats.count) == 96.0
-    data = learn.states[1].buffer.data.obs[:96]
+    data = ring(learn.states[1].buffer.data).obs[:96]
     np.testing.assert_allclose(stats.mean, data.mean(axis=0), rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(stats.var, data.var(axis=0), rtol=1e-3, atol=1e-5)
