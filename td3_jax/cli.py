@@ -139,8 +139,10 @@ def _train_defaults(args: list[str], command_type: type = TrainCommand) -> Train
     """Defaults for the flags: the saved run config on --resume, else the preset's, else ours."""
     from td3_jax.run import CONFIG_FILE, load_config
 
-    out = _flag_value(args, "--out")
-    if "--resume" in args and out and (Path(out) / CONFIG_FILE).exists():
+    out = _flag_value(args, "--out") or str(TrainCommand.out)
+    if "--resume" in args and _flag_value(args, "--preset"):
+        raise ConfigError("--preset cannot be combined with --resume (the run keeps its config)")
+    if "--resume" in args and (Path(out) / CONFIG_FILE).exists():
         base = load_config(Path(out))
         name = None
     else:
@@ -236,7 +238,10 @@ def eval_main(args: list[str]) -> None:
     cfg = dataclasses.replace(load_config(command.run), eval_envs=command.episodes)
     population = load_members(command.run, cfg)
     program = make_population(cfg, population)
-    state, meta, _ = restore_state(program, command.run)
+    from td3_jax.sharding import make_mesh, state_shardings
+
+    shardings = state_shardings(program.abstract_state, make_mesh(1))  # any saved device count
+    state, meta, _ = restore_state(program, command.run, shardings=shardings)
     keys = jax.random.split(jax.random.PRNGKey(command.seed), len(population))
     returns = np.asarray(jax.jit(program.evaluate)(state, keys))
     title = (
@@ -286,13 +291,18 @@ def envs_main(args: list[str]) -> None:
     print("\n".join(envs.known_names()))
 
 
+def _as_flag(name: str, value) -> str:
+    flag = f"--{name.replace('_', '-')}"
+    if isinstance(value, bool):
+        return flag if value else f"--no-{flag[2:]}"
+    if isinstance(value, tuple):
+        return f"{flag} {' '.join(map(str, value))}"
+    return f"{flag} {value}"
+
+
 def presets_main(args: list[str]) -> None:
     for name, values in PRESETS.items():
-        settings = " ".join(
-            f"--{k.replace('_', '-')} "
-            + (" ".join(map(str, v)) if isinstance(v, tuple) else str(v))
-            for k, v in values.items()
-        )
+        settings = " ".join(_as_flag(k, v) for k, v in values.items())
         print(f"{name}: {settings}")
 
 

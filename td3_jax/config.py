@@ -67,8 +67,9 @@ class TrainConfig:
     """OU mean reversion."""
     ou_sigma: float = 0.3
     """OU initial sigma."""
-    ou_min_sigma: float = 0.3
-    """OU final sigma (linear decay over ou_decay_period steps per environment)."""
+    ou_min_sigma: float | None = None
+    """OU final sigma, reached linearly over ou_decay_period steps per environment; default:
+    ou_sigma (no decay, as in the seed)."""
     ou_decay_period: int = 100_000
     """OU decay period in steps."""
     hidden_sizes: tuple[int, ...] | None = None
@@ -139,7 +140,7 @@ class TrainConfig:
         return OUParams(
             theta=self.ou_theta,
             max_sigma=self.ou_sigma,
-            min_sigma=self.ou_min_sigma,
+            min_sigma=self.ou_sigma if self.ou_min_sigma is None else self.ou_min_sigma,
             decay_period=float(self.ou_decay_period),
         )
 
@@ -180,6 +181,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"--batch-size {cfg.batch_size} is larger than the replay buffer "
             f"({cfg.replay_capacity} transitions)"
         )
+    backends = {"mjx", "generalized", "positional", "spring", "jax", "warp"}
+    if cfg.env_backend not in backends:
+        raise ConfigError(
+            f"unknown --env-backend {cfg.env_backend!r}; "
+            f"choose one of {', '.join(sorted(backends))}"
+        )
     if cfg.replay_shards <= 0:
         raise ConfigError(f"--replay-shards must be positive, got {cfg.replay_shards}")
     for name, value in (
@@ -194,7 +201,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
         raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
     for name in ["expl_noise", "policy_noise", "noise_clip", "ou_sigma", "ou_min_sigma"]:
-        if getattr(cfg, name) < 0:
+        if getattr(cfg, name) is not None and getattr(cfg, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must not be negative")
     if not 0.0 <= cfg.discount <= 1.0:
         raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")

@@ -30,7 +30,9 @@ class MetricsLogger:
                 f.write(json.dumps(record) + "\n")
         from tensorboardX import SummaryWriter
 
-        self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"))
+        # On resume, points logged after the restored checkpoint are dropped here too.
+        purge = resume_env_steps + 1 if resume_env_steps else None
+        self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"), purge_step=purge)
 
     def write(self, record: dict[str, Any]) -> None:
         if not self.enabled:

@@ -19,8 +19,10 @@ import jax
 import jax.numpy as jnp
 
 from td3_jax import envs
-from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.training import TrainState, make_trainer
+
+MEMBERS = "members"  # the vmap axis name of the population
 
 #: Float settings a sweep may vary (each member gets its own value, traced inside one program).
 SWEEPABLE = (
@@ -52,8 +54,23 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     unknown = sorted(set(sweep) - set(SWEEPABLE))
     if unknown:
         raise ConfigError(f"cannot sweep {unknown}; sweepable: {', '.join(SWEEPABLE)}")
+    unused = {
+        "policy_noise": cfg.algo == "ddpg",
+        "noise_clip": cfg.algo == "ddpg",
+        "expl_noise": cfg.exploration != "gaussian",
+        "ou_sigma": cfg.exploration != "ou",
+        "ou_theta": cfg.exploration != "ou",
+    }
+    idle = sorted(name for name in sweep if unused.get(name, False))
+    if idle:
+        raise ConfigError(
+            f"sweeping {', '.join(idle)} changes nothing with --algo {cfg.algo} and "
+            f"--exploration {cfg.exploration}"
+        )
     names = sorted(sweep)
     combos = list(itertools.product(*(sweep[n] for n in names))) or [()]
+    for combo in combos:
+        validate(dataclasses.replace(cfg, **dict(zip(names, combo, strict=True))))
     return [
         Member(seed=cfg.seed + k, overrides=tuple(zip(names, map(float, combo), strict=True)))
         for combo in combos
@@ -105,15 +122,17 @@ def make_population(cfg: TrainConfig, population: list[Member]) -> Population:
     else:
 
         def trainer_for(hparams):
-            return make_trainer(dataclasses.replace(cfg, **hparams), env)
+            return make_trainer(dataclasses.replace(cfg, **hparams), env, axis_name=MEMBERS)
 
         def init():
             return jax.vmap(lambda key, h: trainer_for(h).init(key))(keys, values)
 
         def chunk(state):
-            return jax.vmap(lambda s, h: trainer_for(h).chunk(s))(state, values)
+            return jax.vmap(lambda s, h: trainer_for(h).chunk(s), axis_name=MEMBERS)(state, values)
 
         def evaluate(state, eval_keys):
-            return jax.vmap(lambda s, k, h: trainer_for(h).evaluate(s, k))(state, eval_keys, values)
+            return jax.vmap(lambda s, k, h: trainer_for(h).evaluate(s, k), axis_name=MEMBERS)(
+                state, eval_keys, values
+            )
 
     return Population(population, env, init, chunk, evaluate, jax.eval_shape(init))

@@ -61,8 +61,15 @@ def make_agent(cfg: TrainConfig, env: envs.Environment) -> Agent:
     return build(cfg.agent_config(), env.observation_size, env.action_size)
 
 
-def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Trainer:
-    """Builds the pure training pieces for ``cfg`` (the environment is made if not given)."""
+def make_trainer(
+    cfg: TrainConfig, env: envs.Environment | None = None, axis_name: str | None = None
+) -> Trainer:
+    """Builds the pure training pieces for ``cfg`` (the environment is made if not given).
+
+    ``axis_name``: set when the pieces run under ``jax.vmap(..., axis_name=...)`` (seeds); the
+    branch conditions (episode resets, learning started) are then reduced over that axis, so
+    they stay branches instead of becoming selects that compute both sides.
+    """
     env = env or envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
     agent = make_agent(cfg, env)
     ou_params = cfg.ou_params()
@@ -129,7 +136,7 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
         key, act_key = jax.random.split(state.key)
         action, ou_state = explore(state, act_key)
         obs = state.env_state.obs
-        env_state, result = envs.step(env, state.env_state, action)
+        env_state, result = envs.step(env, state.env_state, action, axis_name)
         transition = Transition(
             obs=obs,
             action=action,
@@ -185,6 +192,8 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
         key, update_key = jax.random.split(state.key)
         stored = jnp.sum(state.buffer.size)
         learning = (state.env_steps >= cfg.warmup_steps) & (stored >= batch_size)
+        if axis_name is not None:  # identical for every member: keep it a real branch
+            learning = jax.lax.psum(learning.astype(jnp.int32), axis_name) > 0
         if cfg.updates_per_iter > 0:
             agent_state, update_metrics = jax.lax.cond(
                 learning,
@@ -233,7 +242,7 @@ def make_trainer(cfg: TrainConfig, env: envs.Environment | None = None) -> Train
             env_state, returns, alive = carry
             obs = normalize(state.obs_stats, env_state.obs)
             action = agent.act(state.agent.actor_params, obs)
-            env_state, result = envs.step(env, env_state, action)
+            env_state, result = envs.step(env, env_state, action, axis_name)
             returns = returns + jnp.where(alive, result.reward, 0.0)
             alive = alive & ~(result.terminated | result.truncated)
             return (env_state, returns, alive), None
@@ -270,7 +279,7 @@ def _all_finite(tree: Any) -> jax.Array:
 
 
 def make_train(
-    cfg: TrainConfig, env: envs.Environment | None = None
+    cfg: TrainConfig, env: envs.Environment | None = None, axis_name: str | None = None
 ) -> Callable[[jax.Array], tuple[TrainState, dict[str, jax.Array]]]:
     """The whole run as one pure function ``train(key) -> (final_state, metrics)``.
 
@@ -282,9 +291,11 @@ def make_train(
         states, metrics = train(jax.random.split(jax.random.PRNGKey(0), 8))
 
     Unlike ``td3-jax train`` it writes nothing and cannot be resumed; use it inside your own
-    programs.
+    programs. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here keeps
+    the reset and warm-up branches as real branches (otherwise vmap turns them into selects that
+    compute both sides; the numbers are the same either way).
     """
-    trainer = make_trainer(cfg, env)
+    trainer = make_trainer(cfg, env, axis_name)
 
     def train(key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         init_key, eval_key = jax.random.split(key)

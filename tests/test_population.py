@@ -127,3 +127,17 @@ def test_bootstrap_ci_covers_the_mean_and_narrows_with_more_seeds():
     # the normal-theory 95% interval of the mean, 2 * 1.96 * sigma / sqrt(n), for the large sample
     assert hi_l - lo_l == pytest.approx(2 * 1.96 * large.std() / np.sqrt(512), rel=0.15)
     assert stats.bootstrap_ci([3.0]) == (3.0, 3.0)
+
+
+def test_population_keeps_reset_and_warmup_branches():
+    """Under the seed vmap the batch-level conditions are reduced over members and stay conds."""
+    from td3_jax.population import make_population
+
+    cfg = dataclasses.replace(TINY, seeds=2)
+    program = make_population(cfg, members(cfg))
+    jaxpr = str(jax.make_jaxpr(program.chunk)(program.abstract_state))
+    assert jaxpr.count("cond[") >= 2  # episode resets and "learning started"
+    train_fn = make_train(TINY, axis_name="seeds")
+    vmapped = jax.vmap(train_fn, axis_name="seeds")
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    assert str(jax.make_jaxpr(vmapped)(keys)).count("cond[") >= 2

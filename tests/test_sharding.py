@@ -195,3 +195,16 @@ def test_two_processes_through_the_distributed_runtime(tmp_path, four_device_run
     assert [r["devices"] for r in records] == [4, 4]
     _assert_same_numbers(records, _records(out / "d1"), rtol=1e-3)
     assert sorted(p.name for p in (tmp_path / "mp" / "checkpoints").iterdir()) == ["1", "2"]
+
+
+def test_eval_of_a_four_device_run_on_one_device(four_device_runs):
+    out, _ = four_device_runs
+    proc = subprocess.run(
+        [sys.executable, "-m", "td3_jax", "eval", "--run", str(out / "d4"), "--episodes", "2"],
+        env=_env(1),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "seed=0" in proc.stdout

@@ -159,12 +159,16 @@ def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
     )
 
 
-def step(env: Environment, state: EnvState, action: jax.Array) -> tuple[EnvState, StepResult]:
+def step(
+    env: Environment, state: EnvState, action: jax.Array, axis_name: str | None = None
+) -> tuple[EnvState, StepResult]:
     """Steps every environment with ``action [num_envs, action_size]`` in ``[-1, 1]``.
 
     Environments whose episode ended (termination or time limit) restart from a fresh random
     state drawn with a new key. The resets are computed only on steps where at least one
-    environment ended (a ``lax.cond`` over the whole batch).
+    environment ended (a ``lax.cond`` over the whole batch). Under a ``jax.vmap`` with
+    ``axis_name`` (e.g. over seeds), the condition is reduced over that axis so that it stays a
+    real branch instead of becoming a select that resets on every step.
     """
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
     next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
@@ -184,7 +188,10 @@ def step(env: Environment, state: EnvState, action: jax.Array) -> tuple[EnvState
         fresh_inner, fresh_obs = _reset_batch(env, reset_key)
         return _select(ended, fresh_inner, inner), _select(ended, fresh_obs, obs)
 
-    new_inner, new_obs = jax.lax.cond(jnp.any(ended), with_resets, lambda c: c, (inner, obs))
+    any_ended = jnp.any(ended)
+    if axis_name is not None:
+        any_ended = jax.lax.psum(any_ended.astype(jnp.int32), axis_name) > 0
+    new_inner, new_obs = jax.lax.cond(any_ended, with_resets, lambda c: c, (inner, obs))
     new_state = EnvState(
         inner=new_inner,
         obs=new_obs,
