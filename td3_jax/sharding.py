@@ -98,6 +98,11 @@ def initialize_distributed(
     """
     coordinator_address = coordinator_address or os.environ.get("JAX_COORDINATOR_ADDRESS")
     if not coordinator_address:
+        if num_processes is not None or process_id is not None:
+            raise ConfigError(
+                "--num-processes/--process-id need --coordinator-address "
+                "(or JAX_COORDINATOR_ADDRESS)"
+            )
         return False
     if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
         num_processes = int(os.environ["JAX_NUM_PROCESSES"])
