@@ -161,21 +161,19 @@ def make_trainer(
         }
         return state, metrics
 
-    def gradient_step(carry, key):
-        agent_state, buffer, stats = carry
-        sample_key, update_key = jax.random.split(key)
-        batch = sample(buffer, sample_key)
-        batch = batch._replace(
-            obs=normalize(stats, batch.obs), next_obs=normalize(stats, batch.next_obs)
-        )
-        agent_state, metrics = agent.update(agent_state, batch, update_key)
-        return (agent_state, buffer, stats), metrics
-
     def updates(agent_state: AgentState, buffer, stats, key) -> tuple[AgentState, dict]:
+        """``updates_per_iter`` gradient steps on fresh batches (the buffer is only read)."""
+
+        def gradient_step(agent_state, key):
+            sample_key, update_key = jax.random.split(key)
+            batch = sample(buffer, sample_key)
+            batch = batch._replace(
+                obs=normalize(stats, batch.obs), next_obs=normalize(stats, batch.next_obs)
+            )
+            return agent.update(agent_state, batch, update_key)
+
         keys = jax.random.split(key, cfg.updates_per_iter)
-        (agent_state, _, _), metrics = jax.lax.scan(
-            gradient_step, (agent_state, buffer, stats), keys
-        )
+        agent_state, metrics = jax.lax.scan(gradient_step, agent_state, keys)
         metrics = {k: jnp.sum(v) for k, v in metrics.items()}
         metrics["updates"] = jnp.asarray(cfg.updates_per_iter, jnp.float32)
         return agent_state, metrics
@@ -256,15 +254,19 @@ def make_trainer(
         return returns
 
     # The update metrics' structure, for the branch that skips the updates.
-    example_state = jax.eval_shape(init, jax.random.PRNGKey(0))
+    # The update metrics' structure, for the branch that skips the updates (agent only: tracing
+    # the whole init would trace an environment reset, seconds for MJX).
+    key0 = jax.random.PRNGKey(0)
+    o, a = env.observation_size, env.action_size
+    example_batch = Transition(
+        jnp.zeros((batch_size, o)), jnp.zeros((batch_size, a)), jnp.zeros((batch_size,)),
+        jnp.zeros((batch_size, o)), jnp.zeros((batch_size,)),
+    )  # fmt: skip
     update_shapes = jax.eval_shape(
-        updates,
-        example_state.agent,
-        example_state.buffer,
-        example_state.obs_stats,
-        jax.random.PRNGKey(0),
-    )[1]
-    zero_update_metrics = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), update_shapes)
+        agent.update, jax.eval_shape(agent.init, key0), example_batch, key0
+    )
+    zero_update_metrics = {k: jnp.zeros((), s.dtype) for k, s in update_shapes[1].items()}
+    zero_update_metrics["updates"] = jnp.zeros((), jnp.float32)
 
     return Trainer(cfg, env, agent, init, chunk, evaluate)
 
