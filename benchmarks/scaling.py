@@ -18,22 +18,16 @@ import time
 import jax
 
 from td3_jax.config import preset
-from td3_jax.population import make_population, members
-from td3_jax.sharding import make_mesh, state_shardings
+from td3_jax.population import compile_for_mesh, make_population, members
+from td3_jax.sharding import make_mesh
 
 
 def measure(cfg, num_devices: int) -> tuple[float, float]:
     mesh = make_mesh(num_devices)
     program = make_population(cfg, members(cfg))
-    shardings = state_shardings(program.abstract_state, mesh)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    chunk = jax.jit(
-        program.chunk,
-        in_shardings=(shardings,),
-        out_shardings=(shardings, replicated),
-        donate_argnums=0,
-    )
-    state = jax.jit(program.init, out_shardings=shardings)()
+    compiled = compile_for_mesh(program, mesh)
+    chunk = compiled.chunk
+    state = compiled.init()
     state, metrics = chunk(state)  # compile + warm
     jax.block_until_ready(metrics)
     start = time.perf_counter()

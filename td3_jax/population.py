@@ -20,6 +20,7 @@ import jax.numpy as jnp
 
 from td3_jax import envs
 from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.sharding import state_shardings
 from td3_jax.training import TrainState, make_trainer
 
 MEMBERS = "members"  # the vmap axis name of the population
@@ -136,3 +137,32 @@ def make_population(cfg: TrainConfig, population: list[Member]) -> Population:
             )
 
     return Population(population, env, init, chunk, evaluate, jax.eval_shape(init))
+
+
+class Compiled(NamedTuple):
+    """A population's functions jitted for a device mesh (see :mod:`td3_jax.sharding`).
+
+    ``chunk`` donates its state; metrics and evaluation returns come back replicated.
+    """
+
+    shardings: Any
+    init: Callable[[], TrainState]
+    chunk: Callable[[TrainState], tuple[TrainState, dict[str, jax.Array]]]
+    evaluate: Callable[[TrainState, jax.Array], jax.Array]
+
+
+def compile_for_mesh(program: Population, mesh: Any) -> Compiled:
+    """Jits ``program`` with the state split over ``mesh`` (envs, replay), the rest replicated."""
+    shardings = state_shardings(program.abstract_state, mesh)
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    return Compiled(
+        shardings=shardings,
+        init=jax.jit(program.init, out_shardings=shardings),
+        chunk=jax.jit(
+            program.chunk,
+            in_shardings=(shardings,),
+            out_shardings=(shardings, replicated),
+            donate_argnums=0,
+        ),
+        evaluate=jax.jit(program.evaluate, out_shardings=replicated),
+    )

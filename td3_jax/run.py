@@ -21,8 +21,8 @@ from td3_jax import stats
 from td3_jax.checkpoint import Checkpointer, CheckpointError
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
-from td3_jax.population import Member, Population, make_population, members
-from td3_jax.sharding import check_divisible, make_mesh, state_shardings
+from td3_jax.population import Member, Population, compile_for_mesh, make_population, members
+from td3_jax.sharding import check_divisible, make_mesh
 
 CONFIG_FILE = "config.json"
 MEMBERS_FILE = "members.json"
@@ -154,33 +154,28 @@ def train(
     out_dir = Path(out_dir)
     population = load_members(out_dir, cfg) if resume else members(cfg, sweep)
     program = make_population(cfg, population)
-    shardings = state_shardings(program.abstract_state, mesh)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    compiled = compile_for_mesh(program, mesh)
     checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
     start = time.perf_counter()
     if resume:
         if checkpointer.latest_step() is None:
             raise CheckpointError(f"--resume given but {out_dir / 'checkpoints'} has no checkpoint")
-        state, meta, start_chunk = checkpointer.restore(program.abstract_state, shardings=shardings)
+        state, meta, start_chunk = checkpointer.restore(
+            program.abstract_state, shardings=compiled.shardings
+        )
         wall_offset = float(meta["wall_time_s"])
     else:
         if checkpointer.latest_step() is not None:
             raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
         out_dir.mkdir(parents=True, exist_ok=True)
         start_chunk, wall_offset = 0, 0.0
-        state = jax.jit(program.init, out_shardings=shardings)()
+        state = compiled.init()
     if writer:
         save_config(cfg, population, out_dir)
     logger = MetricsLogger(
         out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg), enabled=writer
     )
-    chunk = jax.jit(
-        program.chunk,
-        in_shardings=(shardings,),
-        out_shardings=(shardings, replicated),
-        donate_argnums=0,
-    )
-    evaluate = jax.jit(program.evaluate, out_shardings=replicated)
+    chunk, evaluate = compiled.chunk, compiled.evaluate
     records: list[dict[str, Any]] = []
     display = _Progress(cfg, start_chunk, enabled=progress and writer)
     try:
