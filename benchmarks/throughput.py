@@ -2,8 +2,14 @@
 
 Measures, each on its second (compiled) call:
   raw      vmapped ``env.step`` of the source (Brax) in a lax.scan, zero actions: the ceiling;
-  wrapped  the same through td3_jax.envs.step (action rescale, time limit, fresh-key auto-reset);
-  loop     the full training chunk with gradient updates switched off (updates_per_iter=0);
+  raw_random  the same with uniform random actions (what the loop does during warm-up: the
+           physics costs more when the bodies move and collide);
+  wrapped  the same through td3_jax.envs.step (action rescale, time limit, fresh-key auto-reset),
+           zero actions; ``wrapped_random`` with random actions, with the default per-environment
+           resets and (``wrapped_random_batch_reset``) with the whole batch reset on every step
+           where an episode ended; also the mean number of episodes ending per step;
+  loop     the full training chunk with gradient updates switched off (updates_per_iter=0,
+           random warm-up actions), also with whole-batch resets (``loop_batch_reset``);
   updates  gradient updates per second of the TD3 update at several batch sizes;
   full     env steps per second of the full loop with a preset's settings.
 
@@ -39,38 +45,62 @@ def timed(fn, *args, repeats: int = 2):
     return best
 
 
-def raw_rate(name: str, num_envs: int, steps: int) -> float:
+def _actions(key, num_envs: int, action_size: int, random: bool) -> jax.Array:
+    if random:
+        return jax.random.uniform(key, (num_envs, action_size), minval=-1.0, maxval=1.0)
+    return jnp.zeros((num_envs, action_size))
+
+
+def raw_rate(name: str, num_envs: int, steps: int, random: bool = False) -> float:
     from brax import envs as brax_envs
 
     env = brax_envs.get_environment(name.split("/", 1)[1], backend="mjx")
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), num_envs))
-    action = jnp.zeros((num_envs, env.action_size))
 
     @jax.jit
     def run(state):
-        return jax.lax.scan(
-            lambda s, _: (jax.vmap(env.step)(s, action), None), state, None, length=steps
-        )[0]
+        def body(s, key):
+            return jax.vmap(env.step)(s, _actions(key, num_envs, env.action_size, random)), None
+
+        keys = jax.random.split(jax.random.PRNGKey(1), steps)
+        return jax.lax.scan(body, state, keys)[0]
 
     state = run(state)  # types of reset and step states differ: warm with a step state
     return num_envs * steps / timed(run, state)
 
 
-def wrapped_rate(env: envs.Environment, num_envs: int, steps: int) -> float:
+def wrapped_rate(
+    env: envs.Environment, num_envs: int, steps: int, random: bool = False, reset_slots=None
+) -> tuple[float, float]:
+    """Env steps/s through envs.step, and the mean number of episodes ending per step."""
     state = jax.device_put(envs.reset(env, jax.random.PRNGKey(0), num_envs))
-    action = jnp.zeros((num_envs, env.action_size))
 
     @jax.jit
     def run(state):
-        return jax.lax.scan(
-            lambda s, _: (envs.step(env, s, action)[0], None), state, None, length=steps
-        )[0]
+        def body(s, key):
+            action = _actions(key, num_envs, env.action_size, random)
+            s, result = envs.step(env, s, action, reset_slots=reset_slots)
+            return s, jnp.sum(result.terminated | result.truncated)
 
-    return num_envs * steps / timed(run, state)
+        keys = jax.random.split(jax.random.PRNGKey(1), steps)
+        return jax.lax.scan(body, state, keys)
+
+    _, ended = run(state)
+    return num_envs * steps / timed(run, state), float(jnp.mean(ended))
 
 
-def loop_rate(cfg) -> float:
-    trainer = make_trainer(cfg)
+def loop_rate(cfg, batch_reset: bool = False) -> float:
+    if batch_reset:  # every step with an ended episode resets the whole batch (the old way)
+        default, envs.base.default_reset_slots = envs.base.default_reset_slots, lambda n: n
+        try:
+            trainer = make_trainer(cfg)
+            return loop_rate_of(trainer, cfg)
+        finally:
+            envs.base.default_reset_slots = default
+    return loop_rate_of(make_trainer(cfg), cfg)
+
+
+def loop_rate_of(trainer, cfg) -> float:
     state = jax.device_put(jax.jit(trainer.init)(jax.random.PRNGKey(0)))
     chunk = jax.jit(trainer.chunk)
     steps = cfg.iters_per_chunk * cfg.env_steps_per_iter
@@ -121,18 +151,34 @@ def main() -> None:
     for n in args.envs:
         if "raw" not in args.skip and args.env.startswith("brax/"):
             emit(kind="raw_env_steps_per_s", num_envs=n, value=raw_rate(args.env, n, args.steps))
+        if "raw_random" not in args.skip and args.env.startswith("brax/"):
+            value = raw_rate(args.env, n, args.steps, random=True)
+            emit(kind="raw_random_env_steps_per_s", num_envs=n, value=value)
         if "wrapped" not in args.skip:
-            emit(kind="wrapped_env_steps_per_s", num_envs=n, value=wrapped_rate(env, n, args.steps))
+            value, _ = wrapped_rate(env, n, args.steps)
+            emit(kind="wrapped_env_steps_per_s", num_envs=n, value=value)
+        if "wrapped_random" not in args.skip:
+            for kind, slots in (("", None), ("_batch_reset", n)):
+                value, ended = wrapped_rate(env, n, args.steps, random=True, reset_slots=slots)
+                emit(
+                    kind=f"wrapped_random{kind}_env_steps_per_s",
+                    num_envs=n,
+                    value=value,
+                    episodes_ended_per_step=ended,
+                )
         if "loop" not in args.skip:
             cfg = dataclasses.replace(
                 base,
                 num_envs=n,
                 updates_per_iter=0,
-                warmup_steps=0,
+                warmup_steps=n * args.steps,  # random actions throughout, as in a warm-up
                 eval_every=n * args.steps,
                 buffer_size=max(n * args.steps, 1),
             )
             emit(kind="loop_no_updates_env_steps_per_s", num_envs=n, value=loop_rate(cfg))
+            if "loop_batch_reset" not in args.skip:
+                value = loop_rate(cfg, batch_reset=True)
+                emit(kind="loop_no_updates_batch_reset_env_steps_per_s", num_envs=n, value=value)
     if "updates" not in args.skip:
         for b in args.batches:
             emit(kind="updates_per_s", batch_size=b, value=update_rate(base, b))

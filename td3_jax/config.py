@@ -80,6 +80,9 @@ class TrainConfig:
     """Critic Adam learning rate; default 1e-3."""
     discount: float = 0.99
     """Discount factor."""
+    n_step: int = 1
+    """Steps of the TD target: rewards of up to n steps of one episode, summed with discounts,
+    then bootstrapped with discount**k after k steps (read from the replay ring at sampling)."""
     tau: float | None = None
     """Polyak rate of the targets; default: the algorithm's (TD3 0.005, DDPG 0.01)."""
     policy_noise: float = 0.2
@@ -156,6 +159,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         "eval_every",
         "eval_envs",
         "policy_freq",
+        "n_step",
         "keep_checkpoints",
         "checkpoint_every",
     ]
@@ -198,6 +202,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             raise ConfigError(
                 f"{name} ({value}) must be divisible by --replay-shards ({cfg.replay_shards})"
             )
+    if (cfg.n_step - 1) * cfg.num_envs >= cfg.replay_capacity:
+        raise ConfigError(
+            f"--n-step {cfg.n_step} runs over {cfg.n_step * cfg.num_envs} stored transitions, "
+            f"more than the replay buffer holds ({cfg.replay_capacity})"
+        )
     if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
         raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
     for name in ["expl_noise", "policy_noise", "noise_clip", "ou_sigma", "ou_min_sigma"]:

@@ -98,3 +98,29 @@ def sample(buffer: ReplayBuffer, key: PRNGKey, batch_size: int) -> Any:
         raise ValueError("cannot sample from an empty replay buffer; add transitions first")
     indices = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buffer.size, 1))
     return jax.tree.map(lambda store: store[indices], buffer.data)
+
+
+def sample_runs(
+    buffer: ReplayBuffer, key: PRNGKey, batch_size: int, length: int, stride: int
+) -> Any:
+    """``batch_size`` runs of ``length`` rows ``i, i + stride, ..., i + (length - 1) * stride``.
+
+    When every :func:`add` writes the same ``stride`` rows (one per environment, in a fixed
+    order), row ``i + stride`` holds the step after row ``i`` of the same environment, so a run
+    is ``length`` consecutive steps of one environment (for n-step returns). Starts are uniform
+    over the rows whose whole run has been written, oldest first; with ``length == 1`` this is
+    uniform over the filled slots, like :func:`sample`.
+
+    Returns a pytree shaped like ``buffer.data`` with leading axes ``[batch_size, length]``.
+    """
+    span = (length - 1) * stride
+    if not isinstance(buffer.size, jax.core.Tracer) and int(buffer.size) <= span:
+        raise ValueError(
+            f"runs of {length} rows {stride} apart need more than {span} filled slots, "
+            f"the buffer holds {int(buffer.size)}"
+        )
+    capacity = buffer.capacity
+    oldest = (buffer.position - buffer.size) % capacity
+    offset = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buffer.size - span, 1))
+    rows = (oldest + offset[:, None] + stride * jnp.arange(length)) % capacity
+    return jax.tree.map(lambda store: store[rows], buffer.data)

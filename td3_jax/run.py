@@ -21,7 +21,14 @@ from td3_jax import stats
 from td3_jax.checkpoint import Checkpointer, CheckpointError
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
-from td3_jax.population import Member, Population, compile_for_mesh, make_population, members
+from td3_jax.population import (
+    Member,
+    Population,
+    compile_ahead,
+    compile_for_mesh,
+    make_population,
+    members,
+)
 from td3_jax.sharding import check_divisible, make_mesh
 
 CONFIG_FILE = "config.json"
@@ -77,6 +84,13 @@ def eval_keys(population: list[Member], chunk_index: int) -> jax.Array:
             for m in population
         ]
     )
+
+
+def replicate(value: jax.Array, mesh: Any) -> jax.Array:
+    """``value`` as one array replicated over ``mesh`` (which may span several processes)."""
+    local = np.asarray(value)
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    return jax.make_array_from_callback(local.shape, sharding, lambda index: local[index])
 
 
 def return_stats(returns: np.ndarray) -> dict[str, float]:
@@ -169,7 +183,15 @@ def train(
             raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
         out_dir.mkdir(parents=True, exist_ok=True)
         start_chunk, wall_offset = 0, 0.0
-        state = compiled.init()
+    display = _Progress(cfg, start_chunk, enabled=progress and writer)
+    try:
+        compiled = compile_ahead(compiled, program, with_init=not resume)
+        if not resume:
+            state = compiled.init()
+    except BaseException:
+        display.close()
+        checkpointer.close()
+        raise
     if writer:
         save_config(cfg, population, out_dir)
     logger = MetricsLogger(
@@ -177,7 +199,6 @@ def train(
     )
     chunk, evaluate = compiled.chunk, compiled.evaluate
     records: list[dict[str, Any]] = []
-    display = _Progress(cfg, start_chunk, enabled=progress and writer)
     try:
         for index in range(start_chunk, cfg.num_chunks):
             if stop_after_chunks is not None and index - start_chunk >= stop_after_chunks:
@@ -196,7 +217,7 @@ def train(
             updates = int(metrics.pop("agent_steps")[0])
             metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
             _check_finite(metrics, population, env_steps, checkpointer.latest_step(), cfg)
-            returns = host_value(evaluate(state, eval_keys(population, index)))
+            returns = host_value(evaluate(state, replicate(eval_keys(population, index), mesh)))
             record = _record(cfg, population, updates, metrics, returns, env_steps)
             record["wall_time_s"] = wall_offset + time.perf_counter() - start
             record["env_steps_per_s"] = len(population) * steps_per_chunk(cfg) / chunk_seconds

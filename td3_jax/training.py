@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from td3_jax import envs, noise, normalization, replay
+from td3_jax import envs, n_step, noise, normalization, replay
 from td3_jax.config import TrainConfig
 from td3_jax.td3 import ddpg, td3
 from td3_jax.types import Agent, AgentState, Transition
@@ -27,7 +27,8 @@ class TrainState:
     """The whole state of a run; checkpointing it is enough to resume exactly."""
 
     agent: AgentState
-    buffer: replay.ReplayBuffer  # leaves [replay_shards, capacity / replay_shards, ...]
+    # data (Transition, ended): leaves [replay_shards, capacity / replay_shards, ...]
+    buffer: replay.ReplayBuffer
     env_state: envs.EnvState
     obs_stats: normalization.RunningStats
     ou_state: noise.OUState
@@ -46,6 +47,8 @@ class Trainer(NamedTuple):
       chunk: ``chunk(state) -> (state, metrics)``: ``config.iters_per_chunk`` iterations.
       evaluate: ``evaluate(state, key) -> returns[eval_envs]``: one deterministic episode per
         evaluation environment.
+      sample: ``sample(buffer, key) -> Transition [batch_size, ...]``: one training batch as the
+        updates draw it (n-step folded when ``n_step > 1``; observations not yet normalised).
     """
 
     config: TrainConfig
@@ -54,6 +57,7 @@ class Trainer(NamedTuple):
     init: Callable[[jax.Array], TrainState]
     chunk: Callable[[TrainState], tuple[TrainState, dict[str, jax.Array]]]
     evaluate: Callable[[TrainState, jax.Array], jax.Array]
+    sample: Callable[[replay.ReplayBuffer, jax.Array], Transition]
 
 
 def make_agent(cfg: TrainConfig, env: envs.Environment) -> Agent:
@@ -81,10 +85,23 @@ def make_trainer(
         """``[num_envs, ...] -> [shards, num_envs / shards, ...]``: env group g fills slice g."""
         return jax.tree.map(lambda x: x.reshape(shards, -1, *x.shape[1:]), tree)
 
+    # Every add writes one row per environment of a slice, so in a slice row i + stride is the
+    # next step of row i's environment: n-step runs are read straight from the ring.
+    stride = num_envs // shards
+    run_span = (cfg.n_step - 1) * stride
+
+    def sample_slice(buffer, key):
+        """``batch_size / shards`` uniform transitions of one slice (n-step when n_step > 1)."""
+        rows = batch_size // shards
+        if cfg.n_step == 1:
+            return replay.sample(buffer, key, rows)[0]
+        run, ended = replay.sample_runs(buffer, key, rows, cfg.n_step, stride)
+        return n_step.fold(run, ended, cfg.discount)
+
     def sample(buffer, key):
-        """``batch_size / shards`` uniform rows from every slice, as one ``[batch_size]`` batch."""
+        """``batch_size / shards`` transitions from every slice, as one ``[batch_size]`` batch."""
         keys = key[None] if shards == 1 else jax.random.split(key, shards)
-        rows = jax.vmap(lambda b, k: replay.sample(b, k, batch_size // shards))(buffer, keys)
+        rows = jax.vmap(sample_slice)(buffer, keys)
         return jax.tree.map(lambda x: x.reshape(batch_size, *x.shape[2:]), rows)
 
     def normalize(stats, obs):
@@ -102,9 +119,9 @@ def make_trainer(
         )
         return TrainState(
             agent=agent.init(agent_key),
-            buffer=jax.vmap(lambda _: replay.init(cfg.replay_capacity // shards, example))(
-                jnp.arange(shards)
-            ),
+            buffer=jax.vmap(
+                lambda _: replay.init(cfg.replay_capacity // shards, (example, jnp.zeros(())))
+            )(jnp.arange(shards)),
             env_state=env_state,
             obs_stats=normalization.init(env.observation_size),
             ou_state=jax.vmap(lambda _: noise.ou_init(env.action_size, ou_params))(
@@ -145,8 +162,9 @@ def make_trainer(
             done=result.terminated.astype(jnp.float32),
         )
         ended = result.terminated | result.truncated
+        stored = group_by_shard((transition, ended.astype(jnp.float32)))
         state = state.replace(
-            buffer=jax.vmap(replay.add)(state.buffer, group_by_shard(transition)),
+            buffer=jax.vmap(replay.add)(state.buffer, stored),
             env_state=env_state,
             obs_stats=normalization.update(state.obs_stats, obs),
             ou_state=noise.ou_reset(ou_state, ended[:, None], ou_params),
@@ -189,7 +207,11 @@ def make_trainer(
         }
         key, update_key = jax.random.split(state.key)
         stored = jnp.sum(state.buffer.size)
-        learning = (state.env_steps >= cfg.warmup_steps) & (stored >= batch_size)
+        learning = (
+            (state.env_steps >= cfg.warmup_steps)
+            & (stored >= batch_size)
+            & (jnp.min(state.buffer.size) > run_span)  # every slice holds a whole n-step run
+        )
         if axis_name is not None:  # identical for every member: keep it a real branch
             learning = jax.lax.psum(learning.astype(jnp.int32), axis_name) > 0
         if cfg.updates_per_iter > 0:
@@ -240,7 +262,8 @@ def make_trainer(
             env_state, returns, alive = carry
             obs = normalize(state.obs_stats, env_state.obs)
             action = agent.act(state.agent.actor_params, obs)
-            env_state, result = envs.step(env, env_state, action, axis_name)
+            # Only each environment's first episode counts: no resets needed.
+            env_state, result = envs.step(env, env_state, action, auto_reset=False)
             returns = returns + jnp.where(alive, result.reward, 0.0)
             alive = alive & ~(result.terminated | result.truncated)
             return (env_state, returns, alive), None
@@ -253,7 +276,6 @@ def make_trainer(
         (_, returns, _), _ = jax.lax.scan(body, init_carry, None, length=env.episode_length)
         return returns
 
-    # The update metrics' structure, for the branch that skips the updates.
     # The update metrics' structure, for the branch that skips the updates (agent only: tracing
     # the whole init would trace an environment reset, seconds for MJX).
     key0 = jax.random.PRNGKey(0)
@@ -268,7 +290,7 @@ def make_trainer(
     zero_update_metrics = {k: jnp.zeros((), s.dtype) for k, s in update_shapes[1].items()}
     zero_update_metrics["updates"] = jnp.zeros((), jnp.float32)
 
-    return Trainer(cfg, env, agent, init, chunk, evaluate)
+    return Trainer(cfg, env, agent, init, chunk, evaluate, sample)
 
 
 def _all_finite(tree: Any) -> jax.Array:

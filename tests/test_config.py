@@ -60,6 +60,9 @@ def test_small_config_validates():
         (dict(tau=1.5), "tau"),
         (dict(episode_length=0), "episode-length"),
         (dict(algo="sac"), "algorithm"),
+        (dict(n_step=0), "n-step"),
+        # 3-step runs over 4 envs span 12 rows; the ring holds 8
+        (dict(n_step=3, buffer_size=8, batch_size=4), "n-step"),
     ],
 )
 def test_validate_rejects(changes, match):

@@ -247,6 +247,78 @@ def test_only_the_finished_environments_reset():
     assert result1.finished_length[0] == 2
 
 
+def _random_rollout(env, n, steps, seed, **step_kwargs):
+    """States and results of ``steps`` steps with per-environment random actions."""
+    step = jax.jit(functools.partial(envs.step, env, **step_kwargs))
+    state = envs.reset(env, jax.random.PRNGKey(seed), n)
+    keys = jax.random.split(jax.random.PRNGKey(seed + 1), steps)
+    history = []
+    for key in keys:
+        state, result = step(state, jax.random.uniform(key, (n, 1), minval=-1.0, maxval=1.0))
+        history.append(host((state, result)))
+    return history
+
+
+def test_resetting_a_few_environments_equals_resetting_the_batch():
+    # Random walks terminating at |position| > 5, time limit 6: on some steps no episode ends,
+    # on some one, on others more than 5 (the whole-batch branch for every setting below).
+    # Every reset_slots setting must give the same trajectories as always resetting the batch.
+    env, n = counter_env(6, low=(-3.0,), high=(3.0,)), 16
+    reference = _random_rollout(env, n, 30, seed=2, reset_slots=n)
+    counts = [int(np.sum(r.terminated | r.truncated)) for _, r in reference]
+    assert 0 in counts and 1 in counts and max(counts) > 5, counts
+    for slots in (1, 2, 5):
+        for (state, result), (ref_state, ref_result) in zip(
+            _random_rollout(env, n, 30, seed=2, reset_slots=slots), reference, strict=True
+        ):
+            np.testing.assert_array_equal(state.obs, ref_state.obs)
+            np.testing.assert_array_equal(state.inner["position"], ref_state.inner["position"])
+            np.testing.assert_array_equal(state.steps, ref_state.steps)
+            np.testing.assert_array_equal(result.next_obs, ref_result.next_obs)
+
+
+def test_reset_branch_under_vmap_equals_each_member_alone():
+    # Members end different numbers of episodes on the same step; with the count reduced over
+    # the member axis each member still gets exactly its own resets.
+    env, n = counter_env(7, low=(-4.0,), high=(4.0,)), 8
+    seeds = jnp.asarray([3, 4, 5])
+
+    def rollout(seed, axis_name=None):
+        state = envs.reset(env, jax.random.PRNGKey(seed), n)
+
+        def body(state, key):
+            action = jax.random.uniform(key, (n, 1), minval=-1.0, maxval=1.0)
+            state, result = envs.step(env, state, action, axis_name, reset_slots=2)
+            return state, (state.obs, result.terminated | result.truncated)
+
+        keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(0), seed), 20)
+        return jax.lax.scan(body, state, keys)[1]
+
+    together = host(jax.jit(jax.vmap(lambda s: rollout(s, "m"), axis_name="m"))(seeds))
+    ended_counts = together[1].sum(axis=2)  # [members, steps]
+    assert np.any(ended_counts.min(axis=0) != ended_counts.max(axis=0))
+    for i, seed in enumerate(seeds):
+        alone = host(jax.jit(rollout)(seed))
+        np.testing.assert_array_equal(together[0][i], alone[0])
+
+
+def test_without_auto_reset_ended_environments_carry_on():
+    # Env +2 per step terminates at step 3 (position p0 + 6); without resets the next step
+    # continues from there (p0 + 8) while the episode bookkeeping restarts.
+    env, n = counter_env(10), 3
+    step = jax.jit(functools.partial(envs.step, env, auto_reset=False))
+    state = envs.reset(env, jax.random.PRNGKey(9), n)
+    p0 = np.asarray(state.obs[:, 0])
+    for _ in range(3):
+        state, result = host(step(state, const_action(n, 1.0)))
+    assert result.terminated.all()
+    np.testing.assert_allclose(state.obs[:, 0], p0 + 6.0, atol=1e-6)
+    np.testing.assert_array_equal(state.steps, 0)
+    state, result = host(step(state, const_action(n, 1.0)))
+    np.testing.assert_allclose(result.next_obs[:, 0], p0 + 8.0, atol=1e-6)
+    np.testing.assert_array_equal(result.finished_length, 1)  # still past 5: ends again
+
+
 def test_step_keys_are_fresh_per_environment_and_step():
     def reset_fn(key):
         del key

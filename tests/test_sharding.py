@@ -96,15 +96,15 @@ def four_device_runs(tmp_path_factory):
         state = jax.jit(program.init, out_shardings=shardings)()
         print(json.dumps({{
             "devices": jax.device_count(),
-            "buffer_spec": list(state.buffer.data.obs.sharding.spec),
+            "buffer_spec": list(state.buffer.data[0].obs.sharding.spec),
             "buffer_shard_rows": [
-                x.data.shape[1] for x in state.buffer.data.obs.addressable_shards
+                x.data.shape[1] for x in state.buffer.data[0].obs.addressable_shards
             ],
             "env_shard_rows": [s.data.shape[1] for s in state.env_state.obs.addressable_shards],
             "actor_spec": list(jax.tree.leaves(state.agent.actor_params)[0].sharding.spec),
-            "sliced_buffer_spec": list(sliced_state.buffer.data.obs.sharding.spec),
+            "sliced_buffer_spec": list(sliced_state.buffer.data[0].obs.sharding.spec),
             "sliced_shard_shapes": [
-                list(x.data.shape) for x in sliced_state.buffer.data.obs.addressable_shards
+                list(x.data.shape) for x in sliced_state.buffer.data[0].obs.addressable_shards
             ],
         }}))
         """,

@@ -247,8 +247,8 @@ def test_buffer_holds_min_of_steps_and_capacity(learn):
         assert int(buf.position) == steps % LEARN.replay_capacity
     # Before wrap-around, the unwritten slots are still zero and the written ones are not.
     buf1 = ring(learn.states[1].buffer)
-    assert np.all(buf1.data.obs[96:] == 0)
-    assert np.all(np.any(buf1.data.obs[:96] != 0, axis=-1))
+    assert np.all(buf1.data[0].obs[96:] == 0)
+    assert np.all(np.any(buf1.data[0].obs[:96] != 0, axis=-1))
 
 
 def _angle(obs):
@@ -261,7 +261,7 @@ def _wrap(x):
 
 def test_stored_transitions_pendulum(learn):
     """done is 0 (time limits only), next_obs is the true successor, even at episode ends."""
-    data = rows(ring(learn.states[1].buffer.data), slice(0, 96))  # [24 steps, 4 envs, ...]
+    data = rows(ring(learn.states[1].buffer.data[0]), slice(0, 96))  # [24 steps, 4 envs, ...]
     obs, action, reward, next_obs, done = (
         data.obs,
         data.action,
@@ -271,6 +271,10 @@ def test_stored_transitions_pendulum(learn):
     )
     assert obs.shape == (24, NUM_ENVS, 3)
     assert np.all(done == 0.0)
+    # Beside each transition the ring keeps whether its episode ended there (here: time limits).
+    ended = rows(ring(learn.states[1].buffer.data[1]), slice(0, 96))
+    expected_ended = (np.arange(1, 25) % EPISODE == 0)[:, None].repeat(NUM_ENVS, axis=1)
+    np.testing.assert_array_equal(ended, expected_ended.astype(np.float32))
     assert np.all(np.abs(action) <= 1.0)
 
     # Pendulum physics: theta' = theta + dt * thetadot', for every stored transition. A next_obs
@@ -379,7 +383,7 @@ def _policy(run: CountedRun, obs: np.ndarray) -> np.ndarray:
 
 def test_warmup_actions_are_uniform(explore):
     assert int(explore.states[-1].agent.step) == 0
-    data = rows(ring(explore.states[1].buffer.data), slice(0, 96))  # all of chunk 1: warm-up
+    data = rows(ring(explore.states[1].buffer.data[0]), slice(0, 96))  # all of chunk 1: warm-up
     actions = data.action[..., 0]  # [24, 4]
     flat = np.sort(actions.ravel())
     assert flat.min() >= -1.0 and flat.max() <= 1.0
@@ -410,13 +414,13 @@ def test_ou_exploration_after_warmup_and_reset_at_episode_end(explore):
 
     # Post-warm-up actions are clip(policy(obs) + OU state): the last action of chunk 3 used the
     # OU value still held in the state.
-    data3 = rows(ring(s3.buffer.data), slice(192, 288))  # chunk 3's transitions
+    data3 = rows(ring(s3.buffer.data[0]), slice(192, 288))  # chunk 3's transitions
     last_obs, last_action = data3.obs[-1], data3.action[-1]
     expected = np.clip(_policy(explore, last_obs) + s3.ou_state.x, -1.0, 1.0)
     np.testing.assert_allclose(last_action, expected, atol=1e-5)
 
     # OU noise is temporally correlated and centred on the policy.
-    data2 = rows(ring(s2.buffer.data), slice(96, 192))
+    data2 = rows(ring(s2.buffer.data[0]), slice(96, 192))
     residual = data2.action[..., 0] - _policy(explore, data2.obs)[..., 0]
     unclipped = np.abs(data2.action[..., 0]) < 1.0
     assert unclipped.mean() > 0.5
@@ -495,6 +499,37 @@ def test_obs_stats_are_part_of_the_state(learn):
     stats = learn.states[1].obs_stats
     assert isinstance(stats, RunningStats)
     assert float(stats.count) == 96.0
-    data = ring(learn.states[1].buffer.data).obs[:96]
+    data = ring(learn.states[1].buffer.data[0]).obs[:96]
     np.testing.assert_allclose(stats.mean, data.mean(axis=0), rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(stats.var, data.var(axis=0), rtol=1e-3, atol=1e-5)
+
+
+def test_n_step_batches_fold_the_following_steps_of_the_same_environment(learn):
+    """A 3-step trainer's batch, checked row by row against the ring it was drawn from."""
+    cfg = dataclasses.replace(LEARN, n_step=3, discount=0.9)
+    trainer = make_trainer(cfg)
+    buffer = learn.states[2].buffer  # 192 steps written into 160 slots: wrapped once
+    batch = host(jax.jit(trainer.sample)(buffer, jax.random.PRNGKey(4)))
+    store, ended = host(ring(buffer.data))
+    position = int(ring(buffer).position)
+    # Rows in write order, oldest first: [40 steps, 4 envs].
+    order = (position + np.arange(160)) % 160
+    seq = jax.tree.map(lambda x: x[order].reshape(40, NUM_ENVS, *x.shape[1:]), store)
+    seq_ended = ended[order].reshape(40, NUM_ENVS)
+    starts = set()
+    for b in range(cfg.batch_size):
+        t, e = np.argwhere(np.all(seq.obs == batch.obs[b], axis=-1))[0]
+        assert t <= 40 - 3, "a run must not reach past the newest step"
+        starts.add((t, e))
+        reward, k, bootstrap = 0.0, 0, 1.0
+        for j in range(3):
+            reward += 0.9**j * seq.reward[t + j, e]
+            k = j
+            if seq_ended[t + j, e]:
+                break
+        np.testing.assert_allclose(batch.reward[b], reward, rtol=1e-5)
+        np.testing.assert_array_equal(batch.next_obs[b], seq.next_obs[t + k, e])
+        np.testing.assert_array_equal(batch.action[b], seq.action[t, e])
+        bootstrap = 0.9**k * (1.0 - seq.done[t + k, e])
+        np.testing.assert_allclose(batch.done[b], 1.0 - bootstrap, rtol=1e-5)
+    assert len(starts) > 8

@@ -159,17 +159,41 @@ def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
     )
 
 
+def default_reset_slots(num_envs: int) -> int:
+    """How many environments :func:`step` resets one by one before it resets the whole batch.
+
+    A sixteenth of the batch (at least one): on a step where at most that many episodes ended,
+    only those environments draw fresh initial states, a small fraction of a batch reset.
+    """
+    return max(1, num_envs // 16)
+
+
 def step(
-    env: Environment, state: EnvState, action: jax.Array, axis_name: str | None = None
+    env: Environment,
+    state: EnvState,
+    action: jax.Array,
+    axis_name: str | None = None,
+    *,
+    auto_reset: bool = True,
+    reset_slots: int | None = None,
 ) -> tuple[EnvState, StepResult]:
     """Steps every environment with ``action [num_envs, action_size]`` in ``[-1, 1]``.
 
     Environments whose episode ended (termination or time limit) restart from a fresh random
-    state drawn with a new key. The resets are computed only on steps where at least one
-    environment ended (a ``lax.cond`` over the whole batch). Under a ``jax.vmap`` with
-    ``axis_name`` (e.g. over seeds), the condition is reduced over that axis so that it stays a
-    real branch instead of becoming a select that resets on every step.
+    state drawn with their own new key. Resets are computed only where needed, chosen per step
+    by a ``lax.switch``: nothing when no episode ended; when at most ``reset_slots`` ended
+    (default :func:`default_reset_slots`), only those environments are gathered, reset and
+    scattered back; otherwise the whole batch is reset and selected per environment. The result
+    is the same whichever branch runs. Under a ``jax.vmap`` with ``axis_name`` (e.g. over
+    seeds), the branch is chosen from the largest count over that axis, so it stays a real
+    branch instead of becoming a select that computes every branch.
+
+    ``auto_reset=False`` skips resets entirely (ended environments keep stepping from their last
+    state; ``steps`` and ``episode_return`` still restart): for evaluation, which only counts
+    each environment's first episode.
     """
+    num_envs = action.shape[0]
+    slots = default_reset_slots(num_envs) if reset_slots is None else int(reset_slots)
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
     next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
     inner, obs, reward, terminated = jax.vmap(env.step_fn)(
@@ -183,15 +207,36 @@ def step(
     ended = terminated | truncated
     episode_return = state.episode_return + reward
 
-    def with_resets(carry):
+    def reset_none(carry):
+        return carry
+
+    def reset_some(carry):
+        inner, obs = carry
+        # Indices of the ended environments, padded with an out-of-range index that the
+        # scatter drops.
+        (index,) = jnp.nonzero(ended, size=slots, fill_value=num_envs)
+        fresh_inner, fresh_obs = _reset_batch(env, reset_key[jnp.minimum(index, num_envs - 1)])
+
+        def put(full, part):
+            return full.at[index].set(part.astype(full.dtype), mode="drop", unique_indices=True)
+
+        return jax.tree.map(put, inner, fresh_inner), put(obs, fresh_obs)
+
+    def reset_all(carry):
         inner, obs = carry
         fresh_inner, fresh_obs = _reset_batch(env, reset_key)
         return _select(ended, fresh_inner, inner), _select(ended, fresh_obs, obs)
 
-    any_ended = jnp.any(ended)
-    if axis_name is not None:
-        any_ended = jax.lax.psum(any_ended.astype(jnp.int32), axis_name) > 0
-    new_inner, new_obs = jax.lax.cond(any_ended, with_resets, lambda c: c, (inner, obs))
+    new_inner, new_obs = inner, obs
+    if auto_reset:
+        count = jnp.sum(ended.astype(jnp.int32))
+        if axis_name is not None:
+            count = jax.lax.pmax(count, axis_name)
+        branches = (
+            [reset_none, reset_all] if slots >= num_envs else [reset_none, reset_some, reset_all]
+        )
+        branch = jnp.where(count == 0, 0, jnp.where(count <= slots, 1, len(branches) - 1))
+        new_inner, new_obs = jax.lax.switch(branch, branches, (inner, obs))
     new_state = EnvState(
         inner=new_inner,
         obs=new_obs,
