@@ -4,13 +4,13 @@
 #
 # Usage: benchmarks/variants.sh ENV BUDGET_S OUT "FLAGS OF GPU0 VARIANT 1;FLAGS ..." "GPU1 ..." ...
 #   e.g. benchmarks/variants.sh ant 90 /tmp/v "n_step=1;n_step=3" "n_step=3 tau=0.01"
-# Each quoted argument is one GPU's queue: variants separated by ';', each a list of
+# FIRST_GPU=k starts the queues at GPU k. Each quoted argument is one GPU's queue: variants separated by ';', each a list of
 # KEY=VALUE td3-jax settings (applied on top of the env's preset).
 set -u
 env=$1 budget=$2 out=$3
 shift 3
 mkdir -p "$out"
-gpu=0
+gpu=${FIRST_GPU:-0}
 for queue in "$@"; do
   (
     IFS=';' read -ra variants <<<"$queue"
