@@ -70,7 +70,12 @@ def raw_rate(name: str, num_envs: int, steps: int, random: bool = False) -> floa
 
 
 def wrapped_rate(
-    env: envs.Environment, num_envs: int, steps: int, random: bool = False, reset_slots=None
+    env: envs.Environment,
+    num_envs: int,
+    steps: int,
+    random: bool = False,
+    reset_slots=None,
+    auto_reset: bool = True,
 ) -> tuple[float, float]:
     """Env steps/s through envs.step, and the mean number of episodes ending per step."""
     state = jax.device_put(envs.reset(env, jax.random.PRNGKey(0), num_envs))
@@ -79,7 +84,7 @@ def wrapped_rate(
     def run(state):
         def body(s, key):
             action = _actions(key, num_envs, env.action_size, random)
-            s, result = envs.step(env, s, action, reset_slots=reset_slots)
+            s, result = envs.step(env, s, action, reset_slots=reset_slots, auto_reset=auto_reset)
             return s, jnp.sum(result.terminated | result.truncated)
 
         keys = jax.random.split(jax.random.PRNGKey(1), steps)
@@ -157,6 +162,8 @@ def main() -> None:
         if "wrapped" not in args.skip:
             value, _ = wrapped_rate(env, n, args.steps)
             emit(kind="wrapped_env_steps_per_s", num_envs=n, value=value)
+            value, _ = wrapped_rate(env, n, args.steps, auto_reset=False)
+            emit(kind="wrapped_no_reset_branch_env_steps_per_s", num_envs=n, value=value)
         if "wrapped_random" not in args.skip:
             for kind, slots in (("", None), ("_batch_reset", n)):
                 value, ended = wrapped_rate(env, n, args.steps, random=True, reset_slots=slots)
