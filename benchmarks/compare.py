@@ -22,7 +22,7 @@ past ``--budget-s`` (or when its own run length ends, whichever comes first):
   policy (Brax's default), between training epochs; ``--num-evals`` sets how many evaluations a
   full run makes (Brax's published recipes use 10 or 20, too few points inside a short budget).
 * td3-jax: ``td3_jax.run.train(cfg, DIR/td3_<env>, progress=False, time_budget_s=budget)`` with
-  ``cfg`` = the preset (``--td3-preset``, default: the env's, halfcheetah's for Playground) with
+  ``cfg`` = the preset (``--td3-preset``, default: the env's, cheetah-run's for Playground) with
   ``env``, ``checkpoint_every=10**9`` and ``--td3-flag`` settings. An evaluation (deterministic
   policy, ``eval_envs`` episodes) follows every chunk of ``eval_every`` steps. td3's own
   ``wall_time_s`` starts only after its environment is made, so each evaluation is stamped on
@@ -238,7 +238,7 @@ SMOKE = {
 
 # td3-jax preset per environment (--td3-preset overrides); Playground tasks borrow halfcheetah's.
 TD3_PRESET = {"ant": "ant", "halfcheetah": "halfcheetah", "humanoid": "humanoid"}
-TD3_PRESET_DEFAULT = "halfcheetah"
+TD3_PRESET_DEFAULT = "cheetah-run"
 
 TIME_ZERO = (
     "just before the environment is created and the train function is called, in a fresh "
@@ -669,6 +669,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seed", type=int, default=None, help="seed of every algorithm")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: a CPU code-path check")
+    parser.add_argument(
+        "--merge",
+        action="store_true",
+        help="run nothing: write the CSV, plot, JSON and table from every algorithm's result in "
+        "OUT (from earlier calls with --algos subsets, e.g. side by side on the GPUs of one host)",
+    )
     args = parser.parse_args(argv)
 
     env = args.env.removeprefix("brax/").removeprefix("playground/")
@@ -702,7 +708,13 @@ def main(argv: list[str] | None = None) -> int:
     started = dt.datetime.now(dt.UTC)
     context = multiprocessing.get_context("spawn")
     results: dict[str, dict] = {}
-    for algo in args.algos:
+    if args.merge:
+        for algo in ALGOS:
+            if (parts / f"{algo}.json").exists():
+                results[algo] = json.loads((parts / f"{algo}.json").read_text())
+        if not results:
+            parser.error(f"--merge: no results in {parts}")
+    for algo in [] if args.merge else args.algos:
         result_path = parts / f"{algo}.json"
         result_path.unlink(missing_ok=True)
         job = dict(

@@ -219,14 +219,25 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     return cfg
 
 
-# Shared by the Brax locomotion presets: 4096 envs, 8 updates of batch 8192 per iteration (a
-# replay ratio of 16 sampled rows per new transition), a 400k-step random warm-up, 4M buffer.
+# Shared by the GPU presets (measured on one H200, brax/ant unless noted, 90 s budgets with
+# compile, single seeds; benchmarks/results/2026-11-21-tuning and BENCHMARKS.md):
+# * num_envs 4096: MJX ant steps 1.52M/s at 4096 envs against 0.55M/s at 1024; 2048 envs learnt
+#   more slowly per second (2882 against 3706 at 90 s), 8192 envs with batch 16384 no faster.
+# * n_step 3: the largest single gain (3706 against 1919 for 1-step at 90 s; 5-step 3148).
+# * 16 updates of batch 8192 per iteration (a replay ratio of 32 sampled rows per new
+#   transition): 4037 at 92 s against 3706 with 8; 32 updates of 4096 were slower (2939).
+# * expl_noise 0.2: faster early on ant (2417 against 2258 near 58 s) and better on humanoid
+#   (5313 against 4843 at 90 s) and halfcheetah.
+# * networks 256-256, Adam 3e-4, tau 0.005 (0.01 and 0.02 were not better), discount 0.99
+#   (0.97 was worse), a 409,600-step (100-iteration) random warm-up, a 4M-transition ring.
 _GPU_LOCOMOTION = dict(
     algo="td3",
     num_envs=4096,
     total_steps=20_000_000,
-    updates_per_iter=8,
+    updates_per_iter=16,
     batch_size=8192,
+    n_step=3,
+    expl_noise=0.2,
     warmup_steps=409_600,
     eval_every=1_638_400,
     eval_envs=128,
@@ -305,6 +316,8 @@ PRESETS: dict[str, dict] = {
     "humanoid": dict(
         _GPU_LOCOMOTION, env="brax/humanoid", total_steps=30_000_000, hidden_sizes=(512, 256)
     ),
+    # MuJoCo Playground's DM Control CheetahRun (pure-JAX MJX implementation), same settings.
+    "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun", env_backend="jax"),
 }
 
 
