@@ -24,7 +24,7 @@ from td3_jax.sharding import make_mesh
 
 def measure(cfg, num_devices: int) -> tuple[float, float]:
     mesh = make_mesh(num_devices)
-    program = make_population(cfg, members(cfg))
+    program = make_population(cfg, members(cfg), devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
     chunk = compiled.chunk
     state = compiled.init()

@@ -98,8 +98,12 @@ class Population(NamedTuple):
     abstract_state: Any
 
 
-def make_population(cfg: TrainConfig, population: list[Member]) -> Population:
-    """Builds the batched training functions of ``population`` (all sharing ``cfg``'s shapes)."""
+def make_population(cfg: TrainConfig, population: list[Member], devices: int = 1) -> Population:
+    """Builds the batched training functions of ``population`` (all sharing ``cfg``'s shapes).
+
+    ``devices``: how many devices the environments will be split over; resets then gather and
+    scatter within each device's environments (the numbers do not depend on it).
+    """
     env = envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
     keys = jnp.stack([jax.random.PRNGKey(m.seed) for m in population])
     names = sorted({k for m in population for k, _ in m.overrides})
@@ -108,7 +112,7 @@ def make_population(cfg: TrainConfig, population: list[Member]) -> Population:
     }
 
     if len(population) == 1 and not names:
-        single = make_trainer(cfg, env)
+        single = make_trainer(cfg, env, env_groups=devices)
         add_axis = lambda tree: jax.tree.map(lambda x: x[None], tree)
         drop_axis = lambda tree: jax.tree.map(lambda x: x[0], tree)
 
@@ -124,7 +128,9 @@ def make_population(cfg: TrainConfig, population: list[Member]) -> Population:
     else:
 
         def trainer_for(hparams):
-            return make_trainer(dataclasses.replace(cfg, **hparams), env, axis_name=MEMBERS)
+            return make_trainer(
+                dataclasses.replace(cfg, **hparams), env, axis_name=MEMBERS, env_groups=devices
+            )
 
         def init():
             return jax.vmap(lambda key, h: trainer_for(h).init(key))(keys, values)

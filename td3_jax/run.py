@@ -167,7 +167,7 @@ def train(
     writer = jax.process_index() == 0  # several processes: one writes the logs
     out_dir = Path(out_dir)
     population = load_members(out_dir, cfg) if resume else members(cfg, sweep)
-    program = make_population(cfg, population)
+    program = make_population(cfg, population, devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
     checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
     start = time.perf_counter()

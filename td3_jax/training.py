@@ -66,13 +66,20 @@ def make_agent(cfg: TrainConfig, env: envs.Environment) -> Agent:
 
 
 def make_trainer(
-    cfg: TrainConfig, env: envs.Environment | None = None, axis_name: str | None = None
+    cfg: TrainConfig,
+    env: envs.Environment | None = None,
+    axis_name: str | None = None,
+    env_groups: int = 1,
 ) -> Trainer:
     """Builds the pure training pieces for ``cfg`` (the environment is made if not given).
 
     ``axis_name``: set when the pieces run under ``jax.vmap(..., axis_name=...)`` (seeds); the
     branch conditions (episode resets, learning started) are then reduced over that axis, so
     they stay branches instead of becoming selects that compute both sides.
+
+    ``env_groups``: environments are reset within groups of this many contiguous environments
+    (with the batch split over D devices, D keeps every reset on its device); with replay
+    slices that the groups divide, the slices are the groups. Results do not depend on it.
     """
     env = env or envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
     agent = make_agent(cfg, env)
@@ -80,6 +87,9 @@ def make_trainer(
     num_envs, batch_size = cfg.num_envs, cfg.batch_size
 
     shards = cfg.replay_shards
+    reset_groups = shards if shards % env_groups == 0 else env_groups
+    if num_envs % reset_groups:
+        raise ValueError(f"{num_envs} environments cannot be split into {reset_groups} groups")
 
     def group_by_shard(tree):
         """``[num_envs, ...] -> [shards, num_envs / shards, ...]``: env group g fills slice g."""
@@ -153,7 +163,7 @@ def make_trainer(
         key, act_key = jax.random.split(state.key)
         action, ou_state = explore(state, act_key)
         obs = state.env_state.obs
-        env_state, result = envs.step(env, state.env_state, action, axis_name)
+        env_state, result = envs.step(env, state.env_state, action, axis_name, groups=reset_groups)
         transition = Transition(
             obs=obs,
             action=action,

@@ -267,10 +267,9 @@ def test_resetting_a_few_environments_equals_resetting_the_batch():
     reference = _random_rollout(env, n, 30, seed=2, reset_slots=n)
     counts = [int(np.sum(r.terminated | r.truncated)) for _, r in reference]
     assert 0 in counts and 1 in counts and max(counts) > 5, counts
-    for slots in (1, 2, 5):
-        for (state, result), (ref_state, ref_result) in zip(
-            _random_rollout(env, n, 30, seed=2, reset_slots=slots), reference, strict=True
-        ):
+    for slots, groups in ((1, 1), (2, 1), (5, 1), (1, 4), (2, 2)):
+        rollout = _random_rollout(env, n, 30, seed=2, reset_slots=slots, groups=groups)
+        for (state, result), (ref_state, ref_result) in zip(rollout, reference, strict=True):
             np.testing.assert_array_equal(state.obs, ref_state.obs)
             np.testing.assert_array_equal(state.inner["position"], ref_state.inner["position"])
             np.testing.assert_array_equal(state.steps, ref_state.steps)

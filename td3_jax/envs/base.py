@@ -176,6 +176,7 @@ def step(
     *,
     auto_reset: bool = True,
     reset_slots: int | None = None,
+    groups: int = 1,
 ) -> tuple[EnvState, StepResult]:
     """Steps every environment with ``action [num_envs, action_size]`` in ``[-1, 1]``.
 
@@ -188,12 +189,20 @@ def step(
     seeds), the branch is chosen from the largest count over that axis, so it stays a real
     branch instead of becoming a select that computes every branch.
 
+    ``groups``: the batch is ``groups`` equal, contiguous groups of environments (e.g. one per
+    device) and ``reset_slots`` counts per group, so that gathering and scattering the reset
+    environments stays inside each group: with the batch split over devices, it stays on each
+    device. The result does not depend on ``groups``.
+
     ``auto_reset=False`` skips resets entirely (ended environments keep stepping from their last
     state; ``steps`` and ``episode_return`` still restart): for evaluation, which only counts
     each environment's first episode.
     """
     num_envs = action.shape[0]
-    slots = default_reset_slots(num_envs) if reset_slots is None else int(reset_slots)
+    if groups <= 0 or num_envs % groups:
+        raise ValueError(f"{num_envs} environments cannot form {groups} equal groups")
+    group_size = num_envs // groups
+    slots = default_reset_slots(group_size) if reset_slots is None else int(reset_slots)
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
     next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
     inner, obs, reward, terminated = jax.vmap(env.step_fn)(
@@ -210,15 +219,24 @@ def step(
     def reset_none(carry):
         return carry
 
+    def by_group(x):
+        return x.reshape(groups, group_size, *x.shape[1:])
+
     def reset_some(carry):
         inner, obs = carry
-        # Indices of the ended environments, padded with an out-of-range index that the
-        # scatter drops.
-        (index,) = jnp.nonzero(ended, size=slots, fill_value=num_envs)
-        fresh_inner, fresh_obs = _reset_batch(env, reset_key[jnp.minimum(index, num_envs - 1)])
+        # Per group, the indices of its ended environments, padded with an out-of-range index
+        # that the scatter drops.
+        index = jax.vmap(lambda e: jnp.nonzero(e, size=slots, fill_value=group_size)[0])(
+            by_group(ended)
+        )  # [groups, slots]
+        keys = jax.vmap(lambda k, i: k[jnp.minimum(i, group_size - 1)])(by_group(reset_key), index)
+        fresh_inner, fresh_obs = _reset_batch(env, keys.reshape(groups * slots, *keys.shape[2:]))
 
         def put(full, part):
-            return full.at[index].set(part.astype(full.dtype), mode="drop", unique_indices=True)
+            full = by_group(full)
+            part = part.reshape(groups, slots, *part.shape[1:]).astype(full.dtype)
+            scatter = lambda f, i, p: f.at[i].set(p, mode="drop", unique_indices=True)
+            return jax.vmap(scatter)(full, index, part).reshape(num_envs, *full.shape[2:])
 
         return jax.tree.map(put, inner, fresh_inner), put(obs, fresh_obs)
 
@@ -229,7 +247,7 @@ def step(
 
     new_inner, new_obs = inner, obs
     if auto_reset:
-        count = jnp.sum(ended.astype(jnp.int32))
+        count = jnp.max(jnp.sum(by_group(ended).astype(jnp.int32), axis=1))
         if axis_name is not None:
             count = jax.lax.pmax(count, axis_name)
         branches = (
