@@ -17,12 +17,11 @@ import json
 import time
 
 import jax
-import jax.numpy as jnp
 
 from td3_jax import envs
 from td3_jax.config import preset
 from td3_jax.population import compile_ahead, compile_for_mesh, make_population, members
-from td3_jax.run import eval_keys
+from td3_jax.run import eval_keys, replicate
 from td3_jax.sharding import make_mesh
 
 
@@ -46,12 +45,13 @@ def main() -> None:
     envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
     lap("make_env")
     population = members(cfg)
-    program = make_population(cfg, population)
+    mesh = make_mesh(None)
+    program = make_population(cfg, population, devices=mesh.size)
     lap("make_population")
-    compiled = compile_for_mesh(program, make_mesh(None))
-    keys = eval_keys(population, 0)
+    compiled = compile_for_mesh(program, mesh)
+    keys = replicate(eval_keys(population, 0), mesh)
     if args.mode == "ahead":
-        compiled = compile_ahead(compiled, program)
+        compiled = compile_ahead(compiled, program, jax.eval_shape(lambda: keys))
         lap("trace_and_compile_all")
         state = jax.block_until_ready(compiled.init())
         lap("init_run")
@@ -70,7 +70,7 @@ def main() -> None:
     state, metrics = compiled.chunk(state)
     jax.block_until_ready(metrics)
     lap("first_chunk")
-    jax.block_until_ready(compiled.evaluate(state, jnp.asarray(keys)))
+    jax.block_until_ready(compiled.evaluate(state, keys))
     lap("first_evaluation")
     times["total"] = round(sum(times.values()), 2)
     print(json.dumps({"mode": args.mode, "preset": args.preset, **changes, **times}), flush=True)

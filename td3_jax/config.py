@@ -204,7 +204,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             )
     if (cfg.n_step - 1) * cfg.num_envs >= cfg.replay_capacity:
         raise ConfigError(
-            f"--n-step {cfg.n_step} runs over {cfg.n_step * cfg.num_envs} stored transitions, "
+            f"--n-step {cfg.n_step} reads {cfg.n_step - 1} steps past a sampled transition, "
+            f"{(cfg.n_step - 1) * cfg.num_envs} stored transitions, "
             f"more than the replay buffer holds ({cfg.replay_capacity})"
         )
     if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):

@@ -175,13 +175,16 @@ def compile_for_mesh(program: Population, mesh: Any) -> Compiled:
     )
 
 
-def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True) -> Compiled:
+def compile_ahead(
+    compiled: Compiled, program: Population, keys_spec: Any, with_init: bool = True
+) -> Compiled:
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
     Tracing is sequential (Python), but XLA compiles the chunk, the evaluation and the init in
     parallel threads, which shortens the start-up of a run (on MJX environments the chunk and
     the evaluation each take seconds to compile). The returned functions are the compiled
     executables: calling them with other shapes or shardings raises instead of recompiling.
+    ``keys_spec``: shape and dtype of the evaluation keys (``[num_members, ...]``).
     """
     state_spec = jax.tree.map(
         lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s, weak_type=a.weak_type),
@@ -191,7 +194,7 @@ def compile_ahead(compiled: Compiled, program: Population, with_init: bool = Tru
     replicated = jax.sharding.NamedSharding(
         jax.tree.leaves(compiled.shardings)[0].mesh, jax.sharding.PartitionSpec()
     )
-    keys_spec = jax.ShapeDtypeStruct((len(program.members), 2), jnp.uint32, sharding=replicated)
+    keys_spec = jax.ShapeDtypeStruct(keys_spec.shape, keys_spec.dtype, sharding=replicated)
     lowered = {
         "chunk": compiled.chunk.lower(state_spec),
         "evaluate": compiled.evaluate.lower(state_spec, keys_spec),

@@ -170,36 +170,37 @@ def train(
     program = make_population(cfg, population, devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
     checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
-    start = time.perf_counter()
-    if resume:
-        if checkpointer.latest_step() is None:
-            raise CheckpointError(f"--resume given but {out_dir / 'checkpoints'} has no checkpoint")
-        state, meta, start_chunk = checkpointer.restore(
-            program.abstract_state, shardings=compiled.shardings
-        )
-        wall_offset = float(meta["wall_time_s"])
-    else:
-        if checkpointer.latest_step() is not None:
-            raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
-        out_dir.mkdir(parents=True, exist_ok=True)
-        start_chunk, wall_offset = 0, 0.0
-    display = _Progress(cfg, start_chunk, enabled=progress and writer)
+    display = logger = None
     try:
-        compiled = compile_ahead(compiled, program, with_init=not resume)
+        start = time.perf_counter()
+        if resume:
+            if checkpointer.latest_step() is None:
+                raise CheckpointError(
+                    f"--resume given but {out_dir / 'checkpoints'} has no checkpoint"
+                )
+            state, meta, start_chunk = checkpointer.restore(
+                program.abstract_state, shardings=compiled.shardings
+            )
+            wall_offset = float(meta["wall_time_s"])
+        else:
+            if checkpointer.latest_step() is not None:
+                raise ConfigError(
+                    f"{out_dir} already holds a run; pass --resume or choose a new --out"
+                )
+            out_dir.mkdir(parents=True, exist_ok=True)
+            start_chunk, wall_offset = 0, 0.0
+        display = _Progress(cfg, start_chunk, enabled=progress and writer)
+        keys_spec = jax.eval_shape(lambda: eval_keys(population, 0))
+        compiled = compile_ahead(compiled, program, keys_spec, with_init=not resume)
         if not resume:
             state = compiled.init()
-    except BaseException:
-        display.close()
-        checkpointer.close()
-        raise
-    if writer:
-        save_config(cfg, population, out_dir)
-    logger = MetricsLogger(
-        out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg), enabled=writer
-    )
-    chunk, evaluate = compiled.chunk, compiled.evaluate
-    records: list[dict[str, Any]] = []
-    try:
+        if writer:
+            save_config(cfg, population, out_dir)
+        logger = MetricsLogger(
+            out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg), enabled=writer
+        )
+        chunk, evaluate = compiled.chunk, compiled.evaluate
+        records: list[dict[str, Any]] = []
         for index in range(start_chunk, cfg.num_chunks):
             if stop_after_chunks is not None and index - start_chunk >= stop_after_chunks:
                 break
@@ -234,10 +235,12 @@ def train(
                 checkpointer.save(index + 1, state, meta)
             display.update(record)
     finally:
-        display.close()
-        logger.close()
+        if display is not None:
+            display.close()
+        if logger is not None:
+            logger.close()
         checkpointer.close()
-        if writer:
+        if writer and logger is not None:
             plot_curve(out_dir)
     return records
 

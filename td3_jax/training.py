@@ -130,7 +130,7 @@ def make_trainer(
         return TrainState(
             agent=agent.init(agent_key),
             buffer=jax.vmap(
-                lambda _: replay.init(cfg.replay_capacity // shards, (example, jnp.zeros(())))
+                lambda _: replay.init(cfg.replay_capacity // shards, (example, jnp.zeros((), bool)))
             )(jnp.arange(shards)),
             env_state=env_state,
             obs_stats=normalization.init(env.observation_size),
@@ -172,7 +172,7 @@ def make_trainer(
             done=result.terminated.astype(jnp.float32),
         )
         ended = result.terminated | result.truncated
-        stored = group_by_shard((transition, ended.astype(jnp.float32)))
+        stored = group_by_shard((transition, ended))
         state = state.replace(
             buffer=jax.vmap(replay.add)(state.buffer, stored),
             env_state=env_state,

@@ -444,3 +444,23 @@ def test_resume_uses_the_saved_config(finished_run, tmp_path, capsys, monkeypatc
     cfg, _, kwargs = calls[0]
     assert kwargs["resume"] is True
     assert json.loads(json.dumps(dataclasses.asdict(cfg))) == saved
+
+
+def test_compile_cache_is_filled_once_and_reused(finished_run, tmp_path):
+    """A second run with the same shapes loads its programs from the cache and matches."""
+    cache = tmp_path / "cache"
+    first = td3_jax("train", *TINY_FLAGS, "--out", str(tmp_path / "a"), "--quiet",
+                    "--compile-cache", str(cache))  # fmt: skip
+    assert first.returncode == 0, first.stderr
+    entries = sorted(p.name for p in cache.iterdir())
+    assert entries, "nothing was written to the compilation cache"
+    second = td3_jax("train", *TINY_FLAGS, "--out", str(tmp_path / "b"), "--quiet",
+                     "--compile-cache", str(cache))  # fmt: skip
+    assert second.returncode == 0, second.stderr
+    assert sorted(p.name for p in cache.iterdir()) == entries  # every program was a cache hit
+    a, b = read_records(tmp_path / "a"), read_records(tmp_path / "b")
+    assert [r["eval_return_mean"] for r in a] == [r["eval_return_mean"] for r in b]
+    # ... and the same as the run made without this cache directory.
+    assert [r["eval_return_mean"] for r in a] == [
+        r["eval_return_mean"] for r in read_records(finished_run[0])
+    ]

@@ -274,7 +274,7 @@ def test_stored_transitions_pendulum(learn):
     # Beside each transition the ring keeps whether its episode ended there (here: time limits).
     ended = rows(ring(learn.states[1].buffer.data[1]), slice(0, 96))
     expected_ended = (np.arange(1, 25) % EPISODE == 0)[:, None].repeat(NUM_ENVS, axis=1)
-    np.testing.assert_array_equal(ended, expected_ended.astype(np.float32))
+    np.testing.assert_array_equal(ended, expected_ended)
     assert np.all(np.abs(action) <= 1.0)
 
     # Pendulum physics: theta' = theta + dt * thetadot', for every stored transition. A next_obs
@@ -331,8 +331,8 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch):
     per_chunk = 32
     real_make_population = run_module.make_population
 
-    def poisoned_make_population(cfg, population):
-        program = real_make_population(cfg, population)
+    def poisoned_make_population(cfg, population, **kwargs):
+        program = real_make_population(cfg, population, **kwargs)
 
         def chunk(state):
             state, metrics = program.chunk(state)

@@ -184,10 +184,12 @@ def step(
     state drawn with their own new key. Resets are computed only where needed, chosen per step
     by a ``lax.switch``: nothing when no episode ended; when at most ``reset_slots`` ended
     (default :func:`default_reset_slots`), only those environments are gathered, reset and
-    scattered back; otherwise the whole batch is reset and selected per environment. The result
-    is the same whichever branch runs. Under a ``jax.vmap`` with ``axis_name`` (e.g. over
-    seeds), the branch is chosen from the largest count over that axis, so it stays a real
-    branch instead of becoming a select that computes every branch.
+    scattered back; otherwise the whole batch is reset and selected per environment. Every
+    environment gets the reset of its own key whichever branch runs (bit for bit on CPU; a GPU
+    may round a reset computed in a batch of another size slightly differently). Under a
+    ``jax.vmap`` with ``axis_name`` (e.g. over seeds), the branch is chosen from the largest
+    count over that axis, so it stays a real branch instead of becoming a select that computes
+    every branch.
 
     ``groups``: the batch is ``groups`` equal, contiguous groups of environments (e.g. one per
     device) and ``reset_slots`` counts per group, so that gathering and scattering the reset
@@ -203,6 +205,8 @@ def step(
         raise ValueError(f"{num_envs} environments cannot form {groups} equal groups")
     group_size = num_envs // groups
     slots = default_reset_slots(group_size) if reset_slots is None else int(reset_slots)
+    if slots <= 0:
+        raise ValueError(f"reset_slots must be positive, got {slots}")
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
     next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
     inner, obs, reward, terminated = jax.vmap(env.step_fn)(
@@ -235,7 +239,7 @@ def step(
         def put(full, part):
             full = by_group(full)
             part = part.reshape(groups, slots, *part.shape[1:]).astype(full.dtype)
-            scatter = lambda f, i, p: f.at[i].set(p, mode="drop", unique_indices=True)
+            scatter = lambda f, i, p: f.at[i].set(p, mode="drop")
             return jax.vmap(scatter)(full, index, part).reshape(num_envs, *full.shape[2:])
 
         return jax.tree.map(put, inner, fresh_inner), put(obs, fresh_obs)
@@ -251,7 +255,7 @@ def step(
         if axis_name is not None:
             count = jax.lax.pmax(count, axis_name)
         branches = (
-            [reset_none, reset_all] if slots >= num_envs else [reset_none, reset_some, reset_all]
+            [reset_none, reset_all] if slots >= group_size else [reset_none, reset_some, reset_all]
         )
         branch = jnp.where(count == 0, 0, jnp.where(count <= slots, 1, len(branches) - 1))
         new_inner, new_obs = jax.lax.switch(branch, branches, (inner, obs))
