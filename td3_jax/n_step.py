@@ -22,8 +22,8 @@ def fold(run: Transition, ended: jax.Array, discount: float | jax.Array) -> Tran
 
     Args:
       run: leaves ``[batch, n, ...]``: ``n`` consecutive steps of one environment per row.
-      ended: ``[batch, n]`` true (or 1.0) where the episode ended at that step (terminated or truncated);
-        steps after the first end belong to the next episode and are ignored.
+      ended: ``[batch, n]`` true (or 1.0) where the episode ended at that step (terminated or
+        truncated); steps after the first end belong to the next episode and are ignored.
       discount: the discount factor (may be traced).
 
     Returns:
