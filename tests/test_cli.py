@@ -363,7 +363,8 @@ def test_corrupted_checkpoint_arrays_exit_2(finished_run, tmp_path):
     for args in (["eval", "--run", str(run_dir)], ["train", "--resume", "--out", str(run_dir)]):
         proc = td3_jax(*args)
         assert proc.returncode == 2, proc.stderr
-        errors = [line for line in proc.stderr.splitlines() if line.startswith("td3-jax: error:")]
+        # (Background tracebacks may interleave with the line; see the xfail test below.)
+        errors = [line for line in proc.stderr.splitlines() if "td3-jax: error:" in line]
         assert len(errors) == 1, proc.stderr
         assert "checkpoints/2" in errors[0] and "corrupt" in errors[0]
 
