@@ -60,8 +60,16 @@ class DDPGConfig:
     hidden_sizes: Sequence[int] = struct.field(pytree_node=False, default=(256, 256))
 
 
-def td3(config: TD3Config, observation_size: int, action_size: int) -> Agent:
-    """Builds a TD3 agent (two critics, target smoothing, delayed actor and target updates)."""
+def td3(
+    config: TD3Config, observation_size: int, action_size: int, *, axis_name: str | None = None
+) -> Agent:
+    """Builds a TD3 agent (two critics, target smoothing, delayed actor and target updates).
+
+    ``axis_name``: when ``update`` runs under ``jax.vmap(..., axis_name=...)`` (one agent per
+    seed), the delayed actor update stays a real branch, taken when any agent on that axis is
+    due (each agent still only updates on its own schedule), instead of becoming a select that
+    computes the actor update on every step.
+    """
     _check_common(config, observation_size, action_size)
     if int(config.policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {config.policy_freq}")
@@ -73,6 +81,7 @@ def td3(config: TD3Config, observation_size: int, action_size: int) -> Agent:
         policy_noise=config.policy_noise,
         noise_clip=config.noise_clip,
         policy_freq=int(config.policy_freq),
+        axis_name=axis_name,
     )
 
 
@@ -109,6 +118,7 @@ def _actor_critic(
     policy_noise: Any,
     noise_clip: Any,
     policy_freq: int,
+    axis_name: str | None = None,
 ) -> Agent:
     """The shared TD3/DDPG machinery; ``policy_noise=None`` switches target smoothing off."""
     hidden = tuple(int(h) for h in config.hidden_sizes)
@@ -196,10 +206,23 @@ def _actor_critic(
             state, actor_loss = update_actor_and_targets(state, batch.obs)
             actor_updated = jnp.ones((), jnp.float32)
         else:
-            actor_updated = (state.step % policy_freq == 0).astype(jnp.float32)
+            due = state.step % policy_freq == 0
+            actor_updated = due.astype(jnp.float32)
+
+            def update_due(state, obs):
+                new_state, loss = update_actor_and_targets(state, obs)
+                if axis_name is None:
+                    return new_state, loss
+                # The branch runs when any agent on the axis is due; the others keep theirs.
+                keep = lambda new, old: jnp.where(due, new, old)
+                return jax.tree.map(keep, new_state, state), jnp.where(due, loss, 0.0)
+
+            any_due = due
+            if axis_name is not None:
+                any_due = jax.lax.psum(due.astype(jnp.int32), axis_name) > 0
             state, actor_loss = jax.lax.cond(
-                actor_updated > 0,
-                update_actor_and_targets,
+                any_due,
+                update_due,
                 lambda s, _: (s, jnp.zeros((), jnp.float32)),
                 state,
                 batch.obs,

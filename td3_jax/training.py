@@ -60,9 +60,10 @@ class Trainer(NamedTuple):
     sample: Callable[[replay.ReplayBuffer, jax.Array], Transition]
 
 
-def make_agent(cfg: TrainConfig, env: envs.Environment) -> Agent:
-    build = ddpg if cfg.algo == "ddpg" else td3
-    return build(cfg.agent_config(), env.observation_size, env.action_size)
+def make_agent(cfg: TrainConfig, env: envs.Environment, axis_name: str | None = None) -> Agent:
+    if cfg.algo == "ddpg":
+        return ddpg(cfg.agent_config(), env.observation_size, env.action_size)
+    return td3(cfg.agent_config(), env.observation_size, env.action_size, axis_name=axis_name)
 
 
 def make_trainer(
@@ -82,7 +83,7 @@ def make_trainer(
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     """
     env = env or envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
-    agent = make_agent(cfg, env)
+    agent = make_agent(cfg, env, axis_name)
     ou_params = cfg.ou_params()
     num_envs, batch_size = cfg.num_envs, cfg.batch_size
 
@@ -294,8 +295,9 @@ def make_trainer(
         jnp.zeros((batch_size, o)), jnp.zeros((batch_size, a)), jnp.zeros((batch_size,)),
         jnp.zeros((batch_size, o)), jnp.zeros((batch_size,)),
     )  # fmt: skip
+    lone = make_agent(cfg, env)  # the same shapes, without the member axis's collectives
     update_shapes = jax.eval_shape(
-        agent.update, jax.eval_shape(agent.init, key0), example_batch, key0
+        lone.update, jax.eval_shape(lone.init, key0), example_batch, key0
     )
     zero_update_metrics = {k: jnp.zeros((), s.dtype) for k, s in update_shapes[1].items()}
     zero_update_metrics["updates"] = jnp.zeros((), jnp.float32)

@@ -697,6 +697,35 @@ def test_vmap_over_states_matches_unbatched():
     np.testing.assert_array_equal(states.step, [3, 3, 3])
 
 
+def test_vmap_with_axis_name_keeps_the_actor_branch_and_each_schedule():
+    """With ``axis_name``, the delayed actor update stays a ``cond`` under vmap (no select that
+    computes it every step), and members on different schedules still update on their own."""
+    config = make_config("td3", tau=0.2)
+    n = 3
+    keys = jax.random.split(jax.random.key(1), n)
+    singles = [jitted_init("td3")(keys[j]) for j in range(n)]
+    singles[1] = singles[1].replace(step=jnp.ones((), jnp.int32))  # member 1 is one step ahead
+    states = stack(singles)
+    agent = tj.td3(config, OBS, ACT, axis_name="m")
+    vupdate = jax.vmap(agent.update, axis_name="m")
+    batches = stack([make_batch(j) for j in range(n)])
+    vkeys = jax.random.split(jax.random.key(7), n)
+    assert "cond[" in str(jax.make_jaxpr(vupdate)(states, batches, vkeys))
+    plain = str(jax.make_jaxpr(jax.vmap(build("td3", config).update))(states, batches, vkeys))
+    assert "cond[" not in plain  # what axis_name avoids: both branches computed and selected
+    update = jitted_update("td3")
+    vupdate = jax.jit(vupdate)
+    for i in range(3):
+        batches = stack([make_batch(100 * i + j) for j in range(n)])
+        vkeys = jax.random.split(jax.random.key(600 + i), n)
+        states, vmetrics = vupdate(states, batches, vkeys)
+        for j in range(n):
+            singles[j], metrics = update(config, singles[j], index(batches, j), vkeys[j])
+            assert_trees_close(index(states, j), singles[j], what=f"member {j} step {i}")
+            assert_trees_close(index(vmetrics, j), metrics)
+    np.testing.assert_array_equal(states.step, [3, 4, 3])
+
+
 def test_vmap_over_hyperparameters():
     """Float config fields may be traced: a vmap over tau equals separately built agents."""
     taus = [0.1, 0.6]
