@@ -88,9 +88,7 @@ def make_trainer(
     num_envs, batch_size = cfg.num_envs, cfg.batch_size
 
     shards = cfg.replay_shards
-    reset_groups = shards if shards % env_groups == 0 else env_groups
-    if num_envs % reset_groups:
-        raise ValueError(f"{num_envs} environments cannot be split into {reset_groups} groups")
+    reset_groups = shards if shards % env_groups == 0 else env_groups  # envs.step checks it
 
     def group_by_shard(tree):
         """``[num_envs, ...] -> [shards, num_envs / shards, ...]``: env group g fills slice g."""
@@ -102,11 +100,9 @@ def make_trainer(
     run_span = (cfg.n_step - 1) * stride
 
     def sample_slice(buffer, key):
-        """``batch_size / shards`` uniform transitions of one slice (n-step when n_step > 1)."""
-        rows = batch_size // shards
-        if cfg.n_step == 1:
-            return replay.sample(buffer, key, rows)[0]
-        run, ended = replay.sample_runs(buffer, key, rows, cfg.n_step, stride)
+        """``batch_size / shards`` uniform transitions of one slice, n-step folded (a run of
+        one step folds to the transition itself)."""
+        run, ended = replay.sample_runs(buffer, key, batch_size // shards, cfg.n_step, stride)
         return n_step.fold(run, ended, cfg.discount)
 
     def sample(buffer, key):
