@@ -13,7 +13,14 @@ from typing import Literal
 
 import tyro
 
-from td3_jax.config import PRESETS, ConfigError, TrainConfig, preset
+from td3_jax.config import (
+    PRESETS,
+    ConfigError,
+    TrainConfig,
+    device_defaults,
+    env_preset,
+    preset,
+)
 
 USAGE = """\
 usage: td3-jax {train,sweep,eval,plot,envs,presets} [FLAGS]
@@ -33,6 +40,10 @@ subcommands:
 """
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+
+
+class Interrupted(Exception):
+    """Ctrl-C during a run; the message says what the run directory holds."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,20 +149,74 @@ def _flag_value(args: list[str], flag: str) -> str | None:
     return None
 
 
-def _train_defaults(args: list[str], command_type: type = TrainCommand) -> TrainCommand:
-    """Defaults for the flags: the saved run config on --resume, else the preset's, else ours."""
-    from td3_jax.run import CONFIG_FILE, load_config
+def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
+    """``(defaults, preset, source)`` for the train flags, ``source`` saying where they come
+    from: ``resume`` (the run's saved config.json), ``preset`` (--preset), ``env`` (the preset
+    made for --env) or ``device`` (an environment without a preset: :func:`device_defaults`,
+    the CPU ones here; train_main swaps in the accelerator's once JAX is up)."""
+    from td3_jax.rundir import CONFIG_FILE, load_config
 
     out = _flag_value(args, "--out") or str(TrainCommand.out)
-    if "--resume" in args and _flag_value(args, "--preset"):
-        raise ConfigError("--preset cannot be combined with --resume (the run keeps its config)")
-    if "--resume" in args and (Path(out) / CONFIG_FILE).exists():
-        base = load_config(Path(out))
-        name = None
-    else:
-        name = _flag_value(args, "--preset")
-        base = preset(name)  # ConfigError listing the presets for an unknown name
-    return command_type(**dataclasses.asdict(base), preset=name)
+    name = _flag_value(args, "--preset")
+    if "--resume" in args:
+        if name:
+            raise ConfigError(
+                "--preset cannot be combined with --resume (the run keeps its config)"
+            )
+        if (Path(out) / CONFIG_FILE).exists():
+            return load_config(Path(out)), None, "resume"
+        return TrainConfig(), None, "resume"  # (train() says there is nothing to resume)
+    if name:
+        return preset(name), name, "preset"  # ConfigError listing the presets for an unknown name
+    env = _flag_value(args, "--env") or TrainConfig.env
+    name = env_preset(env)
+    if name:
+        return dataclasses.replace(preset(name), env=env), name, "env"
+    return device_defaults(env, accelerator=False), None, "device"
+
+
+def _given_fields(args: list[str]) -> set[str]:
+    """The TrainConfig fields that a flag in ``args`` names (``--num-envs``, ``--no-x``, ...)."""
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    given = set()
+    for arg in args:
+        if not arg.startswith("--"):
+            continue
+        name = arg[2:].split("=", 1)[0].replace("-", "_")
+        if name not in names and name.startswith("no_"):
+            name = name[3:]
+        if name in names:
+            given.add(name)
+    return given
+
+
+def _scale_to_device(cfg: TrainConfig, args: list[str]) -> TrainConfig:
+    """An environment without a preset on an accelerator: its defaults, then the given flags."""
+    import jax
+
+    if jax.default_backend() == "cpu":
+        return cfg
+    base = device_defaults(cfg.env, accelerator=True)
+    return dataclasses.replace(base, **{n: getattr(cfg, n) for n in _given_fields(args)})
+
+
+def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | None:
+    """The line saying which settings a run without --preset got (None when it named one)."""
+    if source == "env":
+        return f"using preset {name!r} for {cfg.env} (pass --preset or flags to change it)"
+    if source != "device":
+        return None
+    from td3_jax import envs
+
+    if cfg.env not in envs.known_names():
+        return None  # (train() reports the unknown name)
+    import jax
+
+    device = "CPU" if jax.default_backend() == "cpu" else "accelerator"
+    return (
+        f"no preset for {cfg.env}: using the {device} defaults ({cfg.num_envs} environments, "
+        f"{cfg.total_steps} steps; pass --preset or flags to change them)"
+    )
 
 
 def enable_compile_cache(directory: str) -> None:
@@ -170,10 +235,15 @@ def enable_compile_cache(directory: str) -> None:
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.run import train
+    from td3_jax.rundir import interrupted_message
 
     command_type = SweepCommand if sweeping else TrainCommand
     prog = "td3-jax sweep" if sweeping else "td3-jax train"
-    command = _parse(command_type, args, prog, default=_train_defaults(args, command_type))
+    base, preset_name, source = _base_config(args)
+    default = command_type(
+        **dataclasses.asdict(base), preset=preset_name if source == "preset" else None
+    )
+    command = _parse(command_type, args, prog, default=default)
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
     sweep = None
     if sweeping:
@@ -184,19 +254,30 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         }
         if not sweep and not command.resume:
             raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
+    import jax
+
     from td3_jax.sharding import initialize_distributed
 
     enable_compile_cache(command.compile_cache)
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
-    records = train(
-        cfg,
-        command.out,
-        devices=command.devices,
-        resume=command.resume,
-        progress=not command.quiet,
-        sweep=sweep,
-        time_budget_s=command.time_budget_s,
-    )
+    if source == "device":
+        cfg = _scale_to_device(cfg, args)
+    note = _defaults_note(cfg, preset_name, source)
+    if note and jax.process_index() == 0:
+        print(note, flush=True)
+    try:
+        records = train(
+            cfg,
+            command.out,
+            devices=command.devices,
+            resume=command.resume,
+            progress=not command.quiet,
+            sweep=sweep,
+            time_budget_s=command.time_budget_s,
+            preset=preset_name,
+        )
+    except KeyboardInterrupt:
+        raise Interrupted(interrupted_message(command.out)) from None
     if not records:
         print(f"nothing to do: the run in {command.out} is complete")
         return
@@ -356,9 +437,9 @@ def main(argv: list[str] | None = None) -> None:
     except NonFiniteError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(3)
+    except Interrupted as err:
+        print(f"td3-jax: {err}", file=sys.stderr)
+        sys.exit(130)
     except KeyboardInterrupt:
-        print(
-            "td3-jax: interrupted; the newest checkpoint is kept (resume with --resume)",
-            file=sys.stderr,
-        )
+        print("td3-jax: interrupted", file=sys.stderr)
         sys.exit(130)

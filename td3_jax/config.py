@@ -41,8 +41,9 @@ class TrainConfig:
     """Gradient updates per iteration (after warm-up)."""
     batch_size: int = 256
     """Transitions per gradient update."""
-    buffer_size: int = 1_000_000
-    """Replay capacity in transitions (capped at the run's total steps)."""
+    buffer_size: int = 100_000
+    """Replay capacity in transitions (a ring: the oldest are overwritten once it is full). It
+    does not depend on --total-steps, so a finished run can be extended with --resume."""
     replay_shards: int = 1
     """Split the replay ring into this many slices, each filled by its own group of environments
     and giving batch_size/replay_shards rows of every batch (stratified uniform sampling). With a
@@ -72,8 +73,9 @@ class TrainConfig:
     ou_sigma (no decay, as in the seed)."""
     ou_decay_period: int = 100_000
     """OU decay period in steps."""
-    hidden_sizes: tuple[int, ...] | None = None
-    """Hidden widths of actor and critics; default: the algorithm's (TD3 400 300, DDPG 256 256)."""
+    hidden_sizes: tuple[int, ...] | None = (256, 256)
+    """Hidden widths of actor and critics (the TD3 paper used 400 300); None: the algorithm's
+    own default (TD3Config 400 300, DDPGConfig 256 256)."""
     actor_lr: float | None = None
     """Actor Adam learning rate; default: the algorithm's (TD3 1e-3, DDPG 1e-4)."""
     critic_lr: float | None = None
@@ -113,9 +115,14 @@ class TrainConfig:
 
     @property
     def replay_capacity(self) -> int:
-        return min(
-            self.buffer_size, self.num_chunks * self.iters_per_chunk * self.env_steps_per_iter
-        )
+        """Transitions the replay ring holds: ``buffer_size``, whatever the run's length (so a
+        resumed run with a larger ``total_steps`` keeps the checkpoint's buffer shape)."""
+        return self.buffer_size
+
+    @property
+    def run_steps(self) -> int:
+        """Environment steps the run takes: ``total_steps`` rounded up to whole chunks."""
+        return self.num_chunks * self.iters_per_chunk * self.env_steps_per_iter
 
     def agent_config(self) -> TD3Config | DDPGConfig:
         """The agent's config: these settings where given, the algorithm's defaults otherwise."""
@@ -153,6 +160,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     positive = [
         "num_envs",
         "seeds",
+        "total_steps",
         "steps_per_iter",
         "batch_size",
         "buffer_size",
@@ -167,7 +175,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         value = getattr(cfg, name)
         if value <= 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be positive, got {value}")
-    for name in ["total_steps", "warmup_steps", "updates_per_iter"]:
+    for name in ["warmup_steps", "updates_per_iter"]:
         value = getattr(cfg, name)
         if value < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must not be negative, got {value}")
@@ -184,6 +192,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the replay buffer "
             f"({cfg.replay_capacity} transitions)"
+        )
+    if cfg.batch_size > cfg.run_steps:
+        raise ConfigError(
+            f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
+            f"run collects (--total-steps {cfg.total_steps}): it would never update"
         )
     backends = {"mjx", "generalized", "positional", "spring", "jax", "warp"}
     if cfg.env_backend not in backends:
@@ -281,7 +294,9 @@ PRESETS: dict[str, dict] = {
         critic_lr=3e-4,
         normalize_obs=False,
     ),
-    # Default CPU demo: TD3 on Pendulum with a handful of environments (a few minutes on 2 cores).
+    # The default (TrainConfig's own values; what `td3-jax train` runs): TD3 on Pendulum with a
+    # handful of environments, Adam 1e-3 (TD3's default), a 100k-transition ring (the run never
+    # fills it, so it samples like an unbounded buffer; a checkpoint stays a few MB).
     "pendulum": dict(
         env="gymnax/Pendulum-v1",
         algo="td3",
@@ -289,11 +304,10 @@ PRESETS: dict[str, dict] = {
         total_steps=40_000,
         updates_per_iter=8,
         batch_size=256,
+        buffer_size=100_000,
         warmup_steps=2_000,
         eval_every=4_000,
         hidden_sizes=(256, 256),
-        actor_lr=1e-3,
-        critic_lr=1e-3,
     ),
     # Small MJX task that learns on a CPU in minutes.
     "inverted-pendulum": dict(
@@ -325,6 +339,34 @@ PRESETS: dict[str, dict] = {
     # MuJoCo Playground's DM Control CheetahRun (pure-JAX MJX implementation), same settings.
     "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun", env_backend="jax"),
 }
+
+
+# The preset a run starts from when it names an environment but no --preset.
+ENV_PRESETS: dict[str, str] = {
+    "gymnax/Pendulum-v1": "pendulum",
+    "brax/inverted_pendulum": "inverted-pendulum",
+    "brax/ant": "ant",
+    "brax/halfcheetah": "halfcheetah",
+    "brax/humanoid": "humanoid",
+    "playground/CheetahRun": "cheetah-run",
+}
+
+
+def env_preset(env: str) -> str | None:
+    """The name of the preset made for ``env`` (``None`` when there is none)."""
+    return ENV_PRESETS.get(env)
+
+
+def device_defaults(env: str, accelerator: bool) -> TrainConfig:
+    """Settings for an environment without a preset, scaled to the device.
+
+    On an accelerator (GPU/TPU) the GPU locomotion settings (4096 environments, 16 updates of
+    batch 8192 per iteration, 3-step targets); on a CPU the defaults, a handful of environments
+    (those of the ``pendulum`` preset).
+    """
+    if accelerator:
+        return TrainConfig(**{**_GPU_LOCOMOTION, "env": env})
+    return TrainConfig(env=env)
 
 
 def preset(name: str | None) -> TrainConfig:

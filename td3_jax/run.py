@@ -6,8 +6,6 @@ seeds, or every combination of a sweep times the seeds, all in one compiled prog
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
 import time
 from pathlib import Path
@@ -18,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from td3_jax import stats
-from td3_jax.checkpoint import Checkpointer, CheckpointError
-from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.checkpoint import Checkpointer
+from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import (
     Member,
@@ -29,47 +27,33 @@ from td3_jax.population import (
     make_population,
     members,
 )
+from td3_jax.rundir import (  # (re-exported: run.py was their home)
+    CONFIG_FILE,
+    MEMBERS_FILE,
+    check_fresh,
+    check_resume,
+    load_config,
+    load_members,
+    open_run_dir,
+    run_info,
+    save_config,
+)
 from td3_jax.sharding import check_divisible, make_mesh
 
-CONFIG_FILE = "config.json"
-MEMBERS_FILE = "members.json"
+__all__ = [
+    "CONFIG_FILE",
+    "MEMBERS_FILE",
+    "NonFiniteError",
+    "load_config",
+    "load_members",
+    "restore_state",
+    "save_config",
+    "train",
+]
 
 
 class NonFiniteError(RuntimeError):
     """A loss or parameter became NaN/inf; the run stopped and kept its last good checkpoint."""
-
-
-def save_config(cfg: TrainConfig, population: list[Member], out_dir: Path) -> None:
-    out_dir = Path(out_dir)
-    (out_dir / CONFIG_FILE).write_text(json.dumps(dataclasses.asdict(cfg), indent=2) + "\n")
-    listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
-    (out_dir / MEMBERS_FILE).write_text(json.dumps(listing, indent=2) + "\n")
-
-
-def load_config(out_dir: Path) -> TrainConfig:
-    """The resolved config a run directory was started with."""
-    path = Path(out_dir) / CONFIG_FILE
-    if not path.exists():
-        raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory")
-    try:
-        raw = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"{path} is not valid JSON ({err})") from err
-    if raw.get("hidden_sizes") is not None:
-        raw["hidden_sizes"] = tuple(raw["hidden_sizes"])
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    return TrainConfig(**{k: v for k, v in raw.items() if k in known})
-
-
-def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
-    """The members of a run directory (its seeds and swept settings)."""
-    path = Path(out_dir) / MEMBERS_FILE
-    if not path.exists():
-        return members(cfg)
-    return [
-        Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
-        for m in json.loads(path.read_text())
-    ]
 
 
 def eval_keys(population: list[Member], chunk_index: int) -> jax.Array:
@@ -144,14 +128,19 @@ def train(
     stop_after_chunks: int | None = None,
     time_budget_s: float | None = None,
     devices: int | None = None,
+    preset: str | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
-    Returns the evaluation records written by this call (also appended to metrics.jsonl).
+    Returns the evaluation records written by this call (also appended to metrics.jsonl). The
+    run holds ``out_dir``'s lock throughout (see :mod:`td3_jax.rundir`); a directory in use,
+    or one holding a previous run when ``resume`` is off, is refused before anything is written.
 
     Args:
       resume: continue from the newest checkpoint in ``out_dir`` (which must exist); the
-        members are those saved in the run directory.
+        members are those saved in the run directory. ``cfg`` must equal the saved config but
+        for ``total_steps``, ``keep_checkpoints``, ``checkpoint_every`` and ``eval_envs``
+        (recorded in config.json under ``resume_changes``).
       progress: show a live progress display.
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
         trains ``cfg.seeds`` seeds, all in one program.
@@ -160,34 +149,31 @@ def train(
         wall-clock (compile included; counted across resumes). The run stays resumable.
       devices: data-parallel over this many devices (default: all; see :mod:`td3_jax.sharding`).
         num_envs and batch_size stay global, so the numbers do not depend on the device count.
+      preset: the name of the preset ``cfg`` came from, recorded in config.json.
     """
     validate(cfg)
     mesh = make_mesh(devices)
     check_divisible(cfg, mesh.size)
     writer = jax.process_index() == 0  # several processes: one writes the logs
     out_dir = Path(out_dir)
-    population = load_members(out_dir, cfg) if resume else members(cfg, sweep)
+    if resume:
+        population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
+    else:
+        check_fresh(out_dir, writer=writer)
+        population, changes = members(cfg, sweep), {}
     program = make_population(cfg, population, devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
-    checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
-    display = logger = None
+    run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
+    checkpointer = display = logger = None
     try:
+        checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
         start = time.perf_counter()
         if resume:
-            if checkpointer.latest_step() is None:
-                raise CheckpointError(
-                    f"--resume given but {out_dir / 'checkpoints'} has no checkpoint"
-                )
             state, meta, start_chunk = checkpointer.restore(
                 program.abstract_state, shardings=compiled.shardings
             )
             wall_offset = float(meta["wall_time_s"])
         else:
-            if checkpointer.latest_step() is not None:
-                raise ConfigError(
-                    f"{out_dir} already holds a run; pass --resume or choose a new --out"
-                )
-            out_dir.mkdir(parents=True, exist_ok=True)
             start_chunk, wall_offset = 0, 0.0
         display = _Progress(cfg, start_chunk, enabled=progress and writer)
         keys_spec = jax.eval_shape(lambda: eval_keys(population, 0))
@@ -195,7 +181,9 @@ def train(
         if not resume:
             state = compiled.init()
         if writer:
-            save_config(cfg, population, out_dir)
+            at = start_chunk * steps_per_chunk(cfg)
+            info = run_info(out_dir, resume=resume, preset=preset, changes=changes, at_env_steps=at)
+            save_config(cfg, population, out_dir, info)
         logger = MetricsLogger(
             out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg), enabled=writer
         )
@@ -239,9 +227,11 @@ def train(
             display.close()
         if logger is not None:
             logger.close()
-        checkpointer.close()
+        if checkpointer is not None:
+            checkpointer.close()
         if writer and logger is not None:
             plot_curve(out_dir)
+        run_lock.release()
     return records
 
 

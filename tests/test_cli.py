@@ -21,7 +21,7 @@ import pytest
 
 from td3_jax import cli
 from td3_jax import run as run_module
-from td3_jax.config import PRESETS, TrainConfig
+from td3_jax.config import PRESETS, TrainConfig, device_defaults, preset
 
 DOCUMENTED_FLAGS = [
     "--env",
@@ -66,6 +66,8 @@ TINY_FLAGS = [
     "16",
     "--seed",
     "7",
+    "--buffer-size",
+    "256",
 ]
 EPISODE = 16
 PENDULUM_WORST_STEP = -16.3  # -(pi^2 + 0.1 * 8^2 + 0.001 * 2^2)
@@ -161,11 +163,17 @@ def test_train_help_lists_the_documented_flags():
 
 BAD_TRAIN = {
     "batch-larger-than-buffer": (
-        ["--batch-size", "100000", "--total-steps", "1000"],
+        ["--batch-size", "512", "--buffer-size", "256"],
         "--batch-size",
+    ),
+    # one 4000-step chunk collects fewer transitions than one batch
+    "batch-larger-than-the-run": (
+        ["--batch-size", "8192", "--total-steps", "1000"],
+        "never update",
     ),
     "no-envs": (["--num-envs", "0"], "--num-envs"),
     "negative-steps": (["--total-steps", "-5"], "--total-steps"),
+    "zero-steps": (["--total-steps", "0"], "--total-steps must be positive"),
     "unknown-env": (["--env", "gymnax/NoSuchTask-v0"], "gymnax/NoSuchTask-v0"),
 }
 
@@ -216,7 +224,27 @@ def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
 def test_resume_of_an_empty_dir_exits_2(tmp_path, capsys):
     code, _, err = main(["train", "--resume", "--out", str(tmp_path), "--quiet"], capsys)
     assert_one_line_error(code, err, "--resume", "no checkpoint")
-    assert not (tmp_path / "metrics.jsonl").exists()
+    assert list(tmp_path.iterdir()) == []  # nothing created (no checkpoints/, no .lock)
+
+
+def test_resume_of_a_missing_dir_creates_nothing(tmp_path, capsys):
+    out = tmp_path / "missing"
+    code, _, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
+    assert_one_line_error(code, err, "--resume", str(out), "does not exist")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_out_that_cannot_be_a_directory_exits_2(tmp_path, capsys):
+    (tmp_path / "file").write_text("mine\n")
+    cases = {
+        str(tmp_path / "file"): "is a file, not a directory",
+        str(tmp_path / "file" / "run"): "cannot create it",
+        "/proc/td3-jax-run": "cannot create it",
+    }
+    for out, needle in cases.items():
+        code, _, err = main(["train", *TINY_FLAGS, "--out", out, "--quiet"], capsys)
+        assert_one_line_error(code, err, f"--out {out}", needle)
+    assert (tmp_path / "file").read_text() == "mine\n"
 
 
 def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
@@ -247,7 +275,10 @@ def test_train_writes_every_output(finished_run):
     assert config["num_envs"] == 4 and config["total_steps"] == 128 and config["seed"] == 7
     assert config["hidden_sizes"] == [16, 16] and config["episode_length"] == 16
     assert config["algo"] == "td3" and config["env"] == "gymnax/Pendulum-v1"
-    assert set(config) == {f.name for f in dataclasses.fields(TrainConfig)}
+    # the settings, and the preset they started from (Pendulum's, as no --preset was given)
+    assert set(config) == {f.name for f in dataclasses.fields(TrainConfig)} | {"preset"}
+    assert config["preset"] == "pendulum"
+    assert "using preset 'pendulum' for gymnax/Pendulum-v1" in proc.stdout
 
     records = read_records(out)
     assert [r["env_steps"] for r in records] == [64, 128]
@@ -382,6 +413,74 @@ def test_corrupted_checkpoint_arrays_message_is_clean(finished_run, tmp_path):
     assert_one_line_error(proc.returncode, proc.stderr, "corrupt")
 
 
+RESUME_CHANGES = {
+    # the chunk size: the checkpoints count chunks of --eval-every steps
+    "eval-every": (["--eval-every", "32"], ["--eval-every 32 given", "--eval-every 64"]),
+    "seed": (["--seed", "8"], ["--seed 8 given", "--seed 7"]),
+    "seeds": (["--seeds", "2"], ["--seeds 2 given", "--seeds 1"]),
+    "batch-size": (["--batch-size", "128"], ["--batch-size 128 given", "--batch-size 16"]),
+    "actor-lr": (["--actor-lr", "3e-4"], ["--actor-lr 0.0003 given", "reproducible"]),
+}
+
+
+@pytest.mark.parametrize("case", list(RESUME_CHANGES))
+def test_resume_with_a_changed_structural_flag_exits_2(finished_run, case, capsys):
+    out, _ = finished_run
+    before = {p: (out / p).read_bytes() for p in ("metrics.jsonl", "config.json", "members.json")}
+    flags, needles = RESUME_CHANGES[case]
+    code, _, err = main(["train", "--resume", *flags, "--out", str(out), "--quiet"], capsys)
+    assert_one_line_error(code, err, *needles, "leave it out to resume")
+    assert {p: (out / p).read_bytes() for p in before} == before
+
+
+def test_resume_accepts_flags_equal_to_the_saved_ones(finished_run, tmp_path, capsys):
+    run_dir = _copy_run(finished_run, tmp_path)
+    records = read_records(run_dir)
+    same = ["--seed", "7", "--batch-size", "16", "--eval-every", "64", "--hidden-sizes", "16", "16"]
+    code, out, err = main(["train", "--resume", *same, "--out", str(run_dir), "--quiet"], capsys)
+    assert code == 0, err
+    assert "nothing to do" in out
+    assert read_records(run_dir) == records
+    assert "resume_changes" not in json.loads((run_dir / "config.json").read_text())
+
+
+def test_fresh_run_on_a_previous_runs_outputs_exits_2(finished_run, tmp_path, capsys):
+    """No checkpoint left (deleted, or Ctrl-C before the first): the records are not erased."""
+    run_dir = _copy_run(finished_run, tmp_path)
+    shutil.rmtree(run_dir / "checkpoints")
+    before = {p: (run_dir / p).read_bytes() for p in ("metrics.jsonl", "config.json")}
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(run_dir), "--quiet"], capsys)
+    assert_one_line_error(code, err, "previous run's outputs", "metrics.jsonl", "no checkpoint")
+    assert {p: (run_dir / p).read_bytes() for p in before} == before
+
+
+def _interrupt(monkeypatch, make_dir: bool = False) -> None:
+    def interrupted_train(cfg, out_dir, **kwargs):
+        if make_dir:
+            Path(out_dir).mkdir(parents=True)
+            (Path(out_dir) / "config.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_module, "train", interrupted_train)
+
+
+def test_ctrl_c_says_what_the_run_directory_holds(finished_run, tmp_path, capsys, monkeypatch):
+    _interrupt(monkeypatch, make_dir=True)
+    out = tmp_path / "new"
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 130
+    assert err.strip() == (
+        f"td3-jax: interrupted before the first checkpoint: {out} holds none to resume "
+        "(remove it or choose another --out to start again)"
+    )
+    _interrupt(monkeypatch)
+    run_dir = _copy_run(finished_run, tmp_path)
+    code, _, err = main(["train", "--resume", "--out", str(run_dir)], capsys)
+    assert code == 130
+    assert f"the newest checkpoint is {run_dir / 'checkpoints' / '2'}" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_checkpoint_of_another_configuration_exits_2(finished_run, tmp_path, capsys):
     run_dir = _copy_run(finished_run, tmp_path)
     config = json.loads((run_dir / "config.json").read_text())
@@ -426,7 +525,7 @@ def test_preset_keeps_its_values_and_flags_override(tmp_path, capsys, monkeypatc
     assert config["total_steps"] == 400
     expected = {**dataclasses.asdict(TrainConfig()), **PRESETS["seed-ddpg-pendulum"]}
     expected["total_steps"] = 400
-    assert config == expected
+    assert config == json.loads(json.dumps(expected))  # (tuples as JSON lists)
 
     # A flag given after the preset wins over the preset's value, the others stay.
     calls.clear()
@@ -434,6 +533,57 @@ def test_preset_keeps_its_values_and_flags_override(tmp_path, capsys, monkeypatc
     assert code == 0, err
     cfg = calls[0][0]
     assert (cfg.batch_size, cfg.algo, cfg.exploration, cfg.num_envs) == (64, "td3", "ou", 1)
+
+
+def test_environment_picks_its_preset(tmp_path, capsys, monkeypatch):
+    calls = _capture_train(monkeypatch)
+    code, out, err = main(["train", "--env", "brax/ant", "--out", str(tmp_path / "a")], capsys)
+    assert code == 0, err
+    cfg, _, kwargs = calls[-1]
+    assert cfg == preset("ant") and kwargs["preset"] == "ant"
+    assert "using preset 'ant' for brax/ant (pass --preset or flags to change it)" in out
+    # flags still override the preset's values
+    code, out, err = main(
+        ["train", "--env", "brax/ant", "--num-envs", "8", "--out", str(tmp_path / "b")], capsys
+    )
+    assert code == 0, err
+    assert calls[-1][0] == dataclasses.replace(preset("ant"), num_envs=8)
+    # an explicit --preset wins, and prints nothing
+    code, out, err = main(
+        ["train", "--env", "brax/ant", "--preset", "pendulum", "--out", str(tmp_path / "c")],
+        capsys,
+    )
+    assert code == 0, err
+    assert calls[-1][0] == dataclasses.replace(preset("pendulum"), env="brax/ant")
+    assert calls[-1][2]["preset"] == "pendulum" and "using preset" not in out
+
+
+def test_the_default_run_is_the_pendulum_preset(tmp_path, capsys, monkeypatch):
+    calls = _capture_train(monkeypatch)
+    code, out, err = main(["train", "--out", str(tmp_path / "a")], capsys)
+    assert code == 0, err
+    cfg, _, kwargs = calls[-1]
+    assert cfg == preset("pendulum") == TrainConfig() and kwargs["preset"] == "pendulum"
+    assert "using preset 'pendulum' for gymnax/Pendulum-v1" in out
+
+
+def test_environment_without_a_preset_gets_device_defaults(tmp_path, capsys, monkeypatch):
+    import jax
+
+    calls = _capture_train(monkeypatch)
+    args = ["train", "--env", "brax/hopper", "--eval-envs", "8", "--out", str(tmp_path / "a")]
+    code, out, err = main(args, capsys)
+    assert code == 0, err
+    cfg, _, kwargs = calls[-1]
+    assert cfg == TrainConfig(env="brax/hopper", eval_envs=8) and kwargs["preset"] is None
+    assert "no preset for brax/hopper: using the CPU defaults (16 environments" in out
+    # on a GPU: thousands of environments (the flags given still win)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    code, out, err = main([*args[:-1], str(tmp_path / "b")], capsys)
+    assert code == 0, err
+    gpu = dataclasses.replace(device_defaults("brax/hopper", accelerator=True), eval_envs=8)
+    assert calls[-1][0] == gpu and gpu.num_envs == 4096
+    assert "using the accelerator defaults (4096 environments" in out
 
 
 def test_resume_uses_the_saved_config(finished_run, tmp_path, capsys, monkeypatch):
@@ -444,7 +594,9 @@ def test_resume_uses_the_saved_config(finished_run, tmp_path, capsys, monkeypatc
     assert code == 0, err
     cfg, _, kwargs = calls[0]
     assert kwargs["resume"] is True
-    assert json.loads(json.dumps(dataclasses.asdict(cfg))) == saved
+    settings = {k: v for k, v in saved.items() if k != "preset"}
+    assert json.loads(json.dumps(dataclasses.asdict(cfg))) == settings
+    assert saved["preset"] == "pendulum" and kwargs["preset"] is None  # (kept by train())
 
 
 def test_compile_cache_is_filled_once_and_reused(finished_run, tmp_path):

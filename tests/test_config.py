@@ -10,7 +10,16 @@ import dataclasses
 
 import pytest
 
-from td3_jax.config import PRESETS, ConfigError, TrainConfig, preset, validate
+from td3_jax.config import (
+    ENV_PRESETS,
+    PRESETS,
+    ConfigError,
+    TrainConfig,
+    device_defaults,
+    env_preset,
+    preset,
+    validate,
+)
 from td3_jax.td3 import DDPGConfig, TD3Config
 
 # A small valid configuration to derive broken ones from (only one field changed each time).
@@ -39,11 +48,12 @@ def test_small_config_validates():
     [
         # batch larger than the buffer
         (dict(buffer_size=16, batch_size=32), "batch"),
-        # batch larger than the buffer once it is capped at the run's total steps (1 chunk = 8)
-        (dict(num_envs=1, eval_every=8, total_steps=8, batch_size=16), "batch"),
+        # a batch larger than all the run collects (1 chunk = 8 steps): it would never update
+        (dict(num_envs=1, eval_every=8, total_steps=8, batch_size=16), "never update"),
         (dict(num_envs=0), "num-envs"),
         (dict(num_envs=-3), "num-envs"),
         (dict(total_steps=-1), "total-steps"),
+        (dict(total_steps=0), "total-steps must be positive"),
         (dict(warmup_steps=-1), "warmup-steps"),
         # one iteration (32 envs x 1 step) adds more than the 16-transition buffer
         (dict(num_envs=32, buffer_size=16, batch_size=8), "iteration"),
@@ -76,7 +86,7 @@ def test_validate_rejects(changes, match):
     [
         dict(discount=0.0),
         dict(discount=1.0),
-        dict(total_steps=0),
+        dict(total_steps=1),  # rounded up to one whole chunk
         dict(warmup_steps=0),
         dict(tau=1.0),
         # batch exactly the buffer's size, one iteration exactly filling it
@@ -104,6 +114,8 @@ def test_every_preset_builds_a_valid_config(name):
 
 def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
     assert preset(None) == TrainConfig()
+    # The defaults are the `pendulum` preset (what `td3-jax train` runs with no flags).
+    assert TrainConfig() == preset("pendulum")
     with pytest.raises(ConfigError, match="unknown preset 'nope'"):
         preset("nope")
 
@@ -112,10 +124,11 @@ def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
     "cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity",
     [
         # defaults: 16 envs x 1 step = 16 per iteration; 4000 // 16 = 250 iterations per chunk
-        # (4000 steps); 40000 / 4000 = 10 chunks; capacity min(1e6, 10 * 4000) = 40000.
-        (TrainConfig(), 16, 250, 10, 40_000),
+        # (4000 steps); 40000 / 4000 = 10 chunks; capacity = buffer_size, whatever the length.
+        (TrainConfig(), 16, 250, 10, 100_000),
+        (TrainConfig(total_steps=1_000_000), 16, 250, 250, 100_000),
         # 3 envs x 2 steps = 6; 100 // 6 = 16 iterations (96 steps) per chunk;
-        # ceil(1000 / 96) = 11 chunks (1056 steps); capacity min(500, 1056) = 500.
+        # ceil(1000 / 96) = 11 chunks (1056 steps); capacity 500.
         (
             TrainConfig(
                 num_envs=3, steps_per_iter=2, eval_every=100, total_steps=1_000, buffer_size=500
@@ -126,12 +139,18 @@ def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
             500,
         ),
         # eval_every below one iteration: still one iteration (64 steps) per chunk;
-        # ceil(100 / 64) = 2 chunks; capacity min(1e6, 128) = 128.
-        (TrainConfig(num_envs=64, eval_every=10, total_steps=100), 64, 1, 2, 128),
-        # total_steps 0 still runs one chunk: 8 envs, 40 // 8 = 5 iterations, 40 steps.
-        (TrainConfig(num_envs=8, eval_every=40, total_steps=0), 8, 5, 1, 40),
+        # ceil(100 / 64) = 2 chunks (128 steps); capacity 1000.
+        (
+            TrainConfig(num_envs=64, eval_every=10, total_steps=100, buffer_size=1000),
+            64,
+            1,
+            2,
+            1000,
+        ),
+        # one step still runs one chunk: 8 envs, 40 // 8 = 5 iterations, 40 steps.
+        (TrainConfig(num_envs=8, eval_every=40, total_steps=1), 8, 5, 1, 100_000),
         # total_steps an exact multiple of a chunk: 1 env, 2000 per chunk, 10 chunks.
-        (TrainConfig(**PRESETS["seed-ddpg-pendulum"]), 1, 2_000, 10, 20_000),
+        (TrainConfig(**PRESETS["seed-ddpg-pendulum"]), 1, 2_000, 10, 50_000),
     ],
 )
 def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity):
@@ -140,11 +159,22 @@ def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks
     assert cfg.num_chunks == num_chunks
     assert cfg.replay_capacity == replay_capacity
     # The chunks cover at least total_steps environment steps.
-    assert num_chunks * iters_per_chunk * env_steps_per_iter >= cfg.total_steps
+    assert cfg.run_steps == num_chunks * iters_per_chunk * env_steps_per_iter >= cfg.total_steps
+
+
+def test_replay_capacity_does_not_depend_on_total_steps():
+    """A finished run extended with --resume --total-steps keeps its buffer's shape."""
+    short, long = TrainConfig(total_steps=4_000), TrainConfig(total_steps=8_000)
+    assert short.replay_capacity == long.replay_capacity == short.buffer_size
+    # a buffer larger than the run is fine (the ring is sampled over its filled part)
+    assert validate(dataclasses.replace(SMALL, buffer_size=10 * SMALL.total_steps))
 
 
 def test_agent_config_td3_defaults():
-    agent = TrainConfig(algo="td3").agent_config()
+    # TrainConfig's default networks are the pendulum preset's 256-256; hidden_sizes=None
+    # leaves the algorithm's own default (TD3: the paper's 400-300).
+    assert tuple(TrainConfig(algo="td3").agent_config().hidden_sizes) == (256, 256)
+    agent = TrainConfig(algo="td3", hidden_sizes=None).agent_config()
     assert isinstance(agent, TD3Config)
     assert tuple(agent.hidden_sizes) == (400, 300)
     assert agent.tau == pytest.approx(0.005)
@@ -199,7 +229,7 @@ def test_agent_config_mixes_given_and_default_values():
     assert tuple(agent.hidden_sizes) == (256, 256)
     assert agent.tau == pytest.approx(1e-2)
     # Only tau given: TD3 keeps (400, 300) and its actor learning rate.
-    agent = TrainConfig(algo="td3", tau=0.05).agent_config()
+    agent = TrainConfig(algo="td3", tau=0.05, hidden_sizes=None).agent_config()
     assert agent.tau == pytest.approx(0.05)
     assert tuple(agent.hidden_sizes) == (400, 300)
     assert agent.actor_lr == pytest.approx(1e-3)
@@ -227,3 +257,22 @@ def test_replay_shards_must_divide_envs_batch_and_capacity():
     ):
         with pytest.raises(ConfigError, match="replay-shards"):
             validate(TrainConfig(**bad))
+
+
+def test_every_environment_preset_is_made_for_its_environment():
+    for env, name in ENV_PRESETS.items():
+        assert PRESETS[name]["env"] == env
+        assert env_preset(env) == name
+    # every preset with an environment of its own is reachable from it (seed-ddpg-pendulum
+    # shares Pendulum with the default `pendulum` preset)
+    assert {p["env"] for p in PRESETS.values() if "env" in p} == set(ENV_PRESETS)
+    assert env_preset("brax/hopper") is None
+
+
+def test_device_defaults_scale_with_the_device():
+    cpu = device_defaults("brax/hopper", accelerator=False)
+    gpu = device_defaults("brax/hopper", accelerator=True)
+    assert cpu == TrainConfig(env="brax/hopper")
+    assert cpu.num_envs <= 64 <= 4096 <= gpu.num_envs
+    assert gpu == TrainConfig(**{**PRESETS["ant"], "env": "brax/hopper"})
+    assert validate(cpu) and validate(gpu)

@@ -25,11 +25,12 @@ TINY = dict(
     updates_per_iter=2,
     hidden_sizes=(32, 32),
     eval_envs=4,
+    buffer_size=512,
 )
 TINY_FLAGS = [
     "--num-envs", "8", "--total-steps", "512", "--eval-every", "256", "--warmup-steps", "64",
     "--batch-size", "64", "--updates-per-iter", "2", "--hidden-sizes", "32", "32",
-    "--eval-envs", "4", "--quiet",
+    "--eval-envs", "4", "--buffer-size", "512", "--quiet",
 ]  # fmt: skip
 COMPARED = ("critic_loss", "actor_loss", "q_mean", "target_mean", "eval_return_mean")
 
@@ -118,7 +119,7 @@ def test_state_is_split_along_envs_and_buffer(four_device_runs):
     assert info["devices"] == 4
     # [member, replay_shards=1, capacity, obs]: one slice, its rows split over the devices
     assert info["buffer_spec"] == [None, None, "data"]
-    capacity = 512  # replay capacity = min(buffer_size, total steps)
+    capacity = TINY["buffer_size"]
     assert info["buffer_shard_rows"] == [1] * 4  # shape[1] is the (unsplit) slice axis
     # --replay-shards 4: each device holds one whole slice of 512 / 4 rows
     assert info["sliced_buffer_spec"] == [None, "data"]

@@ -1,0 +1,380 @@
+"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json, members.json.
+
+* **One run at a time.** A run holds an exclusive ``fcntl.flock`` on ``DIR/.lock`` (the file
+  names the holder's pid and host) from before it writes anything until it has written its last
+  output; the kernel drops the lock when the process dies. A second run on ``DIR`` stops with a
+  one-line error and writes nothing.
+* **No silent overwrite.** A fresh run refuses a directory that holds a checkpoint (``--resume``
+  continues it) or a previous run's outputs without a checkpoint (move them away first).
+* **Resume keeps the run's identity.** On ``--resume`` only :data:`SAFE_ON_RESUME` may differ
+  from the saved config.json (``total_steps`` extends or shortens the run); each change is
+  recorded in config.json under ``resume_changes``. Any other difference is a one-line error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import json
+import os
+import socket
+from pathlib import Path
+from typing import Any
+
+from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.population import Member, members
+
+CONFIG_FILE = "config.json"
+MEMBERS_FILE = "members.json"
+LOCK_FILE = ".lock"
+CHECKPOINTS = "checkpoints"
+# What a run writes into its directory (a fresh run refuses a directory holding any of them).
+OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png", CHECKPOINTS)
+# Settings a resumed run may change; every other one fixes the state layout, the key schedule
+# or what the checkpoint means.
+SAFE_ON_RESUME = ("total_steps", "keep_checkpoints", "checkpoint_every", "eval_envs")
+# Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
+FLOAT_SETTINGS = (
+    "actor_lr",
+    "critic_lr",
+    "tau",
+    "discount",
+    "expl_noise",
+    "policy_noise",
+    "noise_clip",
+    "ou_theta",
+    "ou_sigma",
+    "ou_min_sigma",
+)
+
+
+# --------------------------------------------------------------------------------------------
+# the lock
+# --------------------------------------------------------------------------------------------
+
+
+class RunLock:
+    """An exclusive ``flock`` on ``DIR/.lock`` held by this process until :meth:`release`."""
+
+    def __init__(self, fd: int | None, path: Path):
+        self._fd, self.path = fd, path
+
+    def release(self) -> None:
+        """Unlocks and closes the lock file (the file itself stays)."""
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+
+def acquire_lock(out_dir: Path) -> RunLock:
+    """Locks ``out_dir`` (which must exist) for this process and records its pid and host."""
+    path = Path(out_dir) / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:
+        raise ConfigError(f"--out {out_dir}: cannot open {path} ({err.strerror})") from err
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise in_use_error(out_dir) from None
+    holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, holder.encode(), 0)
+    return RunLock(fd, path)
+
+
+def check_not_in_use(out_dir: Path) -> None:
+    """Raises :func:`in_use_error` if another process holds ``out_dir``'s lock; creates nothing."""
+    try:
+        fd = os.open(Path(out_dir) / LOCK_FILE, os.O_RDONLY)
+    except OSError:  # no lock file: nobody ever locked it
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise in_use_error(out_dir) from None
+    finally:
+        os.close(fd)  # (also drops this probe's own lock)
+
+
+def in_use_error(out_dir: Path) -> ConfigError:
+    return ConfigError(
+        f"{out_dir} is in use by another td3-jax run ({lock_holder(out_dir)}); "
+        "wait for it to end or choose another --out"
+    )
+
+
+def lock_holder(out_dir: Path) -> str:
+    """``pid N on HOST`` as recorded by the lock's holder."""
+    try:
+        holder = json.loads((Path(out_dir) / LOCK_FILE).read_text())
+        return f"pid {holder['pid']} on {holder['host']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "pid unknown"  # (the holder is between locking and writing its name)
+
+
+# --------------------------------------------------------------------------------------------
+# what a directory holds
+# --------------------------------------------------------------------------------------------
+
+
+def checkpoint_steps(out_dir: Path) -> list[int]:
+    """The chunk indices of the complete checkpoints in ``out_dir/checkpoints``, ascending."""
+    folder = Path(out_dir) / CHECKPOINTS
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit() and p.is_dir())
+
+
+def previous_outputs(out_dir: Path) -> list[str]:
+    """The names in :data:`OUTPUTS` that ``out_dir`` holds (empty folders do not count)."""
+    found = []
+    for name in OUTPUTS:
+        path = Path(out_dir) / name
+        if path.is_dir() and not any(path.iterdir()):
+            continue
+        if path.exists():
+            found.append(name)
+    return found
+
+
+# --------------------------------------------------------------------------------------------
+# starting a run
+# --------------------------------------------------------------------------------------------
+
+
+def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> None:
+    """Raises one-line errors when a fresh run cannot start in ``out_dir``; creates nothing.
+
+    ``writer``: this process writes the logs (the lock and the outputs are its business; other
+    processes of a multi-process run only check what cannot change under them). ``locked``:
+    this process holds the lock already (a second flock of the file would fail).
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir} is a file, not a directory")
+    if not out_dir.is_dir():
+        return
+    if writer and not locked:
+        check_not_in_use(out_dir)
+    if checkpoint_steps(out_dir):
+        raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
+    outputs = previous_outputs(out_dir) if writer else []
+    if outputs:
+        raise ConfigError(
+            f"{out_dir} holds a previous run's outputs ({', '.join(outputs)}) but no checkpoint "
+            "to resume; move them away or choose another --out"
+        )
+
+
+def check_resume(
+    out_dir: Path, cfg: TrainConfig, sweep: dict | None = None, *, writer: bool = True
+) -> tuple[list[Member], dict[str, list]]:
+    """``(members, changes)`` of a resume of ``out_dir`` with ``cfg``; creates nothing.
+
+    ``changes`` maps each changed setting of :data:`SAFE_ON_RESUME` to ``[saved, new]``. Raises
+    one-line errors for a directory without a checkpoint, one in use, a changed structural
+    setting, sweep values other than the saved members' or a run already past ``total_steps``.
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        what = "is not a directory" if out_dir.exists() else "does not exist"
+        raise ConfigError(f"--resume given but {out_dir} {what}: there is no checkpoint to resume")
+    if writer:
+        check_not_in_use(out_dir)
+    steps = checkpoint_steps(out_dir)
+    if not steps:
+        raise ConfigError(f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint")
+    changes = config_changes(load_config(out_dir), cfg)
+    population = load_members(out_dir, cfg)
+    if sweep and members(cfg, sweep) != population:
+        raise ConfigError(
+            f"the --sweep-* values differ from the members of the run in {out_dir} "
+            f"({MEMBERS_FILE}); leave them out to resume"
+        )
+    done = steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter
+    if cfg.num_chunks < steps[-1]:
+        raise ConfigError(
+            f"--total-steps {cfg.total_steps} is less than the {done} env steps the run in "
+            f"{out_dir} has already taken (give more to extend it)"
+        )
+    return population, changes
+
+
+def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock:
+    """Creates (fresh run) and locks ``out_dir``, re-checking a fresh one under the lock.
+
+    Processes other than the writer neither lock nor check; they get a lock that holds nothing.
+    """
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--out {out_dir}: cannot create it ({err.strerror or err})") from err
+    if not writer:
+        return RunLock(None, out_dir / LOCK_FILE)
+    lock = acquire_lock(out_dir)
+    if not resume:
+        try:
+            check_fresh(out_dir, locked=True)
+        except BaseException:
+            lock.release()
+            raise
+    return lock
+
+
+def interrupted_message(out_dir: Path) -> str:
+    """What an interrupted run leaves behind, in one line."""
+    steps = checkpoint_steps(out_dir)
+    if steps:
+        return (
+            f"interrupted; the newest checkpoint is {Path(out_dir) / CHECKPOINTS / str(steps[-1])}"
+            f" (continue with: td3-jax train --out {out_dir} --resume)"
+        )
+    return (
+        f"interrupted before the first checkpoint: {out_dir} holds none to resume "
+        "(remove it or choose another --out to start again)"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the resume policy
+# --------------------------------------------------------------------------------------------
+
+
+def config_changes(saved: TrainConfig, cfg: TrainConfig) -> dict[str, list]:
+    """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other."""
+    changes = {}
+    for field in dataclasses.fields(TrainConfig):
+        old, new = getattr(saved, field.name), getattr(cfg, field.name)
+        if old == new or _effective(saved, field.name) == _effective(cfg, field.name):
+            continue
+        if field.name not in SAFE_ON_RESUME:
+            raise ConfigError(_mismatch(field.name, old, new))
+        changes[field.name] = [old, new]
+    return changes
+
+
+def _effective(cfg: TrainConfig, name: str) -> Any:
+    """The value a setting takes effect with (``None`` stands for the algorithm's default)."""
+    if name in ("hidden_sizes", "actor_lr", "critic_lr", "tau"):
+        value = getattr(cfg.agent_config(), name)
+        return tuple(value) if name == "hidden_sizes" else value
+    if name == "ou_min_sigma":
+        return cfg.ou_params().min_sigma
+    return getattr(cfg, name)
+
+
+# Why a setting cannot change on --resume, where a general reason would not say enough.
+_REASONS = {
+    "eval_every": "the checkpoints count chunks of --eval-every env steps",
+    "seed": "the run's random keys derive from it",
+    "seeds": "the members and their states are fixed (members.json)",
+    "num_envs": "it fixes the environment and replay state in the checkpoint",
+    "buffer_size": "it fixes the replay buffer in the checkpoint",
+}
+
+
+def _mismatch(name: str, saved: Any, given: Any) -> str:
+    if name in FLOAT_SETTINGS:
+        why = (
+            "learning rates, tau, noise scales and the discount cannot change on --resume yet "
+            "(the continued run would not be reproducible)"
+        )
+    else:
+        why = _REASONS.get(name, "it fixes the run's state layout, key schedule or meaning")
+    safe = ", ".join(_flag(n) for n in SAFE_ON_RESUME)
+    return (
+        f"{_as_flag(name, given)} given but the run was started with {_as_flag(name, saved)}: "
+        f"{why}; leave it out to resume (only {safe} may change) or start a new --out"
+    )
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _as_flag(name: str, value: Any) -> str:
+    if isinstance(value, bool):
+        return _flag(name) if value else "--no-" + _flag(name)[2:]
+    if isinstance(value, tuple | list):
+        return f"{_flag(name)} {' '.join(map(str, value))}"
+    return f"{_flag(name)} {value}"
+
+
+# --------------------------------------------------------------------------------------------
+# config.json and members.json
+# --------------------------------------------------------------------------------------------
+
+
+def save_config(
+    cfg: TrainConfig, population: list[Member], out_dir: Path, info: dict | None = None
+) -> None:
+    """Writes config.json (the resolved config, then ``info``: preset, resume_changes, ...) and
+    members.json, each atomically (a temporary file renamed)."""
+    out_dir = Path(out_dir)
+    _write_json(out_dir / CONFIG_FILE, {**dataclasses.asdict(cfg), **(info or {})})
+    listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
+    _write_json(out_dir / MEMBERS_FILE, listing)
+
+
+def _write_json(path: Path, value: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(value, indent=2) + "\n")
+    tmp.replace(path)
+
+
+def _read_config(out_dir: Path) -> dict:
+    path = Path(out_dir) / CONFIG_FILE
+    if not path.exists():
+        raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory")
+    try:
+        raw = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{path} is not valid JSON ({err})") from err
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path} does not hold a configuration (a JSON object)")
+    return raw
+
+
+def load_config(out_dir: Path) -> TrainConfig:
+    """The resolved config a run directory was started with (other keys of config.json, such
+    as ``preset`` and ``resume_changes``, are ignored; see :func:`load_run_info`)."""
+    raw = _read_config(out_dir)
+    if raw.get("hidden_sizes") is not None:
+        raw["hidden_sizes"] = tuple(raw["hidden_sizes"])
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    return TrainConfig(**{k: v for k, v in raw.items() if k in known})
+
+
+def load_run_info(out_dir: Path) -> dict:
+    """The keys of config.json that are not settings: ``preset``, ``resume_changes``, ..."""
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    return {k: v for k, v in _read_config(out_dir).items() if k not in known}
+
+
+def run_info(
+    out_dir: Path, *, resume: bool, preset: str | None, changes: dict, at_env_steps: int
+) -> dict:
+    """config.json's extra keys: a fresh run's preset (if it came from one); on resume, the
+    saved ones plus this resume's ``changes`` appended to ``resume_changes``."""
+    if not resume:
+        return {"preset": preset} if preset else {}
+    info = load_run_info(out_dir)
+    if changes:
+        entry = {"at_env_steps": at_env_steps, **changes}
+        info["resume_changes"] = [*info.get("resume_changes", []), entry]
+    return info
+
+
+def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
+    """The members of a run directory (its seeds and swept settings)."""
+    path = Path(out_dir) / MEMBERS_FILE
+    if not path.exists():
+        return members(cfg)
+    return [
+        Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
+        for m in json.loads(path.read_text())
+    ]

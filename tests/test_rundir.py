@@ -1,0 +1,311 @@
+"""The run directory (``td3_jax.rundir``): its lock, fresh and resumed starts, config.json.
+
+The lock is checked with real processes (a run that holds it is frozen with SIGSTOP while a
+second one tries, so the test does not depend on timing); the resume policy and the directory
+checks are checked on files alone, without training; extending a finished run is compared with
+the uninterrupted run, bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from td3_jax import cli, rundir
+from td3_jax import run as run_module
+from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.population import Member, make_population, members
+
+# tests/test_cli.py's tiny run, with a ring that holds the extended run too.
+TINY_FLAGS = [
+    "--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--total-steps", "128",
+    "--eval-every", "64", "--warmup-steps", "32", "--batch-size", "16",
+    "--updates-per-iter", "1", "--hidden-sizes", "16", "16", "--eval-envs", "2",
+    "--episode-length", "16", "--seed", "7", "--buffer-size", "256", "--quiet",
+]  # fmt: skip
+VOLATILE = {"wall_time_s", "env_steps_per_s"}
+SMALL = TrainConfig(num_envs=4, total_steps=128, eval_every=64, batch_size=16, buffer_size=256)
+
+
+def td3_jax_process(*args: str, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "td3_jax", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kwargs,
+    )
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
+    """``cli.main(args)`` in-process: (exit code, stdout, stderr)."""
+    capsys.readouterr()
+    try:
+        cli.main(args)
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def error_line(err: str) -> str:
+    """The one ``td3-jax: error:`` line of a refused command (and nothing else on stderr)."""
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("td3-jax: error: "), err
+    return lines[0]
+
+
+def snapshot(folder: Path) -> dict[str, tuple[int, bytes | None]]:
+    """Every path under ``folder`` with its mtime and, for files, its bytes."""
+    return {
+        str(p.relative_to(folder)): (p.stat().st_mtime_ns, p.read_bytes() if p.is_file() else None)
+        for p in sorted(folder.rglob("*"))
+    }
+
+
+def lock_is_held(folder: Path) -> bool:
+    try:
+        rundir.check_not_in_use(folder)
+    except ConfigError:
+        return True
+    return False
+
+
+def records(folder: Path) -> list[dict]:
+    text = (folder / "metrics.jsonl").read_text()
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+# --------------------------------------------------------------------------------------------
+# the lock
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_second_run_on_a_directory_in_use_exits_2_and_writes_nothing(tmp_path):
+    out = tmp_path / "run"
+    first = td3_jax_process("train", *TINY_FLAGS, "--out", str(out))
+    try:
+        deadline = time.monotonic() + 240
+        while not lock_is_held(out):
+            assert first.poll() is None, first.communicate()
+            assert time.monotonic() < deadline, "the first run never locked its directory"
+            time.sleep(0.05)
+        os.kill(first.pid, signal.SIGSTOP)  # it keeps the lock while frozen
+        before = snapshot(out)
+        for args in (["--seed", "8"], ["--resume"]):
+            second = td3_jax_process("train", *TINY_FLAGS, *args, "--out", str(out))
+            _, err = second.communicate(timeout=240)
+            assert second.returncode == 2, err
+            line = error_line(err)
+            assert f"{out} is in use by another td3-jax run" in line, line
+            assert f"(pid {first.pid} on {socket.gethostname()})" in line, line
+            assert snapshot(out) == before, "the refused run wrote into the directory"
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    stdout, stderr = first.communicate(timeout=240)
+    assert first.returncode == 0, stderr
+    assert "done: 128 env steps" in stdout
+    assert [(r["env_steps"], r["seed"]) for r in records(out)] == [(64, 7), (128, 7)]
+    assert not lock_is_held(out)  # released at the end of the run
+
+
+def test_the_lock_dies_with_its_process(tmp_path):
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(
+                f"""
+                import time
+                from td3_jax import rundir
+                rundir.acquire_lock({str(tmp_path)!r})
+                print("locked", flush=True)
+                time.sleep(600)
+                """
+            ),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(ConfigError, match=rf"in use .*\(pid {holder.pid} on "):
+            rundir.acquire_lock(tmp_path)
+    finally:
+        holder.kill()  # SIGKILL: no clean-up code runs
+        holder.wait()
+    lock = rundir.acquire_lock(tmp_path)  # the kernel dropped the dead process's lock
+    assert json.loads((tmp_path / ".lock").read_text())["pid"] == os.getpid()
+    lock.release()
+
+
+def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
+    lock = rundir.acquire_lock(tmp_path)
+    with pytest.raises(ConfigError, match="in use"):
+        rundir.acquire_lock(tmp_path)
+    with pytest.raises(ConfigError, match="in use"):
+        rundir.check_fresh(tmp_path)
+    lock.release()
+    lock.release()  # (idempotent)
+    rundir.check_fresh(tmp_path)  # a left-over .lock file alone is no previous run
+    rundir.acquire_lock(tmp_path).release()
+
+
+# --------------------------------------------------------------------------------------------
+# what a fresh or resumed run accepts
+# --------------------------------------------------------------------------------------------
+
+
+def test_fresh_run_checks(tmp_path):
+    rundir.check_fresh(tmp_path / "missing")  # created later, under the lock
+    rundir.check_fresh(tmp_path)  # an empty directory
+    (tmp_path / "notes.txt").write_text("mine\n")
+    (tmp_path / "checkpoints").mkdir()  # an empty checkpoints/ is nothing to keep
+    rundir.check_fresh(tmp_path)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ConfigError, match="is a file, not a directory"):
+        rundir.check_fresh(tmp_path / "file")
+    (tmp_path / "metrics.jsonl").write_text("{}\n")
+    with pytest.raises(ConfigError, match=r"previous run's outputs \(metrics.jsonl\)"):
+        rundir.check_fresh(tmp_path)
+    (tmp_path / "checkpoints" / "3").mkdir()
+    with pytest.raises(ConfigError, match="already holds a run; pass --resume"):
+        rundir.check_fresh(tmp_path)
+    assert rundir.checkpoint_steps(tmp_path) == [3]
+
+
+def test_resume_of_a_missing_directory_creates_nothing(tmp_path):
+    for out in (tmp_path / "missing", tmp_path / "missing" / "deeper"):
+        with pytest.raises(ConfigError, match="does not exist"):
+            rundir.check_resume(out, SMALL)
+        with pytest.raises(ConfigError, match="has no checkpoint"):
+            rundir.check_resume(tmp_path, SMALL)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_open_run_dir_reports_a_directory_it_cannot_create(tmp_path):
+    (tmp_path / "file").write_text("x")
+    for out in (tmp_path / "file" / "run", Path("/proc/td3-jax-run")):
+        with pytest.raises(ConfigError, match=r"^--out .*: cannot create it"):
+            rundir.open_run_dir(out, resume=False)
+
+
+def test_safe_settings_may_change_on_resume():
+    changed = dataclasses.replace(SMALL, total_steps=512, keep_checkpoints=5, eval_envs=4)
+    assert rundir.config_changes(SMALL, changed) == {
+        "total_steps": [128, 512],
+        "eval_envs": [16, 4],
+        "keep_checkpoints": [3, 5],
+    }
+    assert rundir.config_changes(SMALL, SMALL) == {}
+    # the value a None stands for is the same value
+    td3_default = dataclasses.replace(SMALL, tau=0.005, actor_lr=1e-3, ou_min_sigma=0.3)
+    assert rundir.config_changes(SMALL, td3_default) == {}
+
+
+@pytest.mark.parametrize(
+    "changes, needles",
+    [
+        (dict(eval_every=32), ["--eval-every 32 given", "started with --eval-every 64", "chunk"]),
+        (dict(seed=3), ["--seed 3 given", "--seed 0"]),
+        (dict(seeds=2), ["--seeds 2 given", "--seeds 1"]),
+        (dict(batch_size=8), ["--batch-size 8 given", "--batch-size 16"]),
+        (dict(hidden_sizes=(8, 8)), ["--hidden-sizes 8 8 given", "--hidden-sizes 256 256"]),
+        (dict(normalize_obs=False), ["--no-normalize-obs given", "with --normalize-obs"]),
+        (dict(actor_lr=3e-4), ["--actor-lr 0.0003 given", "not be reproducible"]),
+        (dict(discount=0.9), ["--discount 0.9 given", "--discount 0.99", "reproducible"]),
+        (dict(env="brax/ant"), ["--env brax/ant given", "--env gymnax/Pendulum-v1"]),
+    ],
+)
+def test_structural_settings_cannot_change_on_resume(changes, needles):
+    with pytest.raises(ConfigError) as err:
+        rundir.config_changes(SMALL, dataclasses.replace(SMALL, **changes))
+    message = str(err.value)
+    assert "\n" not in message
+    for needle in [*needles, "leave it out to resume", "--total-steps"]:
+        assert needle in message, (needle, message)
+
+
+def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
+    population = [Member(seed=0), Member(seed=1)]
+    rundir.save_config(SMALL, population, tmp_path, {"preset": "pendulum"})
+    assert rundir.load_config(tmp_path) == SMALL
+    assert rundir.load_members(tmp_path, SMALL) == population
+    assert rundir.load_run_info(tmp_path) == {"preset": "pendulum"}
+    info = rundir.run_info(
+        tmp_path, resume=True, preset=None, changes={"total_steps": [128, 256]}, at_env_steps=128
+    )
+    assert info == {
+        "preset": "pendulum",
+        "resume_changes": [{"at_env_steps": 128, "total_steps": [128, 256]}],
+    }
+    rundir.save_config(dataclasses.replace(SMALL, total_steps=256), population, tmp_path, info)
+    assert rundir.load_config(tmp_path).total_steps == 256
+    assert rundir.load_run_info(tmp_path) == info
+    assert not list(tmp_path.glob("*.tmp"))
+    assert rundir.run_info(tmp_path, resume=False, preset=None, changes={}, at_env_steps=0) == {}
+
+
+def test_run_module_still_exports_the_config_helpers():
+    for name in ("save_config", "load_config", "load_members", "CONFIG_FILE", "MEMBERS_FILE"):
+        assert getattr(run_module, name) is getattr(rundir, name)
+
+
+def test_interrupted_message_says_what_is_kept(tmp_path):
+    message = rundir.interrupted_message(tmp_path)
+    assert "before the first checkpoint" in message and "holds none" in message
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)
+    message = rundir.interrupted_message(tmp_path)
+    assert str(tmp_path / "checkpoints" / "2") in message and "--resume" in message
+
+
+# --------------------------------------------------------------------------------------------
+# extending a finished run
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
+    short, long = tmp_path / "short", tmp_path / "long"
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(short)], capsys)
+    assert code == 0, err
+    code, _, err = run_cli(
+        ["train", "--resume", "--total-steps", "256", "--out", str(short), "--quiet"], capsys
+    )
+    assert code == 0, err
+    code, _, err = run_cli(
+        ["train", *TINY_FLAGS, "--total-steps", "256", "--out", str(long)], capsys
+    )
+    assert code == 0, err
+
+    strip = lambda rs: [{k: v for k, v in r.items() if k not in VOLATILE} for r in rs]
+    assert [r["env_steps"] for r in records(short)] == [64, 128, 192, 256]
+    assert strip(records(short)) == strip(records(long))
+
+    config = json.loads((short / "config.json").read_text())
+    assert config["total_steps"] == 256
+    assert config["resume_changes"] == [{"at_env_steps": 128, "total_steps": [128, 256]}]
+    assert rundir.load_config(short) == rundir.load_config(long)
+
+    cfg = rundir.load_config(long)
+    program = make_population(cfg, members(cfg))
+    state_short, meta_short, step_short = run_module.restore_state(program, short)
+    state_long, meta_long, step_long = run_module.restore_state(program, long)
+    assert step_short == step_long == 4 and meta_short["env_steps"] == meta_long["env_steps"]
+    leaves = jax.tree_util.tree_leaves_with_path(state_long)
+    for (path, a), b in zip(leaves, jax.tree.leaves(state_short), strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), jax.tree_util.keystr(path)
