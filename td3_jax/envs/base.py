@@ -33,9 +33,11 @@ ResetFn = Callable[[jax.Array], tuple[Any, jax.Array]]
 StepFn = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, jax.Array]]
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Environment:
     """One environment of a source, as pure functions (vmapped by :func:`reset` / :func:`step`).
+
+    Compared and hashed by identity, so a spec holding it can be a static ``jit`` argument.
 
     Attributes:
       name: ``SOURCE/NAME`` as given on the command line.
