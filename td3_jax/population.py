@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
+import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
@@ -70,6 +71,12 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
         raise ConfigError(
             f"sweeping {', '.join(idle)} changes nothing with --algo {cfg.algo} and "
             f"--exploration {cfg.exploration}"
+        )
+    bad = {n: v for n, values in sweep.items() for v in values if not math.isfinite(float(v))}
+    if bad:
+        raise ConfigError(
+            "swept values must be finite numbers: "
+            + ", ".join(f"--sweep-{n.replace('_', '-')} {v}" for n, v in bad.items())
         )
     names = sorted(sweep)
     combos = list(itertools.product(*(sweep[n] for n in names))) or [()]
