@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import time
 
@@ -26,7 +27,7 @@ def measure(cfg, num_devices: int) -> tuple[float, float]:
     mesh = make_mesh(num_devices)
     program = make_population(cfg, members(cfg), devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
-    chunk = compiled.chunk
+    chunk = functools.partial(compiled.chunk, compiled.hyperparams)
     state = compiled.init()
     state, metrics = chunk(state)  # compile + warm
     jax.block_until_ready(metrics)

@@ -21,7 +21,6 @@ import jax
 from td3_jax import envs
 from td3_jax.config import preset
 from td3_jax.population import compile_ahead, compile_for_mesh, make_population, members
-from td3_jax.run import eval_keys, replicate
 from td3_jax.sharding import make_mesh
 
 
@@ -49,28 +48,28 @@ def main() -> None:
     program = make_population(cfg, population, devices=mesh.size)
     lap("make_population")
     compiled = compile_for_mesh(program, mesh)
-    keys = replicate(eval_keys(population, 0), mesh)
+    hp = compiled.hyperparams
     if args.mode == "ahead":
-        compiled = compile_ahead(compiled, program, jax.eval_shape(lambda: keys))
+        compiled = compile_ahead(compiled, program)
         lap("trace_and_compile_all")
         state = jax.block_until_ready(compiled.init())
         lap("init_run")
     else:
         state = jax.block_until_ready(compiled.init())
         lap("init_compile_and_run")
-        chunk = compiled.chunk.lower(state)
+        chunk = compiled.chunk.lower(hp, state)
         lap("chunk_trace")
         chunk = chunk.compile()
         lap("chunk_compile")
-        evaluate = compiled.evaluate.lower(state, keys)
+        evaluate = compiled.evaluate.lower(state)
         lap("evaluate_trace")
         evaluate = evaluate.compile()
         lap("evaluate_compile")
         compiled = compiled._replace(chunk=chunk, evaluate=evaluate)
-    state, metrics = compiled.chunk(state)
+    state, metrics = compiled.chunk(hp, state)
     jax.block_until_ready(metrics)
     lap("first_chunk")
-    jax.block_until_ready(compiled.evaluate(state, keys))
+    jax.block_until_ready(compiled.evaluate(state))
     lap("first_evaluation")
     times["total"] = round(sum(times.values()), 2)
     print(json.dumps({"mode": args.mode, "preset": args.preset, **changes, **times}), flush=True)

@@ -108,6 +108,11 @@ class TrainConfig:
         return max(1, self.eval_every // self.env_steps_per_iter)
 
     @property
+    def steps_per_chunk(self) -> int:
+        """Environment steps of one member in one chunk (between two evaluations)."""
+        return self.iters_per_chunk * self.env_steps_per_iter
+
+    @property
     def num_chunks(self) -> int:
         return max(
             1, math.ceil(self.total_steps / (self.iters_per_chunk * self.env_steps_per_iter))

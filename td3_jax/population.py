@@ -2,16 +2,19 @@
 
 A *population* is a list of members, each a seed plus optional overrides of float
 hyperparameters. Its train state is the single-run :class:`~td3_jax.training.TrainState` with a
-leading member axis; the chunk is ``jax.vmap`` of the single-run chunk, with each member's float
-hyperparameters passed in as traced values (so a sweep is a vmap, not a recompile per value).
-A population of one runs the single-run program unbatched (no vmap overhead) behind a leading
-axis of size 1, so the host loop has one code path.
+leading member axis, its :class:`~td3_jax.training.Hyperparams` likewise; the chunk is
+``jax.vmap`` of :func:`td3_jax.training.chunk` over ``(hp, state)`` with one shared static spec
+(a sweep is a vmap over traced values, not a recompile per value, and no trainer is rebuilt per
+member). A population of one runs the single-run program unbatched (no vmap overhead) behind a
+leading axis of size 1, so the host loop has one code path.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
+import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
@@ -19,10 +22,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from td3_jax import envs
+from td3_jax import envs, training
 from td3_jax.config import ConfigError, TrainConfig, validate
-from td3_jax.sharding import state_shardings
-from td3_jax.training import TrainState, make_trainer
+from td3_jax.sharding import replicate, state_shardings
+from td3_jax.training import TrainState
 
 MEMBERS = "members"  # the vmap axis name of the population
 
@@ -69,6 +72,12 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
             f"sweeping {', '.join(idle)} changes nothing with --algo {cfg.algo} and "
             f"--exploration {cfg.exploration}"
         )
+    bad = {n: v for n, values in sweep.items() for v in values if not math.isfinite(float(v))}
+    if bad:
+        raise ConfigError(
+            "swept values must be finite numbers: "
+            + ", ".join(f"--sweep-{n.replace('_', '-')} {v}" for n, v in bad.items())
+        )
     names = sorted(sweep)
     combos = list(itertools.product(*(sweep[n] for n in names))) or [()]
     for combo in combos:
@@ -84,78 +93,90 @@ class Population(NamedTuple):
     """Pure functions over a population state (every leaf ``[num_members, ...]``).
 
     Attributes:
+      members: the members, in the order of the leading axis.
+      spec: the shared static spec (its ``axis_name`` is :data:`MEMBERS` for several members).
+      hyperparams: every member's float settings (leaves ``[num_members]``).
       init: ``init() -> state``.
-      chunk: ``chunk(state) -> (state, metrics[num_members])``.
+      chunk: ``chunk(hp, state) -> (state, metrics[num_members])``.
       evaluate: ``evaluate(state, keys[num_members]) -> returns[num_members, eval_envs]``.
+      scheduled_evaluate: ``scheduled_evaluate(state) -> returns[num_members, eval_envs]``,
+        with the run's own key schedule (:func:`td3_jax.training.evaluation_key`).
       abstract_state: shapes and dtypes of the state (for restoring checkpoints).
     """
 
     members: list[Member]
-    env: envs.Environment
+    spec: training.TrainSpec
+    hyperparams: training.Hyperparams
     init: Callable[[], TrainState]
-    chunk: Callable[[TrainState], tuple[TrainState, dict[str, jax.Array]]]
+    chunk: Callable[[training.Hyperparams, TrainState], tuple[TrainState, dict[str, jax.Array]]]
     evaluate: Callable[[TrainState, jax.Array], jax.Array]
+    scheduled_evaluate: Callable[[TrainState], jax.Array]
     abstract_state: Any
+
+    @property
+    def env(self) -> envs.Environment:
+        return self.spec.env
+
+
+def member_hyperparams(cfg: TrainConfig, population: list[Member]) -> training.Hyperparams:
+    """Every member's :func:`~td3_jax.training.hyperparams`, stacked (leaves ``[members]``)."""
+    each = [training.hyperparams(dataclasses.replace(cfg, **dict(m.overrides)))
+            for m in population]  # fmt: skip
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *each)
+
+
+def _scheduled_evaluate(spec: training.TrainSpec, state: TrainState) -> jax.Array:
+    return training.evaluate(spec, state, training.evaluation_key(spec, state))
+
+
+def _add_axis(tree: Any) -> Any:
+    return jax.tree.map(lambda x: x[None], tree)
+
+
+def _drop_axis(tree: Any) -> Any:
+    return jax.tree.map(lambda x: x[0], tree)
+
+
+def _lone(fn: Callable, *args: Any) -> Any:
+    """``fn`` of the only member, unbatched (no vmap overhead), behind a leading axis of 1."""
+    return _add_axis(fn(*map(_drop_axis, args)))
 
 
 def make_population(cfg: TrainConfig, population: list[Member], devices: int = 1) -> Population:
-    """Builds the batched training functions of ``population`` (all sharing ``cfg``'s shapes).
+    """The batched training functions of ``population`` (all sharing ``cfg``'s shapes).
 
     ``devices``: how many devices the environments will be split over; resets then gather and
     scatter within each device's environments (the numbers do not depend on it).
     """
-    env = envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
-    keys = jnp.stack([jax.random.PRNGKey(m.seed) for m in population])
-    names = sorted({k for m in population for k, _ in m.overrides})
-    values = {
-        n: jnp.asarray([dict(m.overrides)[n] for m in population], jnp.float32) for n in names
-    }
-
-    if len(population) == 1 and not names:
-        single = make_trainer(cfg, env, env_groups=devices)
-        add_axis = lambda tree: jax.tree.map(lambda x: x[None], tree)
-        drop_axis = lambda tree: jax.tree.map(lambda x: x[0], tree)
-
-        def init():
-            return add_axis(single.init(keys[0]))
-
-        def chunk(state):
-            return add_axis(single.chunk(drop_axis(state)))
-
-        def evaluate(state, eval_keys):
-            return single.evaluate(drop_axis(state), eval_keys[0])[None]
-
+    lone = len(population) == 1
+    spec = training.make_spec(cfg, axis_name=None if lone else MEMBERS, env_groups=devices)
+    keys = jnp.stack([training.key_for_seed(m.seed) for m in population])
+    init = functools.partial(training.init, spec)
+    chunk = functools.partial(training.chunk, spec)
+    evaluate = functools.partial(training.evaluate, spec)
+    scheduled = functools.partial(_scheduled_evaluate, spec)
+    if lone:
+        batched = [functools.partial(_lone, fn) for fn in (init, chunk, evaluate, scheduled)]
     else:
-
-        def trainer_for(hparams):
-            return make_trainer(
-                dataclasses.replace(cfg, **hparams), env, axis_name=MEMBERS, env_groups=devices
-            )
-
-        def init():
-            return jax.vmap(lambda key, h: trainer_for(h).init(key))(keys, values)
-
-        def chunk(state):
-            return jax.vmap(lambda s, h: trainer_for(h).chunk(s), axis_name=MEMBERS)(state, values)
-
-        def evaluate(state, eval_keys):
-            return jax.vmap(lambda s, k, h: trainer_for(h).evaluate(s, k), axis_name=MEMBERS)(
-                state, eval_keys, values
-            )
-
-    return Population(population, env, init, chunk, evaluate, jax.eval_shape(init))
+        batched = [jax.vmap(fn, axis_name=MEMBERS) for fn in (init, chunk, evaluate, scheduled)]
+    init = functools.partial(batched[0], keys)
+    return Population(population, spec, member_hyperparams(cfg, population), init, *batched[1:],
+                      abstract_state=jax.eval_shape(init))  # fmt: skip
 
 
 class Compiled(NamedTuple):
     """A population's functions jitted for a device mesh (see :mod:`td3_jax.sharding`).
 
-    ``chunk`` donates its state; metrics and evaluation returns come back replicated.
+    ``chunk(hp, state)`` donates its state; ``evaluate(state)`` evaluates with the run's key
+    schedule; metrics and evaluation returns come back replicated. ``hyperparams``: the
+    members' settings, replicated on the mesh (the ``hp`` to pass to ``chunk``).
     """
 
     shardings: Any
+    hyperparams: training.Hyperparams
     init: Callable[[], TrainState]
-    chunk: Callable[[TrainState], tuple[TrainState, dict[str, jax.Array]]]
-    evaluate: Callable[[TrainState, jax.Array], jax.Array]
+    chunk: Callable[[training.Hyperparams, TrainState], tuple[TrainState, dict[str, jax.Array]]]
+    evaluate: Callable[[TrainState], jax.Array]
 
 
 def compile_for_mesh(program: Population, mesh: Any) -> Compiled:
@@ -164,40 +185,40 @@ def compile_for_mesh(program: Population, mesh: Any) -> Compiled:
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     return Compiled(
         shardings=shardings,
+        hyperparams=jax.tree.map(lambda x: replicate(x, mesh), program.hyperparams),
         init=jax.jit(program.init, out_shardings=shardings),
         chunk=jax.jit(
             program.chunk,
-            in_shardings=(shardings,),
+            in_shardings=(replicated, shardings),
             out_shardings=(shardings, replicated),
-            donate_argnums=0,
+            donate_argnums=1,
         ),
-        evaluate=jax.jit(program.evaluate, out_shardings=replicated),
+        evaluate=jax.jit(program.scheduled_evaluate, out_shardings=replicated),
     )
 
 
-def compile_ahead(
-    compiled: Compiled, program: Population, keys_spec: Any, with_init: bool = True
-) -> Compiled:
+def _with_sharding(abstract: Any, shardings: Any) -> Any:
+    return jax.tree.map(
+        lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s, weak_type=a.weak_type),
+        abstract,
+        shardings,
+    )
+
+
+def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True) -> Compiled:
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
     Tracing is sequential (Python), but XLA compiles the chunk, the evaluation and the init in
     parallel threads, which shortens the start-up of a run (on MJX environments the chunk and
     the evaluation each take seconds to compile). The returned functions are the compiled
     executables: calling them with other shapes or shardings raises instead of recompiling.
-    ``keys_spec``: shape and dtype of the evaluation keys (``[num_members, ...]``).
     """
-    state_spec = jax.tree.map(
-        lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s, weak_type=a.weak_type),
-        program.abstract_state,
-        compiled.shardings,
-    )
-    replicated = jax.sharding.NamedSharding(
-        jax.tree.leaves(compiled.shardings)[0].mesh, jax.sharding.PartitionSpec()
-    )
-    keys_spec = jax.ShapeDtypeStruct(keys_spec.shape, keys_spec.dtype, sharding=replicated)
+    state_spec = _with_sharding(program.abstract_state, compiled.shardings)
+    hp = compiled.hyperparams
+    hp_spec = _with_sharding(jax.eval_shape(lambda: hp), jax.tree.map(lambda x: x.sharding, hp))
     lowered = {
-        "chunk": compiled.chunk.lower(state_spec),
-        "evaluate": compiled.evaluate.lower(state_spec, keys_spec),
+        "chunk": compiled.chunk.lower(hp_spec, state_spec),
+        "evaluate": compiled.evaluate.lower(state_spec),
     }
     if with_init:
         lowered["init"] = compiled.init.lower()

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from td3_jax.types import PRNGKey
+from td3_jax import n_step
+from td3_jax.types import PRNGKey, Transition
 
 
 @struct.dataclass
@@ -124,3 +125,61 @@ def sample_runs(
     offset = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buffer.size - span, 1))
     rows = (oldest + offset[:, None] + stride * jnp.arange(length)) % capacity
     return jax.tree.map(lambda store: store[rows], buffer.data)
+
+
+# --------------------------------------------------------------------------------------------
+# A ring in slices, holding ``(Transition, ended)`` rows, sampled as n-step transitions
+# --------------------------------------------------------------------------------------------
+
+
+def init_slices(capacity: int, shards: int, example_transition: Any) -> ReplayBuffer:
+    """``shards`` independent rings of ``capacity / shards`` rows (leaves ``[shards, ...]``).
+
+    Each slice is filled by its own group of environments and gives its share of every batch
+    (stratified sampling), so on a mesh whose devices hold whole slices, inserts and samples
+    stay on each device.
+    """
+    if capacity % shards:
+        raise ValueError(f"replay capacity {capacity} is not divisible into {shards} slices")
+    one = init(capacity // shards, example_transition)
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (shards, *x.shape)), one)
+
+
+def add_slices(buffer: ReplayBuffer, transitions: Any) -> ReplayBuffer:
+    """Writes ``transitions`` (leaves ``[n, ...]``, ``n`` divisible by the slice count):
+    contiguous group ``g`` of ``n / shards`` rows goes to slice ``g``."""
+    shards = jax.tree.leaves(buffer.data)[0].shape[0]
+    grouped = jax.tree.map(lambda x: x.reshape(shards, -1, *x.shape[1:]), transitions)
+    return jax.vmap(add)(buffer, grouped)
+
+
+def sample_n_step(
+    buffer: ReplayBuffer,
+    key: PRNGKey,
+    batch_size: int,
+    steps: int,
+    stride: int,
+    discount: float | jax.Array,
+) -> Transition:
+    """``batch_size`` uniform transitions of one slice holding ``(Transition, ended)`` rows,
+    each folded over up to ``steps`` steps of its environment (:func:`td3_jax.n_step.fold`;
+    a run of one step folds to the transition itself). ``stride``: rows per :func:`add`."""
+    run, ended = sample_runs(buffer, key, batch_size, steps, stride)
+    return n_step.fold(run, ended, discount)
+
+
+def sample_slices(
+    buffer: ReplayBuffer,
+    key: PRNGKey,
+    batch_size: int,
+    steps: int,
+    stride: int,
+    discount: float | jax.Array,
+) -> Transition:
+    """A ``[batch_size, ...]`` batch: ``batch_size / shards`` rows of every slice of a buffer
+    made by :func:`init_slices`, each an n-step folded transition (see :func:`sample_n_step`)."""
+    shards = jax.tree.leaves(buffer.data)[0].shape[0]
+    keys = key[None] if shards == 1 else jax.random.split(key, shards)
+    sample_one = lambda b, k: sample_n_step(b, k, batch_size // shards, steps, stride, discount)
+    rows = jax.vmap(sample_one)(buffer, keys)
+    return jax.tree.map(lambda x: x.reshape(batch_size, *x.shape[2:]), rows)

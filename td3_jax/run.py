@@ -12,15 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from td3_jax import stats
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import (
-    Member,
     Population,
     compile_ahead,
     compile_for_mesh,
@@ -38,7 +35,8 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     run_info,
     save_config,
 )
-from td3_jax.sharding import check_divisible, make_mesh
+from td3_jax.sharding import check_divisible, host_value, make_mesh
+from td3_jax.stats import population_stats, return_stats
 
 __all__ = [
     "CONFIG_FILE",
@@ -56,52 +54,6 @@ class NonFiniteError(RuntimeError):
     """A loss or parameter became NaN/inf; the run stopped and kept its last good checkpoint."""
 
 
-def eval_keys(population: list[Member], chunk_index: int) -> jax.Array:
-    """Evaluation keys after chunk ``chunk_index``, one per member, independent of resumes.
-
-    A member's key depends only on its seed, so seed k of a K-seed run is evaluated exactly like
-    a single-seed run of that seed.
-    """
-    return jnp.stack(
-        [
-            jax.random.fold_in(jax.random.PRNGKey(m.seed + 1_000_003), chunk_index)
-            for m in population
-        ]
-    )
-
-
-def replicate(value: jax.Array, mesh: Any) -> jax.Array:
-    """``value`` as one array replicated over ``mesh`` (which may span several processes)."""
-    local = np.asarray(value)
-    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    return jax.make_array_from_callback(local.shape, sharding, lambda index: local[index])
-
-
-def return_stats(returns: np.ndarray) -> dict[str, float]:
-    """Mean, std, min and max of one member's episode returns."""
-    returns = np.asarray(returns, np.float64)
-    return {
-        "eval_return_mean": float(returns.mean()),
-        "eval_return_std": float(returns.std()),
-        "eval_return_min": float(returns.min()),
-        "eval_return_max": float(returns.max()),
-    }
-
-
-def population_stats(returns: np.ndarray) -> dict[str, float]:
-    """Statistics over members of their mean episode return (``returns[members, episodes]``).
-
-    ``eval_return_mean/median/iqm/ci95_*`` are over the members' means; ``eval_return_std`` is
-    the standard deviation of the members' means; ``min``/``max`` are over every episode.
-    """
-    summary = stats.summary(np.asarray(returns, np.float64).mean(axis=1))
-    return {
-        **{f"eval_return_{k}": v for k, v in summary.items()},
-        "eval_return_min": float(np.min(returns)),
-        "eval_return_max": float(np.max(returns)),
-    }
-
-
 def restore_state(population: Population, out_dir: Path, keep: int = 3, shardings=None):
     """The newest checkpoint of a run directory, checked against the population's state layout."""
     checkpointer = Checkpointer(Path(out_dir) / "checkpoints", keep)
@@ -109,13 +61,6 @@ def restore_state(population: Population, out_dir: Path, keep: int = 3, sharding
         return checkpointer.restore(population.abstract_state, shardings=shardings)
     finally:
         checkpointer.close()
-
-
-def host_value(x: jax.Array) -> np.ndarray:
-    """A replicated array's value on this host (also when it spans several processes)."""
-    if getattr(x, "is_fully_addressable", True):
-        return np.asarray(jax.device_get(x))
-    return np.asarray(x.addressable_data(0))
 
 
 def train(
@@ -176,8 +121,7 @@ def train(
         else:
             start_chunk, wall_offset = 0, 0.0
         display = _Progress(cfg, start_chunk, enabled=progress and writer)
-        keys_spec = jax.eval_shape(lambda: eval_keys(population, 0))
-        compiled = compile_ahead(compiled, program, keys_spec, with_init=not resume)
+        compiled = compile_ahead(compiled, program, with_init=not resume)
         if not resume:
             state = compiled.init()
         if writer:
@@ -199,14 +143,14 @@ def train(
             ):
                 break
             chunk_start = time.perf_counter()
-            state, metrics = chunk(state)
+            state, metrics = chunk(compiled.hyperparams, state)
             metrics = {k: host_value(v) for k, v in metrics.items()}
             chunk_seconds = time.perf_counter() - chunk_start
             env_steps = int(metrics.pop("env_steps")[0])
             updates = int(metrics.pop("agent_steps")[0])
             metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
             _check_finite(metrics, population, env_steps, checkpointer.latest_step(), cfg)
-            returns = host_value(evaluate(state, replicate(eval_keys(population, index), mesh)))
+            returns = host_value(evaluate(state))
             record = _record(cfg, population, updates, metrics, returns, env_steps)
             record["wall_time_s"] = wall_offset + time.perf_counter() - start
             record["env_steps_per_s"] = len(population) * steps_per_chunk(cfg) / chunk_seconds
@@ -237,7 +181,7 @@ def train(
 
 def steps_per_chunk(cfg: TrainConfig) -> int:
     """Environment steps of one member in one chunk."""
-    return cfg.iters_per_chunk * cfg.env_steps_per_iter
+    return cfg.steps_per_chunk
 
 
 def _record(cfg, population, updates, metrics, returns, env_steps) -> dict[str, Any]:

@@ -85,6 +85,20 @@ def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -
     return jax.tree_util.tree_map_with_path(spec, abstract_state)
 
 
+def replicate(value: Any, mesh: Mesh) -> jax.Array:
+    """``value`` as one array replicated over ``mesh`` (which may span several processes)."""
+    local = np.asarray(value)
+    sharding = NamedSharding(mesh, PartitionSpec())
+    return jax.make_array_from_callback(local.shape, sharding, lambda index: local[index])
+
+
+def host_value(x: jax.Array) -> np.ndarray:
+    """A replicated array's value on this host (also when it spans several processes)."""
+    if getattr(x, "is_fully_addressable", True):
+        return np.asarray(jax.device_get(x))
+    return np.asarray(x.addressable_data(0))
+
+
 def initialize_distributed(
     coordinator_address: str | None = None,
     num_processes: int | None = None,

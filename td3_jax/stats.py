@@ -54,3 +54,28 @@ def summary(values: np.ndarray) -> dict[str, float]:
         "ci95_low": low,
         "ci95_high": high,
     }
+
+
+def return_stats(returns: np.ndarray) -> dict[str, float]:
+    """Mean, std, min and max of one member's episode returns."""
+    returns = np.asarray(returns, np.float64)
+    return {
+        "eval_return_mean": float(returns.mean()),
+        "eval_return_std": float(returns.std()),
+        "eval_return_min": float(returns.min()),
+        "eval_return_max": float(returns.max()),
+    }
+
+
+def population_stats(returns: np.ndarray) -> dict[str, float]:
+    """Statistics over members of their mean episode return (``returns[members, episodes]``).
+
+    ``eval_return_mean/median/iqm/ci95_*`` are over the members' means; ``eval_return_std`` is
+    the standard deviation of the members' means; ``min``/``max`` are over every episode.
+    """
+    summary_ = summary(np.asarray(returns, np.float64).mean(axis=1))
+    return {
+        **{f"eval_return_{k}": v for k, v in summary_.items()},
+        "eval_return_min": float(np.min(returns)),
+        "eval_return_max": float(np.max(returns)),
+    }

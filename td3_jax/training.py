@@ -1,14 +1,27 @@
-"""The compiled training program: ``chunk(train_state) -> (train_state, metrics)``.
+"""The training program as module-level pure functions over a static spec and traced floats.
 
-One chunk is a ``jax.lax.scan`` over iterations of {act in every environment, step them all,
-write the transitions to the ring buffer, take ``updates_per_iter`` gradient updates}. Nothing in
-it touches the host. :func:`make_trainer` builds the pure pieces for a config; the host loop in
-:mod:`td3_jax.run` only calls them, logs, evaluates and checkpoints. Because every piece is a
-pure function of the :class:`TrainState` pytree, seeds are a ``jax.vmap`` over it.
+* :class:`TrainSpec` (static: environment, agent structure, sizes, replay slices, n-step,
+  iterations per chunk, the vmapped member axis) and :class:`Hyperparams` (traced floats:
+  the agent's learning rates, tau, discount and smoothing noise, and the exploration scales)
+  are built once from a :class:`~td3_jax.config.TrainConfig` by :func:`make_spec` and
+  :func:`hyperparams`.
+* The steps of the loop: :func:`init`, :func:`explore`, :func:`collect` (act in every
+  environment, step them, write the ring), :func:`learn` (``updates_per_iter`` gradient
+  steps), :func:`iteration`, :func:`chunk` (a ``lax.scan`` of iterations, summarised by
+  :func:`summarize`) and :func:`evaluate`.
+* One driver and one key schedule: :func:`chunk_and_evaluate` is what both the CLI's host
+  loop (:mod:`td3_jax.run`) and :func:`make_train` run; the evaluation key after a chunk is
+  :func:`evaluation_key` of the state, so ``td3-jax train --seed s`` and
+  ``make_train(cfg)(key_for_seed(s))`` evaluate alike.
+
+Seeds and sweeps are ``jax.vmap(chunk, in_axes=(None, 0, 0))`` over ``(hp, state)`` with the
+spec's ``axis_name`` set (:mod:`td3_jax.population`); nothing is rebuilt per member.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -16,10 +29,14 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from td3_jax import envs, n_step, noise, normalization, replay
+from td3_jax import actor_critic as ac
+from td3_jax import envs, noise, normalization, replay
+from td3_jax.axes import any_member
 from td3_jax.config import TrainConfig
-from td3_jax.td3 import ddpg, td3
-from td3_jax.types import Agent, AgentState, Transition
+from td3_jax.types import Agent, AgentState, Metrics, PRNGKey, Transition
+
+#: Folded into a run's key to make its evaluation key (independent of the training draws).
+EVAL_KEY_SALT = 1_000_003
 
 
 @struct.dataclass
@@ -33,286 +50,373 @@ class TrainState:
     obs_stats: normalization.RunningStats
     ou_state: noise.OUState
     key: jax.Array
+    eval_key: jax.Array  # evaluation after chunk c uses fold_in(eval_key, c)
     env_steps: jax.Array  # int32 transitions collected so far (summed over environments)
     iteration: jax.Array  # int32 iterations done
 
 
-class Trainer(NamedTuple):
-    """Pure functions of one configuration.
+@dataclasses.dataclass(frozen=True)
+class TrainSpec:
+    """The static structure of a training run (everything that shapes the compiled program).
 
     Attributes:
       env: the environment.
-      agent: the TD3/DDPG agent.
-      init: ``init(key) -> TrainState``.
-      chunk: ``chunk(state) -> (state, metrics)``: ``config.iters_per_chunk`` iterations.
-      evaluate: ``evaluate(state, key) -> returns[eval_envs]``: one deterministic episode per
-        evaluation environment.
-      sample: ``sample(buffer, key) -> Transition [batch_size, ...]``: one training batch as the
-        updates draw it (n-step folded when ``n_step > 1``; observations not yet normalised).
+      agent: the agent's structure (:class:`~td3_jax.actor_critic.AgentSpec`).
+      num_envs, batch_size: global sizes.
+      replay_capacity, replay_shards: ring rows in all, and the slices they are split into.
+      n_step: steps folded into each sampled transition.
+      steps_per_iter, updates_per_iter, iters_per_chunk: the loop's shape.
+      warmup_steps: environment steps of uniform random actions before learning starts.
+      eval_envs: evaluation episodes (one per environment).
+      normalize_obs: observations normalised by running statistics.
+      exploration: ``"gaussian"`` or ``"ou"``.
+      reset_groups: environments are reset within this many contiguous groups.
+      axis_name: the vmapped member axis (seeds, sweeps), or ``None``.
     """
 
-    config: TrainConfig
     env: envs.Environment
-    agent: Agent
-    init: Callable[[jax.Array], TrainState]
-    chunk: Callable[[TrainState], tuple[TrainState, dict[str, jax.Array]]]
-    evaluate: Callable[[TrainState, jax.Array], jax.Array]
-    sample: Callable[[replay.ReplayBuffer, jax.Array], Transition]
+    agent: ac.AgentSpec
+    num_envs: int
+    batch_size: int
+    replay_capacity: int
+    replay_shards: int
+    n_step: int
+    steps_per_iter: int
+    updates_per_iter: int
+    iters_per_chunk: int
+    warmup_steps: int
+    eval_envs: int
+    normalize_obs: bool
+    exploration: str
+    reset_groups: int = 1
+    axis_name: str | None = None
+
+    @property
+    def stride(self) -> int:
+        """Rows one vectorised step writes into each replay slice."""
+        return self.num_envs // self.replay_shards
 
 
-def make_agent(cfg: TrainConfig, env: envs.Environment, axis_name: str | None = None) -> Agent:
-    if cfg.algo == "ddpg":
-        return ddpg(cfg.agent_config(), env.observation_size, env.action_size)
-    return td3(cfg.agent_config(), env.observation_size, env.action_size, axis_name=axis_name)
+@struct.dataclass
+class Hyperparams:
+    """The run's float settings (scalars; ``[members]`` arrays in a population)."""
+
+    agent: ac.AgentHyperparams
+    expl_noise: jax.Array
+    ou: noise.OUParams
 
 
-def make_trainer(
+def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
+    """The agent structure of ``cfg.algo`` (TD3: two smoothed critics; DDPG: one, no delay)."""
+    agent_cfg = cfg.agent_config()
+    is_td3 = cfg.algo == "td3"
+    return ac.make_spec(
+        agent_cfg.hidden_sizes,
+        env.observation_size,
+        env.action_size,
+        num_critics=2 if is_td3 else 1,
+        target_smoothing=is_td3,
+        policy_freq=cfg.policy_freq if is_td3 else 1,
+    )
+
+
+def make_spec(
     cfg: TrainConfig,
     env: envs.Environment | None = None,
     axis_name: str | None = None,
     env_groups: int = 1,
-) -> Trainer:
-    """Builds the pure training pieces for ``cfg`` (the environment is made if not given).
-
-    ``axis_name``: set when the pieces run under ``jax.vmap(..., axis_name=...)`` (seeds); the
-    branch conditions (episode resets, learning started) are then reduced over that axis, so
-    they stay branches instead of becoming selects that compute both sides.
+) -> TrainSpec:
+    """The static spec of ``cfg`` (the environment is made if not given).
 
     ``env_groups``: environments are reset within groups of this many contiguous environments
     (with the batch split over D devices, D keeps every reset on its device); with replay
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     """
     env = env or envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
-    agent = make_agent(cfg, env, axis_name)
-    ou_params = cfg.ou_params()
-    num_envs, batch_size = cfg.num_envs, cfg.batch_size
-
     shards = cfg.replay_shards
-    reset_groups = shards if shards % env_groups == 0 else env_groups  # envs.step checks it
-
-    def group_by_shard(tree):
-        """``[num_envs, ...] -> [shards, num_envs / shards, ...]``: env group g fills slice g."""
-        return jax.tree.map(lambda x: x.reshape(shards, -1, *x.shape[1:]), tree)
-
-    # Every add writes one row per environment of a slice, so in a slice row i + stride is the
-    # next step of row i's environment: n-step runs are read straight from the ring.
-    stride = num_envs // shards
-    run_span = (cfg.n_step - 1) * stride
-
-    def sample_slice(buffer, key):
-        """``batch_size / shards`` uniform transitions of one slice, n-step folded (a run of
-        one step folds to the transition itself)."""
-        run, ended = replay.sample_runs(buffer, key, batch_size // shards, cfg.n_step, stride)
-        return n_step.fold(run, ended, cfg.discount)
-
-    def sample(buffer, key):
-        """``batch_size / shards`` transitions from every slice, as one ``[batch_size]`` batch."""
-        keys = key[None] if shards == 1 else jax.random.split(key, shards)
-        rows = jax.vmap(sample_slice)(buffer, keys)
-        return jax.tree.map(lambda x: x.reshape(batch_size, *x.shape[2:]), rows)
-
-    def normalize(stats, obs):
-        return normalization.normalize(stats, obs) if cfg.normalize_obs else obs
-
-    def init(key: jax.Array) -> TrainState:
-        agent_key, env_key, key = jax.random.split(key, 3)
-        env_state = envs.reset(env, env_key, num_envs)
-        example = Transition(
-            obs=jnp.zeros((env.observation_size,), jnp.float32),
-            action=jnp.zeros((env.action_size,), jnp.float32),
-            reward=jnp.zeros((), jnp.float32),
-            next_obs=jnp.zeros((env.observation_size,), jnp.float32),
-            done=jnp.zeros((), jnp.float32),
-        )
-        return TrainState(
-            agent=agent.init(agent_key),
-            buffer=jax.vmap(
-                lambda _: replay.init(cfg.replay_capacity // shards, (example, jnp.zeros((), bool)))
-            )(jnp.arange(shards)),
-            env_state=env_state,
-            obs_stats=normalization.init(env.observation_size),
-            ou_state=jax.vmap(lambda _: noise.ou_init(env.action_size, ou_params))(
-                jnp.arange(num_envs)
-            ),
-            key=key,
-            env_steps=jnp.zeros((), jnp.int32),
-            iteration=jnp.zeros((), jnp.int32),
-        )
-
-    def explore(state: TrainState, key: jax.Array) -> tuple[jax.Array, noise.OUState]:
-        """Actions [num_envs, action_size] in [-1, 1]: random during warm-up, noisy policy after."""
-        random_key, noise_key = jax.random.split(key)
-        obs = normalize(state.obs_stats, state.env_state.obs)
-        policy = agent.act(state.agent.actor_params, obs)
-        noise_keys = jax.random.split(noise_key, num_envs)
-        ou_state = state.ou_state
-        if cfg.exploration == "ou":
-            ou_state, noisy = jax.vmap(lambda k, s, a: noise.ou_action(k, s, a, ou_params))(
-                noise_keys, ou_state, policy
-            )
-        else:
-            noisy = jax.vmap(lambda k, a: noise.gaussian(k, a, cfg.expl_noise))(noise_keys, policy)
-        uniform = jax.random.uniform(random_key, policy.shape, minval=-1.0, maxval=1.0)
-        action = jnp.where(state.env_steps < cfg.warmup_steps, uniform, noisy)
-        return action, ou_state
-
-    def env_step(state: TrainState, _) -> tuple[TrainState, dict[str, jax.Array]]:
-        key, act_key = jax.random.split(state.key)
-        action, ou_state = explore(state, act_key)
-        obs = state.env_state.obs
-        env_state, result = envs.step(env, state.env_state, action, axis_name, groups=reset_groups)
-        transition = Transition(
-            obs=obs,
-            action=action,
-            reward=result.reward,
-            next_obs=result.next_obs,
-            done=result.terminated.astype(jnp.float32),
-        )
-        ended = result.terminated | result.truncated
-        stored = group_by_shard((transition, ended))
-        state = state.replace(
-            buffer=jax.vmap(replay.add)(state.buffer, stored),
-            env_state=env_state,
-            obs_stats=normalization.update(state.obs_stats, obs),
-            ou_state=noise.ou_reset(ou_state, ended[:, None], ou_params),
-            key=key,
-            env_steps=state.env_steps + num_envs,
-        )
-        metrics = {
-            "episodes": jnp.sum(ended).astype(jnp.float32),
-            "return_sum": jnp.sum(jnp.where(ended, result.finished_return, 0.0)),
-            "length_sum": jnp.sum(jnp.where(ended, result.finished_length, 0)).astype(jnp.float32),
-            "reward_mean": jnp.mean(result.reward),
-        }
-        return state, metrics
-
-    def updates(agent_state: AgentState, buffer, stats, key) -> tuple[AgentState, dict]:
-        """``updates_per_iter`` gradient steps on fresh batches (the buffer is only read)."""
-
-        def gradient_step(agent_state, key):
-            sample_key, update_key = jax.random.split(key)
-            batch = sample(buffer, sample_key)
-            batch = batch._replace(
-                obs=normalize(stats, batch.obs), next_obs=normalize(stats, batch.next_obs)
-            )
-            return agent.update(agent_state, batch, update_key)
-
-        keys = jax.random.split(key, cfg.updates_per_iter)
-        agent_state, metrics = jax.lax.scan(gradient_step, agent_state, keys)
-        metrics = {k: jnp.sum(v) for k, v in metrics.items()}
-        metrics["updates"] = jnp.asarray(cfg.updates_per_iter, jnp.float32)
-        return agent_state, metrics
-
-    def no_updates(agent_state: AgentState, buffer, stats, key):
-        del buffer, stats, key
-        return agent_state, zero_update_metrics
-
-    def iteration(state: TrainState, _) -> tuple[TrainState, dict[str, jax.Array]]:
-        state, env_metrics = jax.lax.scan(env_step, state, None, length=cfg.steps_per_iter)
-        env_metrics = {
-            k: (jnp.mean(v) if k == "reward_mean" else jnp.sum(v)) for k, v in env_metrics.items()
-        }
-        key, update_key = jax.random.split(state.key)
-        stored = jnp.sum(state.buffer.size)
-        learning = (
-            (state.env_steps >= cfg.warmup_steps)
-            & (stored >= batch_size)
-            & (jnp.min(state.buffer.size) > run_span)  # every slice holds a whole n-step run
-        )
-        if axis_name is not None:  # identical for every member: keep it a real branch
-            learning = jax.lax.psum(learning.astype(jnp.int32), axis_name) > 0
-        if cfg.updates_per_iter > 0:
-            agent_state, update_metrics = jax.lax.cond(
-                learning,
-                updates,
-                no_updates,
-                state.agent,
-                state.buffer,
-                state.obs_stats,
-                update_key,
-            )
-        else:
-            agent_state, update_metrics = state.agent, zero_update_metrics
-        state = state.replace(agent=agent_state, key=key, iteration=state.iteration + 1)
-        return state, {**env_metrics, **update_metrics}
-
-    def chunk(state: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
-        state, per_iter = jax.lax.scan(iteration, state, None, length=cfg.iters_per_chunk)
-        totals = {k: jnp.sum(v) for k, v in per_iter.items()}
-        n_updates = jnp.maximum(totals["updates"], 1.0)
-        n_actor = jnp.maximum(totals["actor_updated"], 1.0)
-        n_episodes = jnp.maximum(totals["episodes"], 1.0)
-        metrics = {
-            "critic_loss": totals["critic_loss"] / n_updates,
-            "actor_loss": totals["actor_loss"] / n_actor,
-            "q_mean": totals["q_mean"] / n_updates,
-            "target_mean": totals["target_mean"] / n_updates,
-            "chunk_updates": totals["updates"],
-            "train_episodes": totals["episodes"],
-            "train_return_mean": jnp.where(
-                totals["episodes"] > 0, totals["return_sum"] / n_episodes, jnp.nan
-            ),
-            "train_length_mean": jnp.where(
-                totals["episodes"] > 0, totals["length_sum"] / n_episodes, jnp.nan
-            ),
-            "reward_mean": jnp.mean(per_iter["reward_mean"]),
-            "params_finite": _all_finite(state.agent).astype(jnp.float32),
-            "env_steps": state.env_steps,
-            "agent_steps": state.agent.step,
-        }
-        return state, metrics
-
-    def evaluate(state: TrainState, key: jax.Array) -> jax.Array:
-        env_state = envs.reset(env, key, cfg.eval_envs)
-
-        def body(carry, _):
-            env_state, returns, alive = carry
-            obs = normalize(state.obs_stats, env_state.obs)
-            action = agent.act(state.agent.actor_params, obs)
-            # Only each environment's first episode counts: no resets needed.
-            env_state, result = envs.step(env, env_state, action, auto_reset=False)
-            returns = returns + jnp.where(alive, result.reward, 0.0)
-            alive = alive & ~(result.terminated | result.truncated)
-            return (env_state, returns, alive), None
-
-        init_carry = (
-            env_state,
-            jnp.zeros((cfg.eval_envs,), jnp.float32),
-            jnp.ones((cfg.eval_envs,), bool),
-        )
-        (_, returns, _), _ = jax.lax.scan(body, init_carry, None, length=env.episode_length)
-        return returns
-
-    # The update metrics' structure, for the branch that skips the updates (agent only: tracing
-    # the whole init would trace an environment reset, seconds for MJX).
-    key0 = jax.random.PRNGKey(0)
-    o, a = env.observation_size, env.action_size
-    example_batch = Transition(
-        jnp.zeros((batch_size, o)), jnp.zeros((batch_size, a)), jnp.zeros((batch_size,)),
-        jnp.zeros((batch_size, o)), jnp.zeros((batch_size,)),
-    )  # fmt: skip
-    lone = make_agent(cfg, env)  # the same shapes, without the member axis's collectives
-    update_shapes = jax.eval_shape(
-        lone.update, jax.eval_shape(lone.init, key0), example_batch, key0
+    return TrainSpec(
+        env=env,
+        agent=make_agent_spec(cfg, env),
+        num_envs=cfg.num_envs,
+        batch_size=cfg.batch_size,
+        replay_capacity=cfg.replay_capacity,
+        replay_shards=shards,
+        n_step=cfg.n_step,
+        steps_per_iter=cfg.steps_per_iter,
+        updates_per_iter=cfg.updates_per_iter,
+        iters_per_chunk=cfg.iters_per_chunk,
+        warmup_steps=cfg.warmup_steps,
+        eval_envs=cfg.eval_envs,
+        normalize_obs=cfg.normalize_obs,
+        exploration=cfg.exploration,
+        reset_groups=shards if shards % env_groups == 0 else env_groups,
+        axis_name=axis_name,
     )
-    zero_update_metrics = {k: jnp.zeros((), s.dtype) for k, s in update_shapes[1].items()}
-    zero_update_metrics["updates"] = jnp.zeros((), jnp.float32)
-
-    return Trainer(cfg, env, agent, init, chunk, evaluate, sample)
 
 
-def _all_finite(tree: Any) -> jax.Array:
-    leaves = [
-        jnp.all(jnp.isfinite(x))
-        for x in jax.tree.leaves(tree)
-        if jnp.issubdtype(x.dtype, jnp.floating)
-    ]
+def hyperparams(cfg: TrainConfig) -> Hyperparams:
+    """The traced float settings of ``cfg`` (float32 scalars)."""
+    ou = cfg.ou_params()
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    return Hyperparams(
+        agent=ac.hyperparams(cfg.agent_config()),
+        expl_noise=f32(cfg.expl_noise),
+        ou=jax.tree.map(f32, ou),
+    )
+
+
+def key_for_seed(seed: int) -> PRNGKey:
+    """The key a run of ``seed`` starts from (``td3-jax train --seed`` uses the same)."""
+    return jax.random.PRNGKey(seed)
+
+
+def _example_row(spec: TrainSpec) -> tuple[Transition, jax.Array]:
+    o, a = spec.env.observation_size, spec.env.action_size
+    z = lambda *shape: jnp.zeros(shape, jnp.float32)
+    return Transition(z(o), z(a), z(), z(o), z()), jnp.zeros((), bool)
+
+
+def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
+    """A fresh run: new networks, an empty ring, ``num_envs`` freshly reset environments."""
+    agent_key, env_key, loop_key = jax.random.split(key, 3)
+    ou_state = noise.ou_init(spec.env.action_size)
+    return TrainState(
+        agent=ac.init(spec.agent, agent_key),
+        buffer=replay.init_slices(spec.replay_capacity, spec.replay_shards, _example_row(spec)),
+        env_state=envs.reset(spec.env, env_key, spec.num_envs),
+        obs_stats=normalization.init(spec.env.observation_size),
+        ou_state=jax.tree.map(lambda x: jnp.broadcast_to(x, (spec.num_envs, *x.shape)), ou_state),
+        key=loop_key,
+        eval_key=jax.random.fold_in(key, EVAL_KEY_SALT),
+        env_steps=jnp.zeros((), jnp.int32),
+        iteration=jnp.zeros((), jnp.int32),
+    )
+
+
+def normalize(spec: TrainSpec, stats: normalization.RunningStats, obs: jax.Array) -> jax.Array:
+    """``obs`` normalised by the running statistics when the spec asks for it."""
+    return normalization.normalize(stats, obs) if spec.normalize_obs else obs
+
+
+def explore(
+    spec: TrainSpec, hp: Hyperparams, state: TrainState, key: PRNGKey
+) -> tuple[jax.Array, noise.OUState]:
+    """Actions ``[num_envs, action_size]`` in ``[-1, 1]``: uniform during warm-up, the noisy
+    policy after (Gaussian or OU per environment); returns the new OU states too."""
+    random_key, noise_key = jax.random.split(key)
+    obs = normalize(spec, state.obs_stats, state.env_state.obs)
+    policy = spec.agent.actor.apply(state.agent.actor_params, obs)
+    noise_keys = jax.random.split(noise_key, spec.num_envs)
+    ou_state = state.ou_state
+    if spec.exploration == "ou":
+        ou_action = lambda k, s, a: noise.ou_action(k, s, a, hp.ou)
+        ou_state, noisy = jax.vmap(ou_action)(noise_keys, ou_state, policy)
+    else:
+        noisy = jax.vmap(lambda k, a: noise.gaussian(k, a, hp.expl_noise))(noise_keys, policy)
+    uniform = jax.random.uniform(random_key, policy.shape, minval=-1.0, maxval=1.0)
+    return jnp.where(state.env_steps < spec.warmup_steps, uniform, noisy), ou_state
+
+
+def _episode_metrics(result: envs.StepResult) -> Metrics:
+    ended = result.terminated | result.truncated
+    return {
+        "episodes": jnp.sum(ended).astype(jnp.float32),
+        "return_sum": jnp.sum(jnp.where(ended, result.finished_return, 0.0)),
+        "length_sum": jnp.sum(jnp.where(ended, result.finished_length, 0)).astype(jnp.float32),
+        "reward_mean": jnp.mean(result.reward),
+    }
+
+
+def collect_step(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
+    """One vectorised step: act, step every environment, write the transitions to the ring."""
+    key, act_key = jax.random.split(state.key)
+    action, ou_state = explore(spec, hp, state, act_key)
+    obs = state.env_state.obs
+    env_state, result = envs.step(
+        spec.env, state.env_state, action, spec.axis_name, groups=spec.reset_groups
+    )
+    transition = Transition(obs, action, result.reward, result.next_obs,
+                            result.terminated.astype(jnp.float32))  # fmt: skip
+    ended = result.terminated | result.truncated
+    state = state.replace(
+        buffer=replay.add_slices(state.buffer, (transition, ended)),
+        env_state=env_state,
+        obs_stats=normalization.update(state.obs_stats, obs),
+        ou_state=noise.ou_reset(ou_state, ended[:, None], hp.ou),
+        key=key,
+        env_steps=state.env_steps + spec.num_envs,
+    )
+    return state, _episode_metrics(result)
+
+
+def collect(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
+    """``steps_per_iter`` :func:`collect_step` s; episode counts and sums, mean reward."""
+    step = lambda s, _: collect_step(spec, hp, s)
+    state, per_step = jax.lax.scan(step, state, None, length=spec.steps_per_iter)
+    metrics = {k: jnp.sum(v) for k, v in per_step.items()}
+    metrics["reward_mean"] = jnp.mean(per_step["reward_mean"])
+    return state, metrics
+
+
+def sample_batch(
+    spec: TrainSpec, hp: Hyperparams, buffer: replay.ReplayBuffer, key: PRNGKey
+) -> Transition:
+    """One training batch ``[batch_size, ...]`` as the updates draw it (n-step folded;
+    observations not yet normalised)."""
+    return replay.sample_slices(buffer, key, spec.batch_size, spec.n_step, spec.stride,
+                                hp.agent.discount)  # fmt: skip
+
+
+def gradient_step(
+    spec: TrainSpec,
+    hp: Hyperparams,
+    buffer: replay.ReplayBuffer,
+    stats: normalization.RunningStats,
+    agent_state: AgentState,
+    key: PRNGKey,
+) -> tuple[AgentState, Metrics]:
+    """One agent update on a fresh, normalised batch."""
+    sample_key, update_key = jax.random.split(key)
+    batch = sample_batch(spec, hp, buffer, sample_key)
+    batch = batch._replace(obs=normalize(spec, stats, batch.obs),
+                           next_obs=normalize(spec, stats, batch.next_obs))  # fmt: skip
+    return ac.update(spec.agent, hp.agent, agent_state, batch, update_key, spec.axis_name)
+
+
+def learn(
+    spec: TrainSpec,
+    hp: Hyperparams,
+    agent_state: AgentState,
+    buffer: replay.ReplayBuffer,
+    stats: normalization.RunningStats,
+    key: PRNGKey,
+) -> tuple[AgentState, Metrics]:
+    """``updates_per_iter`` gradient steps (the buffer is only read); metrics summed over them,
+    plus ``updates``, the number taken."""
+    step = functools.partial(gradient_step, spec, hp, buffer, stats)
+    keys = jax.random.split(key, spec.updates_per_iter)
+    agent_state, per_update = jax.lax.scan(step, agent_state, keys)
+    metrics = {k: jnp.sum(v) for k, v in per_update.items()}
+    metrics["updates"] = jnp.asarray(spec.updates_per_iter, jnp.float32)
+    return agent_state, metrics
+
+
+def skip_learning(agent_state: AgentState, *_) -> tuple[AgentState, Metrics]:
+    """The branch of :func:`iteration` before learning starts: the agent's zero metrics."""
+    return agent_state, {**ac.zero_metrics(), "updates": jnp.zeros((), jnp.float32)}
+
+
+def learning_started(spec: TrainSpec, state: TrainState) -> jax.Array:
+    """Warm-up over, a batch stored, every slice holding a whole n-step run."""
+    run_span = (spec.n_step - 1) * spec.stride
+    return (
+        (state.env_steps >= spec.warmup_steps)
+        & (jnp.sum(state.buffer.size) >= spec.batch_size)
+        & (jnp.min(state.buffer.size) > run_span)
+    )
+
+
+def iteration(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
+    """:func:`collect`, then :func:`learn` once learning has started (a real branch, also
+    under the member vmap)."""
+    state, env_metrics = collect(spec, hp, state)
+    key, update_key = jax.random.split(state.key)
+    agent_state, update_metrics = skip_learning(state.agent)
+    if spec.updates_per_iter > 0:
+        agent_state, update_metrics = jax.lax.cond(
+            any_member(learning_started(spec, state), spec.axis_name),
+            functools.partial(learn, spec, hp),
+            skip_learning,
+            state.agent,
+            state.buffer,
+            state.obs_stats,
+            update_key,
+        )
+    state = state.replace(agent=agent_state, key=key, iteration=state.iteration + 1)
+    return state, {**env_metrics, **update_metrics}
+
+
+def all_finite(tree: Any) -> jax.Array:
+    """Whether every floating-point leaf of ``tree`` is finite (a bool scalar)."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)
+              if jnp.issubdtype(x.dtype, jnp.floating)]  # fmt: skip
     return jnp.all(jnp.stack(leaves))
+
+
+def summarize(per_iter: Metrics, state: TrainState) -> Metrics:
+    """A chunk's metrics from its per-iteration ones (leading axis: iterations).
+
+    Losses are means over the updates taken (the actor's over its own updates), training
+    returns and lengths means over the episodes that ended (NaN when none did).
+    """
+    totals = {k: jnp.sum(v) for k, v in per_iter.items()}
+    per_update = lambda name, count: totals[name] / jnp.maximum(totals[count], 1.0)
+    episodes = totals["episodes"]
+    per_episode = lambda name: jnp.where(episodes > 0, per_update(name, "episodes"), jnp.nan)
+    return {
+        "critic_loss": per_update("critic_loss", "updates"),
+        "actor_loss": per_update("actor_loss", "actor_updated"),
+        "q_mean": per_update("q_mean", "updates"),
+        "target_mean": per_update("target_mean", "updates"),
+        "chunk_updates": totals["updates"],
+        "train_episodes": episodes,
+        "train_return_mean": per_episode("return_sum"),
+        "train_length_mean": per_episode("length_sum"),
+        "reward_mean": jnp.mean(per_iter["reward_mean"]),
+        "params_finite": all_finite(state.agent).astype(jnp.float32),
+        "env_steps": state.env_steps,
+        "agent_steps": state.agent.step,
+    }
+
+
+def chunk(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
+    """``iters_per_chunk`` iterations in one ``lax.scan``: the unit the host loop calls."""
+    step = lambda s, _: iteration(spec, hp, s)
+    state, per_iter = jax.lax.scan(step, state, None, length=spec.iters_per_chunk)
+    return state, summarize(per_iter, state)
+
+
+def _evaluation_step(spec: TrainSpec, state: TrainState, carry: tuple, _) -> tuple[tuple, None]:
+    env_state, returns, alive = carry
+    obs = normalize(spec, state.obs_stats, env_state.obs)
+    action = spec.agent.actor.apply(state.agent.actor_params, obs)
+    # Only each environment's first episode counts: no resets needed.
+    env_state, result = envs.step(spec.env, env_state, action, auto_reset=False)
+    returns = returns + jnp.where(alive, result.reward, 0.0)
+    alive = alive & ~(result.terminated | result.truncated)
+    return (env_state, returns, alive), None
+
+
+def evaluate(spec: TrainSpec, state: TrainState, key: PRNGKey) -> jax.Array:
+    """Returns ``[eval_envs]``: one deterministic-policy episode per evaluation environment."""
+    carry = (
+        envs.reset(spec.env, key, spec.eval_envs),
+        jnp.zeros((spec.eval_envs,), jnp.float32),
+        jnp.ones((spec.eval_envs,), bool),
+    )
+    step = functools.partial(_evaluation_step, spec, state)
+    (_, returns, _), _ = jax.lax.scan(step, carry, None, length=spec.env.episode_length)
+    return returns
+
+
+def evaluation_key(spec: TrainSpec, state: TrainState) -> PRNGKey:
+    """The evaluation key after the chunk that brought ``state`` to its iteration count."""
+    return jax.random.fold_in(state.eval_key, state.iteration // spec.iters_per_chunk)
+
+
+def chunk_and_evaluate(
+    spec: TrainSpec, hp: Hyperparams, state: TrainState
+) -> tuple[TrainState, Metrics]:
+    """One chunk, then the evaluation with the run's key schedule (``eval_returns
+    [eval_envs]`` added to the chunk's metrics): the driver of every training run."""
+    state, metrics = chunk(spec, hp, state)
+    returns = evaluate(spec, state, evaluation_key(spec, state))
+    return state, {**metrics, "eval_returns": returns}
 
 
 def make_train(
     cfg: TrainConfig, env: envs.Environment | None = None, axis_name: str | None = None
-) -> Callable[[jax.Array], tuple[TrainState, dict[str, jax.Array]]]:
+) -> Callable[[PRNGKey], tuple[TrainState, Metrics]]:
     """The whole run as one pure function ``train(key) -> (final_state, metrics)``.
 
     ``metrics`` has a leading axis of ``cfg.num_chunks`` (one entry per evaluation) and holds
@@ -322,21 +426,60 @@ def make_train(
         train = jax.jit(jax.vmap(make_train(TrainConfig(...))))
         states, metrics = train(jax.random.split(jax.random.PRNGKey(0), 8))
 
-    Unlike ``td3-jax train`` it writes nothing and cannot be resumed; use it inside your own
-    programs. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here keeps
-    the reset and warm-up branches as real branches (otherwise vmap turns them into selects that
-    compute both sides; the numbers are the same either way).
+    ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
+    ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
+    resumed. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
+    keeps the reset and warm-up branches as real branches.
     """
-    trainer = make_trainer(cfg, env, axis_name)
+    return functools.partial(_train, make_spec(cfg, env, axis_name), hyperparams(cfg),
+                             cfg.num_chunks)  # fmt: skip
 
-    def train(key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
-        init_key, eval_key = jax.random.split(key)
 
-        def chunk_and_evaluate(state, index):
-            state, metrics = trainer.chunk(state)
-            returns = trainer.evaluate(state, jax.random.fold_in(eval_key, index))
-            return state, {**metrics, "eval_returns": returns}
+def _train(spec: TrainSpec, hp: Hyperparams, num_chunks: int, key: PRNGKey):
+    step = lambda s, _: chunk_and_evaluate(spec, hp, s)
+    return jax.lax.scan(step, init(spec, key), None, length=num_chunks)
 
-        return jax.lax.scan(chunk_and_evaluate, trainer.init(init_key), jnp.arange(cfg.num_chunks))
 
-    return train
+class Trainer(NamedTuple):
+    """The steps of one configuration with its spec and hyperparameters bound (an adapter for
+    library users and tests; the functions above are the program).
+
+    Attributes:
+      init: ``init(key) -> TrainState``.
+      chunk: ``chunk(state) -> (state, metrics)``: ``config.iters_per_chunk`` iterations.
+      evaluate: ``evaluate(state, key) -> returns[eval_envs]``.
+      sample: ``sample(buffer, key) -> Transition [batch_size, ...]``: one training batch as
+        the updates draw it (n-step folded; observations not yet normalised).
+    """
+
+    config: TrainConfig
+    spec: TrainSpec
+    hyperparams: Hyperparams
+    env: envs.Environment
+    agent: Agent
+    init: Callable[[PRNGKey], TrainState]
+    chunk: Callable[[TrainState], tuple[TrainState, Metrics]]
+    evaluate: Callable[[TrainState, PRNGKey], jax.Array]
+    sample: Callable[[replay.ReplayBuffer, PRNGKey], Transition]
+
+
+def make_trainer(
+    cfg: TrainConfig,
+    env: envs.Environment | None = None,
+    axis_name: str | None = None,
+    env_groups: int = 1,
+) -> Trainer:
+    """:class:`Trainer` of ``cfg``: the module's functions with ``spec`` and ``hp`` bound."""
+    spec = make_spec(cfg, env, axis_name, env_groups)
+    hp = hyperparams(cfg)
+    return Trainer(
+        config=cfg,
+        spec=spec,
+        hyperparams=hp,
+        env=spec.env,
+        agent=ac.actor_critic(spec.agent, hp.agent, cfg.agent_config(), axis_name),
+        init=functools.partial(init, spec),
+        chunk=functools.partial(chunk, spec, hp),
+        evaluate=functools.partial(evaluate, spec),
+        sample=functools.partial(sample_batch, spec, hp),
+    )

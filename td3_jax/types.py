@@ -62,6 +62,8 @@ class Agent(NamedTuple):
       actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
       critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``.
       config: the config the agent was built from.
+      spec: the agent's static structure (:class:`td3_jax.td3.AgentSpec`).
+      hyperparams: the float settings bound into ``update`` (:class:`td3_jax.td3.AgentHyperparams`).
     """
 
     init: Callable[[PRNGKey], AgentState]
@@ -70,3 +72,5 @@ class Agent(NamedTuple):
     actor_apply: Callable[[Params, jax.Array], jax.Array]
     critic_apply: Callable[[Params, jax.Array, jax.Array], jax.Array]
     config: Any
+    spec: Any = None
+    hyperparams: Any = None

@@ -136,9 +136,15 @@ def test_population_keeps_reset_and_warmup_branches():
 
     cfg = dataclasses.replace(TINY, seeds=2)
     program = make_population(cfg, members(cfg))
-    jaxpr = str(jax.make_jaxpr(program.chunk)(program.abstract_state))
+    jaxpr = str(jax.make_jaxpr(program.chunk)(program.hyperparams, program.abstract_state))
     assert jaxpr.count("cond[") >= 2  # episode resets and "learning started"
     train_fn = make_train(TINY, axis_name="seeds")
     vmapped = jax.vmap(train_fn, axis_name="seeds")
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     assert str(jax.make_jaxpr(vmapped)(keys)).count("cond[") >= 2
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_a_non_finite_swept_value_is_refused_before_anything_compiles(value):
+    with pytest.raises(ConfigError, match=r"finite.*--sweep-critic-lr"):
+        members(TINY, {"critic_lr": [1e-3, float(value)]})

@@ -9,8 +9,10 @@ from __future__ import annotations
 from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
-from td3_jax.envs.base import Environment, EnvState, StepResult, reset, step
+from td3_jax.envs.base import Environment, EnvState, StepResult, reset, reset_ended, step
 
+#: Each source module has ``names() -> list[str]`` and
+#: ``make(task, *, backend, episode_length) -> Environment``.
 _SOURCES = {"brax": _brax, "playground": _playground, "gymnax": _gymnax}
 
 
@@ -40,12 +42,7 @@ def make(name: str, *, backend: str = "mjx", episode_length: int | None = None) 
         if source == "playground" and not _playground.names():
             hint = " (playground tasks need: pip install 'td3-jax[playground]')"
         raise UnknownEnvironmentError(f"unknown environment {name!r}{hint}; known: {listing}")
-    if source == "brax":
-        return _brax.make(task, backend=backend, episode_length=episode_length or 1000)
-    if source == "playground":
-        impl = backend if backend in ("jax", "warp") else "jax"
-        return _playground.make(task, impl=impl, episode_length=episode_length)
-    return _gymnax.make(task, episode_length=episode_length)
+    return module.make(task, backend=backend, episode_length=episode_length)
 
 
 __all__ = [
@@ -56,5 +53,6 @@ __all__ = [
     "known_names",
     "make",
     "reset",
+    "reset_ended",
     "step",
 ]

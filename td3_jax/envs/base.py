@@ -18,6 +18,7 @@ adds what every source needs, in one place:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -26,13 +27,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from td3_jax.axes import max_member
+
 ResetFn = Callable[[jax.Array], tuple[Any, jax.Array]]
 StepFn = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, jax.Array]]
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Environment:
     """One environment of a source, as pure functions (vmapped by :func:`reset` / :func:`step`).
+
+    Compared and hashed by identity, so a spec holding it can be a static ``jit`` argument.
 
     Attributes:
       name: ``SOURCE/NAME`` as given on the command line.
@@ -160,12 +165,90 @@ def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
 
 
 def default_reset_slots(num_envs: int) -> int:
-    """How many environments :func:`step` resets one by one before it resets the whole batch.
+    """How many environments :func:`reset_ended` resets one by one before it resets the whole
+    batch.
 
     A sixteenth of the batch (at least one): on a step where at most that many episodes ended,
     only those environments draw fresh initial states, a small fraction of a batch reset.
     """
     return max(1, num_envs // 16)
+
+
+def _by_group(x: jax.Array, groups: int) -> jax.Array:
+    """``[num_envs, ...] -> [groups, num_envs / groups, ...]``."""
+    return x.reshape(groups, x.shape[0] // groups, *x.shape[1:])
+
+
+def _no_reset(env, ended, keys, groups, slots, carry):
+    del env, ended, keys, groups, slots
+    return carry
+
+
+def _reset_some(env, ended, keys, groups, slots, carry):
+    """Gathers up to ``slots`` ended environments per group, resets them, scatters them back."""
+    inner, obs = carry
+    num_envs = ended.shape[0]
+    size = num_envs // groups
+    # Per group, the indices of its ended environments, padded with an out-of-range index that
+    # the scatter drops.
+    index = jax.vmap(lambda e: jnp.nonzero(e, size=slots, fill_value=size)[0])(
+        _by_group(ended, groups)
+    )  # [groups, slots]
+    picked = jax.vmap(lambda k, i: k[jnp.minimum(i, size - 1)])(_by_group(keys, groups), index)
+    fresh_inner, fresh_obs = _reset_batch(env, picked.reshape(groups * slots, *picked.shape[2:]))
+
+    def put(full, part):
+        full = _by_group(full, groups)
+        part = part.reshape(groups, slots, *part.shape[1:]).astype(full.dtype)
+        scatter = lambda f, i, p: f.at[i].set(p, mode="drop")
+        return jax.vmap(scatter)(full, index, part).reshape(num_envs, *full.shape[2:])
+
+    return jax.tree.map(put, inner, fresh_inner), put(obs, fresh_obs)
+
+
+def _reset_all(env, ended, keys, groups, slots, carry):
+    """Resets the whole batch and keeps the fresh states where an episode ended."""
+    del groups, slots
+    inner, obs = carry
+    fresh_inner, fresh_obs = _reset_batch(env, keys)
+    return _select(ended, fresh_inner, inner), _select(ended, fresh_obs, obs)
+
+
+def reset_ended(
+    env: Environment,
+    ended: jax.Array,
+    keys: jax.Array,
+    inner: Any,
+    obs: jax.Array,
+    axis_name: str | None = None,
+    *,
+    reset_slots: int | None = None,
+    groups: int = 1,
+) -> tuple[Any, jax.Array]:
+    """``(inner, obs)`` with every ended environment (``ended [num_envs]``) restarted from a
+    fresh random state drawn with its own key (``keys [num_envs]``).
+
+    Chosen per step by a ``lax.switch``: nothing when no episode ended; when at most
+    ``reset_slots`` ended per group (default :func:`default_reset_slots`), only those are
+    gathered, reset and scattered back; otherwise the whole batch is reset and selected per
+    environment. Every environment gets the reset of its own key whichever branch runs (bit for
+    bit on CPU). Under a ``jax.vmap`` with ``axis_name`` the branch is chosen from the largest
+    count over that axis, so it stays a real branch. ``groups``: the batch is that many equal,
+    contiguous groups (e.g. one per device) and gathers and scatters stay inside each group.
+    """
+    num_envs = ended.shape[0]
+    if groups <= 0 or num_envs % groups:
+        raise ValueError(f"{num_envs} environments cannot form {groups} equal groups")
+    size = num_envs // groups
+    slots = default_reset_slots(size) if reset_slots is None else int(reset_slots)
+    if slots <= 0:
+        raise ValueError(f"reset_slots must be positive, got {slots}")
+    kinds = [_no_reset, _reset_all] if slots >= size else [_no_reset, _reset_some, _reset_all]
+    branches = [functools.partial(kind, env, ended, keys, groups, slots) for kind in kinds]
+    count = max_member(jnp.max(jnp.sum(_by_group(ended, groups).astype(jnp.int32), axis=1)),
+                       axis_name)  # fmt: skip
+    branch = jnp.where(count == 0, 0, jnp.where(count <= slots, 1, len(branches) - 1))
+    return jax.lax.switch(branch, branches, (inner, obs))
 
 
 def step(
@@ -181,97 +264,30 @@ def step(
     """Steps every environment with ``action [num_envs, action_size]`` in ``[-1, 1]``.
 
     Environments whose episode ended (termination or time limit) restart from a fresh random
-    state drawn with their own new key. Resets are computed only where needed, chosen per step
-    by a ``lax.switch``: nothing when no episode ended; when at most ``reset_slots`` ended
-    (default :func:`default_reset_slots`), only those environments are gathered, reset and
-    scattered back; otherwise the whole batch is reset and selected per environment. Every
-    environment gets the reset of its own key whichever branch runs (bit for bit on CPU; a GPU
-    may round a reset computed in a batch of another size slightly differently). Under a
-    ``jax.vmap`` with ``axis_name`` (e.g. over seeds), the branch is chosen from the largest
-    count over that axis, so it stays a real branch instead of becoming a select that computes
-    every branch.
-
-    ``groups``: the batch is ``groups`` equal, contiguous groups of environments (e.g. one per
-    device) and ``reset_slots`` counts per group, so that gathering and scattering the reset
-    environments stays inside each group: with the batch split over devices, it stays on each
-    device. The result does not depend on ``groups``.
+    state drawn with their own new key (:func:`reset_ended`, which ``axis_name``,
+    ``reset_slots`` and ``groups`` are passed to; the result does not depend on them).
 
     ``auto_reset=False`` skips resets entirely (ended environments keep stepping from their last
     state; ``steps`` and ``episode_return`` still restart): for evaluation, which only counts
     each environment's first episode.
     """
-    num_envs = action.shape[0]
-    if groups <= 0 or num_envs % groups:
-        raise ValueError(f"{num_envs} environments cannot form {groups} equal groups")
-    group_size = num_envs // groups
-    slots = default_reset_slots(group_size) if reset_slots is None else int(reset_slots)
-    if slots <= 0:
-        raise ValueError(f"reset_slots must be positive, got {slots}")
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
     next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
     inner, obs, reward, terminated = jax.vmap(env.step_fn)(
         state.inner, env.to_env_action(action), step_key
     )
     inner, obs = _strong(inner), obs.astype(jnp.float32)
-    reward = reward.astype(jnp.float32)
-    terminated = terminated.astype(bool)
+    reward, terminated = reward.astype(jnp.float32), terminated.astype(bool)
     steps = state.steps + 1
     truncated = (steps >= env.episode_length) & ~terminated
     ended = terminated | truncated
     episode_return = state.episode_return + reward
-
-    def reset_none(carry):
-        return carry
-
-    def by_group(x):
-        return x.reshape(groups, group_size, *x.shape[1:])
-
-    def reset_some(carry):
-        inner, obs = carry
-        # Per group, the indices of its ended environments, padded with an out-of-range index
-        # that the scatter drops.
-        index = jax.vmap(lambda e: jnp.nonzero(e, size=slots, fill_value=group_size)[0])(
-            by_group(ended)
-        )  # [groups, slots]
-        keys = jax.vmap(lambda k, i: k[jnp.minimum(i, group_size - 1)])(by_group(reset_key), index)
-        fresh_inner, fresh_obs = _reset_batch(env, keys.reshape(groups * slots, *keys.shape[2:]))
-
-        def put(full, part):
-            full = by_group(full)
-            part = part.reshape(groups, slots, *part.shape[1:]).astype(full.dtype)
-            scatter = lambda f, i, p: f.at[i].set(p, mode="drop")
-            return jax.vmap(scatter)(full, index, part).reshape(num_envs, *full.shape[2:])
-
-        return jax.tree.map(put, inner, fresh_inner), put(obs, fresh_obs)
-
-    def reset_all(carry):
-        inner, obs = carry
-        fresh_inner, fresh_obs = _reset_batch(env, reset_key)
-        return _select(ended, fresh_inner, inner), _select(ended, fresh_obs, obs)
-
     new_inner, new_obs = inner, obs
     if auto_reset:
-        count = jnp.max(jnp.sum(by_group(ended).astype(jnp.int32), axis=1))
-        if axis_name is not None:
-            count = jax.lax.pmax(count, axis_name)
-        branches = (
-            [reset_none, reset_all] if slots >= group_size else [reset_none, reset_some, reset_all]
-        )
-        branch = jnp.where(count == 0, 0, jnp.where(count <= slots, 1, len(branches) - 1))
-        new_inner, new_obs = jax.lax.switch(branch, branches, (inner, obs))
-    new_state = EnvState(
-        inner=new_inner,
-        obs=new_obs,
-        key=next_key,
-        steps=jnp.where(ended, 0, steps),
-        episode_return=jnp.where(ended, 0.0, episode_return),
-    )
-    result = StepResult(
-        next_obs=obs,
-        reward=reward,
-        terminated=terminated,
-        truncated=truncated,
-        finished_return=episode_return,
-        finished_length=steps,
-    )
-    return new_state, result
+        new_inner, new_obs = reset_ended(env, ended, reset_key, inner, obs, axis_name,
+                                         reset_slots=reset_slots, groups=groups)  # fmt: skip
+    new_state = EnvState(inner=new_inner, obs=new_obs, key=next_key,
+                         steps=jnp.where(ended, 0, steps),
+                         episode_return=jnp.where(ended, 0.0, episode_return))  # fmt: skip
+    return new_state, StepResult(obs, reward, terminated, truncated, episode_return, steps)
+

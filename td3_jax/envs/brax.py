@@ -12,8 +12,11 @@ def names() -> list[str]:
     return sorted(envs._envs)  # brax has no public listing; _envs is its registry
 
 
-def make(name: str, *, backend: str = "mjx", episode_length: int = 1000, **kwargs) -> Environment:
-    """A Brax environment without Brax's own episode/auto-reset wrappers (we add our own).
+def make(
+    name: str, *, backend: str = "mjx", episode_length: int | None = None, **kwargs
+) -> Environment:
+    """A Brax environment without Brax's own episode/auto-reset wrappers (we add our own);
+    ``episode_length`` defaults to Brax's 1000.
 
     Brax's ``done`` of an unwrapped environment is a true termination (e.g. the ant fell);
     Brax actions are already in ``[-1, 1]``.
@@ -22,4 +25,4 @@ def make(name: str, *, backend: str = "mjx", episode_length: int = 1000, **kwarg
 
     env = envs.get_environment(name, backend=backend, **kwargs)
 
-    return from_mjx_style(f"brax/{name}", env, episode_length)
+    return from_mjx_style(f"brax/{name}", env, episode_length or 1000)

@@ -13,12 +13,16 @@ def names() -> list[str]:
     return list(CONTINUOUS)
 
 
-def make(name: str, *, episode_length: int | None = None) -> Environment:
-    """A gymnax environment driven through ``reset_env``/``step_env`` (no gymnax auto-reset).
+def make(
+    name: str, *, backend: str | None = None, episode_length: int | None = None
+) -> Environment:
+    """A gymnax environment driven through ``reset_env``/``step_env`` (no gymnax auto-reset);
+    ``backend`` is ignored (gymnax has one).
 
     gymnax's ``done`` mixes termination and the time limit; the time-limit part is removed here
     (our wrapper applies the limit itself and treats it as truncation).
     """
+    del backend
     import gymnax
     from gymnax.environments import spaces
 

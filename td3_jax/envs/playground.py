@@ -27,8 +27,12 @@ def names() -> list[str]:
         return []
 
 
-def make(name: str, *, impl: str = "jax", episode_length: int | None = None) -> Environment:
-    """A Playground DM Control Suite task; its ``done`` is a termination (rare in the suite)."""
+def make(name: str, *, backend: str = "jax", episode_length: int | None = None) -> Environment:
+    """A Playground DM Control Suite task; its ``done`` is a termination (rare in the suite).
+
+    ``backend``: Playground's ``impl`` (``jax`` or ``warp``); a Brax backend name means jax.
+    """
+    impl = backend if backend in ("jax", "warp") else "jax"
     suite = _suite()
     config = suite.get_default_config(name)
     env = suite.load(name, config=config, config_overrides={"impl": impl})
