@@ -296,31 +296,38 @@ def sweep_main(args: list[str]) -> None:
 
 
 def print_sweep_ranking(record: dict) -> None:
-    """Final returns per swept setting (mean over its seeds), best first, with 95% CIs."""
+    """Final returns per swept setting (mean over its seeds), best first, with 95% CIs.
+
+    Diverged members (null returns) are left out of their setting's statistics and counted in
+    the ``diverged`` column; a setting whose every seed diverged ranks last.
+    """
     import numpy as np
     from rich.console import Console
     from rich.table import Table
 
     from td3_jax import stats
 
-    groups: dict[tuple, list[float]] = {}
+    groups: dict[tuple, list[float | None]] = {}
     for member in record["per_member"]:
         setting = tuple(sorted(member.get("settings", {}).items()))
         groups.setdefault(setting, []).append(member["eval_return_mean"])
     rows = []
     for setting, returns in groups.items():
-        summary = stats.summary(np.asarray(returns))
-        rows.append((setting, len(returns), summary))
-    rows.sort(key=lambda row: row[2]["mean"], reverse=True)
+        finite = np.asarray([r for r in returns if r is not None], np.float64)
+        summary = stats.summary(finite) if finite.size else None
+        rows.append((setting, len(returns), len(returns) - finite.size, summary))
+    rows.sort(key=lambda row: -np.inf if row[3] is None else row[3]["mean"], reverse=True)
+    labels = [" ".join(f"{k}={v:g}" for k, v in row[0]) for row in rows]
     table = Table(title=f"final evaluation return after {record['env_steps']} env steps")
-    for column in ("rank", "setting", "seeds", "mean", "95% CI", "IQM"):
-        table.add_column(column, justify="right")
-    for rank, (setting, n, summary) in enumerate(rows, 1):
-        label = " ".join(f"{k}={v:g}" for k, v in setting)
-        interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
-        table.add_row(
-            str(rank), label, str(n), f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"
-        )
+    for column in ("rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"):
+        width = max(map(len, labels)) if column == "setting" else None
+        table.add_column(column, justify="right", min_width=width, no_wrap=column == "setting")
+    for rank, (label, (_, n, diverged, summary)) in enumerate(zip(labels, rows, strict=True), 1):
+        cells = ["-", "-", "-"]
+        if summary is not None:
+            interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
+            cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
+        table.add_row(str(rank), label, str(n), str(diverged), *cells)
     Console().print(table)
 
 

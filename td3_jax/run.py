@@ -6,7 +6,9 @@ seeds, or every combination of a sweep times the seeds, all in one compiled prog
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -18,6 +20,7 @@ from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import (
+    Member,
     Population,
     compile_ahead,
     compile_for_mesh,
@@ -88,7 +91,9 @@ def train(
         (recorded in config.json under ``resume_changes``).
       progress: show a live progress display.
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
-        trains ``cfg.seeds`` seeds, all in one program.
+        trains ``cfg.seeds`` seeds, all in one program. A member whose losses or parameters
+        become non-finite is marked diverged (its records hold null returns) and the others go
+        on; the run stops only when every member has diverged.
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call; for tests.
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock (compile included; counted across resumes). The run stays resumable.
@@ -109,82 +114,117 @@ def train(
     program = make_population(cfg, population, devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
-    checkpointer = display = logger = None
+    run = _Run(cfg, out_dir, population, mesh.size, writer, stop_after_chunks, time_budget_s)
     try:
-        checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
-        start = time.perf_counter()
-        if resume:
-            state, meta, start_chunk = checkpointer.restore(
-                program.abstract_state, shardings=compiled.shardings
-            )
-            wall_offset = float(meta["wall_time_s"])
-        else:
-            start_chunk, wall_offset = 0, 0.0
-        display = _Progress(cfg, start_chunk, enabled=progress and writer)
+        run.checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
+        state, start_chunk = _start(run, program, compiled, resume)
         compiled = compile_ahead(compiled, program, with_init=not resume)
-        if not resume:
-            state = compiled.init()
+        state = compiled.init() if state is None else state
         if writer:
-            at = start_chunk * steps_per_chunk(cfg)
+            at = start_chunk * cfg.steps_per_chunk
             info = run_info(out_dir, resume=resume, preset=preset, changes=changes, at_env_steps=at)
             save_config(cfg, population, out_dir, info)
-        logger = MetricsLogger(
-            out_dir, resume_env_steps=start_chunk * steps_per_chunk(cfg), enabled=writer
-        )
-        chunk, evaluate = compiled.chunk, compiled.evaluate
-        records: list[dict[str, Any]] = []
-        for index in range(start_chunk, cfg.num_chunks):
-            if stop_after_chunks is not None and index - start_chunk >= stop_after_chunks:
-                break
-            if (
-                records
-                and time_budget_s is not None
-                and records[-1]["wall_time_s"] >= time_budget_s
-            ):
-                break
-            chunk_start = time.perf_counter()
-            state, metrics = chunk(compiled.hyperparams, state)
-            metrics = {k: host_value(v) for k, v in metrics.items()}
-            chunk_seconds = time.perf_counter() - chunk_start
-            env_steps = int(metrics.pop("env_steps")[0])
-            updates = int(metrics.pop("agent_steps")[0])
-            metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
-            _check_finite(metrics, population, env_steps, checkpointer.latest_step(), cfg)
-            returns = host_value(evaluate(state))
-            record = _record(cfg, population, updates, metrics, returns, env_steps)
-            record["wall_time_s"] = wall_offset + time.perf_counter() - start
-            record["env_steps_per_s"] = len(population) * steps_per_chunk(cfg) / chunk_seconds
-            record["devices"] = mesh.size
-            logger.write(record)
-            records.append(record)
-            last = (
-                index + 1 == cfg.num_chunks
-                or (stop_after_chunks is not None and index + 1 - start_chunk >= stop_after_chunks)
-                or (time_budget_s is not None and record["wall_time_s"] >= time_budget_s)
-            )
-            if last or (index + 1) % cfg.checkpoint_every == 0:
-                meta = {"wall_time_s": record["wall_time_s"], "env_steps": env_steps}
-                checkpointer.save(index + 1, state, meta)
-            display.update(record)
+        run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
+        run.logger = MetricsLogger(out_dir, resume_env_steps=start_chunk * cfg.steps_per_chunk,
+                                   enabled=writer)  # fmt: skip
+        _loop(run, compiled, state, start_chunk)
     finally:
-        if display is not None:
-            display.close()
-        if logger is not None:
-            logger.close()
-        if checkpointer is not None:
-            checkpointer.close()
-        if writer and logger is not None:
-            plot_curve(out_dir)
+        run.close()
         run_lock.release()
-    return records
+    return run.records
+
+
+@dataclasses.dataclass
+class _Run:
+    """The host side of one training call: its outputs and what it has done so far."""
+
+    cfg: TrainConfig
+    out_dir: Path
+    population: list[Member]
+    devices: int
+    writer: bool
+    stop_after_chunks: int | None
+    time_budget_s: float | None
+    checkpointer: Checkpointer | None = None
+    logger: MetricsLogger | None = None
+    display: _Progress | None = None
+    records: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    diverged: set[int] = dataclasses.field(default_factory=set)
+    clock_start: float = dataclasses.field(default_factory=time.perf_counter)
+    wall_offset: float = 0.0
+
+    def close(self) -> None:
+        """Closes the outputs (each exactly once) and redraws the curve."""
+        for part in (self.display, self.logger, self.checkpointer):
+            if part is not None:
+                part.close()
+        if self.writer and self.logger is not None:
+            plot_curve(self.out_dir)
+
+
+def _start(run: _Run, program: Population, compiled: Any, resume: bool) -> tuple[Any, int]:
+    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run."""
+    run.clock_start = time.perf_counter()
+    if not resume:
+        return None, 0
+    state, meta, start_chunk = run.checkpointer.restore(
+        program.abstract_state, shardings=compiled.shardings
+    )
+    run.wall_offset = float(meta["wall_time_s"])
+    run.diverged = set(meta.get("diverged_members", []))
+    return state, start_chunk
+
+
+def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
+    """Chunks, evaluations, records and checkpoints until the run's end or a stop condition."""
+    for index in range(start_chunk, run.cfg.num_chunks):
+        if _stopping(run, index - start_chunk):
+            break
+        state, record = _chunk_and_record(run, compiled, state)
+        run.logger.write(record)
+        run.records.append(record)
+        last = index + 1 == run.cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
+        if last or (index + 1) % run.cfg.checkpoint_every == 0:
+            meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
+                    "diverged_members": sorted(run.diverged)}  # fmt: skip
+            run.checkpointer.save(index + 1, state, meta)
+        run.display.update(record)
+
+
+def _stopping(run: _Run, chunks_done: int) -> bool:
+    """Whether this call stops before its next chunk (chunk limit or wall-clock budget)."""
+    if run.stop_after_chunks is not None and chunks_done >= run.stop_after_chunks:
+        return True
+    budget = run.time_budget_s
+    return bool(run.records) and budget is not None and run.records[-1]["wall_time_s"] >= budget
+
+
+def _chunk_and_record(run: _Run, compiled: Any, state: Any) -> tuple[Any, dict[str, Any]]:
+    """One compiled chunk, the finiteness check, the evaluation and the record of both."""
+    chunk_start = time.perf_counter()
+    state, metrics = compiled.chunk(compiled.hyperparams, state)
+    metrics = {k: host_value(v) for k, v in metrics.items()}
+    chunk_seconds = time.perf_counter() - chunk_start
+    env_steps = int(metrics.pop("env_steps")[0])
+    updates = int(metrics.pop("agent_steps")[0])
+    metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
+    _check_finite(run, metrics, env_steps)
+    returns = host_value(compiled.evaluate(state)).astype(np.float64)
+    returns[sorted(run.diverged)] = np.nan
+    record = _record(run, updates, metrics, returns, env_steps)
+    record["wall_time_s"] = run.wall_offset + time.perf_counter() - run.clock_start
+    record["env_steps_per_s"] = len(run.population) * run.cfg.steps_per_chunk / chunk_seconds
+    record["devices"] = run.devices
+    return state, record
 
 
 def steps_per_chunk(cfg: TrainConfig) -> int:
-    """Environment steps of one member in one chunk."""
+    """Environment steps of one member in one chunk (``cfg.steps_per_chunk``)."""
     return cfg.steps_per_chunk
 
 
-def _record(cfg, population, updates, metrics, returns, env_steps) -> dict[str, Any]:
+def _record(run: _Run, updates, metrics, returns, env_steps) -> dict[str, Any]:
+    cfg, population = run.cfg, run.population
     record: dict[str, Any] = {
         "env": cfg.env,
         "algo": cfg.algo,
@@ -193,46 +233,56 @@ def _record(cfg, population, updates, metrics, returns, env_steps) -> dict[str, 
         "env_steps": env_steps,
         "updates": updates,
     }
-    scalars = {k: float(np.mean(v)) for k, v in metrics.items() if k != "params_finite"}
+    alive = [i for i in range(len(population)) if i not in run.diverged]
+    scalars = {k: float(np.mean(v[alive])) for k, v in metrics.items() if k != "params_finite"}
     if len(population) == 1:
         return {**record, **return_stats(returns[0]), **scalars}
-    record.update(population_stats(returns))
+    record.update(population_stats(returns[alive]))
     record.update(scalars)
-    record["per_member"] = [
-        {
-            "seed": m.seed,
-            "settings": dict(m.overrides),
-            **return_stats(returns[i]),
-            "critic_loss": float(metrics["critic_loss"][i]),
-            "actor_loss": float(metrics["actor_loss"][i]),
-        }
-        for i, m in enumerate(population)
-    ]
+    if run.diverged:
+        record["diverged_members"] = [population[i].label() for i in sorted(run.diverged)]
+    record["per_member"] = [_member_record(run, i, metrics, returns)
+                            for i in range(len(population))]  # fmt: skip
     return record
 
 
-def _check_finite(metrics, population, env_steps, last_checkpoint, cfg) -> None:
-    bad = []
-    for i, member in enumerate(population):
-        names = [
-            k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])
-        ]
-        if metrics["params_finite"][i] < 1.0:
-            names.append("parameters")
-        if names:
-            who = f" ({member.label()})" if len(population) > 1 else ""
-            bad.append(", ".join(names) + who)
-    if bad:
-        kept = (
-            f"the last good checkpoint (after {last_checkpoint * steps_per_chunk(cfg)} env steps) "
-            "is kept"
-            if last_checkpoint
-            else "no checkpoint had been written yet"
-        )
-        raise NonFiniteError(
-            f"non-finite {'; '.join(bad)} in the chunk ending at env step {env_steps}; "
-            f"stopped, {kept}"
-        )
+def _member_record(run: _Run, i: int, metrics, returns) -> dict[str, Any]:
+    member = run.population[i]
+    values = {**return_stats(returns[i]), "critic_loss": float(metrics["critic_loss"][i]),
+              "actor_loss": float(metrics["actor_loss"][i])}  # fmt: skip
+    values = {k: (v if math.isfinite(v) else None) for k, v in values.items()}
+    entry = {"seed": member.seed, "settings": dict(member.overrides), **values}
+    return {**entry, "diverged": True} if i in run.diverged else entry
+
+
+def _nonfinite(metrics: dict[str, np.ndarray], i: int) -> list[str]:
+    """What is non-finite in member ``i``'s chunk metrics (losses, Q, parameters)."""
+    names = [k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])]
+    return names + (["parameters"] if metrics["params_finite"][i] < 1.0 else [])
+
+
+def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
+    """Marks newly diverged members of a population; stops a single run, or a population
+    whose members have all diverged, with :class:`NonFiniteError`."""
+    population = run.population
+    bad = {i: _nonfinite(metrics, i) for i in range(len(population)) if i not in run.diverged}
+    bad = {i: names for i, names in bad.items() if names}
+    if len(population) > 1 and len(run.diverged) + len(bad) < len(population):
+        for i, names in bad.items():
+            print(f"td3-jax: warning: member {population[i].label()} diverged (non-finite "
+                  f"{', '.join(names)} at env step {env_steps}); the others go on",
+                  file=sys.stderr)  # fmt: skip
+        run.diverged.update(bad)
+        return
+    if not bad:
+        return
+    last = run.checkpointer.latest_step()
+    kept = (f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
+            if last else "no checkpoint had been written yet")  # fmt: skip
+    who = lambda i: f" ({population[i].label()})" if len(population) > 1 else ""
+    described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
+    raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
+                         f"stopped, {kept}")  # fmt: skip
 
 
 class _Progress:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import numpy as np
@@ -148,3 +149,27 @@ def test_population_keeps_reset_and_warmup_branches():
 def test_a_non_finite_swept_value_is_refused_before_anything_compiles(value):
     with pytest.raises(ConfigError, match=r"finite.*--sweep-critic-lr"):
         members(TINY, {"critic_lr": [1e-3, float(value)]})
+
+
+def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
+    """Issue 10.4: one exploding setting no longer stops the sweep (nor every resume)."""
+    out = tmp_path / "s"
+    args = [
+        "sweep", "--sweep-critic-lr", "1e30", "1e-3", "--out", str(out),
+        "--num-envs", "4", "--total-steps", "256", "--eval-every", "128", "--warmup-steps", "32",
+        "--batch-size", "32", "--updates-per-iter", "2", "--hidden-sizes", "16", "16",
+        "--eval-envs", "2", "--buffer-size", "256", "--quiet",
+    ]  # fmt: skip
+    cli_main(args)
+    captured = capsys.readouterr()
+    assert "critic_lr=1e+30 seed=0 diverged" in captured.err
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["env_steps"] for r in records] == [128, 256]
+    last = records[-1]
+    exploded, fine = last["per_member"]
+    assert exploded["diverged"] is True and exploded["eval_return_mean"] is None
+    assert "diverged" not in fine and np.isfinite(fine["eval_return_mean"])
+    assert last["diverged_members"] == ["critic_lr=1e+30 seed=0"]
+    assert last["eval_return_mean"] == pytest.approx(fine["eval_return_mean"])  # the live ones
+    table = captured.out[captured.out.index("rank") :]
+    assert table.index("critic_lr=0.001") < table.index("critic_lr=1e+30")  # diverged: last
