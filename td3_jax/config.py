@@ -160,82 +160,86 @@ class TrainConfig:
         )
 
 
+_POSITIVE = (
+    "num_envs", "seeds", "total_steps", "steps_per_iter", "batch_size", "buffer_size",
+    "eval_every", "eval_envs", "policy_freq", "n_step", "keep_checkpoints", "checkpoint_every",
+    "replay_shards",
+)  # fmt: skip
+_NON_NEGATIVE = ("warmup_steps", "updates_per_iter")
+_FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise", "noise_clip",
+           "ou_theta", "ou_sigma", "ou_min_sigma")  # fmt: skip
+_BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
+
+
+def _flag(name: str) -> str:
+    return f"--{name.replace('_', '-')}"
+
+
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work."""
-    positive = [
-        "num_envs",
-        "seeds",
-        "total_steps",
-        "steps_per_iter",
-        "batch_size",
-        "buffer_size",
-        "eval_every",
-        "eval_envs",
-        "policy_freq",
-        "n_step",
-        "keep_checkpoints",
-        "checkpoint_every",
-    ]
-    for name in positive:
-        value = getattr(cfg, name)
-        if value <= 0:
-            raise ConfigError(f"--{name.replace('_', '-')} must be positive, got {value}")
-    for name in ["warmup_steps", "updates_per_iter"]:
-        value = getattr(cfg, name)
-        if value < 0:
-            raise ConfigError(f"--{name.replace('_', '-')} must not be negative, got {value}")
+    _check_counts(cfg)
+    _check_floats(cfg)
+    _check_replay(cfg)
     if cfg.algo not in ("td3", "ddpg"):
         raise ConfigError(f"unknown algorithm {cfg.algo!r}; choose td3 or ddpg")
+    if cfg.env_backend not in _BACKENDS:
+        raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; "
+                          f"choose one of {', '.join(_BACKENDS)}")  # fmt: skip
+    if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
+        raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
+    return cfg
+
+
+def _check_counts(cfg: TrainConfig) -> None:
+    for name in _POSITIVE:
+        if getattr(cfg, name) <= 0:
+            raise ConfigError(f"{_flag(name)} must be positive, got {getattr(cfg, name)}")
+    for name in _NON_NEGATIVE:
+        if getattr(cfg, name) < 0:
+            raise ConfigError(f"{_flag(name)} must not be negative, got {getattr(cfg, name)}")
     if cfg.episode_length is not None and cfg.episode_length <= 0:
         raise ConfigError(f"--episode-length must be positive, got {cfg.episode_length}")
-    if cfg.env_steps_per_iter > cfg.replay_capacity:
-        raise ConfigError(
-            f"one iteration adds {cfg.env_steps_per_iter} transitions but the replay buffer holds "
-            f"only {cfg.replay_capacity}"
-        )
-    if cfg.batch_size > cfg.replay_capacity:
-        raise ConfigError(
-            f"--batch-size {cfg.batch_size} is larger than the replay buffer "
-            f"({cfg.replay_capacity} transitions)"
-        )
+
+
+def _check_floats(cfg: TrainConfig) -> None:
+    """Finite floats (NaN and infinities are refused before anything compiles), in range."""
+    for name in _FLOATS:
+        value = getattr(cfg, name)
+        if value is not None and not math.isfinite(value):
+            raise ConfigError(f"{_flag(name)} must be a finite number, got {value}")
+        if value is not None and value < 0:
+            raise ConfigError(f"{_flag(name)} must not be negative, got {value}")
+    if not 0.0 <= cfg.discount <= 1.0:
+        raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")
+    if cfg.tau is not None and not 0.0 < cfg.tau <= 1.0:
+        raise ConfigError(f"--tau must be in (0, 1], got {cfg.tau}")
+
+
+def _check_replay(cfg: TrainConfig) -> None:
+    capacity = cfg.replay_capacity
+    if cfg.env_steps_per_iter > capacity:
+        raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
+                          f"replay buffer holds only {capacity}")  # fmt: skip
+    if cfg.batch_size > capacity:
+        raise ConfigError(f"--batch-size {cfg.batch_size} is larger than the replay buffer "
+                          f"({capacity} transitions)")  # fmt: skip
     if cfg.batch_size > cfg.run_steps:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
             f"run collects (--total-steps {cfg.total_steps}): it would never update"
         )
-    backends = {"mjx", "generalized", "positional", "spring", "jax", "warp"}
-    if cfg.env_backend not in backends:
-        raise ConfigError(
-            f"unknown --env-backend {cfg.env_backend!r}; "
-            f"choose one of {', '.join(sorted(backends))}"
-        )
-    if cfg.replay_shards <= 0:
-        raise ConfigError(f"--replay-shards must be positive, got {cfg.replay_shards}")
-    for name, value in (
-        ("--num-envs", cfg.num_envs),
-        ("--batch-size", cfg.batch_size),
-        ("the replay capacity", cfg.replay_capacity),
-    ):
+    for name, value in (("--num-envs", cfg.num_envs), ("--batch-size", cfg.batch_size),
+                        ("the replay capacity", capacity)):  # fmt: skip
         if value % cfg.replay_shards:
             raise ConfigError(
                 f"{name} ({value}) must be divisible by --replay-shards ({cfg.replay_shards})"
             )
-    if (cfg.n_step - 1) * cfg.num_envs >= cfg.replay_capacity:
+    if (cfg.n_step - 1) * cfg.num_envs >= capacity:
         raise ConfigError(
             f"--n-step {cfg.n_step} reads {cfg.n_step - 1} steps past a sampled transition, "
             f"{(cfg.n_step - 1) * cfg.num_envs} stored transitions, "
-            f"more than the replay buffer holds ({cfg.replay_capacity})"
+            f"more than the replay buffer holds ({capacity})"
         )
-    if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
-        raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
-    for name in ["expl_noise", "policy_noise", "noise_clip", "ou_sigma", "ou_min_sigma"]:
-        if getattr(cfg, name) is not None and getattr(cfg, name) < 0:
-            raise ConfigError(f"--{name.replace('_', '-')} must not be negative")
-    if not 0.0 <= cfg.discount <= 1.0:
-        raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")
-    if cfg.tau is not None and not 0.0 < cfg.tau <= 1.0:
-        raise ConfigError(f"--tau must be in (0, 1], got {cfg.tau}")
-    return cfg
 
 
 # Shared by the GPU presets (measured on one H200, brax/ant unless noted, 90 s budgets with

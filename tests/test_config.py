@@ -276,3 +276,10 @@ def test_device_defaults_scale_with_the_device():
     assert cpu.num_envs <= 64 <= 4096 <= gpu.num_envs
     assert gpu == TrainConfig(**{**PRESETS["ant"], "env": "brax/hopper"})
     assert validate(cpu) and validate(gpu)
+
+
+@pytest.mark.parametrize("name", ["actor_lr", "critic_lr", "tau", "expl_noise", "ou_sigma"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_float_settings_are_refused(name, value):
+    with pytest.raises(ConfigError, match=rf"--{name.replace('_', '-')} must be a finite number"):
+        validate(TrainConfig(**{name: value}))
