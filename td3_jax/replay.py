@@ -68,15 +68,13 @@ def add(buffer: ReplayBuffer, transitions: Any) -> ReplayBuffer:
 
     Cost is O(n): a scatter of ``n`` rows at ``(position + arange(n)) % capacity``.
     """
-    leaves = jax.tree.leaves(transitions)
-    n = leaves[0].shape[0]
+    _check_rows(buffer, transitions)
+    n = jax.tree.leaves(transitions)[0].shape[0]
     capacity = buffer.capacity
     if n > capacity:
         raise ValueError(
             f"cannot add {n} transitions at once to a replay buffer of capacity {capacity}"
         )
-    if any(leaf.shape[0] != n for leaf in leaves):
-        raise ValueError("all leaves of the added transitions need the same leading size")
     indices = (buffer.position + jnp.arange(n, dtype=jnp.int32)) % capacity
     data = jax.tree.map(
         lambda store, x: store.at[indices].set(x.astype(store.dtype), unique_indices=True),
@@ -88,6 +86,28 @@ def add(buffer: ReplayBuffer, transitions: Any) -> ReplayBuffer:
         position=(buffer.position + n) % capacity,
         size=jnp.minimum(buffer.size + n, capacity),
     )
+
+
+def _check_rows(buffer: ReplayBuffer, transitions: Any) -> None:
+    """``ValueError`` naming the field unless ``transitions`` is the buffer's structure with one
+    leading batch axis of the same size on every leaf."""
+    if jax.tree.structure(transitions) != jax.tree.structure(buffer.data):
+        raise ValueError(
+            f"added transitions have the structure {jax.tree.structure(transitions)}, the buffer "
+            f"holds {jax.tree.structure(buffer.data)}"
+        )
+    stored = jax.tree_util.tree_leaves_with_path(buffer.data)
+    added = jax.tree.leaves(transitions)
+    n = jnp.shape(added[0])[0] if jnp.ndim(added[0]) else None
+    for (path, store), leaf in zip(stored, added, strict=True):
+        shape = tuple(jnp.shape(leaf))
+        if n is None or shape != (n, *store.shape[1:]):
+            want = "".join(f", {d}" for d in store.shape[1:])
+            raise ValueError(
+                f"added transitions{jax.tree_util.keystr(path)} has shape {list(shape)}; "
+                f"expected [n{want}] (a batch of rows shaped like the buffer's, the same n "
+                "for every field)"
+            )
 
 
 def sample(buffer: ReplayBuffer, key: PRNGKey, batch_size: int) -> Any:

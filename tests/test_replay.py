@@ -289,3 +289,19 @@ def test_vmap_one_buffer_per_seed(sizes):
         np.testing.assert_array_equal(
             sampled_s["id"], replay.sample(buf_s, keys[s], SAMPLE_SIZE)["id"]
         )
+
+
+def test_add_of_rows_shaped_unlike_the_buffer_names_the_field():
+    """Issue 10.11: shape errors at the API boundary, not raw JAX scatter errors."""
+    buf = replay.init(8, tj.Transition(np.zeros(3), np.zeros(2), 0.0, np.zeros(3), 0.0))
+    good = tj.Transition(np.zeros((4, 3)), np.zeros((4, 2)), np.zeros(4), np.zeros((4, 3)),
+                         np.zeros(4))  # fmt: skip
+    assert int(replay.add(buf, good).size) == 4
+    wrong_obs = good._replace(next_obs=np.zeros((4, 5)))
+    with pytest.raises(ValueError, match=r"\.next_obs has shape \[4, 5\]; expected \[n, 3\]"):
+        replay.add(buf, wrong_obs)
+    unbatched = good._replace(reward=np.float32(0.0))
+    with pytest.raises(ValueError, match=r"\.reward has shape \[\]; expected \[n\]"):
+        replay.add(buf, unbatched)
+    with pytest.raises(ValueError, match="structure"):
+        replay.add(buf, {"obs": np.zeros((4, 3))})

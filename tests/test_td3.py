@@ -871,3 +871,32 @@ def test_bandit_actor_learns_optimal_action():
     assert abs(start - 0.5) > 0.2, start  # it really had to move
     assert abs(action - 0.5) < 0.1, action
     assert float(losses[-20:].mean()) < float(losses[:20].mean())
+
+
+@pytest.mark.parametrize(
+    "build_bad, message",
+    [
+        (lambda: tj.td3(tj.TD3Config(hidden_sizes=HIDDEN), 3.5, ACT), "observation_size"),
+        (lambda: tj.td3(tj.TD3Config(hidden_sizes=HIDDEN), OBS, True), "action_size"),
+        (lambda: tj.td3(tj.TD3Config(tau=2.0, hidden_sizes=HIDDEN), OBS, ACT), "tau"),
+        (lambda: tj.td3(tj.TD3Config(tau=0.0, hidden_sizes=HIDDEN), OBS, ACT), "tau"),
+        (lambda: tj.ddpg(tj.DDPGConfig(discount=1.5, hidden_sizes=HIDDEN), OBS, ACT), "discount"),
+        (lambda: tj.td3(tj.TD3Config(actor_lr=float("nan"), hidden_sizes=HIDDEN), OBS, ACT),
+         "actor_lr"),
+    ],
+)  # fmt: skip
+def test_impossible_sizes_and_hyperparameters_are_refused(build_bad, message):
+    """Issue 10.11: ``td3(cfg, 3.5, ...)`` and ``tau=2`` used to be accepted."""
+    with pytest.raises(ValueError, match=message):
+        build_bad()
+
+
+def test_update_with_a_wrongly_shaped_batch_names_the_field():
+    agent = build("td3", make_config("td3"))
+    state = init_state("td3", 0)
+    batch = make_batch(0)
+    expected = r"Transition\.obs has shape \[8, 5\]; expected \[batch, 3\]"
+    with pytest.raises(ValueError, match=expected):
+        agent.update(state, batch._replace(obs=np.zeros((BATCH, 5), np.float32)), jax.random.key(0))
+    with pytest.raises(ValueError, match=r"Transition\.reward has shape \[8, 1\]"):
+        agent.update(state, batch._replace(reward=batch.reward[:, None]), jax.random.key(0))
