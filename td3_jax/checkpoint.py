@@ -2,23 +2,58 @@
 
 A checkpoint holds every leaf of the :class:`~td3_jax.training.TrainState` (parameters, targets,
 optimiser states, normaliser, replay buffer, environment states, RNG keys and counters) plus a
-small JSON record of host-side progress. Orbax writes each checkpoint to a temporary folder and
-renames it when complete, so a run killed mid-write keeps its previous checkpoint; only the
-newest ``keep`` are kept.
+small JSON record of host-side progress, the arrays' layout and a SHA-256 of every array. Orbax
+writes each checkpoint to a temporary folder and renames it when complete, so a run killed
+mid-write keeps its previous checkpoint; only the newest ``keep`` are kept.
+
+Failures are clean: a restored array whose bytes differ from those saved (bit rot, a garbled
+file) makes the checkpoint corrupt, and restoring the newest checkpoint then falls back to the
+next older one with a one-line warning; a failed write (a full disk) removes what it left and
+raises :class:`CheckpointWriteError` naming the last good checkpoint.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import hashlib
 import logging
 import math
+import os
+import shutil
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
 
+# Orbax writes <step>.orbax-checkpoint-tmp (older versions: ...-tmp-<time>) and renames it.
+_TMP_MARK = ".orbax-checkpoint-tmp"
+_HASH = "sha256"
+_META_KEYS = ("layout", "checksums")  # what save adds to the caller's meta
+# (errno, text in a wrapped message such as tensorstore's, what the error message says)
+_WRITE_CAUSES = [
+    (errno.ENOSPC, "No space left", "no space left on the disk holding {}"),
+    (errno.EDQUOT, "Disk quota exceeded", "the disk quota of {} is exceeded"),
+    (errno.EROFS, "Read-only file system", "{} is on a read-only file system"),
+    (errno.EACCES, "Permission denied", "no permission to write in {}"),
+]
+
+
+class _OrbaxLogFilter(logging.Filter):
+    """Drops orbax's own log records: every failure they report surfaces as a CheckpointError."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return f"{os.sep}orbax{os.sep}" not in record.pathname
+
+
 logging.getLogger("absl").setLevel(logging.ERROR)
+logging.getLogger("absl").addFilter(_OrbaxLogFilter())
 # After a failed read of a corrupt checkpoint, tensorstore callbacks still in flight can hit the
 # closed event loop; asyncio would log each as a traceback. The CheckpointError says it all.
 logging.getLogger("asyncio").setLevel(logging.CRITICAL)
@@ -28,87 +63,158 @@ class CheckpointError(RuntimeError):
     """A checkpoint that is missing, corrupt or does not match the run's configuration."""
 
 
-class Checkpointer:
-    """Saves and restores train states under ``directory`` (``directory/<chunk>/``)."""
+class CorruptCheckpointError(CheckpointError):
+    """A checkpoint that cannot be read, or whose arrays fail their checksums."""
 
-    def __init__(self, directory: Path, keep: int = 3):
+
+class CheckpointWriteError(CheckpointError):
+    """A checkpoint that could not be written (a full disk, no permission); none of it is left."""
+
+
+class Checkpointer:
+    """Saves and restores train states under ``directory`` (``directory/<chunk>/``).
+
+    With ``create=False`` the directory is not created until the first :meth:`save`, so a reader
+    (``eval``, a failed ``--resume``) leaves nothing behind; a missing directory has no steps.
+    """
+
+    def __init__(self, directory: Path, keep: int = 3, create: bool = True):
         self.directory = Path(directory).absolute()
-        self._manager = ocp.CheckpointManager(
-            self.directory,
-            options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True),
-        )
+        self._keep = keep
+        self._manager: ocp.CheckpointManager | None = None
+        _quiet_closed_loop_callbacks()
+        if create:
+            self._manager = self._new_manager()
+
+    def steps(self) -> list[int]:
+        """The steps of the complete checkpoints in the directory, oldest first."""
+        if self._manager is None and not self.directory.is_dir():
+            return []
+        return sorted(self._orbax().all_steps())
 
     def latest_step(self) -> int | None:
-        return self._manager.latest_step()
+        """The newest complete checkpoint's step (it may still turn out corrupt), or None."""
+        steps = self.steps()
+        return steps[-1] if steps else None
 
     def save(self, step: int, state: Any, meta: dict) -> None:
-        """Writes checkpoint ``step`` and waits until it is complete on disk."""
-        leaves = _stored_leaves(state)
-        layout = [[path, list(x.shape), str(x.dtype)] for path, x in _leaves_with_paths(state)]
-        self._manager.save(
-            step,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardSave(leaves),
-                meta=ocp.args.JsonSave({**meta, "layout": layout}),
-            ),
+        """Writes checkpoint ``step`` and waits until it is complete on disk.
+
+        Checkpoints at ``step`` or later (left by a run resumed from an older checkpoint) are
+        replaced. A failed write removes what it left and raises :class:`CheckpointWriteError`.
+        """
+        _quiet_closed_loop_callbacks()
+        leaves = _leaves_with_paths(state)
+        record = {
+            **meta,
+            "layout": [[path, list(x.shape), str(x.dtype)] for path, x in leaves],
+            "checksums": [_checksum(x) for _, x in leaves],
+        }
+        args = ocp.args.Composite(
+            state=ocp.args.StandardSave(_stored_leaves(state)), meta=ocp.args.JsonSave(record)
         )
-        self._manager.wait_until_finished()
+        try:
+            manager = self._orbax()
+            for stale in [s for s in manager.all_steps() if s >= step]:
+                manager.delete(stale)
+            saved = manager.save(step, args=args)
+            manager.wait_until_finished()
+        except Exception as err:  # orbax / tensorstore wrap OS errors in many types
+            raise self._write_failed(step, err) from err
+        if not saved:
+            raise self._write_failed(step, RuntimeError("orbax skipped the save"))
 
     def restore(
         self, abstract_state: Any, step: int | None = None, shardings: Any = None
     ) -> tuple[Any, dict, int]:
-        """Restores ``(state, meta, step)`` from checkpoint ``step`` (default: the newest).
+        """Restores ``(state, meta, step)`` from checkpoint ``step`` (default: the newest good one).
 
         ``abstract_state`` gives the expected structure, shapes and dtypes (``jax.eval_shape`` of
         the trainer's ``init``); a checkpoint that differs raises :class:`CheckpointError`.
         ``shardings`` (a matching pytree of ``jax.sharding.Sharding``) places the restored arrays
         directly, so a checkpoint written on one device count restores onto another.
+
+        Without ``step``, a corrupt newest checkpoint is skipped for the next older one, with a
+        one-line warning on stderr; the returned ``step`` says which was used. If all are
+        corrupt, the newest one's :class:`CorruptCheckpointError` is raised.
         """
-        step = self.latest_step() if step is None else step
-        if step is None:
-            raise CheckpointError(f"no checkpoint found in {self.directory}")
-        try:
-            meta = self._manager.restore(
-                step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())
-            )["meta"]
-        except Exception as err:  # orbax raises many types; all mean "unusable checkpoint"
-            raise _unusable(self.directory / str(step), err) from err
-        expected = [[p, list(x.shape), str(x.dtype)] for p, x in _leaves_with_paths(abstract_state)]
-        saved = meta.get("layout") if isinstance(meta, dict) else None
-        if saved != expected:
-            diff = next(
-                (
-                    f"{w[0]}: saved {s[1]} {s[2]}, expected {w[1]} {w[2]}"
-                    for s, w in zip(saved or [], expected, strict=False)
-                    if s != w
-                ),
-                f"{len(saved or [])} saved arrays, {len(expected)} expected",
-            )
-            raise CheckpointError(
-                f"checkpoint {self.directory / str(step)} does not match this run's "
-                f"configuration ({diff})"
-            )
-        if shardings is None:
-            target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state)
-        else:
-            target = jax.tree.map(
-                lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s),
-                abstract_state,
-                shardings,
-            )
-        target = _stored_leaves(target)
-        try:
-            restored = self._manager.restore(
-                step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target))
-            )["state"]
-        except Exception as err:
-            raise _unusable(self.directory / str(step), err) from err
-        state = _rebuild(abstract_state, restored)
-        meta = {k: v for k, v in meta.items() if k != "layout"}
-        return state, meta, step
+        _quiet_closed_loop_callbacks()
+        if step is not None:
+            return self._restore_step(abstract_state, step, shardings)
+        skipped: list[CorruptCheckpointError] = []
+        for candidate in reversed(self.steps()):
+            try:
+                result = self._restore_step(abstract_state, candidate, shardings)
+            except CorruptCheckpointError as err:
+                skipped.append(err)
+                continue
+            if skipped and jax.process_index() == 0:
+                used = self.directory / str(candidate)
+                reasons = "; ".join(str(err) for err in skipped)
+                print(f"td3-jax: warning: {reasons}; using checkpoint {used}", file=sys.stderr)
+            return result
+        if skipped:
+            raise skipped[0]
+        raise CheckpointError(f"no checkpoint found in {self.directory}")
 
     def close(self) -> None:
-        self._manager.close()
+        """Waits for outstanding writes and releases orbax's resources."""
+        if self._manager is not None:
+            self._manager.close()
+            self._manager = None
+
+    def _new_manager(self) -> ocp.CheckpointManager:
+        return ocp.CheckpointManager(
+            self.directory,
+            options=ocp.CheckpointManagerOptions(max_to_keep=self._keep, create=True),
+        )
+
+    def _orbax(self) -> ocp.CheckpointManager:
+        """The orbax manager, made on first use (it creates the directory)."""
+        if self._manager is None:
+            self._manager = self._new_manager()
+        return self._manager
+
+    def _restore_step(
+        self, abstract_state: Any, step: int, shardings: Any
+    ) -> tuple[Any, dict, int]:
+        """Restores checkpoint ``step``, checking its layout and checksums."""
+        path = self.directory / str(step)
+        if step not in self.steps():
+            raise CheckpointError(f"no checkpoint {path} (steps found: {self.steps()})")
+        meta = self._read(step, meta=ocp.args.JsonRestore())["meta"]
+        _check_layout(meta, abstract_state, path)
+        target = _stored_leaves(_restore_target(abstract_state, shardings))
+        stored = self._read(step, state=ocp.args.StandardRestore(target))["state"]
+        state = _rebuild(abstract_state, stored)
+        _verify(state, meta.get("checksums"), path)
+        return state, {k: v for k, v in meta.items() if k not in _META_KEYS}, step
+
+    def _read(self, step: int, **items: Any) -> Any:
+        """``items`` of checkpoint ``step``; any failure is a :class:`CorruptCheckpointError`."""
+        try:
+            return self._orbax().restore(step, args=ocp.args.Composite(**items))
+        except Exception as err:  # orbax raises many types; all mean "unusable checkpoint"
+            raise _unusable(self.directory / str(step), err) from err
+
+    def _write_failed(self, step: int, err: Exception) -> CheckpointWriteError:
+        """Removes what the failed save of ``step`` left and describes the failure."""
+        manager, self._manager = self._manager, None  # a fresh one re-reads the directory
+        if manager is not None:
+            with contextlib.suppress(Exception):  # it re-raises the failed write
+                manager.close()
+        if jax.process_index() == 0:
+            _remove_partial(self.directory, step)
+        older = sorted(int(p.name) for p in self.directory.glob("*") if p.name.isdigit())
+        last = (
+            f"the last good checkpoint is {self.directory / str(older[-1])}"
+            if older
+            else "there is no earlier checkpoint"
+        )
+        cause = _write_cause(err, self.directory)
+        return CheckpointWriteError(
+            f"could not write checkpoint {self.directory / str(step)}: {cause}; {last}"
+        )
 
 
 def _leaves_with_paths(tree: Any) -> list[tuple[str, Any]]:
@@ -129,8 +235,158 @@ def _rebuild(abstract_state: Any, stored: dict[str, Any]) -> Any:
     return jax.tree.unflatten(treedef, values)
 
 
-def _unusable(path: Path, err: Exception) -> CheckpointError:
-    first_line = (str(err).splitlines() or [""])[0][:200]
-    return CheckpointError(
-        f"checkpoint {path} is unreadable or corrupt ({type(err).__name__}: {first_line})"
+def _restore_target(abstract_state: Any, shardings: Any) -> Any:
+    """The arrays orbax should produce: the abstract state's, placed by ``shardings`` if given."""
+    if shardings is None:
+        return jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state)
+    return jax.tree.map(
+        lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), abstract_state, shardings
     )
+
+
+def _check_layout(meta: Any, abstract_state: Any, path: Path) -> None:
+    """Raises unless the saved layout is the abstract state's (paths, shapes and dtypes)."""
+    saved = meta.get("layout") if isinstance(meta, dict) else None
+    if not (isinstance(saved, list) and all(isinstance(r, list) and len(r) == 3 for r in saved)):
+        raise CorruptCheckpointError(f"checkpoint {path} is corrupt (its metadata has no layout)")
+    expected = [[p, list(x.shape), str(x.dtype)] for p, x in _leaves_with_paths(abstract_state)]
+    if saved == expected:
+        return
+    diff = next(
+        (
+            f"{w[0]}: saved {s[1]} {s[2]}, expected {w[1]} {w[2]}"
+            if s[:1] == w[:1]
+            else f"saved {s[0]} {s[1]} {s[2]}, expected {w[0]} {w[1]} {w[2]}"
+            for s, w in zip(saved, expected, strict=False)
+            if s != w
+        ),
+        f"{len(saved)} saved arrays, {len(expected)} expected",
+    )
+    raise CheckpointError(
+        f"checkpoint {path} does not match this run's configuration ({diff})"
+    )
+
+
+def _host_value(x: Any) -> np.ndarray | None:
+    """The whole value of ``x`` on this host; None where this process holds only part of it."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        if not x.is_fully_replicated:
+            return None
+        x = x.addressable_data(0)
+    if jnp.issubdtype(x.dtype, jax.dtypes.extended):  # typed PRNG keys
+        x = jax.random.key_data(x)
+    return np.asarray(jax.device_get(x))
+
+
+def _checksum(x: Any) -> str | None:
+    """``"sha256:<hex>"`` of the array's bytes (None where this process cannot see them all)."""
+    value = _host_value(x)
+    if value is None:
+        return None
+    data = np.ascontiguousarray(value).reshape(-1).view(np.uint8)
+    return f"{_HASH}:{hashlib.sha256(data).hexdigest()}"
+
+
+def _verify(state: Any, checksums: Any, path: Path) -> None:
+    """Raises :class:`CorruptCheckpointError` for the first array that fails its checksum.
+
+    Checkpoints saved without checksums pass; so do arrays that were saved or are restored
+    split over several processes (no process sees the whole array).
+    """
+    if checksums is None:
+        return
+    leaves = _leaves_with_paths(state)
+    if not isinstance(checksums, list) or len(checksums) != len(leaves):
+        raise CorruptCheckpointError(f"checkpoint {path} is corrupt (its checksum list is damaged)")
+    for (name, x), want in zip(leaves, checksums, strict=True):
+        if not (isinstance(want, str) and want.startswith(f"{_HASH}:")):
+            continue
+        got = _checksum(x)
+        if got is not None and got != want:
+            raise CorruptCheckpointError(
+                f"checkpoint {path} is corrupt (array {name} fails its checksum)"
+            )
+
+
+def _unusable(path: Path, err: Exception) -> CorruptCheckpointError:
+    return CorruptCheckpointError(
+        f"checkpoint {path} is unreadable or corrupt ({_first_line(err)})"
+    )
+
+
+def _first_line(err: BaseException, limit: int = 200) -> str:
+    """``Type: first line of the message`` (cut to ``limit`` characters)."""
+    line = (str(err).splitlines() or [""])[0]
+    return f"{type(err).__name__}: {line[:limit]}{'...' if len(line) > limit else ''}"
+
+
+def _exception_chain(err: BaseException) -> Iterator[BaseException]:
+    """``err`` and the exceptions it was raised from or while handling."""
+    seen: set[int] = set()
+    current: BaseException | None = err
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        yield current
+        current = current.__cause__ or current.__context__
+
+
+def _write_cause(err: Exception, directory: Path) -> str:
+    """Why a write failed, in words: a known OS cause anywhere in the chain, else the error."""
+    chain = list(_exception_chain(err))
+    for code, text, cause in _WRITE_CAUSES:
+        if any(getattr(e, "errno", None) == code or text in str(e) for e in chain):
+            return cause.format(directory)
+    return _first_line(err)
+
+
+def _remove_partial(
+    directory: Path, step: int, settle_s: float = 0.25, timeout_s: float = 120.0
+) -> None:
+    """Removes the temporary and final folders of a failed save of ``step``.
+
+    Orbax raises at the first failed write while tensorstore may still be writing other files
+    (re-creating their folders), so the removal repeats until nothing reappears for ``settle_s``.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        for path in [*directory.glob(f"{step}{_TMP_MARK}*"), directory / str(step)]:
+            shutil.rmtree(path, ignore_errors=True)
+        time.sleep(settle_s)
+        left = [*directory.glob(f"{step}{_TMP_MARK}*"), *directory.glob(str(step))]
+        if not left or time.monotonic() > deadline:
+            return
+
+
+def _closed_loop_callback(args: Any) -> bool:
+    """Whether an unraisable error is tensorstore completing a future of a closed event loop.
+
+    Orbax runs each read or write in a fresh asyncio loop and closes it as soon as one operation
+    fails; those still in flight finish later on tensorstore's threads, whose callbacks then find
+    the loop closed. Nothing waits for them any more, so the error says nothing new.
+    """
+    tb = args.exc_traceback
+    return (
+        args.object is None
+        and isinstance(args.exc_value, RuntimeError)
+        and str(args.exc_value) == "Event loop is closed"
+        and tb is not None
+        and tb.tb_frame.f_code.co_name == "call_soon_threadsafe"
+    )
+
+
+def _quiet_closed_loop_callbacks() -> None:
+    """Installs (once) an unraisable-exception hook that drops only those harmless errors.
+
+    They can arrive after the failed restore has returned, so the hook stays installed; any
+    other unraisable exception goes to the hook that was there before.
+    """
+    previous = sys.unraisablehook
+    if getattr(previous, "td3_jax_quiet", False):
+        return
+
+    def hook(args: Any) -> None:
+        if not _closed_loop_callback(args):
+            previous(args)
+
+    hook.td3_jax_quiet = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook

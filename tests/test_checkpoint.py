@@ -7,7 +7,11 @@ dtype (so no leaf is a run of zeros that a lossy or misrouted restore would repr
 
 from __future__ import annotations
 
+import builtins
 import dataclasses
+import errno
+import json
+import logging
 import os
 from pathlib import Path
 
@@ -16,7 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from td3_jax.checkpoint import Checkpointer, CheckpointError
+from td3_jax.checkpoint import (
+    Checkpointer,
+    CheckpointError,
+    CheckpointWriteError,
+    CorruptCheckpointError,
+)
 from td3_jax.config import TrainConfig
 from td3_jax.training import TrainState, make_trainer
 
@@ -154,7 +163,7 @@ def test_only_the_newest_checkpoints_are_kept(tmp_path, abstract, state):
         (dict(num_envs=4), ["env_state", "[2]", "[4]"]),
         (dict(algo="ddpg"), ["critic_params", "[2, 8]", "[1, 8]"]),  # one critic, not two
         # the buffer is [replay_shards, capacity / replay_shards, ...]
-        (dict(total_steps=64, eval_every=64), ["buffer", "[1, 16, 3]", "[1, 64, 3]"]),
+        (dict(buffer_size=128), ["buffer", "[1, 64, 3]", "[1, 128, 3]"]),
     ],
 )
 def test_restore_with_a_different_config_raises(tmp_path, state, changes, details):
@@ -201,8 +210,9 @@ def _is_array_data(path: Path) -> bool:
     return path.parent.name == "d"
 
 
-# orbax/tensorstore may report the failed read again from a background thread.
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+# After a failed read, tensorstore's callbacks for orbax's closed event loop fail on background
+# threads; Checkpointer keeps those (and only those) from reaching sys.unraisablehook.
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
 @pytest.mark.parametrize(
     "pick, damage",
     [
@@ -237,7 +247,7 @@ def test_corrupt_checkpoint_raises_checkpoint_error(tmp_path, abstract, state, p
     for path in _files(tmp_path / "3", pick):
         damage(path)
     fresh = Checkpointer(tmp_path)
-    with pytest.raises(CheckpointError, match=r"unreadable or corrupt|does not match"):
+    with pytest.raises(CorruptCheckpointError, match=r".*/3 is (unreadable or )?corrupt"):
         fresh.restore(abstract)
     fresh.close()
 
@@ -262,3 +272,221 @@ def test_restore_from_an_empty_directory_raises(tmp_path, abstract):
 
 def test_checkpoint_error_is_a_runtime_error():
     assert issubclass(CheckpointError, RuntimeError)
+
+
+# --------------------------------------------------------------------------------------------
+# integrity checks, fallback to an older checkpoint, failed writes, read-only use
+# --------------------------------------------------------------------------------------------
+
+
+def with_big_array(state, seed: int) -> dict:
+    """A scrambled train state plus a large incompressible array (its bytes lie in a data file
+    as written, outside the index nodes whose own checksums the storage layer verifies)."""
+    big = np.random.default_rng(seed).normal(size=(64, 300)).astype(np.float32)
+    return {"train": scramble(state, seed), "big": jnp.asarray(big)}
+
+
+def bit_rot(directory: Path) -> Path:
+    """Inverts 64 bytes in the middle of the checkpoint's largest array file; size unchanged."""
+    path = max(_files(directory / "state", _is_array_data), key=lambda p: p.stat().st_size)
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(b ^ 0xFF for b in data[middle : middle + 64])
+    size = path.stat().st_size
+    path.write_bytes(bytes(data))
+    assert path.stat().st_size == size
+    return path
+
+
+def edit_meta(directory: Path, edit) -> None:
+    path = directory / "meta" / "metadata"
+    path.write_text(json.dumps(edit(json.loads(path.read_text()))))
+
+
+@pytest.fixture()
+def three_steps(tmp_path, state):
+    """Checkpoints 1, 2 and 3 of different values; returns (directory, {step: tree})."""
+    trees = {step: with_big_array(state, seed=step) for step in (1, 2, 3)}
+    ckpt = Checkpointer(tmp_path, keep=3)
+    for step, tree in trees.items():
+        ckpt.save(step, tree, {"step": step})
+    ckpt.close()
+    return tmp_path, trees
+
+
+def test_bit_rot_in_an_array_fails_its_checksum(three_steps):
+    directory, trees = three_steps
+    bit_rot(directory / "3")
+    ckpt = Checkpointer(directory)
+    with pytest.raises(CorruptCheckpointError) as err:
+        ckpt.restore(jax.eval_shape(lambda: trees[3]), step=3)  # an explicit step: no fallback
+    assert str(err.value) == (
+        f"checkpoint {directory / '3'} is corrupt (array ['big'] fails its checksum)"
+    )
+    ckpt.close()
+
+
+def test_a_wrong_recorded_checksum_names_the_array(three_steps):
+    directory, trees = three_steps
+    paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_leaves_with_path(trees[2])]
+    victim = next(i for i, p in enumerate(paths) if "actor_params" in p and "kernel" in p)
+
+    def replace_checksum(meta):
+        meta["checksums"][victim] = "sha256:" + "0" * 64
+        return meta
+
+    edit_meta(directory / "2", replace_checksum)
+    with pytest.raises(CorruptCheckpointError) as err:
+        Checkpointer(directory).restore(jax.eval_shape(lambda: trees[2]), step=2)
+    assert str(err.value) == (
+        f"checkpoint {directory / '2'} is corrupt "
+        f"(array {paths[victim]} fails its checksum)"
+    )
+
+
+def test_a_checkpoint_saved_without_checksums_still_restores(three_steps):
+    directory, trees = three_steps
+    edit_meta(directory / "3", lambda meta: {k: v for k, v in meta.items() if k != "checksums"})
+    restored, meta, step = Checkpointer(directory).restore(jax.eval_shape(lambda: trees[3]))
+    assert (meta, step) == ({"step": 3}, 3)
+    assert_bit_exact(restored, trees[3])
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_a_corrupt_newest_checkpoint_falls_back_to_the_previous_one(three_steps, capsys):
+    directory, trees = three_steps
+    bit_rot(directory / "3")
+    ckpt = Checkpointer(directory)
+    restored, meta, step = ckpt.restore(jax.eval_shape(lambda: trees[3]))
+    assert (meta, step) == ({"step": 2}, 2)
+    assert_bit_exact(restored, trees[2])
+    assert capsys.readouterr().err.splitlines() == [
+        f"td3-jax: warning: checkpoint {directory / '3'} is corrupt (array ['big'] fails its "
+        f"checksum); using checkpoint {directory / '2'}"
+    ]
+    assert ckpt.latest_step() == 3  # still there; the next save of step 3 replaces it
+    ckpt.save(3, trees[1], {"step": "3 again"})
+    restored, meta, step = ckpt.restore(jax.eval_shape(lambda: trees[3]))
+    assert (meta, step) == ({"step": "3 again"}, 3)
+    assert_bit_exact(restored, trees[1])
+    assert step_dirs(directory) == [1, 2, 3] and capsys.readouterr().err == ""
+    ckpt.close()
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_fallback_skips_every_corrupt_checkpoint_in_one_line(three_steps, capsys):
+    directory, trees = three_steps
+    bit_rot(directory / "3")
+    (directory / "2" / "meta" / "metadata").write_text("{not json")
+    restored, meta, step = Checkpointer(directory).restore(jax.eval_shape(lambda: trees[3]))
+    assert (meta, step) == ({"step": 1}, 1)
+    assert_bit_exact(restored, trees[1])
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"td3-jax: warning: checkpoint {directory / '3'} is corrupt (array")
+    assert f"; checkpoint {directory / '2'} is unreadable or corrupt (" in line
+    assert line.endswith(f"; using checkpoint {directory / '1'}")
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_when_every_checkpoint_is_corrupt_the_newest_error_is_raised(three_steps, capsys):
+    directory, trees = three_steps
+    for step in (1, 2, 3):
+        bit_rot(directory / str(step))
+    with pytest.raises(CorruptCheckpointError) as err:
+        Checkpointer(directory).restore(jax.eval_shape(lambda: trees[3]))
+    assert str(err.value) == (
+        f"checkpoint {directory / '3'} is corrupt (array ['big'] fails its checksum)"
+    )
+    assert capsys.readouterr().err == ""
+
+
+def test_a_newest_checkpoint_of_another_configuration_does_not_fall_back(tmp_path, capsys):
+    ckpt = Checkpointer(tmp_path)
+    ckpt.save(1, {"w": jnp.ones(3)}, {})
+    ckpt.save(2, {"w": jnp.ones(4)}, {})
+    with pytest.raises(CheckpointError, match="does not match this run's configuration") as err:
+        ckpt.restore(jax.eval_shape(lambda: {"w": jnp.ones(3)}))
+    assert not isinstance(err.value, CorruptCheckpointError)
+    assert str(err.value) == (
+        f"checkpoint {tmp_path / '2'} does not match this run's configuration "
+        "(['w']: saved [4] float32, expected [3] float32)"
+    )
+    assert capsys.readouterr().err == ""
+    ckpt.close()
+
+
+def fail_writes_under(monkeypatch, directory: Path, error: OSError) -> None:
+    """Every Python-level open for writing below ``directory`` raises ``error`` (as a full disk
+    would; orbax writes its metadata, JSON items and commit markers that way)."""
+    real_open = builtins.open
+
+    def open_(file, mode="r", *args, **kwargs):
+        if isinstance(file, str | os.PathLike) and str(file).startswith(str(directory)):
+            if any(flag in mode for flag in "wax+"):
+                raise error
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_)
+
+
+def leftovers(directory: Path) -> list[str]:
+    return [str(p) for p in directory.rglob("*") if "tmp" in p.name]
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_a_full_disk_fails_the_save_cleanly_and_keeps_the_last_checkpoint(
+    tmp_path, abstract, state, monkeypatch, caplog
+):
+    ckpt = Checkpointer(tmp_path, keep=3)
+    ckpt.save(4, state, {"step": 4})
+    with monkeypatch.context() as patch:
+        fail_writes_under(patch, tmp_path, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+        with pytest.raises(CheckpointWriteError) as err:
+            ckpt.save(5, scramble(state, seed=5), {"step": 5})
+    assert str(err.value) == (
+        f"could not write checkpoint {tmp_path / '5'}: no space left on the disk holding "
+        f"{tmp_path}; the last good checkpoint is {tmp_path / '4'}"
+    )
+    assert isinstance(err.value, CheckpointError)
+    assert leftovers(tmp_path) == [] and step_dirs(tmp_path) == [4]
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+    assert ckpt.latest_step() == 4
+    restored, meta, step = ckpt.restore(abstract)
+    assert (meta, step) == ({"step": 4}, 4)
+    assert_bit_exact(restored, state)
+    # Once there is room again, the same Checkpointer saves.
+    ckpt.save(5, scramble(state, seed=5), {"step": 5})
+    assert step_dirs(tmp_path) == [4, 5]
+    ckpt.close()
+
+
+def test_a_failed_first_save_says_there_is_no_earlier_checkpoint(tmp_path, state, monkeypatch):
+    ckpt = Checkpointer(tmp_path)
+    fail_writes_under(monkeypatch, tmp_path, OSError(errno.EIO, os.strerror(errno.EIO)))
+    with pytest.raises(CheckpointWriteError) as err:
+        ckpt.save(1, state, {})
+    monkeypatch.undo()
+    assert str(err.value) == (
+        f"could not write checkpoint {tmp_path / '1'}: OSError: [Errno {errno.EIO}] "
+        f"{os.strerror(errno.EIO)}; there is no earlier checkpoint"
+    )
+    assert leftovers(tmp_path) == [] and step_dirs(tmp_path) == []
+    ckpt.close()
+
+
+def test_a_read_only_checkpointer_creates_nothing(tmp_path, abstract, state):
+    missing = tmp_path / "run" / "checkpoints"
+    ckpt = Checkpointer(missing, create=False)
+    assert ckpt.latest_step() is None and ckpt.steps() == []
+    with pytest.raises(CheckpointError, match=r"no checkpoint found in .*checkpoints"):
+        ckpt.restore(abstract)
+    ckpt.close()
+    assert not (tmp_path / "run").exists()
+    # It reads an existing directory, and a save creates the directory.
+    ckpt = Checkpointer(missing, create=False)
+    ckpt.save(1, state, {})
+    ckpt.close()
+    reader = Checkpointer(missing, create=False)
+    assert reader.steps() == [1]
+    assert_bit_exact(reader.restore(abstract)[0], state)
+    reader.close()
