@@ -332,24 +332,13 @@ def print_sweep_ranking(record: dict) -> None:
 
 
 def eval_main(args: list[str]) -> None:
-    import jax
-    import numpy as np
-
-    from td3_jax.population import make_population
-    from td3_jax.run import load_config, load_members, population_stats, restore_state
+    from td3_jax.rundir import evaluate_run
+    from td3_jax.stats import population_stats
 
     command = _parse(EvalCommand, args, "td3-jax eval")
     if command.episodes <= 0:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
-    cfg = dataclasses.replace(load_config(command.run), eval_envs=command.episodes)
-    population = load_members(command.run, cfg)
-    program = make_population(cfg, population)
-    from td3_jax.sharding import make_mesh, state_shardings
-
-    shardings = state_shardings(program.abstract_state, make_mesh(1))  # any saved device count
-    state, meta, _ = restore_state(program, command.run, shardings=shardings)
-    keys = jax.random.split(jax.random.PRNGKey(command.seed), len(population))
-    returns = np.asarray(jax.jit(program.evaluate)(state, keys))
+    cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
     title = (
         f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
         f"{command.episodes} episodes each"

@@ -35,6 +35,7 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     load_config,
     load_members,
     open_run_dir,
+    restore_state,
     run_info,
     save_config,
 )
@@ -55,15 +56,6 @@ __all__ = [
 
 class NonFiniteError(RuntimeError):
     """A loss or parameter became NaN/inf; the run stopped and kept its last good checkpoint."""
-
-
-def restore_state(population: Population, out_dir: Path, keep: int = 3, shardings=None):
-    """The newest checkpoint of a run directory, checked against the population's state layout."""
-    checkpointer = Checkpointer(Path(out_dir) / "checkpoints", keep)
-    try:
-        return checkpointer.restore(population.abstract_state, shardings=shardings)
-    finally:
-        checkpointer.close()
 
 
 def train(
@@ -159,7 +151,11 @@ class _Run:
             if part is not None:
                 part.close()
         if self.writer and self.logger is not None:
-            plot_curve(self.out_dir)
+            try:
+                plot_curve(self.out_dir)
+            except OSError as err:  # e.g. a full disk: the records are kept, the curve is not
+                print(f"td3-jax: warning: could not draw curve.png ({err.strerror or err}); "
+                      "td3-jax plot redraws it", file=sys.stderr)  # fmt: skip
 
 
 def _start(run: _Run, program: Population, compiled: Any, resume: bool) -> tuple[Any, int]:

@@ -1,4 +1,5 @@
-"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json, members.json.
+"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json,
+members.json, and reading a run back (:func:`restore_state`, :func:`evaluate_run`).
 
 * **One run at a time.** A run holds an exclusive ``fcntl.flock`` on ``DIR/.lock`` (the file
   names the holder's pid and host) from before it writes anything until it has written its last
@@ -21,8 +22,13 @@ import socket
 from pathlib import Path
 from typing import Any
 
+import jax
+import numpy as np
+
+from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig
-from td3_jax.population import Member, members
+from td3_jax.population import Member, Population, make_population, members
+from td3_jax.sharding import make_mesh, state_shardings
 
 CONFIG_FILE = "config.json"
 MEMBERS_FILE = "members.json"
@@ -378,3 +384,36 @@ def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
         Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
         for m in json.loads(path.read_text())
     ]
+
+
+# --------------------------------------------------------------------------------------------
+# reading a run back: its newest checkpoint, and its policy evaluated
+# --------------------------------------------------------------------------------------------
+
+
+def restore_state(population: Population, out_dir: Path, keep: int = 3, shardings: Any = None):
+    """``(state, meta, step)`` of the newest good checkpoint of a run directory, checked against
+    the population's state layout (nothing is created in ``out_dir``)."""
+    checkpointer = Checkpointer(Path(out_dir) / CHECKPOINTS, keep, create=False)
+    try:
+        return checkpointer.restore(population.abstract_state, shardings=shardings)
+    finally:
+        checkpointer.close()
+
+
+def evaluate_run(
+    out_dir: Path, episodes: int, seed: int
+) -> tuple[TrainConfig, list[Member], dict, np.ndarray]:
+    """Re-evaluates every member of a run's newest checkpoint on ``episodes`` episodes.
+
+    Returns ``(config, members, checkpoint meta, returns [members, episodes])``; member ``k``
+    uses the ``k``-th key of ``jax.random.split(PRNGKey(seed), members)``. Restores onto one
+    device, whatever device count wrote the checkpoint.
+    """
+    cfg = dataclasses.replace(load_config(out_dir), eval_envs=episodes)
+    population = load_members(out_dir, cfg)
+    program = make_population(cfg, population)
+    shardings = state_shardings(program.abstract_state, make_mesh(1))
+    state, meta, _ = restore_state(program, out_dir, shardings=shardings)
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
+    return cfg, population, meta, np.asarray(jax.jit(program.evaluate)(state, keys))
