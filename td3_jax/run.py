@@ -93,18 +93,10 @@ def train(
         num_envs and batch_size stay global, so the numbers do not depend on the device count.
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
     """
-    validate(cfg)
-    mesh = make_mesh(devices)
-    check_divisible(cfg, mesh.size)
-    writer = jax.process_index() == 0  # several processes: one writes the logs
     out_dir = Path(out_dir)
-    if resume:
-        population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
-    else:
-        check_fresh(out_dir, writer=writer)
-        population, changes = members(cfg, sweep), {}
-    program = make_population(cfg, population, devices=mesh.size)
-    compiled = compile_for_mesh(program, mesh)
+    writer = jax.process_index() == 0  # several processes: one writes the logs
+    mesh = make_mesh(devices)
+    population, changes, program, compiled = _prepare(cfg, out_dir, resume, sweep, mesh, writer)
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, mesh.size, writer, stop_after_chunks, time_budget_s)
     try:
@@ -124,6 +116,20 @@ def train(
         run.close()
         run_lock.release()
     return run.records
+
+
+def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool):
+    """Checks ``cfg`` and the directory, then builds the population's program for ``mesh``:
+    ``(members, resume changes, program, compiled)``. Nothing is written yet."""
+    validate(cfg)
+    check_divisible(cfg, mesh.size)
+    if resume:
+        population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
+    else:
+        check_fresh(out_dir, writer=writer)
+        population, changes = members(cfg, sweep), {}
+    program = make_population(cfg, population, devices=mesh.size)
+    return population, changes, program, compile_for_mesh(program, mesh)
 
 
 @dataclasses.dataclass
