@@ -332,7 +332,8 @@ def test_a_wrong_recorded_checksum_names_the_array(three_steps):
     victim = next(i for i, p in enumerate(paths) if "actor_params" in p and "kernel" in p)
 
     def replace_checksum(meta):
-        meta["checksums"][victim] = "sha256:" + "0" * 64
+        kind = meta["checksums"][victim].split(":")[0]
+        meta["checksums"][victim] = f"{kind}:0:0"  # the right kind of checksum, a wrong value
         return meta
 
     edit_meta(directory / "2", replace_checksum)
@@ -490,3 +491,20 @@ def test_a_read_only_checkpointer_creates_nothing(tmp_path, abstract, state):
     assert reader.steps() == [1]
     assert_bit_exact(reader.restore(abstract)[0], state)
     reader.close()
+
+
+def test_a_checkpoint_of_an_older_format_says_so(tmp_path, state, abstract):
+    """A layout mismatch in a checkpoint without the current format is named as a version
+    difference, not as a configuration the user changed."""
+    ckpt = Checkpointer(tmp_path)
+    ckpt.save(1, state, {})
+    ckpt.close()
+
+    def as_format_one(meta):
+        del meta["format"]
+        meta["layout"][0][1] = [*meta["layout"][0][1], 1]  # as if the layout had changed
+        return meta
+
+    edit_meta(tmp_path / "1", as_format_one)
+    with pytest.raises(CheckpointError, match="another td3-jax version .*format 1, this version"):
+        Checkpointer(tmp_path).restore(abstract, step=1)
