@@ -343,8 +343,12 @@ def eval_main(args: list[str]) -> None:
         f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
         f"{command.episodes} episodes each"
     )
-    rows = [(m.label() or f"seed={m.seed}", returns[i]) for i, m in enumerate(population)]
-    print_returns_table(title, rows, population_stats(returns) if len(population) > 1 else None)
+    diverged = set(meta.get("diverged_members", []))
+    rows = [((m.label() or f"seed={m.seed}") + (" (diverged)" if i in diverged else ""),
+             returns[i]) for i, m in enumerate(population)]  # fmt: skip
+    alive = [i for i in range(len(population)) if i not in diverged]
+    several = len(alive) > 1
+    print_returns_table(title, rows, population_stats(returns[alive]) if several else None)
 
 
 def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:

@@ -50,6 +50,11 @@ class MetricsLogger:
             self._tb.close()
 
 
+def _number(value: Any) -> float:
+    """A record's value as a float for plotting (null, as JSON writes NaN, becomes NaN)."""
+    return math.nan if value is None else float(value)
+
+
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     """The records of a ``metrics.jsonl`` (an empty list when there is none yet)."""
     path = Path(path)
@@ -70,21 +75,22 @@ def plot_curve(out_dir: Path) -> Path | None:
 
     steps = [r["env_steps"] for r in records]
     wall = [r["wall_time_s"] for r in records]
-    mean = [r["eval_return_mean"] for r in records]
+    mean = [_number(r["eval_return_mean"]) for r in records]
     several = "per_member" in records[-1]
     if several:  # every member thin, the mean over members with its 95% bootstrap CI
-        lower = [r["eval_return_ci95_low"] for r in records]
-        upper = [r["eval_return_ci95_high"] for r in records]
+        lower = [_number(r["eval_return_ci95_low"]) for r in records]
+        upper = [_number(r["eval_return_ci95_high"]) for r in records]
         band = "mean over members, 95% bootstrap CI"
     else:  # one run: mean ± std over evaluation episodes
-        lower = [r["eval_return_mean"] - r["eval_return_std"] for r in records]
-        upper = [r["eval_return_mean"] + r["eval_return_std"] for r in records]
+        std = [_number(r["eval_return_std"]) for r in records]
+        lower = [m - d for m, d in zip(mean, std, strict=True)]
+        upper = [m + d for m, d in zip(mean, std, strict=True)]
         band = "mean ± std over episodes"
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, x, label in ((axes[0], steps, "environment steps"), (axes[1], wall, "wall-clock (s)")):
         if several:
             for i in range(len(records[-1]["per_member"])):
-                member = [r["per_member"][i]["eval_return_mean"] for r in records]
+                member = [_number(r["per_member"][i]["eval_return_mean"]) for r in records]
                 ax.plot(x, member, lw=0.8, alpha=0.45)
         ax.plot(x, mean, marker="o", ms=3, color="black" if several else None, label=band)
         ax.fill_between(x, lower, upper, alpha=0.25, color="gray" if several else None)

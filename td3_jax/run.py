@@ -102,6 +102,8 @@ def train(
     try:
         run.checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
         state, start_chunk = _start(run, program, compiled, resume)
+        if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
+            return run.records
         compiled = compile_ahead(compiled, program, with_init=not resume)
         state = compiled.init() if state is None else state
         if writer:
@@ -113,8 +115,10 @@ def train(
                                    enabled=writer)  # fmt: skip
         _loop(run, compiled, state, start_chunk)
     finally:
-        run.close()
-        run_lock.release()
+        try:
+            run.close()
+        finally:
+            run_lock.release()
     return run.records
 
 
@@ -152,16 +156,21 @@ class _Run:
     wall_offset: float = 0.0
 
     def close(self) -> None:
-        """Closes the outputs (each exactly once) and redraws the curve."""
+        """Closes the outputs (each on its own) and redraws the curve; a failure here is a
+        warning, so it never hides the error that ended the run."""
         for part in (self.display, self.logger, self.checkpointer):
             if part is not None:
-                part.close()
+                _warn_on_failure(part.close, "closing the run's outputs")
         if self.writer and self.logger is not None:
-            try:
-                plot_curve(self.out_dir)
-            except OSError as err:  # e.g. a full disk: the records are kept, the curve is not
-                print(f"td3-jax: warning: could not draw curve.png ({err.strerror or err}); "
-                      "td3-jax plot redraws it", file=sys.stderr)  # fmt: skip
+            _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png")
+
+
+def _warn_on_failure(action: Any, what: str) -> None:
+    try:
+        action()
+    except Exception as err:  # e.g. a full disk: the records are kept, the curve is not
+        print(f"td3-jax: warning: {what} failed ({type(err).__name__}: {err}); "
+              "td3-jax plot redraws the curve", file=sys.stderr)  # fmt: skip
 
 
 def _start(run: _Run, program: Population, compiled: Any, resume: bool) -> tuple[Any, int]:
@@ -218,11 +227,6 @@ def _chunk_and_record(run: _Run, compiled: Any, state: Any) -> tuple[Any, dict[s
     record["env_steps_per_s"] = len(run.population) * run.cfg.steps_per_chunk / chunk_seconds
     record["devices"] = run.devices
     return state, record
-
-
-def steps_per_chunk(cfg: TrainConfig) -> int:
-    """Environment steps of one member in one chunk (``cfg.steps_per_chunk``)."""
-    return cfg.steps_per_chunk
 
 
 def _record(run: _Run, updates, metrics, returns, env_steps) -> dict[str, Any]:
@@ -313,11 +317,11 @@ class _Progress:
             TimeElapsedColumn(),
             TimeRemainingColumn(),
         )
-        total = cfg.num_chunks * steps_per_chunk(cfg)
+        total = cfg.num_chunks * cfg.steps_per_chunk
         self._task = self._progress.add_task(
             f"{cfg.algo} {cfg.env}",
             total=total,
-            completed=start_chunk * steps_per_chunk(cfg),
+            completed=start_chunk * cfg.steps_per_chunk,
             rate="compiling...",
             ret="-",
         )

@@ -214,7 +214,15 @@ def explore(
     else:
         noisy = jax.vmap(lambda k, a: noise.gaussian(k, a, hp.expl_noise))(noise_keys, policy)
     uniform = jax.random.uniform(random_key, policy.shape, minval=-1.0, maxval=1.0)
-    return jnp.where(state.env_steps < spec.warmup_steps, uniform, noisy), ou_state
+    action = jnp.where(state.env_steps < spec.warmup_steps, uniform, noisy)
+    return safe_action(action), ou_state
+
+
+def safe_action(action: jax.Array) -> jax.Array:
+    """``action`` with NaNs replaced by 0: a diverged member of a population keeps stepping its
+    environments with finite actions (NaN physics can stall a simulator's solver loops, and
+    under the member vmap every member would wait for it)."""
+    return jnp.where(jnp.isnan(action), 0.0, action)
 
 
 def _episode_metrics(result: envs.StepResult) -> Metrics:
@@ -379,7 +387,7 @@ def chunk(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainSta
 def _evaluation_step(spec: TrainSpec, state: TrainState, carry: tuple, _) -> tuple[tuple, None]:
     env_state, returns, alive = carry
     obs = normalize(spec, state.obs_stats, env_state.obs)
-    action = spec.agent.actor.apply(state.agent.actor_params, obs)
+    action = safe_action(spec.agent.actor.apply(state.agent.actor_params, obs))
     # Only each environment's first episode counts: no resets needed.
     env_state, result = envs.step(spec.env, env_state, action, auto_reset=False)
     returns = returns + jnp.where(alive, result.reward, 0.0)

@@ -62,8 +62,9 @@ class Agent(NamedTuple):
       actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
       critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``.
       config: the config the agent was built from.
-      spec: the agent's static structure (:class:`td3_jax.td3.AgentSpec`).
-      hyperparams: the float settings bound into ``update`` (:class:`td3_jax.td3.AgentHyperparams`).
+      spec: the agent's static structure (:class:`td3_jax.actor_critic.AgentSpec`).
+      hyperparams: the float settings bound into ``update``
+        (:class:`td3_jax.actor_critic.AgentHyperparams`).
     """
 
     init: Callable[[PRNGKey], AgentState]

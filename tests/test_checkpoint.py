@@ -506,5 +506,5 @@ def test_a_checkpoint_of_an_older_format_says_so(tmp_path, state, abstract):
         return meta
 
     edit_meta(tmp_path / "1", as_format_one)
-    with pytest.raises(CheckpointError, match="another td3-jax version .*format 1, this version"):
+    with pytest.raises(CheckpointError, match=r"another td3-jax version .*format 1, this version"):
         Checkpointer(tmp_path).restore(abstract, step=1)
