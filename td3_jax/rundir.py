@@ -173,6 +173,19 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
             f"{out_dir} holds a previous run's outputs ({', '.join(outputs)}) but no checkpoint "
             "to resume; move them away or choose another --out"
         )
+    others = foreign_entries(out_dir) if writer else []
+    if others:
+        raise ConfigError(
+            f"--out {out_dir} is a directory of other files ({', '.join(others[:3])}"
+            f"{', ...' if len(others) > 3 else ''}); a run needs a new or empty directory of "
+            "its own"
+        )
+
+
+def foreign_entries(out_dir: Path) -> list[str]:
+    """Names in ``out_dir`` that no run writes (sorted), e.g. for ``--out ~`` or ``--out /``."""
+    ours = {*OUTPUTS, LOCK_FILE}
+    return sorted(p.name for p in Path(out_dir).iterdir() if p.name not in ours)
 
 
 def check_resume(

@@ -309,3 +309,13 @@ def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
     for (path, a), b in zip(leaves, jax.tree.leaves(state_short), strict=True):
         a, b = np.asarray(a), np.asarray(b)
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), jax.tree_util.keystr(path)
+
+
+def test_a_directory_of_other_files_is_refused(tmp_path, capsys):
+    """``--out ~`` or ``--out /`` used to train into the directory, among the user's files."""
+    (tmp_path / "thesis.tex").write_text("mine\n")
+    (tmp_path / "data").mkdir()
+    code, _, err = run_cli(["train", "--out", str(tmp_path), "--quiet"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "a directory of other files (data, thesis.tex)" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "thesis.tex"]
