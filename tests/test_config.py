@@ -124,8 +124,8 @@ def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
     "cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity",
     [
         # defaults: 16 envs x 1 step = 16 per iteration; 4000 // 16 = 250 iterations per chunk
-        # (4000 steps); 40000 / 4000 = 10 chunks; capacity = buffer_size, whatever the length.
-        (TrainConfig(), 16, 250, 10, 100_000),
+        # (4000 steps); 20000 / 4000 = 5 chunks; capacity = buffer_size, whatever the length.
+        (TrainConfig(), 16, 250, 5, 100_000),
         (TrainConfig(total_steps=1_000_000), 16, 250, 250, 100_000),
         # 3 envs x 2 steps = 6; 100 // 6 = 16 iterations (96 steps) per chunk;
         # ceil(1000 / 96) = 11 chunks (1056 steps); capacity 500.

@@ -171,21 +171,22 @@ def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
 
 
 def test_fresh_run_checks(tmp_path):
-    rundir.check_fresh(tmp_path / "missing")  # created later, under the lock
-    rundir.check_fresh(tmp_path)  # an empty directory
-    (tmp_path / "notes.txt").write_text("mine\n")
-    (tmp_path / "checkpoints").mkdir()  # an empty checkpoints/ is nothing to keep
-    rundir.check_fresh(tmp_path)
+    out = tmp_path / "run"
+    rundir.check_fresh(out)  # missing: created later, under the lock
+    out.mkdir()
+    rundir.check_fresh(out)  # an empty directory
+    (out / "checkpoints").mkdir()  # an empty checkpoints/ is nothing to keep
+    rundir.check_fresh(out)
     (tmp_path / "file").write_text("x")
     with pytest.raises(ConfigError, match="is a file, not a directory"):
         rundir.check_fresh(tmp_path / "file")
-    (tmp_path / "metrics.jsonl").write_text("{}\n")
+    (out / "metrics.jsonl").write_text("{}\n")
     with pytest.raises(ConfigError, match=r"previous run's outputs \(metrics.jsonl\)"):
-        rundir.check_fresh(tmp_path)
-    (tmp_path / "checkpoints" / "3").mkdir()
+        rundir.check_fresh(out)
+    (out / "checkpoints" / "3").mkdir()
     with pytest.raises(ConfigError, match="already holds a run; pass --resume"):
-        rundir.check_fresh(tmp_path)
-    assert rundir.checkpoint_steps(tmp_path) == [3]
+        rundir.check_fresh(out)
+    assert rundir.checkpoint_steps(out) == [3]
 
 
 def test_resume_of_a_missing_directory_creates_nothing(tmp_path):
