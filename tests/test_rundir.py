@@ -198,6 +198,21 @@ def test_resume_of_a_missing_directory_creates_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
+    sweep = {"actor_lr": [1e-3, 3e-4]}
+    population = members(SMALL, sweep)
+    rundir.save_config(SMALL, population, tmp_path)
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)  # 2 chunks of 64 steps done
+    assert rundir.check_resume(tmp_path, SMALL) == (population, {})
+    assert rundir.check_resume(tmp_path, SMALL, sweep) == (population, {})
+    with pytest.raises(ConfigError, match="--sweep-\\* values differ"):
+        rundir.check_resume(tmp_path, SMALL, {"actor_lr": [1e-3, 1e-4]})
+    longer = dataclasses.replace(SMALL, total_steps=512)
+    assert rundir.check_resume(tmp_path, longer)[1] == {"total_steps": [128, 512]}
+    with pytest.raises(ConfigError, match="--total-steps 64 is less than the 128 env steps"):
+        rundir.check_resume(tmp_path, dataclasses.replace(SMALL, total_steps=64))
+
+
 def test_open_run_dir_reports_a_directory_it_cannot_create(tmp_path):
     (tmp_path / "file").write_text("x")
     for out in (tmp_path / "file" / "run", Path("/proc/td3-jax-run")):
