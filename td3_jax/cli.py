@@ -53,9 +53,13 @@ class TrainCommand(TrainConfig):
     out: Path = Path("runs/latest")
     """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/."""
     resume: bool = False
-    """Continue the run in --out exactly where its newest checkpoint left it."""
+    """Continue the run in --out exactly where its newest good checkpoint left it. Only
+    --total-steps (to extend or shorten the run), --keep-checkpoints, --checkpoint-every and
+    --eval-envs may differ from the run's config.json; other flags must match."""
     preset: PresetName | None = None  # type: ignore[valid-type]
-    """Named settings to start from (see `td3-jax presets`); other flags override them."""
+    """Named settings to start from (see `td3-jax presets`); other flags override them.
+    Default: the --env's own preset where one exists (said in one line), else settings for the
+    device (a GPU gets thousands of environments)."""
     quiet: bool = False
     """No live progress display."""
     time_budget_s: float | None = None
