@@ -34,6 +34,10 @@ from td3_jax.types import Agent, AgentState, Metrics, Params, PRNGKey, Transitio
 METRIC_NAMES = ("critic_loss", "actor_loss", "actor_updated", "q_mean", "target_mean")
 
 
+#: Adam's direction (b1 0.9, b2 0.999, eps 1e-8), one shared instance so that specs compare equal.
+ADAM = optax.scale_by_adam()
+
+
 @dataclasses.dataclass(frozen=True)
 class AgentSpec:
     """The static structure of an actor-critic agent.
@@ -54,9 +58,7 @@ class AgentSpec:
     action_size: int
     policy_freq: int = 2
     target_smoothing: bool = True
-    optimizer: optax.GradientTransformation = dataclasses.field(
-        default_factory=optax.scale_by_adam, compare=False
-    )
+    optimizer: optax.GradientTransformation = ADAM
 
     @property
     def num_critics(self) -> int:
@@ -239,13 +241,10 @@ def delayed_actor_step(
         state, loss = actor_step(spec, hp, state, obs)
         return state, loss, jnp.ones((), jnp.float32)
     due = state.step % spec.policy_freq == 0
-    state, loss = jax.lax.cond(
-        any_member(due, axis_name),
-        functools.partial(_actor_step_where_due, spec, hp, due),
-        _skip_actor_step,
-        state,
-        obs,
-    )
+    # Alone, the branch runs exactly when due; under a member axis, when any member is due.
+    take = (functools.partial(actor_step, spec, hp) if axis_name is None
+            else functools.partial(_actor_step_where_due, spec, hp, due))  # fmt: skip
+    state, loss = jax.lax.cond(any_member(due, axis_name), take, _skip_actor_step, state, obs)
     return state, loss, due.astype(jnp.float32)
 
 
