@@ -77,10 +77,9 @@ def train(
     or one holding a previous run when ``resume`` is off, is refused before anything is written.
 
     Args:
-      resume: continue from the newest checkpoint in ``out_dir`` (which must exist); the
-        members are those saved in the run directory. ``cfg`` must equal the saved config but
-        for ``total_steps``, ``keep_checkpoints``, ``checkpoint_every`` and ``eval_envs``
-        (recorded in config.json under ``resume_changes``).
+      resume: continue from the newest good checkpoint in ``out_dir`` with the members saved
+        there; ``cfg`` may differ from the saved config only in
+        :data:`td3_jax.rundir.SAFE_ON_RESUME` (recorded in config.json).
       progress: show a live progress display.
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
         trains ``cfg.seeds`` seeds, all in one program. A member whose losses or parameters
@@ -107,12 +106,11 @@ def train(
         compiled = compile_ahead(compiled, program, with_init=not resume)
         state = compiled.init() if state is None else state
         if writer:
-            at = start_chunk * cfg.steps_per_chunk
-            info = run_info(out_dir, resume=resume, preset=preset, changes=changes, at_env_steps=at)
+            info = run_info(out_dir, resume=resume, preset=preset, changes=changes,
+                            at_env_steps=start_chunk * cfg.steps_per_chunk)  # fmt: skip
             save_config(cfg, population, out_dir, info)
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
-        run.logger = MetricsLogger(out_dir, resume_env_steps=start_chunk * cfg.steps_per_chunk,
-                                   enabled=writer)  # fmt: skip
+        run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
         _loop(run, compiled, state, start_chunk)
     finally:
         try:
