@@ -17,6 +17,7 @@ from td3_jax.config import (
     PRESETS,
     ConfigError,
     TrainConfig,
+    as_flag,
     device_defaults,
     env_preset,
     preset,
@@ -394,18 +395,9 @@ def envs_main(args: list[str]) -> None:
     print("\n".join(envs.known_names()))
 
 
-def _as_flag(name: str, value) -> str:
-    flag = f"--{name.replace('_', '-')}"
-    if isinstance(value, bool):
-        return flag if value else f"--no-{flag[2:]}"
-    if isinstance(value, tuple):
-        return f"{flag} {' '.join(map(str, value))}"
-    return f"{flag} {value}"
-
-
 def presets_main(args: list[str]) -> None:
     for name, values in PRESETS.items():
-        settings = " ".join(_as_flag(k, v) for k, v in values.items())
+        settings = " ".join(as_flag(k, v) for k, v in values.items())
         print(f"{name}: {settings}")
 
 

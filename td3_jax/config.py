@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Literal
+from typing import Any, Literal
 
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
@@ -171,8 +171,18 @@ _FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noi
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 
 
-def _flag(name: str) -> str:
+def flag(name: str) -> str:
+    """The command-line flag of a config field: ``total_steps -> --total-steps``."""
     return f"--{name.replace('_', '-')}"
+
+
+def as_flag(name: str, value: Any) -> str:
+    """A field and its value as command-line text (``--no-`` for false booleans)."""
+    if isinstance(value, bool):
+        return flag(name) if value else f"--no-{flag(name)[2:]}"
+    if isinstance(value, tuple | list):
+        return f"{flag(name)} {' '.join(map(str, value))}"
+    return f"{flag(name)} {value}"
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:
@@ -193,10 +203,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
 def _check_counts(cfg: TrainConfig) -> None:
     for name in _POSITIVE:
         if getattr(cfg, name) <= 0:
-            raise ConfigError(f"{_flag(name)} must be positive, got {getattr(cfg, name)}")
+            raise ConfigError(f"{flag(name)} must be positive, got {getattr(cfg, name)}")
     for name in _NON_NEGATIVE:
         if getattr(cfg, name) < 0:
-            raise ConfigError(f"{_flag(name)} must not be negative, got {getattr(cfg, name)}")
+            raise ConfigError(f"{flag(name)} must not be negative, got {getattr(cfg, name)}")
     if cfg.episode_length is not None and cfg.episode_length <= 0:
         raise ConfigError(f"--episode-length must be positive, got {cfg.episode_length}")
 
@@ -206,9 +216,9 @@ def _check_floats(cfg: TrainConfig) -> None:
     for name in _FLOATS:
         value = getattr(cfg, name)
         if value is not None and not math.isfinite(value):
-            raise ConfigError(f"{_flag(name)} must be a finite number, got {value}")
+            raise ConfigError(f"{flag(name)} must be a finite number, got {value}")
         if value is not None and value < 0:
-            raise ConfigError(f"{_flag(name)} must not be negative, got {value}")
+            raise ConfigError(f"{flag(name)} must not be negative, got {value}")
     if not 0.0 <= cfg.discount <= 1.0:
         raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")
     if cfg.tau is not None and not 0.0 < cfg.tau <= 1.0:

@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from td3_jax.checkpoint import Checkpointer
-from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.config import ConfigError, TrainConfig, as_flag, flag
 from td3_jax.population import Member, Population, make_population, members
 from td3_jax.sharding import make_mesh, state_shardings
 
@@ -304,23 +304,11 @@ def _mismatch(name: str, saved: Any, given: Any) -> str:
         )
     else:
         why = _REASONS.get(name, "it fixes the run's state layout, key schedule or meaning")
-    safe = ", ".join(_flag(n) for n in SAFE_ON_RESUME)
+    safe = ", ".join(flag(n) for n in SAFE_ON_RESUME)
     return (
-        f"{_as_flag(name, given)} given but the run was started with {_as_flag(name, saved)}: "
+        f"{as_flag(name, given)} given but the run was started with {as_flag(name, saved)}: "
         f"{why}; leave it out to resume (only {safe} may change) or start a new --out"
     )
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def _as_flag(name: str, value: Any) -> str:
-    if isinstance(value, bool):
-        return _flag(name) if value else "--no-" + _flag(name)[2:]
-    if isinstance(value, tuple | list):
-        return f"{_flag(name)} {' '.join(map(str, value))}"
-    return f"{_flag(name)} {value}"
 
 
 # --------------------------------------------------------------------------------------------
