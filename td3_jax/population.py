@@ -125,10 +125,6 @@ def member_hyperparams(cfg: TrainConfig, population: list[Member]) -> training.H
     return jax.tree.map(lambda *xs: jnp.stack(xs), *each)
 
 
-def _scheduled_evaluate(spec: training.TrainSpec, state: TrainState) -> jax.Array:
-    return training.evaluate(spec, state, training.evaluation_key(spec, state))
-
-
 def _add_axis(tree: Any) -> Any:
     return jax.tree.map(lambda x: x[None], tree)
 
@@ -154,7 +150,7 @@ def make_population(cfg: TrainConfig, population: list[Member], devices: int = 1
     init = functools.partial(training.init, spec)
     chunk = functools.partial(training.chunk, spec)
     evaluate = functools.partial(training.evaluate, spec)
-    scheduled = functools.partial(_scheduled_evaluate, spec)
+    scheduled = functools.partial(training.scheduled_evaluate, spec)
     if lone:
         batched = [functools.partial(_lone, fn) for fn in (init, chunk, evaluate, scheduled)]
     else:

@@ -19,6 +19,7 @@ import fcntl
 import json
 import os
 import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -80,15 +81,30 @@ def acquire_lock(out_dir: Path) -> RunLock:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as err:
         raise ConfigError(f"--out {out_dir}: cannot open {path} ({err.strerror})") from err
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+    if not _try_flock(fd):
         os.close(fd)
-        raise in_use_error(out_dir) from None
+        raise in_use_error(out_dir)
     holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, holder.encode(), 0)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, holder.encode(), 0)
+    except OSError as err:  # e.g. a full disk
+        RunLock(fd, path).release()
+        raise ConfigError(f"--out {out_dir}: cannot write {path} ({err.strerror})") from err
     return RunLock(fd, path)
+
+
+def _try_flock(fd: int, attempts: int = 5, pause_s: float = 0.05) -> bool:
+    """Takes the exclusive lock, retrying briefly: another process's :func:`check_not_in_use`
+    probe holds it for an instant, which must not refuse a run that is entitled to it."""
+    for attempt in range(attempts):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if attempt + 1 < attempts:
+                time.sleep(pause_s)
+    return False
 
 
 def check_not_in_use(out_dir: Path) -> None:

@@ -412,14 +412,19 @@ def evaluation_key(spec: TrainSpec, state: TrainState) -> PRNGKey:
     return jax.random.fold_in(state.eval_key, state.iteration // spec.iters_per_chunk)
 
 
+def scheduled_evaluate(spec: TrainSpec, state: TrainState) -> jax.Array:
+    """:func:`evaluate` with the run's own key schedule (:func:`evaluation_key`)."""
+    return evaluate(spec, state, evaluation_key(spec, state))
+
+
 def chunk_and_evaluate(
     spec: TrainSpec, hp: Hyperparams, state: TrainState
 ) -> tuple[TrainState, Metrics]:
-    """One chunk, then the evaluation with the run's key schedule (``eval_returns
-    [eval_envs]`` added to the chunk's metrics): the driver of every training run."""
+    """One chunk, then :func:`scheduled_evaluate` (``eval_returns [eval_envs]`` added to the
+    chunk's metrics): the driver of every training run. The CLI's host loop runs the same two
+    functions as two compiled programs (so it can check the chunk's metrics in between)."""
     state, metrics = chunk(spec, hp, state)
-    returns = evaluate(spec, state, evaluation_key(spec, state))
-    return state, {**metrics, "eval_returns": returns}
+    return state, {**metrics, "eval_returns": scheduled_evaluate(spec, state)}
 
 
 def make_train(
