@@ -191,11 +191,11 @@ def critic_step(
 
 
 def actor_step(
-    spec: AgentSpec, hp: AgentHyperparams, state: AgentState, obs: jax.Array
+    spec: AgentSpec, hp: AgentHyperparams, state: AgentState, batch: Transition
 ) -> tuple[AgentState, jax.Array]:
     """One actor step on the current critic, then Polyak averaging of both targets."""
     loss, grads = jax.value_and_grad(losses.actor_loss)(
-        state.actor_params, state.critic_params, spec, obs
+        state.actor_params, state.critic_params, spec, batch
     )
     params, opt_state = _descend(spec, state.actor_params, grads, state.actor_opt_state,
                                  hp.actor_lr)  # fmt: skip
@@ -211,16 +211,16 @@ def actor_step(
 
 
 def _actor_step_where_due(
-    spec: AgentSpec, hp: AgentHyperparams, due: jax.Array, state: AgentState, obs: jax.Array
+    spec: AgentSpec, hp: AgentHyperparams, due: jax.Array, state: AgentState, batch: Transition
 ) -> tuple[AgentState, jax.Array]:
     """:func:`actor_step` where ``due``; the unchanged state (and loss 0) elsewhere."""
-    new_state, loss = actor_step(spec, hp, state, obs)
+    new_state, loss = actor_step(spec, hp, state, batch)
     keep = lambda new, old: jnp.where(due, new, old)
     return jax.tree.map(keep, new_state, state), jnp.where(due, loss, 0.0)
 
 
-def _skip_actor_step(state: AgentState, obs: jax.Array) -> tuple[AgentState, jax.Array]:
-    del obs
+def _skip_actor_step(state: AgentState, batch: Transition) -> tuple[AgentState, jax.Array]:
+    del batch
     return state, jnp.zeros((), jnp.float32)
 
 
@@ -228,7 +228,7 @@ def delayed_actor_step(
     spec: AgentSpec,
     hp: AgentHyperparams,
     state: AgentState,
-    obs: jax.Array,
+    batch: Transition,
     axis_name: str | None = None,
 ) -> tuple[AgentState, jax.Array, jax.Array]:
     """:func:`actor_step` when ``state.step`` is a multiple of ``policy_freq``.
@@ -238,13 +238,13 @@ def delayed_actor_step(
     still only updates on its own schedule.
     """
     if spec.policy_freq == 1:
-        state, loss = actor_step(spec, hp, state, obs)
+        state, loss = actor_step(spec, hp, state, batch)
         return state, loss, jnp.ones((), jnp.float32)
     due = state.step % spec.policy_freq == 0
     # Alone, the branch runs exactly when due; under a member axis, when any member is due.
     take = (functools.partial(actor_step, spec, hp) if axis_name is None
             else functools.partial(_actor_step_where_due, spec, hp, due))  # fmt: skip
-    state, loss = jax.lax.cond(any_member(due, axis_name), take, _skip_actor_step, state, obs)
+    state, loss = jax.lax.cond(any_member(due, axis_name), take, _skip_actor_step, state, batch)
     return state, loss, due.astype(jnp.float32)
 
 
@@ -278,7 +278,7 @@ def update(
     """
     check_batch(spec, batch)
     state, metrics = critic_step(spec, hp, state, batch, key)
-    state, loss, updated = delayed_actor_step(spec, hp, state, batch.obs, axis_name)
+    state, loss, updated = delayed_actor_step(spec, hp, state, batch, axis_name)
     return state, {**metrics, "actor_loss": loss, "actor_updated": updated}
 
 

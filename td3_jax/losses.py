@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import jax
 import jax.numpy as jnp
 
-from td3_jax.types import Params, PRNGKey, Transition
+from td3_jax.types import Params, PRNGKey, Transition, critic_observations
 
 if TYPE_CHECKING:  # pragma: no cover
     from td3_jax.actor_critic import AgentHyperparams, AgentSpec
@@ -48,7 +48,8 @@ def td_target(
     The minimum over the critic heads is TD3's clipped double-Q (one head for DDPG).
     """
     next_action = target_action(spec, hp, target_actor_params, batch.next_obs, key)
-    next_q = spec.critic.apply(target_critic_params, batch.next_obs, next_action)
+    _, next_critic_obs = critic_observations(batch)
+    next_q = spec.critic.apply(target_critic_params, next_critic_obs, next_action)
     bootstrap = hp.discount * (1.0 - batch.done) * jnp.min(next_q, axis=0)
     return jax.lax.stop_gradient(batch.reward + bootstrap)
 
@@ -57,14 +58,21 @@ def critic_loss(
     critic_params: Params, spec: AgentSpec, batch: Transition, target: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """``(sum_h mean_b (Q_h(s, a) - y)^2, q [heads, batch])``: each head regresses on ``y``."""
-    q = spec.critic.apply(critic_params, batch.obs, batch.action)
+    critic_obs, _ = critic_observations(batch)
+    q = spec.critic.apply(critic_params, critic_obs, batch.action)
     loss = jnp.sum(jnp.mean(jnp.square(q - target[None]), axis=-1))
     return loss, q
 
 
 def actor_loss(
-    actor_params: Params, critic_params: Params, spec: AgentSpec, obs: jax.Array
+    actor_params: Params, critic_params: Params, spec: AgentSpec, batch: Transition
 ) -> jax.Array:
-    """``-mean_b Q_1(s, pi(s))`` with ``obs [batch, obs_size]`` (the first critic head)."""
-    q = spec.critic.apply(critic_params, obs, spec.actor.apply(actor_params, obs))
+    """``-mean_b Q_1(s_c, pi(s))`` (the first critic head) on ``batch`` rows ``[batch, ...]``.
+
+    The actor acts on ``batch.obs``; the critic scores its action on the critic observation
+    (:func:`~td3_jax.types.critic_observations`).
+    """
+    critic_obs, _ = critic_observations(batch)
+    action = spec.actor.apply(actor_params, batch.obs)
+    q = spec.critic.apply(critic_params, critic_obs, action)
     return -jnp.mean(q[0])

@@ -25,6 +25,10 @@ class Transition(NamedTuple):
         last observation of the episode, never the first observation of the next one.
       done: ``[...]`` 1.0 where the episode *terminated* (no bootstrapping), 0.0 otherwise. A
         time-limit truncation is not a termination: it has ``done = 0`` so the target bootstraps.
+      critic_obs: ``[..., critic_obs_size]`` what the critics see in place of ``obs`` (an
+        asymmetric actor-critic, e.g. a robot's privileged state), or ``None``: the critics see
+        ``obs``.
+      next_critic_obs: ``[..., critic_obs_size]`` the same after the step, or ``None``.
     """
 
     obs: jax.Array
@@ -32,6 +36,15 @@ class Transition(NamedTuple):
     reward: jax.Array
     next_obs: jax.Array
     done: jax.Array
+    critic_obs: jax.Array | None = None
+    next_critic_obs: jax.Array | None = None
+
+
+def critic_observations(batch: Transition) -> tuple[jax.Array, jax.Array]:
+    """``(s, s')`` as the critics see them: the critic observations when the batch has them."""
+    if batch.critic_obs is None:
+        return batch.obs, batch.next_obs
+    return batch.critic_obs, batch.next_critic_obs
 
 
 @struct.dataclass
