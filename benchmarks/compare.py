@@ -11,9 +11,10 @@ Environments: ``ant``, ``halfcheetah``, ``humanoid`` (Brax, MJX backend) and any
 DM Control Suite task such as ``CheetahRun`` (loaded with ``impl="jax"``).
 
 Each algorithm runs in its own fresh Python process (spawned one after the other), so none
-inherits another's compiled code or GPU memory. Its clock starts just before the environment is
-created and the train function is called: environment creation, tracing, compilation and the
-evaluations are all inside the measured wall-clock. An algorithm stops at its first evaluation
+inherits another's compiled code or GPU memory. Its clock starts when that process starts
+working (before it imports JAX or starts the GPU): imports, the accelerator's start-up,
+environment creation, tracing, compilation and the evaluations are all inside the measured
+wall-clock. An algorithm stops at its first evaluation
 past ``--budget-s`` (or when its own run length ends, whichever comes first):
 
 * Brax PPO / SAC (``brax.training.agents.{ppo,sac}.train.train``): ``progress_fn`` records
@@ -26,7 +27,7 @@ past ``--budget-s`` (or when its own run length ends, whichever comes first):
   ``env``, ``checkpoint_every=10**9`` and ``--td3-flag`` settings. An evaluation (deterministic
   policy, ``eval_envs`` episodes) follows every chunk of ``eval_every`` steps. td3's own
   ``wall_time_s`` starts only after its environment is made, so each evaluation is stamped on
-  this script's clock instead, and the run is stopped on that clock the same way (a private
+  the worker's clock instead, and the run is stopped on that clock the same way (a private
   exception raised from its metrics logger).
 
 SAC settings: Brax publishes SAC settings only for hopper and walker2d, so for ant, halfcheetah
@@ -416,7 +417,7 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
         if wall >= budget:
             raise _BudgetReached
 
-    start = time.perf_counter()
+    start = job["launch"]
     if is_brax_env(env_name):
         from brax import envs
 
@@ -470,10 +471,10 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
         run_dir = run_dir.with_name(f"{run_dir.name}_{time.strftime('%Y%m%d-%H%M%S')}")
     result["run_dir"] = str(run_dir)
 
-    # td3's own wall_time_s starts only after its environment is made (which, for Brax, runs an
-    # eager env.reset: tens of seconds). Stamp every evaluation with this process's clock instead,
-    # started before the environment is made like the Brax runs, and stop on that clock: raise
-    # from the logger once past the budget, as the Brax runs raise from progress_fn.
+    # td3's own wall_time_s starts only after its environment is made. Stamp every evaluation
+    # with this process's clock instead, started at the worker's launch like the Brax runs, and
+    # stop on that clock: raise from the logger once past the budget, as the Brax runs raise
+    # from progress_fn.
     budget, rows = job["budget_s"], result["rows"]
 
     class StampedLogger(td3_run.MetricsLogger):
@@ -497,7 +498,7 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
             return out
 
     td3_run.MetricsLogger = StampedLogger
-    start = time.perf_counter()
+    start = job["launch"]
     try:
         td3_run.train(cfg, run_dir, progress=False, time_budget_s=budget)
         result["stopped_by"] = "run length"
@@ -508,6 +509,7 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
 
 def _worker(job: dict[str, Any]) -> None:
     """Runs one algorithm and writes its result JSON (also when it fails)."""
+    job = {**job, "launch": time.perf_counter()}  # every clock starts at the worker's launch
     result: dict[str, Any] = {"algo": job["algo"], "rows": [], "status": "ok"}
     try:
         result["device"] = _device()

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Start-up and full-loop throughput of two source trees side by side, each on its own GPU of one
-# host, in one command (GPU hosts differ; compare only within one run). Usage, from the repo root:
+# host (one after the other on a one-GPU host), in one command (GPU hosts differ; compare only
+# within one run). Usage, from the repo root:
 #   benchmarks/compare_trees.sh BEFORE_DIR [PRESET]   (BEFORE_DIR holds td3_jax/ and benchmarks/)
 # Writes $OUT/{before,after}_{startup.json,throughput.jsonl,*.log}; prints a short table.
 set -uo pipefail
@@ -20,9 +21,11 @@ measure() {  # name tree gpu
       --out "$out/${name}_throughput.jsonl" > "$out/${name}_throughput.log" 2>&1
   )
 }
-measure before "$before" 0 &
-measure after "$PWD" 1 &
-wait
+if [ "$(nvidia-smi -L | wc -l)" -ge 2 ]; then
+  measure before "$before" 0 & measure after "$PWD" 1 & wait
+else  # one GPU: one after the other
+  measure before "$before" 0; measure after "$PWD" 0
+fi
 for name in before after; do
   echo "== $name"; cat "$out/${name}_startup.json"; cat "$out/${name}_throughput.jsonl"
 done

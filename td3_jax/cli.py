@@ -236,6 +236,18 @@ def enable_compile_cache(directory: str) -> None:
     except OSError as err:
         raise ConfigError(f"--compile-cache {directory}: cannot create it ({err})") from err
     jax.config.update("jax_compilation_cache_dir", str(path))
+    # Everything the run compiles, however quick: a second identical run then compiles nothing.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def start_backend_in_background() -> None:
+    """Starts JAX's accelerator backend (seconds on a GPU) in a thread, so that it overlaps the
+    imports and the model loading that come before the first device array."""
+    import threading
+
+    import jax
+
+    threading.Thread(target=jax.devices, name="td3-jax-backend-start", daemon=True).start()
 
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
@@ -265,6 +277,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     enable_compile_cache(command.compile_cache)
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
+    start_backend_in_background()
     if source == "device":
         cfg = _scale_to_device(cfg, args)
     note = _defaults_note(cfg, preset_name, source)

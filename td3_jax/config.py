@@ -97,6 +97,10 @@ class TrainConfig:
     """Checkpoints kept on disk (the newest ones)."""
     checkpoint_every: int = 1
     """Evaluations between checkpoints (the last chunk is always checkpointed)."""
+    early_evaluation: bool = True
+    """In a fresh run, evaluate once more after the first eighth of the first chunk when that
+    has 64 iterations or more (the same compiled program runs both parts), so a first return
+    shows soon after compiling."""
 
     # Derived quantities --------------------------------------------------------------------
     @property
@@ -106,6 +110,13 @@ class TrainConfig:
     @property
     def iters_per_chunk(self) -> int:
         return max(1, self.eval_every // self.env_steps_per_iter)
+
+    @property
+    def early_iterations(self) -> int:
+        """Iterations before the early evaluation of a fresh run: an eighth of the first chunk
+        when that has at least 64 iterations (shorter chunks report soon anyway), else 0."""
+        split = self.early_evaluation and self.iters_per_chunk >= 64
+        return self.iters_per_chunk // 8 if split else 0
 
     @property
     def steps_per_chunk(self) -> int:

@@ -97,7 +97,8 @@ class Population(NamedTuple):
       spec: the shared static spec (its ``axis_name`` is :data:`MEMBERS` for several members).
       hyperparams: every member's float settings (leaves ``[num_members]``).
       init: ``init() -> state``.
-      chunk: ``chunk(hp, state) -> (state, metrics[num_members])``.
+      chunk: ``chunk(hp, state, iterations) -> (state, metrics[num_members])``: ``iterations``
+        (an int32 scalar shared by the members) iterations of every member.
       evaluate: ``evaluate(state, keys[num_members]) -> returns[num_members, eval_envs]``.
       scheduled_evaluate: ``scheduled_evaluate(state) -> returns[num_members, eval_envs]``,
         with the run's own key schedule (:func:`td3_jax.training.evaluation_key`).
@@ -108,7 +109,7 @@ class Population(NamedTuple):
     spec: training.TrainSpec
     hyperparams: training.Hyperparams
     init: Callable[[], TrainState]
-    chunk: Callable[[training.Hyperparams, TrainState], tuple[TrainState, dict[str, jax.Array]]]
+    chunk: Callable[..., tuple[TrainState, dict[str, jax.Array]]]
     evaluate: Callable[[TrainState, jax.Array], jax.Array]
     scheduled_evaluate: Callable[[TrainState], jax.Array]
     abstract_state: Any
@@ -138,14 +139,25 @@ def _lone(fn: Callable, *args: Any) -> Any:
     return _add_axis(fn(*map(_drop_axis, args)))
 
 
-def make_population(cfg: TrainConfig, population: list[Member], devices: int = 1) -> Population:
+def _lone_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: jax.Array) -> Any:
+    """:func:`_lone` of :func:`td3_jax.training.chunk` (``iterations`` has no member axis)."""
+    return _add_axis(training.chunk(spec, _drop_axis(hp), _drop_axis(state), iterations))
+
+
+def make_population(
+    cfg: TrainConfig,
+    population: list[Member],
+    devices: int = 1,
+    env: envs.Environment | None = None,
+) -> Population:
     """The batched training functions of ``population`` (all sharing ``cfg``'s shapes).
 
     ``devices``: how many devices the environments will be split over; resets then gather and
-    scatter within each device's environments (the numbers do not depend on it).
+    scatter within each device's environments (the numbers do not depend on it). ``env``:
+    ``cfg``'s environment when already made (made here otherwise).
     """
     lone = len(population) == 1
-    spec = training.make_spec(cfg, axis_name=None if lone else MEMBERS, env_groups=devices)
+    spec = training.make_spec(cfg, env, axis_name=None if lone else MEMBERS, env_groups=devices)
     keys = jnp.stack([training.key_for_seed(m.seed) for m in population])
     init = functools.partial(training.init, spec)
     chunk = functools.partial(training.chunk, spec)
@@ -153,8 +165,10 @@ def make_population(cfg: TrainConfig, population: list[Member], devices: int = 1
     scheduled = functools.partial(training.scheduled_evaluate, spec)
     if lone:
         batched = [functools.partial(_lone, fn) for fn in (init, chunk, evaluate, scheduled)]
+        batched[1] = functools.partial(_lone_chunk, spec)
     else:
         batched = [jax.vmap(fn, axis_name=MEMBERS) for fn in (init, chunk, evaluate, scheduled)]
+        batched[1] = jax.vmap(chunk, in_axes=(0, 0, None), axis_name=MEMBERS)
     init = functools.partial(batched[0], keys)
     return Population(population, spec, member_hyperparams(cfg, population), init, *batched[1:],
                       abstract_state=jax.eval_shape(init))  # fmt: skip
@@ -163,15 +177,15 @@ def make_population(cfg: TrainConfig, population: list[Member], devices: int = 1
 class Compiled(NamedTuple):
     """A population's functions jitted for a device mesh (see :mod:`td3_jax.sharding`).
 
-    ``chunk(hp, state)`` donates its state; ``evaluate(state)`` evaluates with the run's key
-    schedule; metrics and evaluation returns come back replicated. ``hyperparams``: the
+    ``chunk(hp, state, iterations)`` donates its state; ``evaluate(state)`` evaluates with the
+    run's key schedule; metrics and evaluation returns come back replicated. ``hyperparams``: the
     members' settings, replicated on the mesh (the ``hp`` to pass to ``chunk``).
     """
 
     shardings: Any
     hyperparams: training.Hyperparams
     init: Callable[[], TrainState]
-    chunk: Callable[[training.Hyperparams, TrainState], tuple[TrainState, dict[str, jax.Array]]]
+    chunk: Callable[..., tuple[TrainState, dict[str, jax.Array]]]
     evaluate: Callable[[TrainState], jax.Array]
 
 
@@ -185,7 +199,7 @@ def compile_for_mesh(program: Population, mesh: Any) -> Compiled:
         init=jax.jit(program.init, out_shardings=shardings),
         chunk=jax.jit(
             program.chunk,
-            in_shardings=(replicated, shardings),
+            in_shardings=(replicated, shardings, replicated),
             out_shardings=(shardings, replicated),
             donate_argnums=1,
         ),
@@ -204,20 +218,22 @@ def _with_sharding(abstract: Any, shardings: Any) -> Any:
 def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True) -> Compiled:
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
-    Tracing is sequential (Python), but XLA compiles the chunk, the evaluation and the init in
-    parallel threads, which shortens the start-up of a run (on MJX environments the chunk and
-    the evaluation each take seconds to compile). The returned functions are the compiled
-    executables: calling them with other shapes or shardings raises instead of recompiling.
+    Each program is traced (Python, one at a time) and handed to a thread that compiles it
+    while the next is traced: the chunk first, as it takes longest. The returned functions are
+    the compiled executables: calling them with other shapes or shardings raises instead of
+    recompiling.
     """
     state_spec = _with_sharding(program.abstract_state, compiled.shardings)
     hp = compiled.hyperparams
     hp_spec = _with_sharding(jax.eval_shape(lambda: hp), jax.tree.map(lambda x: x.sharding, hp))
-    lowered = {
-        "chunk": compiled.chunk.lower(hp_spec, state_spec),
-        "evaluate": compiled.evaluate.lower(state_spec),
+    replicated = jax.tree.leaves(hp_spec)[0].sharding
+    iterations = jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
+    programs = {
+        "chunk": lambda: compiled.chunk.lower(hp_spec, state_spec, iterations),
+        "evaluate": lambda: compiled.evaluate.lower(state_spec),
     }
     if with_init:
-        lowered["init"] = compiled.init.lower()
-    with ThreadPoolExecutor(max_workers=len(lowered)) as pool:
-        futures = {name: pool.submit(low.compile) for name, low in lowered.items()}
+        programs["init"] = compiled.init.lower
+    with ThreadPoolExecutor(max_workers=len(programs)) as pool:
+        futures = {name: pool.submit(lower().compile) for name, lower in programs.items()}
         return compiled._replace(**{name: f.result() for name, f in futures.items()})

@@ -185,19 +185,28 @@ def _start(run: _Run, program: Population, compiled: Any, resume: bool) -> tuple
 
 
 def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
-    """Chunks, evaluations, records and checkpoints until the run's end or a stop condition."""
-    for index in range(start_chunk, run.cfg.num_chunks):
+    """Chunks, evaluations, records and checkpoints until the run's end or a stop condition.
+
+    A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
+    rest) with an evaluation after each; checkpoints are taken after whole chunks only.
+    """
+    cfg = run.cfg
+    early = cfg.early_iterations if start_chunk == 0 else 0
+    for index in range(start_chunk, cfg.num_chunks):
         if _stopping(run, index - start_chunk):
             break
-        state, record = _chunk_and_record(run, compiled, state)
-        run.logger.write(record)
-        run.records.append(record)
-        last = index + 1 == run.cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
-        if last or (index + 1) % run.cfg.checkpoint_every == 0:
+        whole = cfg.iters_per_chunk
+        parts = [early, whole - early] if index == 0 and early else [whole]
+        for iterations in parts:
+            state, record = _chunk_and_record(run, compiled, state, iterations)
+            run.logger.write(record)
+            run.records.append(record)
+            run.display.update(record)
+        last = index + 1 == cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
+        if last or (index + 1) % cfg.checkpoint_every == 0:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged)}  # fmt: skip
             run.checkpointer.save(index + 1, state, meta)
-        run.display.update(record)
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:
@@ -208,10 +217,13 @@ def _stopping(run: _Run, chunks_done: int) -> bool:
     return bool(run.records) and budget is not None and run.records[-1]["wall_time_s"] >= budget
 
 
-def _chunk_and_record(run: _Run, compiled: Any, state: Any) -> tuple[Any, dict[str, Any]]:
-    """One compiled chunk, the finiteness check, the evaluation and the record of both."""
+def _chunk_and_record(
+    run: _Run, compiled: Any, state: Any, iterations: int
+) -> tuple[Any, dict[str, Any]]:
+    """One compiled chunk of ``iterations``, the finiteness check, the evaluation and the
+    record of both."""
     chunk_start = time.perf_counter()
-    state, metrics = compiled.chunk(compiled.hyperparams, state)
+    state, metrics = compiled.chunk(compiled.hyperparams, state, np.int32(iterations))
     metrics = {k: host_value(v) for k, v in metrics.items()}
     chunk_seconds = time.perf_counter() - chunk_start
     env_steps = int(metrics.pop("env_steps")[0])
@@ -222,7 +234,8 @@ def _chunk_and_record(run: _Run, compiled: Any, state: Any) -> tuple[Any, dict[s
     returns[sorted(run.diverged)] = np.nan
     record = _record(run, updates, metrics, returns, env_steps)
     record["wall_time_s"] = run.wall_offset + time.perf_counter() - run.clock_start
-    record["env_steps_per_s"] = len(run.population) * run.cfg.steps_per_chunk / chunk_seconds
+    steps = iterations * run.cfg.env_steps_per_iter
+    record["env_steps_per_s"] = len(run.population) * steps / chunk_seconds
     record["devices"] = run.devices
     return state, record
 

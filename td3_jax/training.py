@@ -225,6 +225,10 @@ def safe_action(action: jax.Array) -> jax.Array:
     return jnp.where(jnp.isnan(action), 0.0, action)
 
 
+#: The environment metrics an iteration sums over its steps (see :func:`collect`).
+EPISODE_METRICS = ("episodes", "return_sum", "length_sum", "reward_mean")
+
+
 def _episode_metrics(result: envs.StepResult) -> Metrics:
     ended = result.terminated | result.truncated
     return {
@@ -351,13 +355,12 @@ def all_finite(tree: Any) -> jax.Array:
     return jnp.all(jnp.stack(leaves))
 
 
-def summarize(per_iter: Metrics, state: TrainState) -> Metrics:
-    """A chunk's metrics from its per-iteration ones (leading axis: iterations).
+def summarize(totals: Metrics, iterations: jax.Array, state: TrainState) -> Metrics:
+    """A chunk's metrics from the sums of its per-iteration metrics over ``iterations``.
 
     Losses are means over the updates taken (the actor's over its own updates), training
     returns and lengths means over the episodes that ended (NaN when none did).
     """
-    totals = {k: jnp.sum(v) for k, v in per_iter.items()}
     per_update = lambda name, count: totals[name] / jnp.maximum(totals[count], 1.0)
     episodes = totals["episodes"]
     per_episode = lambda name: jnp.where(episodes > 0, per_update(name, "episodes"), jnp.nan)
@@ -370,18 +373,34 @@ def summarize(per_iter: Metrics, state: TrainState) -> Metrics:
         "train_episodes": episodes,
         "train_return_mean": per_episode("return_sum"),
         "train_length_mean": per_episode("length_sum"),
-        "reward_mean": jnp.mean(per_iter["reward_mean"]),
+        "reward_mean": totals["reward_mean"] / jnp.maximum(iterations, 1).astype(jnp.float32),
         "params_finite": all_finite(state.agent).astype(jnp.float32),
         "env_steps": state.env_steps,
         "agent_steps": state.agent.step,
     }
 
 
-def chunk(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
-    """``iters_per_chunk`` iterations in one ``lax.scan``: the unit the host loop calls."""
-    step = lambda s, _: iteration(spec, hp, s)
-    state, per_iter = jax.lax.scan(step, state, None, length=spec.iters_per_chunk)
-    return state, summarize(per_iter, state)
+def _iteration_summed(spec: TrainSpec, hp: Hyperparams, _, carry: tuple) -> tuple:
+    state, totals = carry
+    state, metrics = iteration(spec, hp, state)
+    return state, jax.tree.map(jnp.add, totals, metrics)
+
+
+def chunk(
+    spec: TrainSpec, hp: Hyperparams, state: TrainState, iterations: jax.Array | None = None
+) -> tuple[TrainState, Metrics]:
+    """``iterations`` :func:`iteration` s in one compiled loop: the unit the host loop calls.
+
+    ``iterations`` (an int32 scalar, traced: any count runs the same compiled program) defaults
+    to ``spec.iters_per_chunk``; a run's first chunk may be split in two (an early evaluation)
+    without a second compile.
+    """
+    iterations = spec.iters_per_chunk if iterations is None else iterations
+    zeros = {**{name: jnp.zeros((), jnp.float32) for name in EPISODE_METRICS},
+             **skip_learning(state.agent)[1]}  # fmt: skip
+    body = functools.partial(_iteration_summed, spec, hp)
+    state, totals = jax.lax.fori_loop(0, iterations, body, (state, zeros))
+    return state, summarize(totals, jnp.asarray(iterations), state)
 
 
 def _evaluation_step(spec: TrainSpec, state: TrainState, carry: tuple, _) -> tuple[tuple, None]:

@@ -137,7 +137,7 @@ def test_population_keeps_reset_and_warmup_branches():
 
     cfg = dataclasses.replace(TINY, seeds=2)
     program = make_population(cfg, members(cfg))
-    jaxpr = str(jax.make_jaxpr(program.chunk)(program.hyperparams, program.abstract_state))
+    jaxpr = str(jax.make_jaxpr(program.chunk)(program.hyperparams, program.abstract_state, 4))
     assert jaxpr.count("cond[") >= 2  # episode resets and "learning started"
     train_fn = make_train(TINY, axis_name="seeds")
     vmapped = jax.vmap(train_fn, axis_name="seeds")

@@ -334,8 +334,8 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch):
     def poisoned_make_population(cfg, population, **kwargs):
         program = real_make_population(cfg, population, **kwargs)
 
-        def chunk(hp, state):
-            state, metrics = program.chunk(hp, state)
+        def chunk(hp, state, iterations):
+            state, metrics = program.chunk(hp, state, iterations)
             poisoned = state.env_steps[0] > 2 * per_chunk  # from the third chunk on
             actor = jax.tree.map(
                 lambda p: jnp.where(poisoned, jnp.nan, p), state.agent.actor_params

@@ -81,9 +81,12 @@ def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
         state = env.step(state, action)
         return state, state.obs, state.reward, state.done > 0.5
 
+    # Jitted, the physics is traced once per input shape and the trace is reused by every program
+    # that steps or resets one environment (init, chunk, evaluation): MJX traces take seconds.
+    reset_fn, step_fn = jax.jit(reset_fn), jax.jit(step_fn)
     # Brax's env.observation_size runs an unjitted reset op by op (tens of seconds for MJX);
     # the shape of a traced reset gives the same number without running anything.
-    obs_shape = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).obs.shape
+    obs_shape = jax.eval_shape(reset_fn, jax.random.PRNGKey(0))[1].shape
     return Environment(
         name=name,
         observation_size=int(obs_shape[-1]),
@@ -136,16 +139,6 @@ def _strong(tree: Any) -> Any:
     return jax.tree.map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), tree)
 
 
-def _select(mask: jax.Array, on_true: Any, on_false: Any) -> Any:
-    """Per-environment ``where`` over two pytrees with leading ``num_envs`` axes."""
-
-    def pick(a, b):
-        m = mask.reshape(mask.shape + (1,) * (b.ndim - mask.ndim))
-        return jnp.where(m, a, b).astype(b.dtype)
-
-    return jax.tree.map(pick, on_true, on_false)
-
-
 def _reset_batch(env: Environment, keys: jax.Array) -> tuple[Any, jax.Array]:
     inner, obs = jax.vmap(env.reset_fn)(keys)
     return _strong(inner), obs.astype(jnp.float32)
@@ -165,11 +158,11 @@ def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
 
 
 def default_reset_slots(num_envs: int) -> int:
-    """How many environments :func:`reset_ended` resets one by one before it resets the whole
-    batch.
+    """How many ended environments :func:`reset_ended` resets together, per round.
 
-    A sixteenth of the batch (at least one): on a step where at most that many episodes ended,
-    only those environments draw fresh initial states, a small fraction of a batch reset.
+    A sixteenth of the batch (at least one): on a step where at most that many episodes ended
+    (the usual case), one round resets just those; when the whole batch ends at once (a shared
+    time limit) 16 rounds do.
     """
     return max(1, num_envs // 16)
 
@@ -179,21 +172,22 @@ def _by_group(x: jax.Array, groups: int) -> jax.Array:
     return x.reshape(groups, x.shape[0] // groups, *x.shape[1:])
 
 
-def _no_reset(env, ended, keys, groups, slots, carry):
-    del env, ended, keys, groups, slots
-    return carry
+def _ended_in_round(ended: jax.Array, first: jax.Array, slots: int) -> jax.Array:
+    """``[size]`` indices of the ended environments ranked ``first .. first + slots - 1`` in
+    ``ended [size]`` (in index order), padded with ``size`` (out of range: scatters drop it)."""
+    rank = jnp.cumsum(ended) - 1
+    picked = ended & (rank >= first) & (rank < first + slots)
+    return jnp.nonzero(picked, size=slots, fill_value=ended.shape[0])[0]
 
 
-def _reset_some(env, ended, keys, groups, slots, carry):
-    """Gathers up to ``slots`` ended environments per group, resets them, scatters them back."""
+def _reset_round(env, ended, keys, groups, slots, round_index, carry):
+    """Round ``round_index`` of :func:`reset_ended`: gathers the next ``slots`` ended
+    environments of each group, resets them with their own keys and scatters them back."""
     inner, obs = carry
     num_envs = ended.shape[0]
     size = num_envs // groups
-    # Per group, the indices of its ended environments, padded with an out-of-range index that
-    # the scatter drops.
-    index = jax.vmap(lambda e: jnp.nonzero(e, size=slots, fill_value=size)[0])(
-        _by_group(ended, groups)
-    )  # [groups, slots]
+    first = round_index * slots
+    index = jax.vmap(lambda e: _ended_in_round(e, first, slots))(_by_group(ended, groups))
     picked = jax.vmap(lambda k, i: k[jnp.minimum(i, size - 1)])(_by_group(keys, groups), index)
     fresh_inner, fresh_obs = _reset_batch(env, picked.reshape(groups * slots, *picked.shape[2:]))
 
@@ -204,14 +198,6 @@ def _reset_some(env, ended, keys, groups, slots, carry):
         return jax.vmap(scatter)(full, index, part).reshape(num_envs, *full.shape[2:])
 
     return jax.tree.map(put, inner, fresh_inner), put(obs, fresh_obs)
-
-
-def _reset_all(env, ended, keys, groups, slots, carry):
-    """Resets the whole batch and keeps the fresh states where an episode ended."""
-    del groups, slots
-    inner, obs = carry
-    fresh_inner, fresh_obs = _reset_batch(env, keys)
-    return _select(ended, fresh_inner, inner), _select(ended, fresh_obs, obs)
 
 
 def reset_ended(
@@ -228,13 +214,13 @@ def reset_ended(
     """``(inner, obs)`` with every ended environment (``ended [num_envs]``) restarted from a
     fresh random state drawn with its own key (``keys [num_envs]``).
 
-    Chosen per step by a ``lax.switch``: nothing when no episode ended; when at most
-    ``reset_slots`` ended per group (default :func:`default_reset_slots`), only those are
-    gathered, reset and scattered back; otherwise the whole batch is reset and selected per
-    environment. Every environment gets the reset of its own key whichever branch runs (bit for
-    bit on CPU). Under a ``jax.vmap`` with ``axis_name`` the branch is chosen from the largest
-    count over that axis, so it stays a real branch. ``groups``: the batch is that many equal,
-    contiguous groups (e.g. one per device) and gathers and scatters stay inside each group.
+    One reset path, so the environment's reset is compiled once: a loop of rounds, each
+    gathering up to ``reset_slots`` ended environments per group (default
+    :func:`default_reset_slots`), resetting them and scattering them back; no round runs when no
+    episode ended. Every environment gets the reset of its own key whatever the number of
+    rounds (bit for bit on CPU). Under a ``jax.vmap`` with ``axis_name`` the number of rounds is
+    the largest over that axis, so it stays a real loop. ``groups``: the batch is that many
+    equal, contiguous groups (e.g. one per device) and gathers and scatters stay inside each.
     """
     num_envs = ended.shape[0]
     if groups <= 0 or num_envs % groups:
@@ -243,12 +229,12 @@ def reset_ended(
     slots = default_reset_slots(size) if reset_slots is None else int(reset_slots)
     if slots <= 0:
         raise ValueError(f"reset_slots must be positive, got {slots}")
-    kinds = [_no_reset, _reset_all] if slots >= size else [_no_reset, _reset_some, _reset_all]
-    branches = [functools.partial(kind, env, ended, keys, groups, slots) for kind in kinds]
+    slots = min(slots, size)
     count = max_member(jnp.max(jnp.sum(_by_group(ended, groups).astype(jnp.int32), axis=1)),
                        axis_name)  # fmt: skip
-    branch = jnp.where(count == 0, 0, jnp.where(count <= slots, 1, len(branches) - 1))
-    return jax.lax.switch(branch, branches, (inner, obs))
+    rounds = (count + slots - 1) // slots
+    body = functools.partial(_reset_round, env, ended, keys, groups, slots)
+    return jax.lax.fori_loop(0, rounds, body, (inner, obs))
 
 
 def step(

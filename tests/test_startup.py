@@ -1,0 +1,122 @@
+"""Start-up: what a run compiles, when, and what a second identical run compiles (nothing).
+
+Counts come from JAX's own monitoring events: every XLA compilation (or persistent-cache
+lookup) records ``/jax/core/compile/backend_compile_duration``; a persistent-cache miss records
+``/jax/compilation_cache/cache_misses``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import jax
+import pytest
+
+from td3_jax import run as run_module
+from td3_jax.config import TrainConfig
+from td3_jax.logger import read_metrics
+
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+
+# 64 iterations of 2 environments per chunk: the first chunk is split (8 + 56 iterations).
+SPLIT = TrainConfig(
+    env="gymnax/Pendulum-v1",
+    hidden_sizes=(8,),
+    num_envs=2,
+    eval_envs=2,
+    episode_length=16,
+    eval_every=128,
+    total_steps=3 * 128,
+    updates_per_iter=1,
+    batch_size=8,
+    buffer_size=256,
+    warmup_steps=16,
+)
+
+
+@pytest.fixture
+def compile_events():
+    """Names of the compile events recorded while the test runs."""
+    events: list[str] = []
+    listener = lambda name, *_, **__: events.append(name) if name == COMPILE_EVENT else None
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    yield events
+    jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_nothing_compiles_after_the_start(tmp_path, monkeypatch, compile_events):
+    # Every chunk call (the early part, the rest of the first chunk, later chunks) with its
+    # evaluation compiles nothing; from the second chunk on (checkpoints included) nothing does.
+    calls = []
+    real = run_module._chunk_and_record
+
+    def counted(run, compiled, state, iterations):
+        before = len(compile_events)
+        out = real(run, compiled, state, iterations)
+        calls.append((iterations, before, len(compile_events)))
+        return out
+
+    monkeypatch.setattr(run_module, "_chunk_and_record", counted)
+    run_module.train(SPLIT, tmp_path / "run", progress=False)
+    assert SPLIT.early_iterations == 8 and SPLIT.iters_per_chunk == 64
+    assert [c[0] for c in calls] == [8, 56, 64, 64]
+    assert [c[2] - c[1] for c in calls] == [0, 0, 0, 0], calls
+    assert len(compile_events) == calls[2][1], "compiled something after the first chunk"
+    steps = [r["env_steps"] for r in read_metrics(tmp_path / "run" / "metrics.jsonl")]
+    assert steps == [16, 128, 256, 384]
+
+
+def test_the_early_evaluation_does_not_change_the_run(tmp_path):
+    # Splitting the first chunk only adds a record: the evaluations are the same numbers, and so
+    # are the later chunks' metrics (the first chunk's second record averages its second part).
+    split = run_module.train(SPLIT, tmp_path / "split", progress=False)
+    whole = run_module.train(
+        TrainConfig(**{**SPLIT.__dict__, "early_evaluation": False}), tmp_path / "whole",
+        progress=False,
+    )
+    assert [r["env_steps"] for r in whole] == [128, 256, 384]
+    for a, b in zip(split[1:], whole, strict=True):
+        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-5)
+    for a, b in zip(split[2:], whole[1:], strict=True):
+        for key in ("critic_loss", "actor_loss", "train_return_mean"):
+            assert a[key] == pytest.approx(b[key], rel=1e-5, abs=1e-6), key
+
+
+COUNTING_RUN = """
+import json, sys, jax
+counts = {"compiles": 0, "misses": 0, "hits": 0}
+def on_duration(name, *_, **__):
+    counts["compiles"] += name == "COMPILE_EVENT"
+def on_event(name, *_, **__):
+    counts["misses"] += name == "/jax/compilation_cache/cache_misses"
+    counts["hits"] += name == "/jax/compilation_cache/cache_hits"
+jax.monitoring.register_event_duration_secs_listener(on_duration)
+jax.monitoring.register_event_listener(on_event)
+from td3_jax.cli import main
+try:
+    main(sys.argv[1:])
+finally:
+    print("COUNTS " + json.dumps(counts))
+""".replace("COMPILE_EVENT", COMPILE_EVENT)
+
+
+def _counted_train(out, cache) -> dict[str, int]:
+    args = ["train", "--out", str(out), "--compile-cache", str(cache), "--num-envs", "2",
+            "--eval-envs", "2", "--episode-length", "16", "--eval-every", "32",
+            "--total-steps", "64", "--hidden-sizes", "8", "--batch-size", "8",
+            "--warmup-steps", "16", "--updates-per-iter", "1", "--quiet"]  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", COUNTING_RUN, *args], capture_output=True,
+                          text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = [x for x in done.stdout.splitlines() if x.startswith("COUNTS ")][-1]
+    return json.loads(line.removeprefix("COUNTS "))
+
+
+def test_a_second_identical_run_compiles_nothing(tmp_path):
+    first = _counted_train(tmp_path / "a", tmp_path / "cache")
+    second = _counted_train(tmp_path / "b", tmp_path / "cache")
+    assert first["compiles"] > 0 and first["misses"] > 0, first
+    assert second["misses"] == 0, f"the second run compiled again: {second}"
+    assert second["hits"] == first["misses"], (first, second)
