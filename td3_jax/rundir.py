@@ -52,6 +52,12 @@ FLOAT_SETTINGS = (
     "ou_theta",
     "ou_sigma",
     "ou_min_sigma",
+    "expl_noise_min",
+    "expl_noise_max",
+    "weight_decay",
+    "max_grad_norm",
+    "v_min",
+    "v_max",
 )
 
 
@@ -366,8 +372,9 @@ def load_config(out_dir: Path) -> TrainConfig:
     """The resolved config a run directory was started with (other keys of config.json, such
     as ``preset`` and ``resume_changes``, are ignored; see :func:`load_run_info`)."""
     raw = _read_config(out_dir)
-    if raw.get("hidden_sizes") is not None:
-        raw["hidden_sizes"] = tuple(raw["hidden_sizes"])
+    for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+        if raw.get(name) is not None:
+            raw[name] = tuple(raw[name])
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     return TrainConfig(**{k: v for k, v in raw.items() if k in known})
 
