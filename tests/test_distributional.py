@@ -303,3 +303,36 @@ def test_full_distributional_update_matches_reference():
             for a, e in zip(jax.tree.leaves(got), jax.tree.leaves(expected), strict=True):
                 np.testing.assert_allclose(np.asarray(a), e, atol=1e-5, rtol=1e-5, err_msg=name)
     assert int(state.step) == 4
+
+
+def test_distributional_td3_learns_a_bandit():
+    """One-step bandit, reward -(a - 0.5)^2, done = 1: the C51 agent's action goes to 0.5."""
+    spec = ac.make_spec(
+        (32, 32),
+        1,
+        1,
+        num_critics=2,
+        target_smoothing=True,
+        policy_freq=2,
+        options=ac.AgentOptions(num_atoms=21, actor_q="min"),
+    )
+    hp = hparams(actor_lr=5e-3, critic_lr=1e-2, discount=0.99, v_min=-3.0, v_max=1.0)
+
+    @jax.jit
+    def train(state, key):
+        def body(state, key):
+            k_act, k_upd = jax.random.split(key)
+            action = jax.random.uniform(k_act, (64, 1), minval=-1.0, maxval=1.0)
+            obs = jnp.ones((64, 1))
+            reward = -((action[:, 0] - 0.5) ** 2)
+            batch = Transition(obs, action, reward, obs, jnp.ones((64,)))
+            return ac.update(spec, hp, state, batch, k_upd)[0], None
+
+        return jax.lax.scan(body, state, jax.random.split(key, 600))[0]
+
+    state = jax.jit(functools.partial(ac.init, spec))(jax.random.key(0))
+    act = lambda s: float(spec.actor.apply(s.actor_params, jnp.ones((1, 1)))[0, 0])
+    start = act(state)
+    state = train(state, jax.random.key(1))
+    assert abs(start - 0.5) > 0.2, start  # it really had to move
+    assert abs(act(state) - 0.5) < 0.1, act(state)
