@@ -427,3 +427,32 @@ def test_train_help_documents_each_option_and_its_default(capsys):
         assert flag in text, flag
     for default in ("plain", "101", "-10.0", "float32", "constant", "auto"):
         assert f"(default: {default})" in text, default
+
+
+def test_a_run_with_every_option_trains_checkpoints_and_resumes(tmp_path):
+    """The command with all options on: finite metrics, config.json keeps them, and --resume
+    restores the state (per-environment draws included) and goes on."""
+    from td3_jax.logger import read_metrics
+    from td3_jax.rundir import load_config
+
+    out = tmp_path / "run"
+    flags = (
+        "--env gymnax/Pendulum-v1 --hidden-sizes 8 8 --num-envs 2 --steps-per-iter 3 "
+        "--updates-per-iter 2 --batch-size 4 --buffer-size 64 --warmup-steps 6 "
+        "--eval-every 12 --total-steps 24 --eval-envs 2 --episode-length 10 --n-step 2 "
+        "--critic distributional --num-atoms 11 --v-min -50 --v-max 5 --actor-q mean "
+        "--no-target-actor --weight-decay 0.1 --max-grad-norm 1.0 --lr-schedule cosine "
+        "--layer-norm --actor-hidden-sizes 8 4 --critic-hidden-sizes 16 8 "
+        "--precision bfloat16 --expl-noise-min 0.01 --expl-noise-max 0.4"
+    ).split()
+    common = ["--out", str(out), "--quiet", "--compile-cache", "off"]
+    cli.main(["train", *flags, *common])
+    cfg = load_config(out)
+    assert cfg.critic == "distributional" and cfg.critic_hidden_sizes == (16, 8)
+    assert cfg.precision == "bfloat16" and cfg.expl_noise_max == 0.4 and not cfg.target_actor
+    cli.main(["train", "--resume", "--total-steps", "36", *common])
+    records = read_metrics(out / "metrics.jsonl")
+    assert [r["env_steps"] for r in records] == [12, 24, 36]
+    assert all(
+        np.isfinite(r["critic_loss"]) and np.isfinite(r["eval_return_mean"]) for r in records
+    )
