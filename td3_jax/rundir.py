@@ -28,7 +28,7 @@ import numpy as np
 
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig, as_flag, flag
-from td3_jax.population import Member, Population, make_population, members
+from td3_jax.population import SWEEPABLE, Member, Population, make_population, members
 from td3_jax.sharding import make_mesh, state_shardings
 
 CONFIG_FILE = "config.json"
@@ -41,24 +41,7 @@ OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png
 # or what the checkpoint means.
 SAFE_ON_RESUME = ("total_steps", "keep_checkpoints", "checkpoint_every", "eval_envs")
 # Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
-FLOAT_SETTINGS = (
-    "actor_lr",
-    "critic_lr",
-    "tau",
-    "discount",
-    "expl_noise",
-    "policy_noise",
-    "noise_clip",
-    "ou_theta",
-    "ou_sigma",
-    "ou_min_sigma",
-    "expl_noise_min",
-    "expl_noise_max",
-    "weight_decay",
-    "max_grad_norm",
-    "v_min",
-    "v_max",
-)
+FLOAT_SETTINGS = (*SWEEPABLE, "ou_min_sigma")
 
 
 # --------------------------------------------------------------------------------------------
