@@ -287,6 +287,8 @@ def td3_overrides(flags: dict[str, str]) -> dict[str, Any]:
         kind = fields[key]
         if raw.lower() == "none" and "None" in kind:
             out[key] = None
+        elif kind.startswith("Literal"):  # a choice of strings (e.g. precision=bfloat16)
+            out[key] = raw
         elif "tuple" in kind:
             out[key] = tuple(int(v) for v in raw.replace(",", " ").split())
         elif kind.startswith("bool"):

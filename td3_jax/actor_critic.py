@@ -9,6 +9,12 @@ its aliases (the optax ``alias.py`` shape).
 
 Adam's learning rate is applied from the hyperparameters at every step (the optimiser state
 holds only Adam's moments), so learning rates stay traced values: a sweep over them is a vmap.
+The same holds for the options of :class:`AgentOptions` that are floats (weight decay, the
+gradient-norm bound, the C51 support): they live in :class:`AgentHyperparams`. One optimiser
+step (:func:`descend`) is ``params - lr_t * (adam(clip(grads)) + weight_decay * params)``:
+gradients clipped by their global norm (when ``clip_grads``), Adam's direction, decoupled
+weight decay as in ``optax.adamw``, and ``lr_t`` the learning rate times the schedule's
+multiplier after ``step`` updates (:func:`learning_rate`).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from td3_jax import losses
+from td3_jax import distributional, losses
 from td3_jax.axes import any_member
 from td3_jax.networks import Actor, CriticEnsemble
 from td3_jax.types import Agent, AgentState, Metrics, Params, PRNGKey, Transition
@@ -36,6 +42,49 @@ METRIC_NAMES = ("critic_loss", "actor_loss", "actor_updated", "q_mean", "target_
 
 #: Adam's direction (b1 0.9, b2 0.999, eps 1e-8), one shared instance so that specs compare equal.
 ADAM = optax.scale_by_adam()
+
+
+#: Choices of :attr:`AgentOptions.precision`, :attr:`~AgentOptions.actor_q` and
+#: :attr:`~AgentOptions.lr_schedule`.
+PRECISIONS = {"float32": None, "bfloat16": jnp.bfloat16}
+ACTOR_Q = ("first", "min", "mean")
+LR_SCHEDULES = ("constant", "cosine")
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentOptions:
+    """Static options beyond plain TD3/DDPG (FastTD3's recipe), each off by default.
+
+    Attributes:
+      num_atoms: 0 for plain critics; otherwise C51 critics with this many atoms (>= 2) on the
+        support ``[v_min, v_max]`` of :class:`AgentHyperparams` (:mod:`td3_jax.distributional`).
+      actor_hidden_sizes, critic_hidden_sizes: the actor's and the critics' hidden widths
+        (``None``: the ``hidden_sizes`` given to :func:`make_spec`).
+      layer_norm: LayerNorm after every hidden layer (before the ReLU) of actor and critics.
+      precision: ``float32`` or ``bfloat16`` matmuls (parameters, optimiser states and losses
+        stay float32).
+      target_actor: keep a Polyak-averaged target actor for the target action; ``False`` uses
+        the online actor (plus smoothing noise) and keeps no target actor (FastTD3).
+      actor_q: what the actor maximises: ``first`` (critic head 0, the TD3 paper), ``min`` (the
+        lower head per sample) or ``mean`` (the heads' mean), see
+        :func:`td3_jax.losses.reduce_heads`.
+      lr_schedule: ``constant`` or ``cosine`` (from the learning rate down to 0 over
+        ``schedule_updates`` updates, then 0).
+      schedule_updates: the cosine schedule's length in updates.
+      clip_grads: clip gradients to the global norm ``max_grad_norm`` of
+        :class:`AgentHyperparams` before Adam.
+    """
+
+    num_atoms: int = 0
+    actor_hidden_sizes: tuple[int, ...] | None = None
+    critic_hidden_sizes: tuple[int, ...] | None = None
+    layer_norm: bool = False
+    precision: str = "float32"
+    target_actor: bool = True
+    actor_q: str = "first"
+    lr_schedule: str = "constant"
+    schedule_updates: int = 1
+    clip_grads: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +99,7 @@ class AgentSpec:
       target_smoothing: TD3's clipped noise on the target action (off for DDPG).
       optimizer: the optimiser's direction (Adam's moments); the learning rate is applied from
         :class:`AgentHyperparams` at every step.
+      options: the :class:`AgentOptions` the agent was built with.
     """
 
     actor: nn.Module
@@ -59,15 +109,26 @@ class AgentSpec:
     policy_freq: int = 2
     target_smoothing: bool = True
     optimizer: optax.GradientTransformation = ADAM
+    options: AgentOptions = AgentOptions()
 
     @property
     def num_critics(self) -> int:
         return self.critic.num_critics
 
+    @property
+    def distributional(self) -> bool:
+        """Whether the critics are C51 critics (logits over atoms)."""
+        return self.options.num_atoms > 0
+
 
 @struct.dataclass
 class AgentHyperparams:
-    """The agent's float settings, scalars that may be traced (vmapped in sweeps)."""
+    """The agent's float settings, scalars that may be traced (vmapped in sweeps).
+
+    ``weight_decay``: decoupled (AdamW) weight decay, 0 for none. ``max_grad_norm``: the global
+    gradient norm bound (used when :attr:`AgentOptions.clip_grads`). ``v_min``, ``v_max``: the
+    C51 support (used by distributional critics).
+    """
 
     discount: jax.Array
     tau: jax.Array
@@ -75,6 +136,10 @@ class AgentHyperparams:
     critic_lr: jax.Array
     policy_noise: jax.Array
     noise_clip: jax.Array
+    weight_decay: jax.Array = 0.0
+    max_grad_norm: jax.Array = float("inf")
+    v_min: jax.Array = -10.0
+    v_max: jax.Array = 10.0
 
 
 def _check_sizes(observation_size: Any, action_size: Any, hidden_sizes: Any) -> None:
@@ -95,6 +160,10 @@ def _check_hyperparams(hp: AgentHyperparams) -> None:
         "critic_lr": (0.0, np.inf, True),
         "policy_noise": (0.0, np.inf, True),
         "noise_clip": (0.0, np.inf, True),
+        "weight_decay": (0.0, np.inf, True),
+        "max_grad_norm": (0.0, np.inf, False),  # inf allowed: no bound
+        "v_min": (-np.inf, np.inf, False),
+        "v_max": (-np.inf, np.inf, False),
     }
     for name, (low, high, low_ok) in ranges.items():
         value = getattr(hp, name)
@@ -102,9 +171,27 @@ def _check_hyperparams(hp: AgentHyperparams) -> None:
             continue
         v = np.asarray(value)
         below = v < low if low_ok else v <= low
-        if not np.all(np.isfinite(v)) or np.any(v > high) or np.any(below):
+        finite = np.all(np.isfinite(v)) or (name == "max_grad_norm" and not np.any(np.isnan(v)))
+        if not finite or np.any(v > high) or np.any(below):
             bound = "[" if low_ok else "("
             raise ValueError(f"{name} must be finite and in {bound}{low}, {high}], got {value}")
+    if not any(isinstance(x, jax.core.Tracer) for x in (hp.v_min, hp.v_max)) and np.any(
+        np.asarray(hp.v_min) >= np.asarray(hp.v_max)
+    ):
+        raise ValueError(f"v_min must be below v_max, got {hp.v_min} and {hp.v_max}")
+
+
+def _check_options(options: AgentOptions) -> None:
+    """``ValueError`` naming the first impossible option."""
+    if options.num_atoms < 0 or options.num_atoms == 1:
+        raise ValueError(f"num_atoms must be 0 (a plain critic) or >= 2, got {options.num_atoms}")
+    choices = {"precision": tuple(PRECISIONS), "actor_q": ACTOR_Q, "lr_schedule": LR_SCHEDULES}
+    for name, allowed in choices.items():
+        if getattr(options, name) not in allowed:
+            raise ValueError(f"unknown {name} {getattr(options, name)!r}; choose one of "
+                             f"{', '.join(allowed)}")  # fmt: skip
+    if int(options.schedule_updates) < 1:
+        raise ValueError(f"schedule_updates must be >= 1, got {options.schedule_updates}")
 
 
 def make_spec(
@@ -116,33 +203,57 @@ def make_spec(
     target_smoothing: bool,
     policy_freq: int,
     max_action: Any = 1.0,
+    options: AgentOptions = AgentOptions(),
 ) -> AgentSpec:
-    """The static structure of an actor-critic agent (sizes checked, ``ValueError`` if bad)."""
-    _check_sizes(observation_size, action_size, hidden_sizes)
+    """The static structure of an actor-critic agent (sizes checked, ``ValueError`` if bad).
+
+    ``hidden_sizes``: the widths of actor and critics unless ``options`` gives their own.
+    """
+    actor_hidden = tuple(options.actor_hidden_sizes or hidden_sizes or ())
+    critic_hidden = tuple(options.critic_hidden_sizes or hidden_sizes or ())
+    for hidden in (hidden_sizes, actor_hidden, critic_hidden):
+        _check_sizes(observation_size, action_size, hidden)
     if int(policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
-    hidden = tuple(int(h) for h in hidden_sizes)
+    _check_options(options)
+    dtype = PRECISIONS[options.precision]
     return AgentSpec(
-        actor=Actor(hidden, int(action_size), max_action),
-        critic=CriticEnsemble(hidden, num_critics),
+        actor=Actor(_ints(actor_hidden), int(action_size), max_action, options.layer_norm, dtype),
+        critic=CriticEnsemble(
+            _ints(critic_hidden), num_critics, options.layer_norm, dtype, int(options.num_atoms)
+        ),
         observation_size=int(observation_size),
         action_size=int(action_size),
         policy_freq=int(policy_freq),
         target_smoothing=target_smoothing,
+        options=options,
     )
 
 
-def hyperparams(config: Any) -> AgentHyperparams:
-    """The float settings of a config as :class:`AgentHyperparams` (DDPG: no smoothing noise)."""
-    f32 = lambda x: jnp.asarray(x, jnp.float32)
-    hp = AgentHyperparams(
-        discount=f32(config.discount),
-        tau=f32(config.tau),
-        actor_lr=f32(config.actor_lr),
-        critic_lr=f32(config.critic_lr),
-        policy_noise=f32(getattr(config, "policy_noise", 0.0)),
-        noise_clip=f32(getattr(config, "noise_clip", 0.0)),
-    )
+def _ints(sizes: Sequence[int]) -> tuple[int, ...]:
+    return tuple(int(h) for h in sizes)
+
+
+def hyperparams(config: Any, **settings: Any) -> AgentHyperparams:
+    """The float settings of a config as :class:`AgentHyperparams` (DDPG: no smoothing noise).
+
+    ``settings`` give or override fields (``weight_decay``, ``max_grad_norm`` (``None``: no
+    bound), ``v_min``, ``v_max``, ...); fields neither gives take their defaults.
+    """
+    values = {
+        "discount": config.discount,
+        "tau": config.tau,
+        "actor_lr": config.actor_lr,
+        "critic_lr": config.critic_lr,
+        "policy_noise": getattr(config, "policy_noise", 0.0),
+        "noise_clip": getattr(config, "noise_clip", 0.0),
+        **settings,
+    }
+    if values.get("max_grad_norm", 0.0) is None:
+        values["max_grad_norm"] = float("inf")
+    hp = AgentHyperparams(**{k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
+    hp = hp.replace(**{f.name: jnp.asarray(getattr(hp, f.name), jnp.float32)
+                       for f in dataclasses.fields(hp) if f.name not in values})  # fmt: skip
     _check_hyperparams(hp)
     return hp
 
@@ -157,7 +268,7 @@ def init(spec: AgentSpec, key: PRNGKey) -> AgentState:
     return AgentState(
         actor_params=actor_params,
         critic_params=critic_params,
-        target_actor_params=actor_params,
+        target_actor_params=actor_params if spec.options.target_actor else None,
         target_critic_params=critic_params,
         actor_opt_state=spec.optimizer.init(actor_params),
         critic_opt_state=spec.optimizer.init(critic_params),
@@ -165,44 +276,91 @@ def init(spec: AgentSpec, key: PRNGKey) -> AgentState:
     )
 
 
-def _descend(
-    spec: AgentSpec, params: Params, grads: Params, opt_state: Any, lr: jax.Array
+def learning_rate(spec: AgentSpec, lr: jax.Array, step: jax.Array) -> jax.Array:
+    """The learning rate of the update after ``step`` updates: ``lr`` (constant) or
+    ``lr * 0.5 * (1 + cos(pi * min(step, T) / T))``, ``T = schedule_updates`` (cosine)."""
+    if spec.options.lr_schedule == "constant":
+        return lr
+    return lr * optax.cosine_decay_schedule(1.0, spec.options.schedule_updates)(step)
+
+
+def descend(
+    spec: AgentSpec,
+    hp: AgentHyperparams,
+    params: Params,
+    grads: Params,
+    opt_state: Any,
+    lr: jax.Array,
 ) -> tuple[Params, Any]:
-    """One optimiser step: ``params - lr * direction(grads)``."""
+    """One optimiser step ``params - lr * (adam(clip(grads)) + weight_decay * params)``.
+
+    Gradients are clipped to the global norm ``hp.max_grad_norm`` first when
+    ``spec.options.clip_grads``; the weight decay is decoupled from Adam's moments, as in
+    ``optax.adamw`` (0: plain Adam).
+    """
+    if spec.options.clip_grads:
+        grads, _ = optax.clip_by_global_norm(hp.max_grad_norm).update(grads, optax.EmptyState())
     direction, opt_state = spec.optimizer.update(grads, opt_state, params)
+    decay = optax.add_decayed_weights(hp.weight_decay)
+    direction, _ = decay.update(direction, optax.EmptyState(), params)
     updates = jax.tree.map(lambda d: (-lr).astype(d.dtype) * d, direction)
     return optax.apply_updates(params, updates), opt_state
+
+
+def target_policy_params(spec: AgentSpec, state: AgentState) -> Params:
+    """The actor that picks target actions: the target actor, or the online one without it."""
+    return state.target_actor_params if spec.options.target_actor else state.actor_params
+
+
+def _value_metrics(
+    spec: AgentSpec, hp: AgentHyperparams, out: jax.Array, target: jax.Array
+) -> Metrics:
+    """``q_mean`` and ``target_mean`` of a critic step (C51: the distributions' means)."""
+    if not spec.distributional:
+        return {"q_mean": jnp.mean(out), "target_mean": jnp.mean(target)}
+    z = distributional.support(spec.options.num_atoms, hp.v_min, hp.v_max)
+    return {"q_mean": jnp.mean(distributional.mean_value(out, z)),
+            "target_mean": jnp.mean(jnp.sum(target * z, axis=-1))}  # fmt: skip
 
 
 def critic_step(
     spec: AgentSpec, hp: AgentHyperparams, state: AgentState, batch: Transition, key: PRNGKey
 ) -> tuple[AgentState, Metrics]:
-    """One critic step on the TD target; counts the update in ``state.step``."""
-    target = losses.td_target(
-        spec, hp, state.target_actor_params, state.target_critic_params, batch, key
+    """One critic step on the TD target (C51: the target distribution); counts the update in
+    ``state.step``."""
+    target_fn, loss_fn = losses.td_target, losses.critic_loss
+    if spec.distributional:
+        target_fn, loss_fn = losses.categorical_target, losses.categorical_loss
+    target = target_fn(
+        spec, hp, target_policy_params(spec, state), state.target_critic_params, batch, key
     )
-    (loss, q), grads = jax.value_and_grad(losses.critic_loss, has_aux=True)(
+    (loss, out), grads = jax.value_and_grad(loss_fn, has_aux=True)(
         state.critic_params, spec, batch, target
     )
-    params, opt_state = _descend(spec, state.critic_params, grads, state.critic_opt_state,
-                                 hp.critic_lr)  # fmt: skip
+    lr = learning_rate(spec, hp.critic_lr, state.step)
+    params, opt_state = descend(spec, hp, state.critic_params, grads, state.critic_opt_state, lr)
     state = state.replace(critic_params=params, critic_opt_state=opt_state, step=state.step + 1)
-    return state, {"critic_loss": loss, "q_mean": jnp.mean(q), "target_mean": jnp.mean(target)}
+    return state, {"critic_loss": loss, **_value_metrics(spec, hp, out, target)}
 
 
 def actor_step(
     spec: AgentSpec, hp: AgentHyperparams, state: AgentState, batch: Transition
 ) -> tuple[AgentState, jax.Array]:
-    """One actor step on the current critic, then Polyak averaging of both targets."""
+    """One actor step on the current critic, then Polyak averaging of both targets (of the
+    critics' only, without a target actor). Its learning rate is that of the critic step just
+    taken (the schedule at ``state.step - 1``)."""
     loss, grads = jax.value_and_grad(losses.actor_loss)(
-        state.actor_params, state.critic_params, spec, batch
+        state.actor_params, state.critic_params, spec, hp, batch
     )
-    params, opt_state = _descend(spec, state.actor_params, grads, state.actor_opt_state,
-                                 hp.actor_lr)  # fmt: skip
+    lr = learning_rate(spec, hp.actor_lr, state.step - 1)
+    params, opt_state = descend(spec, hp, state.actor_params, grads, state.actor_opt_state, lr)
+    target_actor = state.target_actor_params
+    if spec.options.target_actor:
+        target_actor = optax.incremental_update(params, target_actor, hp.tau)
     state = state.replace(
         actor_params=params,
         actor_opt_state=opt_state,
-        target_actor_params=optax.incremental_update(params, state.target_actor_params, hp.tau),
+        target_actor_params=target_actor,
         target_critic_params=optax.incremental_update(
             state.critic_params, state.target_critic_params, hp.tau
         ),
@@ -297,7 +455,7 @@ def actor_critic(
         update=functools.partial(_bound_update, spec, hp, axis_name),
         act=act,
         actor_apply=act,
-        critic_apply=functools.partial(_apply, spec.critic),
+        critic_apply=functools.partial(losses.q_values, spec, hp),
         config=config,
         spec=spec,
         hyperparams=hp,

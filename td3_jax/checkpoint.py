@@ -36,8 +36,9 @@ _TMP_MARK = ".orbax-checkpoint-tmp"
 _HASH = "mix32"
 _META_KEYS = ("layout", "checksums", "format")  # what save adds to the caller's meta
 #: The checkpoint format; 1 (no "format" key) was written before the trainer redesign of
-#: 2026-11-22 (other optimiser-state layout, no evaluation key in the state).
-FORMAT = 2
+#: 2026-11-22 (other optimiser-state layout, no evaluation key in the state); 2 before the
+#: per-environment exploration draws (``TrainState.expl_draw``) joined the state.
+FORMAT = 3
 # (errno, text in a wrapped message such as tensorstore's, what the error message says)
 _WRITE_CAUSES = [
     (errno.ENOSPC, "No space left", "no space left on the disk holding {}"),

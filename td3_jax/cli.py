@@ -104,6 +104,18 @@ class SweepCommand(TrainCommand):
     """OU sigmas to try."""
     sweep_ou_theta: tuple[float, ...] = ()
     """OU thetas to try."""
+    sweep_expl_noise_min: tuple[float, ...] = ()
+    """Lower ends of the per-environment exploration stds to try."""
+    sweep_expl_noise_max: tuple[float, ...] = ()
+    """Upper ends of the per-environment exploration stds to try."""
+    sweep_weight_decay: tuple[float, ...] = ()
+    """AdamW weight decays to try."""
+    sweep_max_grad_norm: tuple[float, ...] = ()
+    """Gradient-norm bounds to try (needs --max-grad-norm)."""
+    sweep_v_min: tuple[float, ...] = ()
+    """Lowest values of the distributional critic's support to try."""
+    sweep_v_max: tuple[float, ...] = ()
+    """Highest values of the distributional critic's support to try."""
 
 
 @dataclasses.dataclass(frozen=True)

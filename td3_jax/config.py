@@ -6,6 +6,7 @@ import dataclasses
 import math
 from typing import Any, Literal
 
+from td3_jax.actor_critic import AgentOptions
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
 
@@ -73,9 +74,48 @@ class TrainConfig:
     ou_sigma (no decay, as in the seed)."""
     ou_decay_period: int = 100_000
     """OU decay period in steps."""
+    expl_noise_min: float | None = None
+    """With expl_noise_max: Gaussian exploration with a std per environment, drawn uniformly
+    from [expl_noise_min, expl_noise_max] at the start and again whenever that environment's
+    episode ends (FastTD3: 0.001 to 0.4); replaces expl_noise. Default: off."""
+    expl_noise_max: float | None = None
+    """Upper end of the per-environment exploration std (see expl_noise_min). Default: off."""
     hidden_sizes: tuple[int, ...] | None = (256, 256)
     """Hidden widths of actor and critics (the TD3 paper used 400 300); None: the algorithm's
     own default (TD3Config 400 300, DDPGConfig 256 256)."""
+    actor_hidden_sizes: tuple[int, ...] | None = None
+    """Hidden widths of the actor alone (FastTD3: 512 256 128); default: hidden_sizes."""
+    critic_hidden_sizes: tuple[int, ...] | None = None
+    """Hidden widths of each critic alone (FastTD3: 1024 512 256); default: hidden_sizes."""
+    layer_norm: bool = False
+    """LayerNorm after every hidden layer of actor and critics (before the ReLU)."""
+    precision: Literal["float32", "bfloat16"] = "float32"
+    """Matmul precision of the networks; bfloat16 keeps parameters, optimiser states and losses
+    in float32."""
+    critic: Literal["plain", "distributional"] = "plain"
+    """Critic type: plain (a Q-value, MSE to the TD target) or distributional (C51: a
+    distribution over num_atoms values in [v_min, v_max], cross-entropy to the projected
+    target distribution of the target critic with the lower mean)."""
+    num_atoms: int = 101
+    """Atoms of the distributional critic's support."""
+    v_min: float = -10.0
+    """Lowest value of the distributional critic's support (returns below are clamped)."""
+    v_max: float = 10.0
+    """Highest value of the distributional critic's support (returns above are clamped)."""
+    actor_q: Literal["auto", "first", "min", "mean"] = "auto"
+    """What the actor maximises: the first critic (the TD3 paper), the lower of the critics'
+    Q (per sample), or their mean; auto: first for plain critics, min for distributional ones
+    (FastTD3)."""
+    target_actor: bool = True
+    """Keep a Polyak-averaged target actor for the target action; --no-target-actor uses the
+    online actor plus smoothing noise, as FastTD3 does."""
+    weight_decay: float = 0.0
+    """Decoupled (AdamW) weight decay of actor and critics, as in optax.adamw (FastTD3: 0.1)."""
+    max_grad_norm: float | None = None
+    """Clip gradients to this global norm before Adam; default: no clipping."""
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    """Learning-rate schedule: constant, or cosine from the learning rate to 0 over the run's
+    gradient updates (extending a run on --resume stretches the schedule)."""
     actor_lr: float | None = None
     """Actor Adam learning rate; default: the algorithm's (TD3 1e-3, DDPG 1e-4)."""
     critic_lr: float | None = None
@@ -162,6 +202,41 @@ class TrainConfig:
             **given,
         )
 
+    @property
+    def total_updates(self) -> int:
+        """Gradient updates the run takes: ``updates_per_iter`` in every iteration from the
+        first whose collected steps reach ``warmup_steps`` (at least 1)."""
+        iters = self.num_chunks * self.iters_per_chunk
+        first = max(1, math.ceil(self.warmup_steps / self.env_steps_per_iter))
+        return max(1, (iters - first + 1) * self.updates_per_iter)
+
+    @property
+    def per_env_noise(self) -> bool:
+        """Whether exploration stds are drawn per environment (expl_noise_min/max given)."""
+        return self.expl_noise_min is not None
+
+    def agent_options(self) -> AgentOptions:
+        """The agent's static options (:class:`~td3_jax.actor_critic.AgentOptions`)."""
+        distributional = self.critic == "distributional"
+        auto_q = "min" if distributional else "first"
+        return AgentOptions(
+            num_atoms=self.num_atoms if distributional else 0,
+            actor_hidden_sizes=self.actor_hidden_sizes,
+            critic_hidden_sizes=self.critic_hidden_sizes,
+            layer_norm=self.layer_norm,
+            precision=self.precision,
+            target_actor=self.target_actor,
+            actor_q=auto_q if self.actor_q == "auto" else self.actor_q,
+            lr_schedule=self.lr_schedule,
+            schedule_updates=self.total_updates if self.lr_schedule == "cosine" else 1,
+            clip_grads=self.max_grad_norm is not None,
+        )
+
+    def agent_settings(self) -> dict[str, float | None]:
+        """The agent's float options, beside :meth:`agent_config`'s (traced, sweepable)."""
+        return dict(weight_decay=self.weight_decay, max_grad_norm=self.max_grad_norm,
+                    v_min=self.v_min, v_max=self.v_max)  # fmt: skip
+
     def ou_params(self) -> OUParams:
         return OUParams(
             theta=self.ou_theta,
@@ -178,7 +253,15 @@ _POSITIVE = (
 )  # fmt: skip
 _NON_NEGATIVE = ("warmup_steps", "updates_per_iter")
 _FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise", "noise_clip",
-           "ou_theta", "ou_sigma", "ou_min_sigma")  # fmt: skip
+           "ou_theta", "ou_sigma", "ou_min_sigma", "expl_noise_min", "expl_noise_max",
+           "weight_decay", "max_grad_norm")  # fmt: skip
+_SIGNED_FLOATS = ("v_min", "v_max")
+_CHOICES = {
+    "critic": ("plain", "distributional"),
+    "actor_q": ("auto", "first", "min", "mean"),
+    "precision": ("float32", "bfloat16"),
+    "lr_schedule": ("constant", "cosine"),
+}
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 
 
@@ -201,14 +284,38 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check_counts(cfg)
     _check_floats(cfg)
     _check_replay(cfg)
+    _check_options(cfg)
     if cfg.algo not in ("td3", "ddpg"):
         raise ConfigError(f"unknown algorithm {cfg.algo!r}; choose td3 or ddpg")
     if cfg.env_backend not in _BACKENDS:
         raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; "
                           f"choose one of {', '.join(_BACKENDS)}")  # fmt: skip
-    if cfg.hidden_sizes is not None and (len(cfg.hidden_sizes) == 0 or min(cfg.hidden_sizes) <= 0):
-        raise ConfigError(f"--hidden-sizes must be positive integers, got {cfg.hidden_sizes}")
+    for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+        sizes = getattr(cfg, name)
+        if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
+            raise ConfigError(f"{flag(name)} must be positive integers, got {sizes}")
     return cfg
+
+
+def _check_options(cfg: TrainConfig) -> None:
+    """The FastTD3-class options: known choices, a support, a pair of exploration bounds."""
+    for name, allowed in _CHOICES.items():
+        if getattr(cfg, name) not in allowed:
+            raise ConfigError(f"unknown {flag(name)} {getattr(cfg, name)!r}; choose one of "
+                              f"{', '.join(allowed)}")  # fmt: skip
+    if cfg.num_atoms < 2:
+        raise ConfigError(f"--num-atoms must be at least 2, got {cfg.num_atoms}")
+    if not cfg.v_min < cfg.v_max:
+        raise ConfigError(f"--v-min ({cfg.v_min}) must be below --v-max ({cfg.v_max})")
+    if cfg.max_grad_norm is not None and cfg.max_grad_norm <= 0:
+        raise ConfigError(f"--max-grad-norm must be positive, got {cfg.max_grad_norm}")
+    low, high = cfg.expl_noise_min, cfg.expl_noise_max
+    if (low is None) != (high is None):
+        raise ConfigError("--expl-noise-min and --expl-noise-max go together: give both or neither")
+    if low is not None and low > high:
+        raise ConfigError(f"--expl-noise-min ({low}) must not exceed --expl-noise-max ({high})")
+    if low is not None and cfg.exploration != "gaussian":
+        raise ConfigError("--expl-noise-min/--expl-noise-max need --exploration gaussian")
 
 
 def _check_counts(cfg: TrainConfig) -> None:
@@ -230,6 +337,9 @@ def _check_floats(cfg: TrainConfig) -> None:
             raise ConfigError(f"{flag(name)} must be a finite number, got {value}")
         if value is not None and value < 0:
             raise ConfigError(f"{flag(name)} must not be negative, got {value}")
+    for name in _SIGNED_FLOATS:
+        if not math.isfinite(getattr(cfg, name)):
+            raise ConfigError(f"{flag(name)} must be a finite number, got {getattr(cfg, name)}")
     if not 0.0 <= cfg.discount <= 1.0:
         raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")
     if cfg.tau is not None and not 0.0 < cfg.tau <= 1.0:

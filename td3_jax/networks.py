@@ -1,8 +1,15 @@
-"""Actor and critic-ensemble networks (flax.linen)."""
+"""Actor and critic-ensemble networks (flax.linen).
+
+Every network takes ``layer_norm`` (LayerNorm after each hidden Dense, before the ReLU, as
+FastTD3 does) and ``dtype`` (the computation dtype of the matmuls: ``None`` computes in the
+inputs' dtype, float32 here; ``jnp.bfloat16`` runs them in bf16). Parameters are always float32
+and every network's output is float32, so losses and optimiser states stay in float32.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -14,12 +21,18 @@ class MLP(nn.Module):
 
     hidden_sizes: Sequence[int]
     out_size: int
+    layer_norm: bool = False
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.hidden_sizes:
-            x = nn.relu(nn.Dense(width)(x))
-        return nn.Dense(self.out_size)(x)
+            x = nn.Dense(width, dtype=self.dtype, param_dtype=jnp.float32)(x)
+            if self.layer_norm:
+                x = nn.LayerNorm(dtype=self.dtype, param_dtype=jnp.float32)(x)
+            x = nn.relu(x)
+        out = nn.Dense(self.out_size, dtype=self.dtype, param_dtype=jnp.float32)(x)
+        return out.astype(jnp.float32)
 
 
 class Actor(nn.Module):
@@ -33,10 +46,12 @@ class Actor(nn.Module):
     hidden_sizes: Sequence[int]
     action_size: int
     max_action: float = 1.0
+    layer_norm: bool = False
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        raw = MLP(self.hidden_sizes, self.action_size)(obs)
+        raw = MLP(self.hidden_sizes, self.action_size, self.layer_norm, self.dtype)(obs)
         return jnp.asarray(self.max_action) * jnp.tanh(raw)
 
 
@@ -44,31 +59,59 @@ class Critic(nn.Module):
     """One Q-function: ``(obs[..., o], action[..., a]) -> q[...]``."""
 
     hidden_sizes: Sequence[int]
+    layer_norm: bool = False
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        return MLP(self.hidden_sizes, 1)(x)[..., 0]
+        return MLP(self.hidden_sizes, 1, self.layer_norm, self.dtype)(x)[..., 0]
 
 
-class CriticEnsemble(nn.Module):
-    """``num_critics`` independent Q-functions: ``(obs, action) -> q[num_critics, ...]``.
-
-    The heads have separate parameters stacked along a leading axis and are evaluated with one
-    vectorised call (``nn.vmap``), not a Python loop.
-    """
+class DistributionalCritic(nn.Module):
+    """One categorical (C51) Q-function: ``(obs, action) -> logits[..., num_atoms]`` over a
+    fixed support of ``num_atoms`` values (the support lives in the loss, not the network)."""
 
     hidden_sizes: Sequence[int]
-    num_critics: int = 2
+    num_atoms: int
+    layer_norm: bool = False
+    dtype: Any = None
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
-        heads = nn.vmap(
-            Critic,
-            variable_axes={"params": 0},
-            split_rngs={"params": True},
-            in_axes=None,
-            out_axes=0,
-            axis_size=self.num_critics,
-        )
-        return heads(self.hidden_sizes)(obs, action)
+        x = jnp.concatenate([obs, action], axis=-1)
+        return MLP(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype)(x)
+
+
+def _ensemble(head: type[nn.Module], num_critics: int) -> type[nn.Module]:
+    """``head`` with separate parameters per critic stacked along a leading axis, evaluated in
+    one vectorised call (``nn.vmap``), not a Python loop."""
+    return nn.vmap(
+        head,
+        variable_axes={"params": 0},
+        split_rngs={"params": True},
+        in_axes=None,
+        out_axes=0,
+        axis_size=num_critics,
+    )
+
+
+class CriticEnsemble(nn.Module):
+    """``num_critics`` independent critics: ``(obs, action) -> q[num_critics, ...]``, or with
+    ``num_atoms > 0`` C51 critics: ``(obs, action) -> logits[num_critics, ..., num_atoms]``."""
+
+    hidden_sizes: Sequence[int]
+    num_critics: int = 2
+    layer_norm: bool = False
+    dtype: Any = None
+    num_atoms: int = 0
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        if self.num_atoms:
+            heads = _ensemble(DistributionalCritic, self.num_critics)
+            return heads(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype)(
+                obs, action
+            )
+        heads = _ensemble(Critic, self.num_critics)
+        return heads(self.hidden_sizes, self.layer_norm, self.dtype)(obs, action)

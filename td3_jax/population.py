@@ -40,6 +40,12 @@ SWEEPABLE = (
     "noise_clip",
     "ou_sigma",
     "ou_theta",
+    "expl_noise_min",
+    "expl_noise_max",
+    "weight_decay",
+    "max_grad_norm",
+    "v_min",
+    "v_max",
 )
 
 
@@ -62,15 +68,21 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     unused = {
         "policy_noise": cfg.algo == "ddpg",
         "noise_clip": cfg.algo == "ddpg",
-        "expl_noise": cfg.exploration != "gaussian",
+        "expl_noise": cfg.exploration != "gaussian" or cfg.per_env_noise,
+        "expl_noise_min": not cfg.per_env_noise,
+        "expl_noise_max": not cfg.per_env_noise,
+        "max_grad_norm": cfg.max_grad_norm is None,
+        "v_min": cfg.critic != "distributional",
+        "v_max": cfg.critic != "distributional",
         "ou_sigma": cfg.exploration != "ou",
         "ou_theta": cfg.exploration != "ou",
     }
     idle = sorted(name for name in sweep if unused.get(name, False))
     if idle:
         raise ConfigError(
-            f"sweeping {', '.join(idle)} changes nothing with --algo {cfg.algo} and "
-            f"--exploration {cfg.exploration}"
+            f"sweeping {', '.join(idle)} changes nothing with these settings (--algo "
+            f"{cfg.algo}, --exploration {cfg.exploration}, --critic {cfg.critic}; per-environment "
+            "exploration needs --expl-noise-min/--expl-noise-max, clipping --max-grad-norm)"
         )
     bad = {n: v for n, values in sweep.items() for v in values if not math.isfinite(float(v))}
     if bad:

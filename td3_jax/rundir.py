@@ -28,7 +28,7 @@ import numpy as np
 
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig, as_flag, flag
-from td3_jax.population import Member, Population, make_population, members
+from td3_jax.population import SWEEPABLE, Member, Population, make_population, members
 from td3_jax.sharding import make_mesh, state_shardings
 
 CONFIG_FILE = "config.json"
@@ -43,18 +43,7 @@ SAFE_ON_RESUME = (
     "total_steps", "keep_checkpoints", "checkpoint_every", "eval_envs", "early_evaluation"
 )
 # Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
-FLOAT_SETTINGS = (
-    "actor_lr",
-    "critic_lr",
-    "tau",
-    "discount",
-    "expl_noise",
-    "policy_noise",
-    "noise_clip",
-    "ou_theta",
-    "ou_sigma",
-    "ou_min_sigma",
-)
+FLOAT_SETTINGS = (*SWEEPABLE, "ou_min_sigma")
 
 
 # --------------------------------------------------------------------------------------------
@@ -368,8 +357,9 @@ def load_config(out_dir: Path) -> TrainConfig:
     """The resolved config a run directory was started with (other keys of config.json, such
     as ``preset`` and ``resume_changes``, are ignored; see :func:`load_run_info`)."""
     raw = _read_config(out_dir)
-    if raw.get("hidden_sizes") is not None:
-        raw["hidden_sizes"] = tuple(raw["hidden_sizes"])
+    for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+        if raw.get(name) is not None:
+            raw[name] = tuple(raw[name])
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     return TrainConfig(**{k: v for k, v in raw.items() if k in known})
 

@@ -27,7 +27,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from td3_jax.config import ConfigError, TrainConfig
 
 AXIS = "data"
-_SPLIT = (".env_state", ".ou_state", ".buffer.data")
+_SPLIT = (".env_state", ".ou_state", ".expl_draw", ".buffer.data")
 
 
 def make_mesh(num_devices: int | None = None) -> Mesh:

@@ -37,6 +37,9 @@ from td3_jax.types import Agent, AgentState, Metrics, PRNGKey, Transition
 
 #: Folded into a run's key to make its evaluation key (independent of the training draws).
 EVAL_KEY_SALT = 1_000_003
+#: Folded into a run's key for the first per-environment exploration draws, and into an
+#: iteration's action key for the redraws at episode ends (independent of the other draws).
+NOISE_KEY_SALT = 1_000_033
 
 
 @struct.dataclass
@@ -49,6 +52,9 @@ class TrainState:
     env_state: envs.EnvState
     obs_stats: normalization.RunningStats
     ou_state: noise.OUState
+    # [num_envs] uniform draws in [0, 1) placing each environment's exploration std in
+    # [expl_noise_min, expl_noise_max]; redrawn where an episode ends (unused without them)
+    expl_draw: jax.Array
     key: jax.Array
     eval_key: jax.Array  # evaluation after chunk c uses fold_in(eval_key, c)
     env_steps: jax.Array  # int32 transitions collected so far (summed over environments)
@@ -70,6 +76,7 @@ class TrainSpec:
       eval_envs: evaluation episodes (one per environment).
       normalize_obs: observations normalised by running statistics.
       exploration: ``"gaussian"`` or ``"ou"``.
+      per_env_noise: Gaussian exploration with a std per environment (:func:`exploration_std`).
       reset_groups: environments are reset within this many contiguous groups.
       axis_name: the vmapped member axis (seeds, sweeps), or ``None``.
     """
@@ -88,6 +95,7 @@ class TrainSpec:
     eval_envs: int
     normalize_obs: bool
     exploration: str
+    per_env_noise: bool = False
     reset_groups: int = 1
     axis_name: str | None = None
 
@@ -99,11 +107,17 @@ class TrainSpec:
 
 @struct.dataclass
 class Hyperparams:
-    """The run's float settings (scalars; ``[members]`` arrays in a population)."""
+    """The run's float settings (scalars; ``[members]`` arrays in a population).
+
+    ``expl_noise_min``, ``expl_noise_max``: the range of the per-environment exploration stds
+    (used when the spec's ``per_env_noise``).
+    """
 
     agent: ac.AgentHyperparams
     expl_noise: jax.Array
     ou: noise.OUParams
+    expl_noise_min: jax.Array = 0.0
+    expl_noise_max: jax.Array = 0.0
 
 
 def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
@@ -117,6 +131,7 @@ def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
         num_critics=2 if is_td3 else 1,
         target_smoothing=is_td3,
         policy_freq=cfg.policy_freq if is_td3 else 1,
+        options=cfg.agent_options(),
     )
 
 
@@ -149,6 +164,7 @@ def make_spec(
         eval_envs=cfg.eval_envs,
         normalize_obs=cfg.normalize_obs,
         exploration=cfg.exploration,
+        per_env_noise=cfg.per_env_noise,
         reset_groups=shards if shards % env_groups == 0 else env_groups,
         axis_name=axis_name,
     )
@@ -159,9 +175,11 @@ def hyperparams(cfg: TrainConfig) -> Hyperparams:
     ou = cfg.ou_params()
     f32 = lambda x: jnp.asarray(x, jnp.float32)
     return Hyperparams(
-        agent=ac.hyperparams(cfg.agent_config()),
+        agent=ac.hyperparams(cfg.agent_config(), **cfg.agent_settings()),
         expl_noise=f32(cfg.expl_noise),
         ou=jax.tree.map(f32, ou),
+        expl_noise_min=f32(cfg.expl_noise_min or 0.0),
+        expl_noise_max=f32(cfg.expl_noise_max or 0.0),
     )
 
 
@@ -186,6 +204,7 @@ def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
         env_state=envs.reset(spec.env, env_key, spec.num_envs),
         obs_stats=normalization.init(spec.env.observation_size),
         ou_state=jax.tree.map(lambda x: jnp.broadcast_to(x, (spec.num_envs, *x.shape)), ou_state),
+        expl_draw=jax.random.uniform(jax.random.fold_in(key, NOISE_KEY_SALT), (spec.num_envs,)),
         key=loop_key,
         eval_key=jax.random.fold_in(key, EVAL_KEY_SALT),
         env_steps=jnp.zeros((), jnp.int32),
@@ -212,10 +231,31 @@ def explore(
         ou_action = lambda k, s, a: noise.ou_action(k, s, a, hp.ou)
         ou_state, noisy = jax.vmap(ou_action)(noise_keys, ou_state, policy)
     else:
-        noisy = jax.vmap(lambda k, a: noise.gaussian(k, a, hp.expl_noise))(noise_keys, policy)
+        std = exploration_std(spec, hp, state.expl_draw)
+        noisy = jax.vmap(noise.gaussian)(noise_keys, policy, std)
     uniform = jax.random.uniform(random_key, policy.shape, minval=-1.0, maxval=1.0)
     action = jnp.where(state.env_steps < spec.warmup_steps, uniform, noisy)
     return safe_action(action), ou_state
+
+
+def exploration_std(spec: TrainSpec, hp: Hyperparams, draw: jax.Array) -> jax.Array:
+    """``[num_envs]`` Gaussian exploration stds: ``expl_noise`` everywhere, or with
+    ``per_env_noise`` each environment's own ``min + (max - min) * draw`` (``draw [num_envs]``
+    uniform in ``[0, 1)``, so the stds are uniform in ``[expl_noise_min, expl_noise_max)``)."""
+    if not spec.per_env_noise:
+        return jnp.broadcast_to(hp.expl_noise, draw.shape)
+    return hp.expl_noise_min + (hp.expl_noise_max - hp.expl_noise_min) * draw
+
+
+def redraw_exploration(
+    spec: TrainSpec, draw: jax.Array, ended: jax.Array, key: PRNGKey
+) -> jax.Array:
+    """``draw [num_envs]`` with a fresh uniform draw where ``ended [num_envs]`` (an episode
+    ended, terminated or truncated); unchanged without ``per_env_noise``."""
+    if not spec.per_env_noise:
+        return draw
+    fresh = jax.random.uniform(jax.random.fold_in(key, NOISE_KEY_SALT), draw.shape)
+    return jnp.where(ended, fresh, draw)
 
 
 def safe_action(action: jax.Array) -> jax.Array:
@@ -255,6 +295,7 @@ def collect_step(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[T
         env_state=env_state,
         obs_stats=normalization.update(state.obs_stats, obs),
         ou_state=noise.ou_reset(ou_state, ended[:, None], hp.ou),
+        expl_draw=redraw_exploration(spec, state.expl_draw, ended, act_key),
         key=key,
         env_steps=state.env_steps + spec.num_envs,
     )

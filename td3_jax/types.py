@@ -52,6 +52,8 @@ class AgentState:
     """Everything an actor-critic agent learns, as one pytree.
 
     ``critic_params`` hold all critic heads stacked along a leading axis (2 for TD3, 1 for DDPG).
+    ``target_actor_params`` is ``None`` for an agent without a target actor
+    (:attr:`td3_jax.actor_critic.AgentOptions.target_actor`).
     ``step`` counts the ``update`` calls done so far (an int32 scalar).
     """
 
@@ -73,7 +75,8 @@ class Agent(NamedTuple):
         on a batch ``[batch_size, ...]``. Pure: jit, vmap and scan it.
       act: ``act(actor_params, obs[..., obs_size]) -> action[..., action_size]``, deterministic.
       actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
-      critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``.
+      critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``
+        (a distributional critic head's Q-value is its distribution's mean).
       config: the config the agent was built from.
       spec: the agent's static structure (:class:`td3_jax.actor_critic.AgentSpec`).
       hyperparams: the float settings bound into ``update``
