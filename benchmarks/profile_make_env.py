@@ -1,0 +1,26 @@
+"""Where environment creation spends its time: ``python benchmarks/profile_make_env.py brax/ant``.
+
+Starts the backend first (so its start-up is not counted), then profiles ``td3_jax.envs.make``
+and prints the 25 functions with the largest cumulative time.
+"""
+
+from __future__ import annotations
+
+import cProfile
+import pstats
+import sys
+import time
+
+import jax
+
+from td3_jax import envs
+
+jax.devices()
+name = sys.argv[1] if len(sys.argv) > 1 else "brax/ant"
+start = time.perf_counter()
+profile = cProfile.Profile()
+profile.enable()
+envs.make(name)
+profile.disable()
+print(f"make {name}: {time.perf_counter() - start:.2f} s")
+pstats.Stats(profile).sort_stats("cumulative").print_stats(25)
