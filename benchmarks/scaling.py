@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import json
 import time
 
 import jax
+import numpy as np
 
 from td3_jax.config import preset
 from td3_jax.population import compile_for_mesh, make_population, members
@@ -27,7 +27,7 @@ def measure(cfg, num_devices: int) -> tuple[float, float]:
     mesh = make_mesh(num_devices)
     program = make_population(cfg, members(cfg), devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
-    chunk = functools.partial(compiled.chunk, compiled.hyperparams)
+    chunk = lambda s: compiled.chunk(compiled.hyperparams, s, np.int32(cfg.iters_per_chunk))
     state = compiled.init()
     state, metrics = chunk(state)  # compile + warm
     jax.block_until_ready(metrics)

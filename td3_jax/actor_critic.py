@@ -70,7 +70,7 @@ class AgentOptions:
         :func:`td3_jax.losses.reduce_heads`.
       lr_schedule: ``constant`` or ``cosine`` (from the learning rate down to 0 over
         ``schedule_updates`` updates, then 0).
-      schedule_updates: the cosine schedule's length in updates.
+      schedule_updates: the cosine schedule's length in updates (required with cosine).
       clip_grads: clip gradients to the global norm ``max_grad_norm`` of
         :class:`AgentHyperparams` before Adam.
     """
@@ -83,7 +83,7 @@ class AgentOptions:
     target_actor: bool = True
     actor_q: str = "first"
     lr_schedule: str = "constant"
-    schedule_updates: int = 1
+    schedule_updates: int | None = None
     clip_grads: bool = False
 
 
@@ -190,8 +190,9 @@ def _check_options(options: AgentOptions) -> None:
         if getattr(options, name) not in allowed:
             raise ValueError(f"unknown {name} {getattr(options, name)!r}; choose one of "
                              f"{', '.join(allowed)}")  # fmt: skip
-    if int(options.schedule_updates) < 1:
-        raise ValueError(f"schedule_updates must be >= 1, got {options.schedule_updates}")
+    if options.lr_schedule == "cosine" and (options.schedule_updates or 0) < 1:
+        raise ValueError("lr_schedule cosine needs schedule_updates >= 1 (the schedule's "
+                         f"length in updates), got {options.schedule_updates}")  # fmt: skip
 
 
 def make_spec(

@@ -37,7 +37,9 @@ _HASH = "mix32"
 _META_KEYS = ("layout", "checksums", "format")  # what save adds to the caller's meta
 #: The checkpoint format; 1 (no "format" key) was written before the trainer redesign of
 #: 2026-11-22 (other optimiser-state layout, no evaluation key in the state); 2 before the
-#: per-environment exploration draws (``TrainState.expl_draw``) joined the state.
+#: per-environment exploration draws (``TrainState.expl_draw``) could be in the state. A run
+#: without them has format 2's layout, and its format-2 checkpoints restore (the layout is
+#: what is checked; the format only explains a mismatch).
 FORMAT = 3
 # (errno, text in a wrapped message such as tensorstore's, what the error message says)
 _WRITE_CAUSES = [

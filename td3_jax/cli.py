@@ -55,8 +55,9 @@ class TrainCommand(TrainConfig):
     """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/."""
     resume: bool = False
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
-    --total-steps (to extend or shorten the run), --keep-checkpoints, --checkpoint-every and
-    --eval-envs may differ from the run's config.json; other flags must match."""
+    --total-steps (to extend or shorten the run; not with --lr-schedule cosine),
+    --keep-checkpoints, --checkpoint-every, --eval-envs and --early-evaluation may differ from
+    the run's config.json; other flags must match."""
     preset: PresetName | None = None  # type: ignore[valid-type]
     """Named settings to start from (see `td3-jax presets`); other flags override them.
     Default: the --env's own preset where one exists (said in one line), else settings for the
@@ -64,7 +65,7 @@ class TrainCommand(TrainConfig):
     quiet: bool = False
     """No live progress display."""
     time_budget_s: float | None = None
-    """Stop after the first evaluation past this wall-clock budget (compile included)."""
+    """Stop after the first chunk that ends past this wall-clock budget (compile included)."""
     devices: int | None = None
     """Data-parallel over this many devices (default: all); num_envs and batch stay global."""
     coordinator_address: str | None = None
@@ -236,6 +237,10 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
     )
 
 
+#: The persistent compilation cache's size cap (least recently used entries are evicted).
+CACHE_MAX_BYTES = 4 * 1024**3
+
+
 def enable_compile_cache(directory: str) -> None:
     """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off)."""
     if directory.strip().lower() in ("off", "none", ""):
@@ -250,16 +255,7 @@ def enable_compile_cache(directory: str) -> None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     # Everything the run compiles, however quick: a second identical run then compiles nothing.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-
-
-def start_backend_in_background() -> None:
-    """Starts JAX's accelerator backend (seconds on a GPU) in a thread, so that it overlaps the
-    imports and the model loading that come before the first device array."""
-    import threading
-
-    import jax
-
-    threading.Thread(target=jax.devices, name="td3-jax-backend-start", daemon=True).start()
+    jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
 
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
@@ -289,7 +285,6 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     enable_compile_cache(command.compile_cache)
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
-    start_backend_in_background()
     if source == "device":
         cfg = _scale_to_device(cfg, args)
     note = _defaults_note(cfg, preset_name, source)

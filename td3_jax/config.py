@@ -228,7 +228,7 @@ class TrainConfig:
             target_actor=self.target_actor,
             actor_q=auto_q if self.actor_q == "auto" else self.actor_q,
             lr_schedule=self.lr_schedule,
-            schedule_updates=self.total_updates if self.lr_schedule == "cosine" else 1,
+            schedule_updates=self.total_updates if self.lr_schedule == "cosine" else None,
             clip_grads=self.max_grad_norm is not None,
         )
 

@@ -109,8 +109,9 @@ class Population(NamedTuple):
       spec: the shared static spec (its ``axis_name`` is :data:`MEMBERS` for several members).
       hyperparams: every member's float settings (leaves ``[num_members]``).
       init: ``init() -> state``.
-      chunk: ``chunk(hp, state, iterations) -> (state, metrics[num_members])``: ``iterations``
-        (an int32 scalar shared by the members) iterations of every member.
+      chunk: ``chunk(hp, state, iterations=None) -> (state, metrics[num_members])``:
+        ``iterations`` (an int32 scalar shared by the members; default ``iters_per_chunk``)
+        iterations of every member.
       evaluate: ``evaluate(state, keys[num_members]) -> returns[num_members, eval_envs]``.
       scheduled_evaluate: ``scheduled_evaluate(state) -> returns[num_members, eval_envs]``,
         with the run's own key schedule (:func:`td3_jax.training.evaluation_key`).
@@ -151,9 +152,15 @@ def _lone(fn: Callable, *args: Any) -> Any:
     return _add_axis(fn(*map(_drop_axis, args)))
 
 
-def _lone_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: jax.Array) -> Any:
+def _lone_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: Any = None) -> Any:
     """:func:`_lone` of :func:`td3_jax.training.chunk` (``iterations`` has no member axis)."""
     return _add_axis(training.chunk(spec, _drop_axis(hp), _drop_axis(state), iterations))
+
+
+def _members_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: Any = None) -> Any:
+    """:func:`td3_jax.training.chunk` vmapped over the members (``iterations`` shared)."""
+    chunk = functools.partial(training.chunk, spec)
+    return jax.vmap(chunk, in_axes=(0, 0, None), axis_name=MEMBERS)(hp, state, iterations)
 
 
 def make_population(
@@ -171,18 +178,15 @@ def make_population(
     lone = len(population) == 1
     spec = training.make_spec(cfg, env, axis_name=None if lone else MEMBERS, env_groups=devices)
     keys = jnp.stack([training.key_for_seed(m.seed) for m in population])
-    init = functools.partial(training.init, spec)
-    chunk = functools.partial(training.chunk, spec)
-    evaluate = functools.partial(training.evaluate, spec)
-    scheduled = functools.partial(training.scheduled_evaluate, spec)
-    if lone:
-        batched = [functools.partial(_lone, fn) for fn in (init, chunk, evaluate, scheduled)]
-        batched[1] = functools.partial(_lone_chunk, spec)
-    else:
-        batched = [jax.vmap(fn, axis_name=MEMBERS) for fn in (init, chunk, evaluate, scheduled)]
-        batched[1] = jax.vmap(chunk, in_axes=(0, 0, None), axis_name=MEMBERS)
-    init = functools.partial(batched[0], keys)
-    return Population(population, spec, member_hyperparams(cfg, population), init, *batched[1:],
+    steps = [functools.partial(fn, spec) for fn in
+             (training.init, training.evaluate, training.scheduled_evaluate)]  # fmt: skip
+    batch = (lambda f: functools.partial(_lone, f)) if lone else (
+        lambda f: jax.vmap(f, axis_name=MEMBERS))  # fmt: skip
+    init, evaluate, scheduled = map(batch, steps)
+    chunk = _lone_chunk if lone else _members_chunk
+    init = functools.partial(init, keys)
+    return Population(population, spec, member_hyperparams(cfg, population), init,
+                      functools.partial(chunk, spec), evaluate, scheduled,
                       abstract_state=jax.eval_shape(init))  # fmt: skip
 
 

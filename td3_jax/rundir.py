@@ -214,6 +214,11 @@ def check_resume(
     if not steps:
         raise ConfigError(f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint")
     changes = config_changes(load_config(out_dir), cfg)
+    if "total_steps" in changes and cfg.lr_schedule == "cosine":
+        raise ConfigError(
+            "--total-steps cannot change on --resume with --lr-schedule cosine: the schedule's "
+            "length is the run's number of updates (start a new run to train longer)"
+        )
     population = load_members(out_dir, cfg)
     if sweep and members(cfg, sweep) != population:
         raise ConfigError(

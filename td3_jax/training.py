@@ -7,7 +7,7 @@
   :func:`hyperparams`.
 * The steps of the loop: :func:`init`, :func:`explore`, :func:`collect` (act in every
   environment, step them, write the ring), :func:`learn` (``updates_per_iter`` gradient
-  steps), :func:`iteration`, :func:`chunk` (a ``lax.scan`` of iterations, summarised by
+  steps), :func:`iteration`, :func:`chunk` (a loop of iterations, summarised by
   :func:`summarize`) and :func:`evaluate`.
 * One driver and one key schedule: :func:`chunk_and_evaluate` is what both the CLI's host
   loop (:mod:`td3_jax.run`) and :func:`make_train` run; the evaluation key after a chunk is
@@ -53,8 +53,8 @@ class TrainState:
     obs_stats: normalization.RunningStats
     ou_state: noise.OUState
     # [num_envs] uniform draws in [0, 1) placing each environment's exploration std in
-    # [expl_noise_min, expl_noise_max]; redrawn where an episode ends (unused without them)
-    expl_draw: jax.Array
+    # [expl_noise_min, expl_noise_max]; redrawn where an episode ends (None without them)
+    expl_draw: jax.Array | None
     key: jax.Array
     eval_key: jax.Array  # evaluation after chunk c uses fold_in(eval_key, c)
     env_steps: jax.Array  # int32 transitions collected so far (summed over environments)
@@ -194,6 +194,14 @@ def _example_row(spec: TrainSpec) -> tuple[Transition, jax.Array]:
     return Transition(z(o), z(a), z(), z(o), z()), jnp.zeros((), bool)
 
 
+def _first_draws(spec: TrainSpec, key: PRNGKey) -> jax.Array | None:
+    """``[num_envs]`` uniform draws of the per-environment exploration stds (``None`` without
+    ``per_env_noise``, so a default run's state keeps its layout and older checkpoints)."""
+    if not spec.per_env_noise:
+        return None
+    return jax.random.uniform(jax.random.fold_in(key, NOISE_KEY_SALT), (spec.num_envs,))
+
+
 def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
     """A fresh run: new networks, an empty ring, ``num_envs`` freshly reset environments."""
     agent_key, env_key, loop_key = jax.random.split(key, 3)
@@ -204,7 +212,7 @@ def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
         env_state=envs.reset(spec.env, env_key, spec.num_envs),
         obs_stats=normalization.init(spec.env.observation_size),
         ou_state=jax.tree.map(lambda x: jnp.broadcast_to(x, (spec.num_envs, *x.shape)), ou_state),
-        expl_draw=jax.random.uniform(jax.random.fold_in(key, NOISE_KEY_SALT), (spec.num_envs,)),
+        expl_draw=_first_draws(spec, key),
         key=loop_key,
         eval_key=jax.random.fold_in(key, EVAL_KEY_SALT),
         env_steps=jnp.zeros((), jnp.int32),
@@ -243,7 +251,7 @@ def exploration_std(spec: TrainSpec, hp: Hyperparams, draw: jax.Array) -> jax.Ar
     ``per_env_noise`` each environment's own ``min + (max - min) * draw`` (``draw [num_envs]``
     uniform in ``[0, 1)``, so the stds are uniform in ``[expl_noise_min, expl_noise_max)``)."""
     if not spec.per_env_noise:
-        return jnp.broadcast_to(hp.expl_noise, draw.shape)
+        return jnp.broadcast_to(hp.expl_noise, (spec.num_envs,))
     return hp.expl_noise_min + (hp.expl_noise_max - hp.expl_noise_min) * draw
 
 

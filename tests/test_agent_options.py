@@ -430,8 +430,9 @@ def test_train_help_documents_each_option_and_its_default(capsys):
 
 
 def test_a_run_with_every_option_trains_checkpoints_and_resumes(tmp_path):
-    """The command with all options on: finite metrics, config.json keeps them, and --resume
-    restores the state (per-environment draws included) and goes on."""
+    """The command with all options on (the cosine schedule checked apart: it cannot be
+    extended): finite metrics, config.json keeps them, and --resume restores the state
+    (per-environment draws included) and goes on."""
     from td3_jax.logger import read_metrics
     from td3_jax.rundir import load_config
 
@@ -441,7 +442,7 @@ def test_a_run_with_every_option_trains_checkpoints_and_resumes(tmp_path):
         "--updates-per-iter 2 --batch-size 4 --buffer-size 64 --warmup-steps 6 "
         "--eval-every 12 --total-steps 24 --eval-envs 2 --episode-length 10 --n-step 2 "
         "--critic distributional --num-atoms 11 --v-min -50 --v-max 5 --actor-q mean "
-        "--no-target-actor --weight-decay 0.1 --max-grad-norm 1.0 --lr-schedule cosine "
+        "--no-target-actor --weight-decay 0.1 --max-grad-norm 1.0 "
         "--layer-norm --actor-hidden-sizes 8 4 --critic-hidden-sizes 16 8 "
         "--precision bfloat16 --expl-noise-min 0.01 --expl-noise-max 0.4"
     ).split()
@@ -456,3 +457,19 @@ def test_a_run_with_every_option_trains_checkpoints_and_resumes(tmp_path):
     assert all(
         np.isfinite(r["critic_loss"]) and np.isfinite(r["eval_return_mean"]) for r in records
     )
+
+
+def test_a_cosine_run_cannot_be_extended_on_resume(tmp_path, capsys):
+    # The schedule's length is the run's number of updates: a longer run would restart the
+    # decay from a higher rate, so --total-steps may not change.
+    out = tmp_path / "run"
+    flags = ("--env gymnax/Pendulum-v1 --hidden-sizes 8 --num-envs 2 --updates-per-iter 1 "
+             "--batch-size 4 --buffer-size 64 --warmup-steps 4 --eval-every 8 --total-steps 8 "
+             "--eval-envs 2 --episode-length 8 --lr-schedule cosine").split()  # fmt: skip
+    common = ["--out", str(out), "--quiet", "--compile-cache", "off"]
+    cli.main(["train", *flags, *common])
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["train", "--resume", "--total-steps", "16", *common])
+    assert exit_info.value.code == 2
+    assert "--total-steps cannot change on --resume with --lr-schedule cosine" in (
+        capsys.readouterr().err)

@@ -261,7 +261,7 @@ def _random_rollout(env, n, steps, seed, **step_kwargs):
 
 def test_resetting_a_few_environments_equals_resetting_the_batch():
     # Random walks terminating at |position| > 5, time limit 6: on some steps no episode ends,
-    # on some one, on others more than 5 (the whole-batch branch for every setting below).
+    # on some one, on others more than 5 (several reset rounds for every setting below).
     # Every reset_slots setting must give the same trajectories as always resetting the batch.
     env, n = counter_env(6, low=(-3.0,), high=(3.0,)), 16
     reference = _random_rollout(env, n, 30, seed=2, reset_slots=n)
@@ -276,7 +276,7 @@ def test_resetting_a_few_environments_equals_resetting_the_batch():
             np.testing.assert_array_equal(result.next_obs, ref_result.next_obs)
 
 
-def test_reset_branch_under_vmap_equals_each_member_alone():
+def test_reset_rounds_under_vmap_equal_each_member_alone():
     # Members end different numbers of episodes on the same step; with the count reduced over
     # the member axis each member still gets exactly its own resets.
     env, n = counter_env(7, low=(-4.0,), high=(4.0,)), 8

@@ -132,13 +132,17 @@ def test_bootstrap_ci_covers_the_mean_and_narrows_with_more_seeds():
 
 
 def test_population_keeps_reset_and_warmup_branches():
-    """Under the seed vmap the batch-level conditions are reduced over members and stay conds."""
+    """Under the seed vmap the batch-level conditions are reduced over members and stay conds
+    (and loops)."""
     from td3_jax.population import make_population
 
     cfg = dataclasses.replace(TINY, seeds=2)
     program = make_population(cfg, members(cfg))
     jaxpr = str(jax.make_jaxpr(program.chunk)(program.hyperparams, program.abstract_state, 4))
-    assert jaxpr.count("cond[") >= 2  # episode resets and "learning started"
+    assert jaxpr.count("cond[") >= 2  # "learning started" and the delayed actor step
+    # The reset rounds' count is max-reduced over the members (pmax only serves that), so the
+    # reset loop is one loop for all members, not a per-member one.
+    assert jaxpr.count("pmax[") == 1 and jaxpr.count("while[") >= 2
     train_fn = make_train(TINY, axis_name="seeds")
     vmapped = jax.vmap(train_fn, axis_name="seeds")
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
