@@ -246,7 +246,8 @@ def test_go1_loads_resets_and_steps():
         state = envs.reset(env, key, 2)
         action = jnp.full((2, 12), -0.2)
         new_state, result = envs.step(env, state, action, auto_reset=False)
-        return state, new_state, result, jax.vmap(task.step)(state.inner, action)
+        direct = jax.vmap(task.step)(state.inner, env.to_env_action(action))
+        return state, new_state, result, direct
 
     state, new_state, result, direct = host(jax.jit(program)(jax.random.PRNGKey(3)))
     np.testing.assert_array_equal(state.obs, state.inner.obs["privileged_state"])
