@@ -38,11 +38,9 @@ import jax
 import jax.numpy as jnp
 
 from td3_jax import training
-from td3_jax.config import ENV_PRESETS, preset
+from td3_jax.config import ENV_PRESETS, preset, robot_preset
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
-
-QUADRUPEDS = ("Go1", "Spot", "Barkour")
 
 
 def pack(tasks: list[str], dest: Path) -> list[Path]:
@@ -99,8 +97,7 @@ def raw_rate(task: str, num_envs: int, steps: int, root: str | None) -> dict:
 def loop_config(task: str, num_envs: int, iters: int, root: str | None, batch: int | None):
     """The task's preset (or its kind's) at ``num_envs`` environments, one chunk of ``iters``
     (``batch``: another batch size, for a smoke test on a CPU)."""
-    name = ENV_PRESETS.get(f"playground/{task}") or ("go1" if task.startswith(QUADRUPEDS)
-                                                        else "t1")  # fmt: skip
+    name = ENV_PRESETS.get(f"playground/{task}") or robot_preset(f"playground/{task}")
     cfg = preset(name)
     cfg = dataclasses.replace(cfg, batch_size=batch or cfg.batch_size)
     return dataclasses.replace(

@@ -6,6 +6,7 @@ import dataclasses
 import math
 from typing import Any, Literal
 
+from td3_jax.envs import menagerie
 from td3_jax.envs.base import EnvOptions
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
@@ -467,12 +468,29 @@ def device_defaults(env: str, accelerator: bool) -> TrainConfig:
     """Settings for an environment without a preset, scaled to the device.
 
     On an accelerator (GPU/TPU) the GPU locomotion settings (4096 environments, 16 updates of
-    batch 8192 per iteration, 3-step targets); on a CPU the defaults, a handful of environments
+    batch 8192 per iteration, 3-step targets), for a Playground robot those of
+    :func:`robot_preset`; on a CPU the defaults, a handful of environments
     (those of the ``pendulum`` preset).
     """
+    robot = robot_preset(env)
+    if accelerator and robot:
+        return TrainConfig(**{**PRESETS[robot], "env": env})
     if accelerator:
         return TrainConfig(**{**_GPU_LOCOMOTION, "env": env})
     return TrainConfig(env=env)
+
+
+def robot_preset(env: str) -> str | None:
+    """The preset a Playground robot task without its own starts from on an accelerator:
+    ``go1`` for the quadrupeds, ``t1`` for the humanoids (``None`` for other environments)."""
+    source, _, task = env.partition("/")
+    if source != "playground":
+        return None
+    try:
+        folder, _ = menagerie.robot(task)
+    except KeyError:
+        return None
+    return "go1" if folder in menagerie.QUADRUPED_FOLDERS else "t1"
 
 
 def preset(name: str | None) -> TrainConfig:

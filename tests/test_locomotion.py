@@ -24,7 +24,7 @@ pytest.importorskip("mujoco_playground")
 
 from td3_jax import actor_critic as ac
 from td3_jax import cli, envs, normalization, training
-from td3_jax.config import PRESETS, TrainConfig, preset, validate
+from td3_jax.config import PRESETS, TrainConfig, device_defaults, preset, validate
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
 from td3_jax.td3 import TD3Config, td3
@@ -368,6 +368,13 @@ def test_presets_follow_fasttd3():
     assert preset("t1").updates_per_iter == 2 and preset("t1").pushes == "off"
     assert preset("go1").updates_per_iter == 8
     assert set(PRESETS) >= {"t1", "g1", "go1"}
+    # Robots without a preset of their own start from their kind's on an accelerator.
+    assert device_defaults("playground/SpotGetup", accelerator=True).updates_per_iter == 8
+    h1 = "playground/H1JoystickGaitTracking"
+    gpu = device_defaults(h1, accelerator=True)
+    assert (gpu.batch_size, gpu.discount, gpu.env) == (32_768, 0.97, h1)
+    assert device_defaults(h1, accelerator=False).num_envs == 16
+    assert device_defaults("playground/CheetahRun", accelerator=True).batch_size == 8192
 
 
 def test_cli_training_run_on_t1(tmp_path):

@@ -326,5 +326,5 @@ def make(
         reset_fn=functools.partial(_reset, env, lay, rand),
         step_fn=functools.partial(_step, env, lay, rand),
         critic_observation_size=lay.critic_size,
-        critic_offset=0 if lay.prefix else lay.actor_size,
+        critic_offset=lay.actor_size if lay.critic_size and not lay.prefix else 0,
     )

@@ -41,6 +41,10 @@ ROBOTS = {
 }
 
 
+#: The quadrupeds' folders (the others are humanoids).
+QUADRUPED_FOLDERS = ("unitree_go1", "boston_dynamics_spot", "google_barkour_vb")
+
+
 class MissingAssetsError(ValueError):
     """No searched place holds a task's robot folder (the CLI exits with code 2)."""
 
