@@ -54,6 +54,12 @@ def host(tree):
     return jax.tree.map(np.asarray, tree)
 
 
+def same_step(actual, desired):
+    """Two compilations of one physics step agree to float32 rounding (XLA may fuse them
+    differently); a reset or another step would differ by orders of magnitude more."""
+    np.testing.assert_allclose(actual, desired, rtol=1e-4, atol=1e-5)
+
+
 @pytest.fixture(scope="module")
 def t1():
     needs_assets(T1)
@@ -219,9 +225,9 @@ def test_t1_reset_step_and_true_last_observation(t1, t1_task):
     # The step's transition keeps the true last observation (the task's own step from the same
     # state), while the environments already restarted from fresh states.
     assert result.truncated.all() and not result.terminated.any()
-    np.testing.assert_array_equal(result.next_obs, direct.obs["privileged_state"])
-    np.testing.assert_array_equal(result.next_obs[:, :85], direct.obs["state"])
-    np.testing.assert_allclose(result.reward, direct.reward)
+    same_step(result.next_obs, direct.obs["privileged_state"])
+    same_step(result.next_obs[:, :85], direct.obs["state"])
+    same_step(result.reward, direct.reward)
     assert np.all(direct.data.time > 0) and np.all(new_state.inner.data.time == 0)
     assert not np.allclose(new_state.obs, result.next_obs)
     np.testing.assert_array_equal(new_state.steps, 0)
@@ -231,8 +237,8 @@ def test_t1_reset_step_and_true_last_observation(t1, t1_task):
     batch = training.agent_batch(spec, None, rows)
     np.testing.assert_array_equal(batch.obs, state.inner.obs["state"])
     np.testing.assert_array_equal(batch.critic_obs, state.inner.obs["privileged_state"])
-    np.testing.assert_array_equal(batch.next_obs, direct.obs["state"])
-    np.testing.assert_array_equal(batch.next_critic_obs, direct.obs["privileged_state"])
+    np.testing.assert_array_equal(batch.next_obs, result.next_obs[:, :85])
+    np.testing.assert_array_equal(batch.next_critic_obs, result.next_obs)
 
 
 def test_go1_loads_resets_and_steps():
@@ -251,10 +257,10 @@ def test_go1_loads_resets_and_steps():
 
     state, new_state, result, direct = host(jax.jit(program)(jax.random.PRNGKey(3)))
     np.testing.assert_array_equal(state.obs, state.inner.obs["privileged_state"])
-    np.testing.assert_array_equal(result.next_obs, direct.obs["privileged_state"])
-    np.testing.assert_array_equal(envs.actor_observation(env, result.next_obs),
-                                  direct.obs["state"])  # fmt: skip
-    np.testing.assert_allclose(result.reward, direct.reward)
+    same_step(result.next_obs, direct.obs["privileged_state"])
+    same_step(envs.actor_observation(env, result.next_obs), direct.obs["state"])
+    same_step(result.reward, direct.reward)
+    assert not np.allclose(result.next_obs, state.obs, rtol=1e-3)  # it did step
     np.testing.assert_array_equal(new_state.steps, 1)
     assert np.all(np.isfinite(result.next_obs)) and not result.terminated.any()
 
