@@ -130,6 +130,8 @@ class _Toy:
     [
         (lambda x: jnp.hstack([x, jnp.sin(x)]), True),
         (lambda x: jnp.concatenate([x.reshape(3), x * 2]), True),
+        (jax.jit(lambda x: jnp.hstack([x, jnp.sin(x)])), True),  # inside a jit call
+        (jax.jit(lambda x: jnp.hstack([jnp.cos(x), x])), False),
         (lambda x: jnp.hstack([x + 0.0 * x, x]), False),  # equal values, another computation
         (lambda x: jnp.hstack([x[::-1], x]), False),
         (lambda x: jnp.hstack([jnp.sin(x), x]), False),  # a suffix is not a prefix

@@ -85,22 +85,36 @@ def row(layout: Layout, obs: Any) -> jax.Array:
 # ---------------------------------------------------------------------------------------------
 
 
+def _inner(eqn: Any) -> Any:
+    """The jaxpr a ``jit``-like equation calls, or ``None``."""
+    if eqn.primitive.name not in ("pjit", "jit", "closed_call"):
+        return None
+    inner = eqn.params.get("jaxpr") or eqn.params.get("call_jaxpr")
+    return getattr(inner, "jaxpr", inner)
+
+
+def _outer(var: Any, eqn: Any, inner: Any) -> Any:
+    """The argument of ``eqn`` that its inner jaxpr's input ``var`` is (``None`` if none)."""
+    for outer_in, inner_in in zip(eqn.invars, inner.invars, strict=True):
+        if var is inner_in:
+            return outer_in
+    return None
+
+
 def _passes_through(eqn: Any) -> Any:
     """The input an equation returns unchanged (an identity ``jit``, a same-shape reshape or
     dtype-preserving convert), or ``None``."""
-    name = eqn.primitive.name
-    if name in ("pjit", "jit", "closed_call") and len(eqn.outvars) == 1:
-        inner = eqn.params.get("jaxpr") or eqn.params.get("call_jaxpr")
-        inner = getattr(inner, "jaxpr", inner)
-        out = inner.outvars[0]
-        for outer_in, inner_in in zip(eqn.invars, inner.invars, strict=True):
-            if out is inner_in:
-                return outer_in
-        return None
+    inner = _inner(eqn)
+    if inner is not None:
+        return _outer(inner.outvars[0], eqn, inner) if len(eqn.outvars) == 1 else None
     same = eqn.invars and eqn.invars[0].aval.shape == eqn.outvars[0].aval.shape
-    if name in ("reshape", "copy", "copy_p", "convert_element_type") and same:
+    if eqn.primitive.name in ("reshape", "copy", "copy_p", "convert_element_type") and same:
         return eqn.invars[0] if eqn.invars[0].aval.dtype == eqn.outvars[0].aval.dtype else None
     return None
+
+
+def _producers(jaxpr: Any) -> dict:
+    return {v: e for e in jaxpr.eqns for v in e.outvars}
 
 
 def _origin(var: Any, producers: dict) -> Any:
@@ -113,15 +127,30 @@ def _origin(var: Any, producers: dict) -> Any:
     return var
 
 
+def _first_piece(var: Any, producers: dict) -> Any:
+    """The first piece of the concatenation (along axis 0) that makes ``var``, looking inside
+    ``jit`` calls (a jitted ``hstack``), or ``None``."""
+    eqn = producers.get(var) if isinstance(var, jex_core.Var) else None
+    if eqn is None:
+        return None
+    if eqn.primitive.name == "concatenate":
+        return eqn.invars[0] if eqn.params["dimension"] == 0 else None
+    inner = _inner(eqn)
+    if inner is None:
+        return None
+    inside = _producers(inner)
+    out = _origin(inner.outvars[eqn.outvars.index(var)], inside)
+    piece = _origin(_first_piece(out, inside), inside)
+    return None if piece is None else _outer(piece, eqn, inner)
+
+
 def _prefix_in(jaxpr: Any, outputs: list) -> bool:
     """Whether ``outputs[1]`` of ``jaxpr`` is a concatenation whose first piece is exactly
     ``outputs[0]`` (the same traced value, not an equal-looking one)."""
-    producers = {v: e for e in jaxpr.eqns for v in e.outvars}
+    producers = _producers(jaxpr)
     actor, critic = (_origin(v, producers) for v in outputs)
-    eqn = producers.get(critic) if isinstance(critic, jex_core.Var) else None
-    if eqn is None or eqn.primitive.name != "concatenate" or eqn.params["dimension"] != 0:
-        return False
-    return isinstance(actor, jex_core.Var) and _origin(eqn.invars[0], producers) is actor
+    piece = _first_piece(critic, producers)
+    return isinstance(actor, jex_core.Var) and _origin(piece, producers) is actor
 
 
 def _traced_reset(env: Any) -> tuple[Any, Any]:
