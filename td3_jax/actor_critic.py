@@ -100,6 +100,8 @@ class AgentSpec:
       optimizer: the optimiser's direction (Adam's moments); the learning rate is applied from
         :class:`AgentHyperparams` at every step.
       options: the :class:`AgentOptions` the agent was built with.
+      critic_observation_size: the critics' input size when they see another observation than
+        the actor (``Transition.critic_obs``, an asymmetric actor-critic); ``None``: ``obs``.
     """
 
     actor: nn.Module
@@ -110,6 +112,7 @@ class AgentSpec:
     target_smoothing: bool = True
     optimizer: optax.GradientTransformation = ADAM
     options: AgentOptions = AgentOptions()
+    critic_observation_size: int | None = None
 
     @property
     def num_critics(self) -> int:
@@ -205,15 +208,21 @@ def make_spec(
     policy_freq: int,
     max_action: Any = 1.0,
     options: AgentOptions = AgentOptions(),
+    critic_observation_size: int | None = None,
 ) -> AgentSpec:
     """The static structure of an actor-critic agent (sizes checked, ``ValueError`` if bad).
 
     ``hidden_sizes``: the widths of actor and critics unless ``options`` gives their own.
+    ``critic_observation_size``: the critics learn from observations of this size
+    (``Transition.critic_obs``) while the actor acts on ``observation_size`` ones; ``None``:
+    the critics see the actor's observation.
     """
     actor_hidden = tuple(options.actor_hidden_sizes or hidden_sizes or ())
     critic_hidden = tuple(options.critic_hidden_sizes or hidden_sizes or ())
     for hidden in (hidden_sizes, actor_hidden, critic_hidden):
         _check_sizes(observation_size, action_size, hidden)
+    if critic_observation_size is not None:
+        _check_sizes(critic_observation_size, action_size, critic_hidden)
     if int(policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
     _check_options(options)
@@ -228,7 +237,14 @@ def make_spec(
         policy_freq=int(policy_freq),
         target_smoothing=target_smoothing,
         options=options,
+        critic_observation_size=None if critic_observation_size is None
+        else int(critic_observation_size),
     )
+
+
+def critic_input_size(spec: AgentSpec) -> int:
+    """The size of the critics' observation input."""
+    return spec.critic_observation_size or spec.observation_size
 
 
 def _ints(sizes: Sequence[int]) -> tuple[int, ...]:
@@ -263,9 +279,10 @@ def init(spec: AgentSpec, key: PRNGKey) -> AgentState:
     """Fresh networks, targets equal to them, optimiser states, ``step = 0``."""
     actor_key, critic_key = jax.random.split(key)
     obs = jnp.zeros((1, spec.observation_size), jnp.float32)
+    critic_obs = jnp.zeros((1, critic_input_size(spec)), jnp.float32)
     action = jnp.zeros((1, spec.action_size), jnp.float32)
     actor_params = spec.actor.init(actor_key, obs)
-    critic_params = spec.critic.init(critic_key, obs, action)
+    critic_params = spec.critic.init(critic_key, critic_obs, action)
     return AgentState(
         actor_params=actor_params,
         critic_params=critic_params,
@@ -411,14 +428,20 @@ def check_batch(spec: AgentSpec, batch: Transition) -> None:
     """Raises ``ValueError`` naming the field when ``batch`` is not ``[batch, ...]``-shaped."""
     o, a = spec.observation_size, spec.action_size
     expected = {"obs": (o,), "action": (a,), "reward": (), "next_obs": (o,), "done": ()}
+    if spec.critic_observation_size is not None or batch.critic_obs is not None:
+        c = critic_input_size(spec)
+        expected.update(critic_obs=(c,), next_critic_obs=(c,))
     rows = jnp.shape(batch.reward)[:1]
     for name, tail in expected.items():
-        shape = tuple(jnp.shape(getattr(batch, name)))
+        field = getattr(batch, name)
+        shape = None if field is None else tuple(jnp.shape(field))
         if len(rows) != 1 or shape != rows + tail:
             want = f"[batch{''.join(f', {t}' for t in tail)}]"
+            has = "is missing" if shape is None else f"has shape {list(shape)}"
             raise ValueError(
-                f"Transition.{name} has shape {list(shape)}; expected {want} for an agent with "
-                f"observation_size {o} and action_size {a} (a batch, rows first)"
+                f"Transition.{name} {has}; expected {want} for an agent with observation_size "
+                f"{o}, critic observation size {critic_input_size(spec)} and action_size {a} "
+                "(a batch, rows first)"
             )
 
 

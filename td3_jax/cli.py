@@ -442,12 +442,13 @@ def main(argv: list[str] | None = None) -> None:
         print(f"td3-jax: error: unknown subcommand {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
         sys.exit(2)
     from td3_jax.checkpoint import CheckpointError
-    from td3_jax.envs import UnknownEnvironmentError
+    from td3_jax.envs import EnvironmentOptionError, MissingAssetsError, UnknownEnvironmentError
     from td3_jax.run import NonFiniteError
 
     try:
         command(argv[1:])
-    except (ConfigError, UnknownEnvironmentError, CheckpointError) as err:
+    except (ConfigError, UnknownEnvironmentError, CheckpointError, MissingAssetsError,
+            EnvironmentOptionError) as err:  # fmt: skip
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(2)
     except NonFiniteError as err:

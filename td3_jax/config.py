@@ -7,6 +7,8 @@ import math
 from typing import Any, Literal
 
 from td3_jax.actor_critic import AgentOptions
+from td3_jax.envs import menagerie
+from td3_jax.envs.base import EnvOptions
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
 
@@ -59,6 +61,19 @@ class TrainConfig:
     """Time limit in steps; default: the environment's own (1000 for Brax/Playground)."""
     env_backend: str = "mjx"
     """Brax backend (mjx, generalized, positional, spring) or Playground impl (jax, warp)."""
+    menagerie: str | None = None
+    """MuJoCo Menagerie root holding the robot folders of Playground's locomotion tasks
+    (DIR/booster_t1, ...); default: $MENAGERIE_ROOT, then the envpool asset packages, then
+    Playground's own copy. Never downloaded."""
+    domain_randomization: bool = False
+    """Playground locomotion: the task's own domain randomiser draws each environment's physics
+    (friction, masses, gains, ...) at every reset."""
+    pushes: Literal["default", "on", "off"] = "default"
+    """Playground locomotion: the task's push perturbations on or off (default: the task's)."""
+    actor_obs_key: str = "state"
+    """Key of a dict observation (Playground locomotion) that the actor acts on."""
+    critic_obs_key: str = "privileged_state"
+    """Key of a dict observation that the critics learn from (the actor's key: symmetric)."""
     normalize_obs: bool = True
     """Normalise observations with running statistics kept in the train state."""
     exploration: Literal["gaussian", "ou"] = "gaussian"
@@ -237,6 +252,17 @@ class TrainConfig:
         return dict(weight_decay=self.weight_decay, max_grad_norm=self.max_grad_norm,
                     v_min=self.v_min, v_max=self.v_max)  # fmt: skip
 
+
+    def env_options(self) -> EnvOptions:
+        """The environment options of these settings (Playground locomotion's)."""
+        return EnvOptions(
+            menagerie=self.menagerie,
+            domain_randomization=self.domain_randomization,
+            pushes=None if self.pushes == "default" else self.pushes == "on",
+            actor_obs_key=self.actor_obs_key,
+            critic_obs_key=self.critic_obs_key,
+        )
+
     def ou_params(self) -> OUParams:
         return OUParams(
             theta=self.ou_theta,
@@ -294,6 +320,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         sizes = getattr(cfg, name)
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
             raise ConfigError(f"{flag(name)} must be positive integers, got {sizes}")
+    if cfg.pushes not in ("default", "on", "off"):
+        raise ConfigError(f"--pushes must be default, on or off, got {cfg.pushes!r}")
+    for name in ("actor_obs_key", "critic_obs_key"):
+        if not getattr(cfg, name):
+            raise ConfigError(f"{flag(name)} must name an observation key")
     return cfg
 
 
@@ -401,6 +432,50 @@ _GPU_LOCOMOTION = dict(
     critic_lr=3e-4,
 )
 
+# MuJoCo Playground locomotion (humanoids), from FastTD3's published recipe (Seo et al. 2025;
+# its hyperparams.py MuJoCoPlaygroundArgs and T1/G1 joystick entries; ../shared/anchors): 1024
+# environments, batch 32768, 2 updates per vectorised step, gamma 0.97, tau 0.1, Adam 3e-4,
+# target smoothing noise 0.001 (clip 0.5), 1-step targets, learning from 10 steps per
+# environment, a ring of 10,240 steps per environment, 100k steps per environment, pushes and
+# domain randomisation off, the actor on 'state' and the critics on 'privileged_state'; two C51
+# critics (101 atoms on [-10, 10]) with the actor on the lower mean, AdamW with weight decay
+# 0.1, per-environment exploration scales drawn from [0.001, 0.4], critics 1024-512-256 and
+# actor 512-256-128, the online actor (no target actor) for target actions, bf16 matmuls.
+# Not yet tuned on td3-jax (the robot benchmark issue does that).
+_PLAYGROUND_LOCOMOTION = dict(
+    algo="td3",
+    env_backend="jax",
+    num_envs=1024,
+    total_steps=102_400_000,
+    updates_per_iter=2,
+    batch_size=32_768,
+    buffer_size=10_485_760,
+    warmup_steps=10_240,
+    eval_every=1_024_000,
+    eval_envs=256,
+    discount=0.97,
+    tau=0.1,
+    actor_lr=3e-4,
+    critic_lr=3e-4,
+    policy_noise=0.001,
+    noise_clip=0.5,
+    expl_noise=0.2,
+    expl_noise_min=0.001,
+    expl_noise_max=0.4,
+    hidden_sizes=(1024, 512, 256),
+    actor_hidden_sizes=(512, 256, 128),
+    critic_hidden_sizes=(1024, 512, 256),
+    critic="distributional",
+    num_atoms=101,
+    v_min=-10.0,
+    v_max=10.0,
+    weight_decay=0.1,
+    target_actor=False,
+    precision="bfloat16",
+    pushes="off",
+    domain_randomization=False,
+)
+
 PRESETS: dict[str, dict] = {
     # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
     # 200 steps, one update per step from the moment the buffer holds a batch.
@@ -486,6 +561,23 @@ PRESETS: dict[str, dict] = {
     ),
     # MuJoCo Playground's DM Control CheetahRun (pure-JAX MJX implementation), same settings.
     "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun", env_backend="jax"),
+    # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
+    "t1": dict(_PLAYGROUND_LOCOMOTION, env="playground/T1JoystickFlatTerrain"),
+    "g1": dict(_PLAYGROUND_LOCOMOTION, env="playground/G1JoystickFlatTerrain"),
+    # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
+    # [0.2, 0.8], smoothing noise 0.2, 50k steps per environment; its kicks keep the task's
+    # default (off).
+    "go1": dict(
+        _PLAYGROUND_LOCOMOTION,
+        env="playground/Go1JoystickFlatTerrain",
+        total_steps=51_200_000,
+        updates_per_iter=8,
+        expl_noise=0.5,
+        expl_noise_min=0.2,
+        expl_noise_max=0.8,
+        policy_noise=0.2,
+        pushes="default",
+    ),
 }
 
 
@@ -497,6 +589,9 @@ ENV_PRESETS: dict[str, str] = {
     "brax/halfcheetah": "halfcheetah",
     "brax/humanoid": "humanoid",
     "playground/CheetahRun": "cheetah-run",
+    "playground/T1JoystickFlatTerrain": "t1",
+    "playground/G1JoystickFlatTerrain": "g1",
+    "playground/Go1JoystickFlatTerrain": "go1",
 }
 
 
@@ -509,12 +604,29 @@ def device_defaults(env: str, accelerator: bool) -> TrainConfig:
     """Settings for an environment without a preset, scaled to the device.
 
     On an accelerator (GPU/TPU) the GPU locomotion settings (4096 environments, 16 updates of
-    batch 8192 per iteration, 3-step targets); on a CPU the defaults, a handful of environments
+    batch 8192 per iteration, 3-step targets), for a Playground robot those of
+    :func:`robot_preset`; on a CPU the defaults, a handful of environments
     (those of the ``pendulum`` preset).
     """
+    robot = robot_preset(env)
+    if accelerator and robot:
+        return TrainConfig(**{**PRESETS[robot], "env": env})
     if accelerator:
         return TrainConfig(**{**_GPU_LOCOMOTION, "env": env})
     return TrainConfig(env=env)
+
+
+def robot_preset(env: str) -> str | None:
+    """The preset a Playground robot task without its own starts from on an accelerator:
+    ``go1`` for the quadrupeds, ``t1`` for the humanoids (``None`` for other environments)."""
+    source, _, task = env.partition("/")
+    if source != "playground":
+        return None
+    try:
+        folder, _ = menagerie.robot(task)
+    except KeyError:
+        return None
+    return "go1" if folder in menagerie.QUADRUPED_FOLDERS else "t1"
 
 
 def preset(name: str | None) -> TrainConfig:

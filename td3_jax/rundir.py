@@ -39,8 +39,10 @@ CHECKPOINTS = "checkpoints"
 OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png", CHECKPOINTS)
 # Settings a resumed run may change; every other one fixes the state layout, the key schedule
 # or what the checkpoint means.
+# (``menagerie``: where the robot meshes lie may differ from one machine to the next.)
 SAFE_ON_RESUME = (
-    "total_steps", "keep_checkpoints", "checkpoint_every", "eval_envs", "early_evaluation"
+    "total_steps", "keep_checkpoints", "checkpoint_every", "eval_envs", "early_evaluation",
+    "menagerie",
 )
 # Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
 FLOAT_SETTINGS = (*SWEEPABLE, "ou_min_sigma")

@@ -59,9 +59,18 @@ class DDPGConfig:
 
 
 def td3(
-    config: TD3Config, observation_size: int, action_size: int, *, axis_name: str | None = None
+    config: TD3Config,
+    observation_size: int,
+    action_size: int,
+    critic_obs_size: int | None = None,
+    *,
+    axis_name: str | None = None,
 ) -> Agent:
     """Builds a TD3 agent (two critics, target smoothing, delayed actor and target updates).
+
+    ``critic_obs_size``: an asymmetric actor-critic; the critics learn from
+    ``Transition.critic_obs [batch, critic_obs_size]`` (e.g. a robot's privileged state) while
+    the actor acts on ``obs [batch, observation_size]``. ``None``: the critics see ``obs``.
 
     ``axis_name``: when ``update`` runs under ``jax.vmap(..., axis_name=...)`` (one agent per
     seed), the delayed actor update stays a real branch, taken when any agent on that axis is
@@ -70,13 +79,17 @@ def td3(
     """
     spec = make_spec(config.hidden_sizes, observation_size, action_size, num_critics=2,
                      target_smoothing=True, policy_freq=config.policy_freq,
-                     max_action=config.max_action)  # fmt: skip
+                     max_action=config.max_action,
+                     critic_observation_size=critic_obs_size)  # fmt: skip
     return actor_critic(spec, hyperparams(config), config, axis_name)
 
 
-def ddpg(config: DDPGConfig, observation_size: int, action_size: int) -> Agent:
-    """Builds a DDPG agent (one critic, no smoothing, actor and targets updated every step)."""
+def ddpg(
+    config: DDPGConfig, observation_size: int, action_size: int, critic_obs_size: int | None = None
+) -> Agent:
+    """Builds a DDPG agent (one critic, no smoothing, actor and targets updated every step);
+    ``critic_obs_size`` as for :func:`td3`."""
     spec = make_spec(config.hidden_sizes, observation_size, action_size, num_critics=1,
-                     target_smoothing=False, policy_freq=1,
-                     max_action=config.max_action)  # fmt: skip
+                     target_smoothing=False, policy_freq=1, max_action=config.max_action,
+                     critic_observation_size=critic_obs_size)  # fmt: skip
     return actor_critic(spec, hyperparams(config), config)

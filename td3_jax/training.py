@@ -132,7 +132,14 @@ def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
         target_smoothing=is_td3,
         policy_freq=cfg.policy_freq if is_td3 else 1,
         options=cfg.agent_options(),
+        critic_observation_size=env.critic_observation_size,
     )
+
+
+def make_env(cfg: TrainConfig) -> envs.Environment:
+    """The environment of ``cfg`` (with its locomotion options, :meth:`TrainConfig.env_options`)."""
+    return envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length,
+                     options=cfg.env_options())  # fmt: skip
 
 
 def make_spec(
@@ -147,7 +154,7 @@ def make_spec(
     (with the batch split over D devices, D keeps every reset on its device); with replay
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     """
-    env = env or envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
+    env = env or make_env(cfg)
     shards = cfg.replay_shards
     return TrainSpec(
         env=env,
@@ -189,7 +196,7 @@ def key_for_seed(seed: int) -> PRNGKey:
 
 
 def _example_row(spec: TrainSpec) -> tuple[Transition, jax.Array]:
-    o, a = spec.env.observation_size, spec.env.action_size
+    o, a = spec.env.row_size, spec.env.action_size  # rows: both observations, the actor's once
     z = lambda *shape: jnp.zeros(shape, jnp.float32)
     return Transition(z(o), z(a), z(), z(o), z()), jnp.zeros((), bool)
 
@@ -210,7 +217,7 @@ def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
         agent=ac.init(spec.agent, agent_key),
         buffer=replay.init_slices(spec.replay_capacity, spec.replay_shards, _example_row(spec)),
         env_state=envs.reset(spec.env, env_key, spec.num_envs),
-        obs_stats=normalization.init(spec.env.observation_size),
+        obs_stats=normalization.init(spec.env.row_size),  # per feature, so per input too
         ou_state=jax.tree.map(lambda x: jnp.broadcast_to(x, (spec.num_envs, *x.shape)), ou_state),
         expl_draw=_first_draws(spec, key),
         key=loop_key,
@@ -231,7 +238,7 @@ def explore(
     """Actions ``[num_envs, action_size]`` in ``[-1, 1]``: uniform during warm-up, the noisy
     policy after (Gaussian or OU per environment); returns the new OU states too."""
     random_key, noise_key = jax.random.split(key)
-    obs = normalize(spec, state.obs_stats, state.env_state.obs)
+    obs = envs.actor_observation(spec.env, normalize(spec, state.obs_stats, state.env_state.obs))
     policy = spec.agent.actor.apply(state.agent.actor_params, obs)
     noise_keys = jax.random.split(noise_key, spec.num_envs)
     ou_state = state.ou_state
@@ -323,9 +330,26 @@ def sample_batch(
     spec: TrainSpec, hp: Hyperparams, buffer: replay.ReplayBuffer, key: PRNGKey
 ) -> Transition:
     """One training batch ``[batch_size, ...]`` as the updates draw it (n-step folded;
-    observations not yet normalised)."""
+    observation rows, not yet normalised nor split into the actor's and critics' inputs:
+    :func:`agent_batch`)."""
     return replay.sample_slices(buffer, key, spec.batch_size, spec.n_step, spec.stride,
                                 hp.agent.discount)  # fmt: skip
+
+
+def agent_batch(
+    spec: TrainSpec, stats: normalization.RunningStats, batch: Transition
+) -> Transition:
+    """A sampled batch of rows ``[batch, row_size]`` as the agent learns from it: normalised,
+    the actor's observations in ``obs``/``next_obs`` and, where the critics see another
+    observation, theirs in ``critic_obs``/``next_critic_obs`` (each input normalised by its own
+    features' statistics)."""
+    rows, next_rows = normalize(spec, stats, batch.obs), normalize(spec, stats, batch.next_obs)
+    return batch._replace(
+        obs=envs.actor_observation(spec.env, rows),
+        next_obs=envs.actor_observation(spec.env, next_rows),
+        critic_obs=envs.critic_observation(spec.env, rows),
+        next_critic_obs=envs.critic_observation(spec.env, next_rows),
+    )
 
 
 def gradient_step(
@@ -338,9 +362,7 @@ def gradient_step(
 ) -> tuple[AgentState, Metrics]:
     """One agent update on a fresh, normalised batch."""
     sample_key, update_key = jax.random.split(key)
-    batch = sample_batch(spec, hp, buffer, sample_key)
-    batch = batch._replace(obs=normalize(spec, stats, batch.obs),
-                           next_obs=normalize(spec, stats, batch.next_obs))  # fmt: skip
+    batch = agent_batch(spec, stats, sample_batch(spec, hp, buffer, sample_key))
     return ac.update(spec.agent, hp.agent, agent_state, batch, update_key, spec.axis_name)
 
 
@@ -454,7 +476,7 @@ def chunk(
 
 def _evaluation_step(spec: TrainSpec, state: TrainState, carry: tuple, _) -> tuple[tuple, None]:
     env_state, returns, alive = carry
-    obs = normalize(spec, state.obs_stats, env_state.obs)
+    obs = envs.actor_observation(spec.env, normalize(spec, state.obs_stats, env_state.obs))
     action = safe_action(spec.agent.actor.apply(state.agent.actor_params, obs))
     # Only each environment's first episode counts: no resets needed.
     env_state, result = envs.step(spec.env, env_state, action, auto_reset=False)

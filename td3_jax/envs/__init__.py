@@ -1,7 +1,8 @@
 """Environments named ``SOURCE/NAME`` behind one small interface (see :mod:`.base`).
 
 Sources: ``brax/...`` (Brax, MJX backend by default), ``playground/...`` (MuJoCo Playground's DM
-Control Suite, optional extra) and ``gymnax/...`` (continuous-action gymnax tasks).
+Control Suite and locomotion tasks, optional extras) and ``gymnax/...`` (continuous-action gymnax
+tasks).
 """
 
 from __future__ import annotations
@@ -9,10 +10,23 @@ from __future__ import annotations
 from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
-from td3_jax.envs.base import Environment, EnvState, StepResult, reset, reset_ended, step
+from td3_jax.envs.base import (
+    Environment,
+    EnvOptions,
+    EnvState,
+    StepResult,
+    actor_observation,
+    critic_observation,
+    reset,
+    reset_ended,
+    step,
+)
+from td3_jax.envs.locomotion import EnvironmentOptionError
+from td3_jax.envs.menagerie import MissingAssetsError
 
 #: Each source module has ``names() -> list[str]`` and
-#: ``make(task, *, backend, episode_length) -> Environment``.
+#: ``make(task, *, backend, episode_length) -> Environment`` (Playground's also takes
+#: ``options``).
 _SOURCES = {"brax": _brax, "playground": _playground, "gymnax": _gymnax}
 
 
@@ -25,14 +39,26 @@ def known_names() -> list[str]:
     return [f"{src}/{n}" for src, module in _SOURCES.items() for n in module.names()]
 
 
-def make(name: str, *, backend: str = "mjx", episode_length: int | None = None) -> Environment:
+def make(
+    name: str,
+    *,
+    backend: str = "mjx",
+    episode_length: int | None = None,
+    options: EnvOptions | None = None,
+) -> Environment:
     """Makes the environment ``SOURCE/NAME``.
 
     Args:
-      name: e.g. ``brax/ant``, ``playground/CheetahRun``, ``gymnax/Pendulum-v1``.
+      name: e.g. ``brax/ant``, ``playground/CheetahRun``, ``playground/T1JoystickFlatTerrain``,
+        ``gymnax/Pendulum-v1``.
       backend: Brax physics backend (``mjx``, ``generalized``, ``positional``, ``spring``), or
         Playground's ``impl`` (``jax`` or ``warp``). Ignored by gymnax.
       episode_length: time limit; default: the source's (1000 for Brax and Playground).
+      options: the locomotion tasks' options (:class:`EnvOptions`: Menagerie root, domain
+        randomisation, pushes, observation keys); other sources refuse non-default
+        randomisation or pushes with :class:`EnvironmentOptionError`.
+
+    Raises :class:`MissingAssetsError` when a locomotion task's robot folder is nowhere.
     """
     source, _, task = name.partition("/")
     module = _SOURCES.get(source)
@@ -42,14 +68,27 @@ def make(name: str, *, backend: str = "mjx", episode_length: int | None = None) 
         if source == "playground" and not _playground.names():
             hint = " (playground tasks need: pip install 'td3-jax[playground]')"
         raise UnknownEnvironmentError(f"unknown environment {name!r}{hint}; known: {listing}")
+    options = options or EnvOptions()
+    if source == "playground":
+        return module.make(task, backend=backend, episode_length=episode_length, options=options)
+    refused = options.locomotion_only()
+    if refused:
+        raise EnvironmentOptionError(
+            f"{', '.join(refused)} apply to Playground's locomotion tasks, not {name}"
+        )
     return module.make(task, backend=backend, episode_length=episode_length)
 
 
 __all__ = [
+    "EnvOptions",
     "EnvState",
     "Environment",
+    "EnvironmentOptionError",
+    "MissingAssetsError",
     "StepResult",
     "UnknownEnvironmentError",
+    "actor_observation",
+    "critic_observation",
     "known_names",
     "make",
     "reset",

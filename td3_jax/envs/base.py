@@ -12,7 +12,14 @@ adds what every source needs, in one place:
   ``done = 1``;
 * auto-reset: an episode that ends restarts from a fresh random state drawn with a new key
   (never a cached first state), while the returned transition keeps the true last observation;
-* episode return and length of finished episodes.
+* episode return and length of finished episodes;
+* an asymmetric actor-critic: an environment whose critics learn from another observation
+  than the actor (a robot's privileged state) keeps one flat *row* per environment holding
+  both, the actor's observation once: ``row[:observation_size]`` is the actor's and
+  ``row[critic_offset:critic_offset + critic_observation_size]`` the critics'
+  (:func:`actor_observation`, :func:`critic_observation`). Where the actor's observation is a
+  prefix of the critics' the row is the critics' observation itself (offset 0); otherwise the
+  two side by side (offset ``observation_size``). Flat environments: the row is the observation.
 """
 
 from __future__ import annotations
@@ -41,13 +48,17 @@ class Environment:
 
     Attributes:
       name: ``SOURCE/NAME`` as given on the command line.
-      observation_size: length of the flat observation vector.
+      observation_size: length of the actor's observation vector.
       action_size: length of the action vector.
       episode_length: the time limit in steps (truncation, not termination).
       action_low, action_high: ``[action_size]`` bounds of the environment's own action space.
-      reset_fn: ``reset_fn(key) -> (inner_state, obs[obs_size])``.
-      step_fn: ``step_fn(inner, env_action[action_size], key) -> (inner, obs, reward,
+      reset_fn: ``reset_fn(key) -> (inner_state, row[row_size])``.
+      step_fn: ``step_fn(inner, env_action[action_size], key) -> (inner, row, reward,
         terminated)``; ``terminated`` is a true termination, not a time limit.
+      critic_observation_size: length of the critics' observation, or ``None``: the critics
+        see the actor's observation (the row is the observation).
+      critic_offset: where the critics' observation starts in the row (0 when the actor's
+        observation is a prefix of it).
     """
 
     name: str
@@ -58,12 +69,51 @@ class Environment:
     action_high: np.ndarray
     reset_fn: ResetFn = dataclasses.field(repr=False)
     step_fn: StepFn = dataclasses.field(repr=False)
+    critic_observation_size: int | None = None
+    critic_offset: int = 0
+
+    @property
+    def row_size(self) -> int:
+        """Length of the stored observation row (:attr:`observation_size` for a flat one)."""
+        if self.critic_observation_size is None:
+            return self.observation_size
+        return max(self.observation_size, self.critic_offset + self.critic_observation_size)
 
     def to_env_action(self, action: jax.Array) -> jax.Array:
         """Maps an agent action in ``[-1, 1]`` to ``[low, high]`` per dimension."""
         low = jnp.asarray(self.action_low, jnp.float32)
         high = jnp.asarray(self.action_high, jnp.float32)
         return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvOptions:
+    """Options of MuJoCo Playground's locomotion tasks (other sources refuse non-defaults).
+
+    Attributes:
+      menagerie: a MuJoCo Menagerie root holding the robot's folder (default: the
+        ``MENAGERIE_ROOT`` variable, then the asset packages; :mod:`td3_jax.envs.menagerie`).
+      domain_randomization: the task's own randomiser draws each environment's physics
+        (friction, masses, gains, ...) at every reset.
+      pushes: the task's push perturbations on or off; ``None``: the task's default.
+      actor_obs_key, critic_obs_key: the keys of a dict observation that the actor and the
+        critics see (equal keys: a symmetric actor-critic). Flat observations ignore them.
+    """
+
+    menagerie: str | None = None
+    domain_randomization: bool = False
+    pushes: bool | None = None
+    actor_obs_key: str = "state"
+    critic_obs_key: str = "privileged_state"
+
+    def locomotion_only(self) -> list[str]:
+        """The options set away from their defaults that only locomotion tasks take."""
+        given = []
+        if self.domain_randomization:
+            given.append("--domain-randomization")
+        if self.pushes is not None:
+            given.append("--pushes" if self.pushes else "--no-pushes")
+        return given
 
 
 def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
@@ -99,13 +149,28 @@ def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
     )
 
 
+def actor_observation(env: Environment, row: jax.Array) -> jax.Array:
+    """The actor's observation ``[..., observation_size]`` of rows ``[..., row_size]``."""
+    return row if env.row_size == env.observation_size else row[..., : env.observation_size]
+
+
+def critic_observation(env: Environment, row: jax.Array) -> jax.Array | None:
+    """The critics' observation ``[..., critic_observation_size]`` of rows ``[..., row_size]``,
+    or ``None`` when the critics see the actor's observation."""
+    if env.critic_observation_size is None:
+        return None
+    start = env.critic_offset
+    return row[..., start : start + env.critic_observation_size]
+
+
 @struct.dataclass
 class EnvState:
     """State of a batch of environments (every leaf has a leading ``num_envs`` axis).
 
     Attributes:
       inner: the source's own state (physics data, ...).
-      obs: ``[num_envs, obs_size]`` current observation.
+      obs: ``[num_envs, row_size]`` current observation row (the observation of a flat
+        environment; see :func:`actor_observation` and :func:`critic_observation`).
       key: ``[num_envs]`` PRNG keys, split at every step (stochastic steps and fresh resets).
       steps: ``[num_envs]`` int32 steps taken in the current episode.
       episode_return: ``[num_envs]`` float32 return so far in the current episode.
@@ -121,8 +186,9 @@ class EnvState:
 class StepResult(NamedTuple):
     """What one batched step returns besides the new state (all ``[num_envs, ...]``).
 
-    ``next_obs`` is the observation the step produced; where an episode ended it is the true
-    last observation, while the new state's ``obs`` is already the first one of the next episode.
+    ``next_obs [num_envs, row_size]`` is the observation row the step produced; where an
+    episode ended it is the true last observation, while the new state's ``obs`` is already the
+    first one of the next episode.
     ``finished_return``/``finished_length`` are meaningful where ``terminated | truncated``.
     """
 

@@ -1,12 +1,14 @@
-"""MuJoCo Playground DM Control Suite tasks (``playground/NAME``), optional extra.
+"""MuJoCo Playground tasks (``playground/NAME``), optional extra: the DM Control Suite here,
+the locomotion tasks in :mod:`td3_jax.envs.locomotion`.
 
 Loaded with ``impl="jax"`` (MJX in pure JAX) by default; Playground's default ``"warp"`` needs
-warp-lang. Install with ``pip install 'td3-jax[playground]'``.
+warp-lang. Install with ``pip install 'td3-jax[playground]'`` (``[locomotion]`` adds the robots).
 """
 
 from __future__ import annotations
 
-from td3_jax.envs.base import Environment, from_mjx_style
+from td3_jax.envs import locomotion
+from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style
 
 
 def _suite():
@@ -20,18 +22,34 @@ def _suite():
 
 
 def names() -> list[str]:
-    """DM Control Suite task names, or an empty list when Playground is not installed."""
+    """DM Control Suite and locomotion task names, or an empty list without Playground."""
     try:
-        return sorted(_suite().ALL_ENVS)
+        suite = sorted(_suite().ALL_ENVS)
     except ImportError:
         return []
+    return suite + locomotion.names()
 
 
-def make(name: str, *, backend: str = "jax", episode_length: int | None = None) -> Environment:
-    """A Playground DM Control Suite task; its ``done`` is a termination (rare in the suite).
+def make(
+    name: str,
+    *,
+    backend: str = "jax",
+    episode_length: int | None = None,
+    options: EnvOptions = EnvOptions(),
+) -> Environment:
+    """A Playground task. DM Control Suite: a flat observation, ``done`` a termination (rare
+    in the suite); the locomotion tasks: :func:`td3_jax.envs.locomotion.make`.
 
     ``backend``: Playground's ``impl`` (``jax`` or ``warp``); a Brax backend name means jax.
     """
+    if name in locomotion.names():
+        return locomotion.make(name, backend=backend, episode_length=episode_length,
+                               options=options)  # fmt: skip
+    refused = options.locomotion_only()
+    if refused:
+        raise locomotion.EnvironmentOptionError(
+            f"{', '.join(refused)} apply to Playground's locomotion tasks, not playground/{name}"
+        )
     impl = backend if backend in ("jax", "warp") else "jax"
     suite = _suite()
     config = suite.get_default_config(name)

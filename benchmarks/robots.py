@@ -1,0 +1,194 @@
+"""MuJoCo Playground locomotion on one GPU: per task and number of environments, the compile
+time and env steps/s of the raw physics and of the full training loop (one chunk trained).
+
+  raw   the task's own ``jax.vmap(env.step)`` in a ``lax.scan`` of --steps steps, zero actions
+        (the ceiling); timed on the third call (the first two compile: reset and step states
+        differ in type), compile = first two calls minus two timed ones.
+  loop  td3-jax's compiled chunk (collect + 2 or 8 updates of batch 32768 per step, the task's
+        preset: t1/g1/go1, else t1's for humanoids and go1's for quadrupeds) of --iters
+        iterations; the first call compiles and fills the ring, the second is timed with every
+        iteration updating. ``critic_loss`` of the timed chunk is reported (finite: it trained).
+
+Robot folders travel as ``.tar.xz`` (about a third of their size; the device carries 64 MiB in
+all, .whl included). Here, once::
+
+  python benchmarks/robots.py --pack .assets --tasks T1JoystickFlatTerrain Go1Getup ...
+
+writes ``.assets/booster_t1.tar.xz``, ``.assets/unitree_go1.tar.xz`` (keep ``.assets`` out of git
+with ``/.assets/`` in ``.git/info/exclude``). There::
+
+  python3 benchmarks/robots.py --menagerie .assets --tasks ... --envs 1024 4096 --out $OUT
+
+unpacks them into a temporary Menagerie root (plain robot folders in --menagerie work too: the
+``MENAGERIE_ROOT`` layout ``DIR/booster_t1/...``). Results: ``$OUT/robots.jsonl`` (a line per
+measurement, written as they come) and a table at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from td3_jax import training
+from td3_jax.config import ENV_PRESETS, preset, robot_preset
+from td3_jax.envs import locomotion, menagerie
+from td3_jax.envs.base import EnvOptions
+
+
+def pack(tasks: list[str], dest: Path) -> list[Path]:
+    """Writes ``dest/<robot folder>.tar.xz`` for each task's robot (found as td3-jax finds it)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    written = []
+    for folder in sorted({menagerie.robot(t)[0] for t in tasks}):
+        root = menagerie.find_root(next(t for t in tasks if menagerie.robot(t)[0] == folder))
+        path = dest / f"{folder}.tar.xz"
+        with tarfile.open(path, "w:xz") as tar:
+            tar.add(root / folder, arcname=folder)
+        written.append(path)
+        print(f"{path}: {path.stat().st_size / 2**20:.1f} MiB", flush=True)
+    return written
+
+
+def unpack(source: Path) -> Path:
+    """A Menagerie root holding every robot of ``source`` (archives unpacked, folders linked)."""
+    root = Path(tempfile.mkdtemp(prefix="menagerie-"))
+    for item in sorted(source.iterdir()):
+        if item.name.endswith(".tar.xz"):
+            with tarfile.open(item) as tar:
+                tar.extractall(root, filter="data")
+        elif item.is_dir():
+            (root / item.name).symlink_to(item.resolve())
+    return root
+
+
+def _seconds(fn, *args) -> tuple[float, object]:
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start, out
+
+
+def raw_rate(task: str, num_envs: int, steps: int, root: str | None) -> dict:
+    """The task's own vmapped step in a scan: env steps/s (third call) and compile seconds."""
+    env, _ = locomotion.load(task, options=EnvOptions(menagerie=root))
+    keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
+    state = jax.jit(jax.vmap(env.reset))(keys)
+    zeros = jnp.zeros((num_envs, env.action_size))
+
+    @jax.jit
+    def run(state):
+        return jax.lax.scan(lambda s, _: (jax.vmap(env.step)(s, zeros), None), state, None,
+                            length=steps)[0]  # fmt: skip
+
+    first, state = _seconds(run, state)
+    second, state = _seconds(run, state)
+    third, state = _seconds(run, state)
+    return {"raw_env_steps_per_s": num_envs * steps / third,
+            "raw_compile_s": max(0.0, first + second - 2 * third)}  # fmt: skip
+
+
+def loop_config(task: str, num_envs: int, iters: int, root: str | None, batch: int | None):
+    """The task's preset (or its kind's) at ``num_envs`` environments, one chunk of ``iters``
+    (``batch``: another batch size, for a smoke test on a CPU)."""
+    name = ENV_PRESETS.get(f"playground/{task}") or robot_preset(f"playground/{task}")
+    cfg = preset(name)
+    cfg = dataclasses.replace(cfg, batch_size=batch or cfg.batch_size)
+    return dataclasses.replace(
+        cfg, env=f"playground/{task}", num_envs=num_envs, eval_every=num_envs * iters,
+        buffer_size=max(num_envs * iters * 2, cfg.batch_size), warmup_steps=0,
+        total_steps=num_envs * iters, menagerie=root,
+    ), name  # fmt: skip
+
+
+def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
+    """td3-jax's training chunk: env steps/s of the second call, compile seconds of the first."""
+    cfg, name = loop_config(task, num_envs, args.iters, root, args.batch)
+    start = time.perf_counter()
+    trainer = training.make_trainer(cfg)
+    make_s = time.perf_counter() - start
+    init_s, state = _seconds(jax.jit(trainer.init), jax.random.PRNGKey(0))
+    chunk = jax.jit(trainer.chunk, donate_argnums=0)
+    first, (state, _) = _seconds(chunk, state)
+    second, (state, metrics) = _seconds(chunk, state)
+    env = trainer.env
+    return {
+        "preset": name, "make_s": make_s, "init_s": init_s,
+        "loop_env_steps_per_s": cfg.steps_per_chunk / second,
+        "loop_compile_s": max(0.0, first - second), "chunk_s": second,
+        "updates_per_chunk": float(metrics["chunk_updates"]),
+        "critic_loss": float(metrics["critic_loss"]),
+        "actor_obs": env.observation_size, "critic_obs": env.critic_observation_size,
+        "row": env.row_size, "actions": env.action_size,
+    }  # fmt: skip
+
+
+def measure(task: str, num_envs: int, args, root: str | None) -> dict:
+    """One row of results (an ``error`` entry instead of a crash: the next task still runs)."""
+    row = {"task": task, "num_envs": num_envs, "device": jax.devices()[0].device_kind}
+    for kind, fn in (("raw", lambda: raw_rate(task, num_envs, args.steps, root)),
+                     ("loop", lambda: loop_rate(task, num_envs, args, root))):  # fmt: skip
+        if kind in args.skip:
+            continue
+        try:
+            row.update(fn())
+        except Exception as err:  # reported per task, the sweep goes on
+            row[f"{kind}_error"] = f"{type(err).__name__}: {err}"[:300]
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    head = f"{'task':38} {'envs':>5} {'raw/s':>10} {'raw comp':>9} {'loop/s':>10} {'loop comp':>9}"
+    lines = [head]
+    fmt = lambda v, spec: format(v, spec) if isinstance(v, float) else "-"
+    for r in rows:
+        lines.append(
+            f"{r['task']:38} {r['num_envs']:>5} {fmt(r.get('raw_env_steps_per_s'), '10.0f')} "
+            f"{fmt(r.get('raw_compile_s'), '9.1f')} {fmt(r.get('loop_env_steps_per_s'), '10.0f')} "
+            f"{fmt(r.get('loop_compile_s'), '9.1f')}"
+            + ("  ERROR" if any(k.endswith("_error") for k in r) else "")
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tasks", nargs="*", default=locomotion.names())
+    parser.add_argument("--envs", type=int, nargs="*", default=[1024, 4096])
+    parser.add_argument("--steps", type=int, default=200, help="raw: steps per timed scan")
+    parser.add_argument("--iters", type=int, default=64, help="loop: iterations per chunk")
+    parser.add_argument("--batch", type=int, help="loop: batch size (default: the preset's)")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["raw", "loop"])
+    parser.add_argument("--menagerie", type=Path, help="robot folders or their .tar.xz")
+    parser.add_argument("--pack", type=Path, help="write the tasks' robots as .tar.xz here")
+    parser.add_argument("--budget-s", type=float, default=540.0,
+                        help="start no new measurement after this many seconds")  # fmt: skip
+    parser.add_argument("--out", type=Path, default=Path("."))
+    args = parser.parse_args()
+    if args.pack:
+        pack(args.tasks, args.pack)
+        return
+    start = time.perf_counter()
+    root = unpack(args.menagerie) if args.menagerie else None
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for task in args.tasks:
+        for n in args.envs:
+            if time.perf_counter() - start > args.budget_s:
+                print(f"budget spent: {task} at {n} envs not measured", flush=True)
+                continue
+            rows.append(measure(task, n, args, str(root) if root else None))
+            with (args.out / "robots.jsonl").open("a") as f:
+                f.write(json.dumps(rows[-1]) + "\n")
+            print(json.dumps(rows[-1]), flush=True)
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
