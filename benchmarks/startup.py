@@ -37,7 +37,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from td3_jax import envs  # noqa: E402
+from td3_jax import envs, training  # noqa: E402
 from td3_jax.config import preset  # noqa: E402
 from td3_jax.population import compile_ahead, compile_for_mesh, make_population, members  # noqa: E402
 from td3_jax.sharding import make_mesh  # noqa: E402
@@ -70,7 +70,7 @@ def parse() -> argparse.Namespace:
 
 def floor(cfg, clock: Clock) -> dict[str, float]:
     """Trace and compile time, and raw env steps/s, of ``jit(scan(vmap(env.step)))``."""
-    env = envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
+    env = training.make_env(cfg)
     clock.lap("make_env")
     reset = jax.jit(lambda key: envs.reset(env, key, cfg.num_envs)).lower(jax.random.PRNGKey(0))
     clock.lap("reset_trace")
@@ -97,7 +97,7 @@ def floor(cfg, clock: Clock) -> dict[str, float]:
 
 def run_start(cfg, clock: Clock, sequential: bool) -> None:
     """The command's start-up: environment, programs, init, first chunk, first evaluation."""
-    env = envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length)
+    env = training.make_env(cfg)
     clock.lap("make_env")
     population = members(cfg)
     mesh = make_mesh(None)
