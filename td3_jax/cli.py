@@ -7,6 +7,7 @@ Subcommands: ``train`` (flags from :class:`~td3_jax.config.TrainConfig`), ``eval
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import sys
 from pathlib import Path
 from typing import Literal
@@ -255,7 +256,8 @@ def enable_compile_cache(directory: str) -> None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     # Everything the run compiles, however quick: a second identical run then compiles nothing.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    if importlib.util.find_spec("filelock") is not None:  # JAX's cache eviction needs it
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
 
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
