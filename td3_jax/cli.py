@@ -242,6 +242,22 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
 CACHE_MAX_BYTES = 4 * 1024**3
 
 
+def stamp_cache_entries(path: Path) -> None:
+    """Gives every entry of the compilation cache at ``path`` the access-time file that JAX's
+    size-capped cache reads when it evicts (entries written without a cap, e.g. by an earlier
+    td3-jax, have none, and JAX would then fail to write any new entry)."""
+    import time
+
+    stamp = time.time_ns().to_bytes(8, "little")
+    for entry in path.glob("*-cache"):
+        atime = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
+        if not atime.exists():
+            try:
+                atime.write_bytes(stamp)
+            except OSError:  # a read-only cache: JAX reports its own write errors
+                return
+
+
 def enable_compile_cache(directory: str) -> None:
     """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off)."""
     if directory.strip().lower() in ("off", "none", ""):
@@ -257,6 +273,7 @@ def enable_compile_cache(directory: str) -> None:
     # Everything the run compiles, however quick: a second identical run then compiles nothing.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     if importlib.util.find_spec("filelock") is not None:  # JAX's cache eviction needs it
+        stamp_cache_entries(path)
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
 
 

@@ -130,7 +130,7 @@ class TrainConfig:
     """Clip gradients to this global norm before Adam; default: no clipping."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to 0 over the run's
-    gradient updates (extending a run on --resume stretches the schedule)."""
+    gradient updates (so --total-steps cannot change on --resume)."""
     actor_lr: float | None = None
     """Actor Adam learning rate; default: the algorithm's (TD3 1e-3, DDPG 1e-4)."""
     critic_lr: float | None = None

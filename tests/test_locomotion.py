@@ -338,6 +338,9 @@ def test_menagerie_flag_and_variable_come_first(tmp_path, monkeypatch):
     assert menagerie.find_root(T1) == tmp_path
     monkeypatch.setenv("MENAGERIE_ROOT", str(tmp_path / "elsewhere"))
     assert menagerie.find_root(T1) == source  # then the packages
+    # An explicit --menagerie without the robot is an error, not a silent fallback.
+    with pytest.raises(menagerie.MissingAssetsError, match=r"--menagerie .*elsewhere holds no"):
+        menagerie.find_root(T1, tmp_path / "elsewhere")
 
 
 def test_missing_assets_one_clear_error_exit_2(tmp_path, monkeypatch, capsys):

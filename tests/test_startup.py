@@ -120,3 +120,16 @@ def test_a_second_identical_run_compiles_nothing(tmp_path):
     assert first["compiles"] > 0 and first["misses"] > 0, first
     assert second["misses"] == 0, f"the second run compiled again: {second}"
     assert second["hits"] == first["misses"], (first, second)
+
+
+def test_a_cache_filled_without_the_size_cap_still_takes_new_entries(tmp_path):
+    # A cache directory written before the 4 GB cap (entries without access-time files) is
+    # stamped, so the capped cache can evict and write: the run fills it as a fresh one would.
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "jit_old-0123-cache").write_bytes(b"an entry from an uncapped cache")
+    counts = _counted_train(tmp_path / "a", cache)
+    assert counts["misses"] > 0
+    assert (cache / "jit_old-0123-atime").exists()
+    written = [p for p in cache.glob("*-cache") if p.name != "jit_old-0123-cache"]
+    assert len(written) == counts["misses"], (counts, sorted(p.name for p in written))

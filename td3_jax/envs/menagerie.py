@@ -96,9 +96,16 @@ def find_root(task: str, menagerie: str | os.PathLike | None = None) -> Path:
     """The first Menagerie root (see the module docstring) holding ``task``'s robot folder.
 
     Raises :class:`MissingAssetsError` (naming the folder, every place looked and the three
-    ways to supply it) when none does. Nothing is downloaded.
+    ways to supply it) when none does, and when ``menagerie`` (an explicit ``--menagerie``) does
+    not hold it: a folder asked for by name is not silently replaced. Nothing is downloaded.
     """
     folder, package = robot(task)
+    if menagerie and not holds(Path(menagerie).expanduser(), folder):
+        raise MissingAssetsError(
+            f"--menagerie {menagerie} holds no robot folder '{folder}' (with .xml files) for "
+            f"playground/{task}; give a directory holding {folder}/ or leave --menagerie out to "
+            f"use ${ENV_VAR}, the package {package} or Playground's own copy"
+        )
     places = candidates(menagerie)
     for _, root in places:
         if holds(root, folder):
