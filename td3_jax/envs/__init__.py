@@ -12,16 +12,17 @@ from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
 from td3_jax.envs.base import (
     Environment,
+    EnvironmentOptionError,
     EnvOptions,
     EnvState,
     StepResult,
     actor_observation,
     critic_observation,
+    refuse_locomotion_options,
     reset,
     reset_ended,
     step,
 )
-from td3_jax.envs.locomotion import EnvironmentOptionError
 from td3_jax.envs.menagerie import MissingAssetsError
 
 #: Each source module has ``names() -> list[str]`` and
@@ -71,11 +72,7 @@ def make(
     options = options or EnvOptions()
     if source == "playground":
         return module.make(task, backend=backend, episode_length=episode_length, options=options)
-    refused = options.locomotion_only()
-    if refused:
-        raise EnvironmentOptionError(
-            f"{', '.join(refused)} apply to Playground's locomotion tasks, not {name}"
-        )
+    refuse_locomotion_options(name, options)
     return module.make(task, backend=backend, episode_length=episode_length)
 
 

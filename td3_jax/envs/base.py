@@ -86,6 +86,10 @@ class Environment:
         return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
 
 
+class EnvironmentOptionError(ValueError):
+    """An option a task cannot take (the CLI exits with code 2)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvOptions:
     """Options of MuJoCo Playground's locomotion tasks (other sources refuse non-defaults).
@@ -114,6 +118,16 @@ class EnvOptions:
         if self.pushes is not None:
             given.append("--pushes" if self.pushes else "--no-pushes")
         return given
+
+
+def refuse_locomotion_options(name: str, options: EnvOptions) -> None:
+    """Raises :class:`EnvironmentOptionError` when ``options`` set what only Playground's
+    locomotion tasks take, for the environment ``name`` (which is not one)."""
+    refused = options.locomotion_only()
+    if refused:
+        raise EnvironmentOptionError(
+            f"{', '.join(refused)} apply to Playground's locomotion tasks, not {name}"
+        )
 
 
 def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:

@@ -32,11 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from td3_jax.envs import menagerie
-from td3_jax.envs.base import Environment, EnvOptions
-
-
-class EnvironmentOptionError(ValueError):
-    """An option a task cannot take (the CLI exits with code 2)."""
+from td3_jax.envs.base import Environment, EnvironmentOptionError, EnvOptions
 
 
 def _registry():

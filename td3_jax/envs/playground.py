@@ -8,7 +8,7 @@ warp-lang. Install with ``pip install 'td3-jax[playground]'`` (``[locomotion]`` 
 from __future__ import annotations
 
 from td3_jax.envs import locomotion
-from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style
+from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style, refuse_locomotion_options
 
 
 def _suite():
@@ -45,11 +45,7 @@ def make(
     if name in locomotion.names():
         return locomotion.make(name, backend=backend, episode_length=episode_length,
                                options=options)  # fmt: skip
-    refused = options.locomotion_only()
-    if refused:
-        raise locomotion.EnvironmentOptionError(
-            f"{', '.join(refused)} apply to Playground's locomotion tasks, not playground/{name}"
-        )
+    refuse_locomotion_options(f"playground/{name}", options)
     impl = backend if backend in ("jax", "warp") else "jax"
     suite = _suite()
     config = suite.get_default_config(name)
