@@ -241,6 +241,21 @@ SMOKE = {
 TD3_PRESET = {"ant": "ant", "halfcheetah": "halfcheetah", "humanoid": "humanoid"}
 TD3_PRESET_DEFAULT = "cheetah-run"
 
+
+def default_td3_preset(env: str) -> str:
+    """The td3-jax preset an environment is compared with: its own (ant, t1, ...), a robot's
+    family preset for other locomotion tasks, else cheetah-run's (DM Control Suite)."""
+    from td3_jax import config
+
+    name = env_id(env)
+    return (
+        TD3_PRESET.get(env)
+        or config.env_preset(name)
+        or config.robot_preset(name)
+        or (TD3_PRESET_DEFAULT)
+    )
+
+
 TIME_ZERO = (
     "just before the environment is created and the train function is called, in a fresh "
     "process: environment creation, tracing, compilation and evaluations are all included"
@@ -311,6 +326,13 @@ def is_brax_env(env: str) -> bool:
     return env in BRAX_ENVS
 
 
+def is_locomotion_env(env: str) -> bool:
+    """A MuJoCo Playground locomotion task (a robot from MuJoCo Menagerie)."""
+    from td3_jax.envs import locomotion
+
+    return env in locomotion.names()
+
+
 def env_id(env: str) -> str:
     """td3-jax's name of the environment."""
     return f"brax/{env}" if is_brax_env(env) else f"playground/{env}"
@@ -346,6 +368,16 @@ def _brax_settings(job: dict[str, Any]) -> tuple[dict[str, Any], str]:
         else:
             settings = dict(SAC_RECIPES[job["sac_recipe"]])
             source = SAC_SOURCES[job["sac_recipe"]]
+    elif is_locomotion_env(env):
+        if algo != "ppo":
+            raise SystemExit(f"{algo} has no Playground locomotion settings; use ppo or td3")
+        from mujoco_playground.config import locomotion_params
+
+        settings = locomotion_params.brax_ppo_config(env).to_dict()
+        source = (
+            f"mujoco_playground.config.locomotion_params.brax_ppo_config({env!r}) "
+            f"(playground {_version('playground')})"
+        )
     else:
         try:
             from mujoco_playground.config import dm_control_suite_params as params
@@ -425,9 +457,9 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
 
         environment = envs.get_environment(env_name, backend="mjx")
     else:
-        from mujoco_playground import dm_control_suite, wrapper
+        from mujoco_playground import wrapper
 
-        environment = dm_control_suite.load(env_name, config_overrides={"impl": "jax"})
+        environment = _playground_env(env_name, result)
         if not hasattr(wrapper, "wrap_for_brax_training"):
             raise RuntimeError("this Playground has no wrapper.wrap_for_brax_training")
         kwargs["wrap_env_fn"] = wrapper.wrap_for_brax_training
@@ -437,6 +469,22 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
     except _BudgetReached:
         result["stopped_by"] = "budget"
     result["wall_s_total"] = time.perf_counter() - start
+
+
+def _playground_env(env_name: str, result: dict[str, Any]) -> Any:
+    """A Playground task for Brax PPO/SAC: DM Control Suite with ``impl="jax"``; a locomotion
+    task built as td3-jax builds it (offline Menagerie assets, ``impl="jax"``, pushes off as in
+    the td3-jax presets and FastTD3's published runs, no domain randomisation)."""
+    if not is_locomotion_env(env_name):
+        from mujoco_playground import dm_control_suite
+
+        return dm_control_suite.load(env_name, config_overrides={"impl": "jax"})
+    from td3_jax.envs import locomotion
+    from td3_jax.envs.base import EnvOptions
+
+    environment, _ = locomotion.load(env_name, options=EnvOptions(pushes=False))
+    result["env_config"] = {"impl": "jax", "pushes": "off", "domain_randomization": False}
+    return environment
 
 
 def td3_config(job: dict[str, Any]):
@@ -495,15 +543,21 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
                 )
             )
             print(f"[td3] {wall:7.1f} s  {steps:>12,} steps  return {ret:9.1f}", flush=True)
-            if wall >= budget:
+            if wall >= budget and not keep:
                 raise _BudgetReached
             return out
 
     td3_run.MetricsLogger = StampedLogger
     start = job["launch"]
+    # --td3-checkpoint: the run stops on its own clock (which starts after the environment is
+    # made, so it ends up to one chunk plus environment creation past the budget) and saves a
+    # checkpoint, for td3-jax render/export afterwards; evaluations past the budget are kept in
+    # the CSV but not counted in the table.
+    keep = job.get("td3_checkpoint", False)
+    own_budget = budget - (time.perf_counter() - start) if keep else budget
     try:
-        td3_run.train(cfg, run_dir, progress=False, time_budget_s=budget)
-        result["stopped_by"] = "run length"
+        td3_run.train(cfg, run_dir, progress=False, time_budget_s=own_budget)
+        result["stopped_by"] = "budget, checkpointed" if keep else "run length"
     except _BudgetReached:
         result["stopped_by"] = "budget"
     result["wall_s_total"] = time.perf_counter() - start
@@ -567,6 +621,33 @@ def write_csv(path: Path, env: str, results: dict[str, dict]) -> None:
                 )
 
 
+PUBLISHED = HERE / "published" / "fasttd3_playground.csv"
+
+
+def published_curves(env: str, path: Path = PUBLISHED) -> dict[str, list[tuple[float, float]]]:
+    """``{algorithm: [(wall_s, eval_return), ...]}`` published for ``env`` (FastTD3's A100
+    curves, see benchmarks/published/README.md); the (0, 0) placeholders are left out."""
+    curves: dict[str, list[tuple[float, float]]] = {}
+    if not path.exists():
+        return curves
+    with path.open() as f:
+        for row in csv.DictReader(f):
+            minutes, ret = float(row["wall_clock_min"]), float(row["eval_return_mean"])
+            if row["task"] == env and (minutes, ret) != (0.0, 0.0):
+                curves.setdefault(row["algorithm"], []).append((minutes * 60, ret))
+    return curves
+
+
+def published_at(curve: list[tuple[float, float]], t: float) -> float | None:
+    """The published return linearly interpolated at ``t`` seconds (``None`` outside)."""
+    import numpy as np
+
+    times, returns = zip(*curve, strict=True)
+    if not times[0] <= t <= times[-1]:
+        return None
+    return float(np.interp(t, times, returns))
+
+
 def plot(path: Path, env: str, budget: float, results: dict[str, dict], device: str) -> None:
     import matplotlib
 
@@ -585,6 +666,11 @@ def plot(path: Path, env: str, budget: float, results: dict[str, dict], device: 
                 markersize=3,
                 label=labels.get(algo, algo),
             )
+    for algo, curve in published_curves(env).items():
+        shown = [(t, r) for t, r in curve if t <= budget * 3.5]
+        if shown:
+            ax.plot(*zip(*shown, strict=True), linestyle=":", marker="x", markersize=4,
+                    label=f"{algo} (published, A100)")  # fmt: skip
     ax.axvline(budget, color="grey", linestyle="--", linewidth=1, label=f"budget {budget:g} s")
     ax.set_xlabel("wall-clock s (start-up and compile included)")
     ax.set_ylabel("eval episode return")
@@ -672,6 +758,11 @@ def main(argv: list[str] | None = None) -> int:
         help="evaluations over a whole Brax PPO/SAC run (0: keep the published number)",
     )
     parser.add_argument("--seed", type=int, default=None, help="seed of every algorithm")
+    parser.add_argument(
+        "--td3-checkpoint",
+        action="store_true",
+        help="td3-jax stops on its own clock and keeps a checkpoint (for render/export)",
+    )
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: a CPU code-path check")
     parser.add_argument(
         "--merge",
@@ -687,9 +778,12 @@ def main(argv: list[str] | None = None) -> int:
     else:  # importing Playground does not start a JAX backend (the workers own the GPU)
         from mujoco_playground import dm_control_suite
 
-        if env not in dm_control_suite.ALL_ENVS:
+        if env not in dm_control_suite.ALL_ENVS and not is_locomotion_env(env):
             known = ", ".join([*BRAX_ENVS, *sorted(dm_control_suite.ALL_ENVS)])
-            parser.error(f"unknown environment {args.env!r}; known: {known}")
+            parser.error(
+                f"unknown environment {args.env!r}; known: {known} and Playground's "
+                "locomotion tasks (td3-jax envs)"
+            )
     if args.budget_s <= 0:
         parser.error("--budget-s must be positive")
     flags = {
@@ -697,7 +791,7 @@ def main(argv: list[str] | None = None) -> int:
         "sac": parse_flags(args.sac_flag, "--sac-flag"),
         "td3": parse_flags(args.td3_flag, "--td3-flag"),
     }
-    td3_preset = args.td3_preset or TD3_PRESET.get(env, TD3_PRESET_DEFAULT)
+    td3_preset = args.td3_preset or default_td3_preset(env)
     if "td3" in args.algos:  # bad td3 settings fail here, before any run starts
         td3_config(
             dict(
@@ -731,6 +825,7 @@ def main(argv: list[str] | None = None) -> int:
             num_evals=args.num_evals or None,
             sac_recipe=args.sac_recipe,
             td3_preset=td3_preset,
+            td3_checkpoint=args.td3_checkpoint,
             out=str(out),
             result_path=str(result_path),
         )
@@ -782,6 +877,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("eval return of the last evaluation at or before each time (compile included):")
     print(table(results, args.budget_s))
+    for algo, curve in published_curves(env).items():
+        points = time_points(args.budget_s)
+        values = [published_at(curve, t) for t in points]
+        cells = ", ".join(
+            f"@{t:g} s {'-' if v is None else f'{v:.1f}'}"
+            for t, v in zip(points, values, strict=True)
+        )
+        print(f"published {algo} (A100, interpolated): {cells}")
     for name in (".csv", ".png", ".json"):
         print(f"wrote {stem.with_suffix(name)}")
     failed = [a for a, r in results.items() if r["status"] != "ok"]
