@@ -10,7 +10,7 @@ import dataclasses
 import importlib.util
 import sys
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
@@ -141,7 +141,7 @@ class ExportCommand:
 
     run: Path
     """Run directory written by `td3-jax train`."""
-    format: str
+    format: Annotated[str, tyro.conf.arg(metavar="{onnx,npz}")]
     """onnx (opset 17, needs pip install 'td3-jax[export]') or npz (run it with NumPy alone:
     td3_jax/policy_file.py)."""
     out: Path | None = None
