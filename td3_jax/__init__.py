@@ -8,11 +8,19 @@ The public, stable functional API::
     state, metrics = agent.update(state, tj.Transition(obs, action, reward, next_obs, done), key)
     buf = tj.replay.add(tj.replay.init(capacity, example_transition), transitions)
     batch = tj.replay.sample(buf, key, batch_size)
+
+Without JAX importable, the package holds only :mod:`td3_jax.policy_file` (the NumPy-only
+loader of exported policies), so an exported policy runs where JAX is not installed.
 """
 
-from td3_jax import noise, replay
-from td3_jax.td3 import DDPGConfig, TD3Config, ddpg, td3
-from td3_jax.types import Agent, AgentState, Transition
+try:
+    import jax  # noqa: F401  (the API below needs it; td3_jax.policy_file does not)
+except ImportError:  # pragma: no cover - exercised by a subprocess in tests/test_export.py
+    pass
+else:
+    from td3_jax import noise, replay
+    from td3_jax.td3 import DDPGConfig, TD3Config, ddpg, td3
+    from td3_jax.types import Agent, AgentState, Transition
 
 __all__ = [
     "Agent",

@@ -10,7 +10,7 @@ import dataclasses
 import importlib.util
 import sys
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
@@ -25,7 +25,7 @@ from td3_jax.config import (
 )
 
 USAGE = """\
-usage: td3-jax {train,sweep,eval,plot,envs,presets} [FLAGS]
+usage: td3-jax {train,sweep,eval,export,plot,envs,presets} [FLAGS]
 
 Train TD3/DDPG on thousands of vectorised environments inside one compiled JAX program.
 
@@ -34,6 +34,8 @@ subcommands:
   sweep     train every combination of float settings x seeds in one program:
               td3-jax sweep --sweep-actor-lr 1e-3 3e-4 --sweep-tau 0.005 0.01 --seeds 4
   eval      evaluate a run's newest checkpoint:  td3-jax eval --run runs/ant
+  export    write a run's policy as ONNX or a NumPy-only .npz:
+              td3-jax export --run runs/ant --format onnx
   plot      redraw a run's curve.png from its metrics.jsonl
   envs      list the environment names this installation knows
   presets   list the presets and what they set
@@ -130,6 +132,23 @@ class EvalCommand:
     """Episodes (one per vectorised environment)."""
     seed: int = 12345
     """Seed of the evaluation environments."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportCommand:
+    """Write the deterministic policy of a run's newest checkpoint to one file, in float32:
+    observation normalisation, actor and the mapping to the environment's action bounds."""
+
+    run: Path
+    """Run directory written by `td3-jax train`."""
+    format: Annotated[str, tyro.conf.arg(metavar="{onnx,npz}")]
+    """onnx (opset 17, needs pip install 'td3-jax[export]') or npz (run it with NumPy alone:
+    td3_jax/policy_file.py)."""
+    out: Path | None = None
+    """Output file (default: RUN/policy.onnx or RUN/policy.npz)."""
+    member: int | None = None
+    """Member (seed / swept setting) to export, from 0 (default: the best in the checkpoint's
+    evaluation in metrics.jsonl; member 0 for a single-seed run)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -418,6 +437,15 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
         )
 
 
+def export_main(args: list[str]) -> None:
+    from td3_jax.export import export_run, summary
+
+    command = _parse(ExportCommand, args, "td3-jax export")
+    path, policy = export_run(command.run, command.format, command.out, command.member)
+    print(path)
+    print(summary(policy))
+
+
 def plot_main(args: list[str]) -> None:
     from td3_jax.logger import plot_curve
 
@@ -444,6 +472,7 @@ COMMANDS = {
     "train": train_main,
     "sweep": sweep_main,
     "eval": eval_main,
+    "export": export_main,
     "plot": plot_main,
     "envs": envs_main,
     "presets": presets_main,

@@ -1,0 +1,440 @@
+"""Export a trained deterministic actor as plain float32 arrays: a ``.npz`` or an ONNX model.
+
+What is exported is the policy the run evaluates (:func:`td3_jax.training.evaluate`), for one
+member of a run's newest checkpoint:
+
+1. the observation normalisation, when the run's ``normalize_obs`` is on and its statistics
+   have seen data: ``clip((obs - mean) / sqrt(var + 1e-8), -10, 10)`` per feature, with the
+   statistics sliced to the actor's observation (``row[:observation_size]``);
+2. the actor's MLP: Dense kernels ``[in, out]`` and biases, LayerNorm scales and biases after
+   each hidden Dense with ``--layer-norm`` (epsilon: flax's default, 1e-6), ReLU, then
+   ``max_action * tanh``;
+3. the agent's action mapped to the environment's own bounds,
+   ``low + (clip(a, -1, 1) + 1) / 2 * (high - low)`` (:meth:`Environment.to_env_action`).
+
+Both formats compute in float32. A ``--precision bfloat16`` run keeps float32 parameters but
+runs its matmuls in bf16; the export computes those in float32, so its actions differ from the
+bf16 forward pass by bf16 rounding (a few 1e-3), and are the more exact ones.
+
+The ``.npz`` runs with :mod:`td3_jax.policy_file` (NumPy only). The ONNX model (opset
+:data:`ONNX_OPSET`, which LayerNormalization needs) is built node by node from the same arrays
+with ``onnx.helper``: input ``obs`` float32 ``[batch, observation_size]`` (dynamic batch),
+output ``action`` float32 ``[batch, action_size]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from td3_jax.config import ConfigError
+from td3_jax.policy_file import FORMAT_VERSION
+
+#: The export formats (``td3-jax export --format``).
+FORMATS = ("onnx", "npz")
+#: The ONNX opset of exported models (LayerNormalization is in the default domain from 17).
+ONNX_OPSET = 17
+#: The observation normaliser's variance floor and clip (:mod:`td3_jax.normalization`).
+NORM_EPSILON = 1e-8
+NORM_CLIP = 10.0
+
+
+class ExportError(ConfigError):
+    """A run, member or output that cannot be exported (the CLI prints it, exit code 2)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyArrays:
+    """One deterministic actor as float32 NumPy arrays (see the module docstring).
+
+    Attributes:
+      kernels, biases: the Dense layers, ``[in, out]`` and ``[out]``, input layer first.
+      ln_scales, ln_biases: ``[width]`` LayerNorm parameters of each hidden layer (empty
+        without layer norm); ``ln_epsilon`` its epsilon.
+      normalize: whether observations are normalised; ``obs_mean``, ``obs_std``
+        ``[observation_size]`` (``std = sqrt(var + 1e-8)``; 0 and 1 when not) and ``obs_clip``.
+      max_action: ``[action_size]`` scale of the tanh output.
+      action_low, action_high: ``[action_size]`` bounds of the environment's actions.
+      env, member, env_steps, precision: where the policy comes from.
+    """
+
+    kernels: tuple[np.ndarray, ...]
+    biases: tuple[np.ndarray, ...]
+    ln_scales: tuple[np.ndarray, ...]
+    ln_biases: tuple[np.ndarray, ...]
+    ln_epsilon: float
+    normalize: bool
+    obs_mean: np.ndarray
+    obs_std: np.ndarray
+    obs_clip: float
+    max_action: np.ndarray
+    action_low: np.ndarray
+    action_high: np.ndarray
+    env: str
+    member: int = 0
+    env_steps: int = 0
+    precision: str = "float32"
+
+    @property
+    def observation_size(self) -> int:
+        return int(self.kernels[0].shape[0])
+
+    @property
+    def action_size(self) -> int:
+        return int(self.kernels[-1].shape[1])
+
+    @property
+    def layer_norm(self) -> bool:
+        return bool(self.ln_scales)
+
+
+# --------------------------------------------------------------------------------------------
+# extracting the arrays
+# --------------------------------------------------------------------------------------------
+
+
+def _f32(x: Any) -> np.ndarray:
+    return np.array(x, dtype=np.float32)
+
+
+def _numbered(params: dict, prefix: str) -> list[dict]:
+    """``params[prefix_0], params[prefix_1], ...`` in index order (flax's auto-names)."""
+    names = [k for k in params if k.startswith(prefix + "_")]
+    return [params[n] for n in sorted(names, key=lambda n: int(n.rsplit("_", 1)[1]))]
+
+
+def mlp_arrays(actor_params: Any, layer_norm: bool) -> tuple[list, list, list, list]:
+    """``(kernels, biases, ln_scales, ln_biases)`` of an :class:`~td3_jax.networks.Actor`'s
+    parameters (``{"params": {"MLP_0": {"Dense_i": ..., "LayerNorm_i": ...}}}``), float32."""
+    mlp = actor_params["params"]["MLP_0"]
+    dense = _numbered(mlp, "Dense")
+    norms = _numbered(mlp, "LayerNorm") if layer_norm else []
+    if layer_norm and len(norms) != len(dense) - 1:
+        raise ExportError(f"the actor has {len(dense)} Dense layers but {len(norms)} LayerNorms")
+    kernels = [_f32(d["kernel"]) for d in dense]
+    biases = [_f32(d["bias"]) for d in dense]
+    return kernels, biases, [_f32(n["scale"]) for n in norms], [_f32(n["bias"]) for n in norms]
+
+
+def normalization_arrays(stats: Any, observation_size: int) -> tuple[bool, np.ndarray, np.ndarray]:
+    """``(normalize, mean, std)`` ``[observation_size]`` of running statistics (per feature,
+    sliced to the actor's part of the row); ``(False, 0, 1)`` for ``None`` (the run does not
+    normalise) or statistics that have seen nothing (the normaliser is then the identity)."""
+    if stats is None or float(np.asarray(stats.count)) <= 0:
+        size = observation_size
+        return False, np.zeros(size, np.float32), np.ones(size, np.float32)
+    mean = _f32(stats.mean)[:observation_size]
+    var = _f32(stats.var)[:observation_size]
+    return True, mean, np.sqrt(var + np.float32(NORM_EPSILON))
+
+
+def extract_policy(
+    env: Any, actor: Any, actor_params: Any, obs_stats: Any = None, **origin: Any
+) -> PolicyArrays:
+    """The :class:`PolicyArrays` of one member's actor.
+
+    Args:
+      env: the :class:`~td3_jax.envs.Environment` (sizes and action bounds).
+      actor: the :class:`~td3_jax.networks.Actor` module (layer norm, ``max_action``).
+      actor_params: its parameters (one member's: no leading member axis).
+      obs_stats: the member's :class:`~td3_jax.normalization.RunningStats` over rows
+        ``[row_size]``, or ``None`` when the run does not normalise observations.
+      origin: ``member``, ``env_steps``, ``precision`` recorded with the arrays.
+    """
+    import flax.linen as nn
+
+    kernels, biases, scales, shifts = mlp_arrays(actor_params, actor.layer_norm)
+    if kernels[0].shape[0] != env.observation_size or kernels[-1].shape[1] != env.action_size:
+        raise ExportError(
+            f"the actor's sizes {kernels[0].shape[0]} -> {kernels[-1].shape[1]} "
+            f"differ from {env.name}'s {env.observation_size} -> {env.action_size}"
+        )
+    normalize, mean, std = normalization_arrays(obs_stats, env.observation_size)
+    max_action = np.broadcast_to(_f32(actor.max_action), (env.action_size,)).copy()
+    return PolicyArrays(
+        tuple(kernels), tuple(biases), tuple(scales), tuple(shifts),
+        float(nn.LayerNorm.epsilon), normalize, mean, std, NORM_CLIP, max_action,
+        _f32(env.action_low), _f32(env.action_high), env.name, **origin,
+    )  # fmt: skip
+
+
+def check_finite(policy: PolicyArrays) -> None:
+    """Raises :class:`ExportError` when a parameter or statistic is NaN or infinite."""
+    arrays = [*policy.kernels, *policy.biases, *policy.ln_scales, *policy.ln_biases,
+              policy.obs_mean, policy.obs_std]  # fmt: skip
+    if not all(np.isfinite(a).all() for a in arrays):
+        raise ExportError(
+            f"member {policy.member} has non-finite parameters or statistics (it diverged); "
+            "choose another with --member"
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# which member, from a run directory
+# --------------------------------------------------------------------------------------------
+
+
+def _record_return(record: dict, k: int) -> float:
+    value = record["per_member"][k].get("eval_return_mean")
+    return -math.inf if value is None or not math.isfinite(value) else float(value)
+
+
+def best_member(records: list[dict], env_steps: int) -> int | None:
+    """The member with the highest ``eval_return_mean`` in the evaluation at ``env_steps``
+    (the checkpoint's; else the last one), or ``None`` without per-member records."""
+    with_members = [r for r in records if r.get("per_member")]
+    if not with_members:
+        return None
+    at = [r for r in with_members if r.get("env_steps") == env_steps]
+    record = (at or with_members)[-1]
+    count = len(record["per_member"])
+    returns = [_record_return(record, k) for k in range(count)]
+    return max(range(count), key=lambda k: (returns[k], -k))  # ties: the lower index
+
+
+def choose_member(requested: int | None, count: int, records: list[dict], env_steps: int) -> int:
+    """``requested`` checked against ``count`` members, else :func:`best_member`, else 0."""
+    if requested is None:
+        best = best_member(records, env_steps)
+        return best if best is not None and best < count else 0
+    if not 0 <= requested < count:
+        raise ExportError(
+            f"--member {requested} is out of range: the run has {count} member"
+            f"{'s' if count != 1 else ''} (0 to {count - 1})"
+        )
+    return requested
+
+
+def _member(tree: Any, k: int) -> Any:
+    import jax
+
+    return jax.tree.map(lambda x: np.asarray(x[k]), tree)
+
+
+def restore_checkpoint(run_dir: Path) -> tuple[Any, Any, Any, dict]:
+    """``(config, population program, state, meta)`` of a run's newest good checkpoint,
+    restored onto one device (as :func:`td3_jax.rundir.evaluate_run` does)."""
+    from td3_jax import rundir
+    from td3_jax.population import make_population
+    from td3_jax.sharding import make_mesh, state_shardings
+
+    run_dir = Path(run_dir)
+    cfg = rundir.load_config(run_dir)  # one line for a directory without config.json
+    if not rundir.checkpoint_steps(run_dir):
+        raise ExportError(f"{run_dir / rundir.CHECKPOINTS} holds no checkpoint to export")
+    program = make_population(cfg, rundir.load_members(run_dir, cfg))
+    shardings = state_shardings(program.abstract_state, make_mesh(1))
+    state, meta, _ = rundir.restore_state(program, run_dir, shardings=shardings)
+    return cfg, program, state, meta
+
+
+def load_run_policy(run_dir: Path, member: int | None = None) -> PolicyArrays:
+    """The :class:`PolicyArrays` of member ``member`` of the run in ``run_dir`` (default: the
+    best by the checkpoint's evaluation in metrics.jsonl, else member 0)."""
+    from td3_jax.logger import read_metrics
+
+    cfg, program, state, meta = restore_checkpoint(run_dir)
+    env_steps = int(meta.get("env_steps", 0))
+    records = read_metrics(Path(run_dir) / "metrics.jsonl")
+    k = choose_member(member, len(program.members), records, env_steps)
+    spec = program.spec
+    stats = _member(state.obs_stats, k) if spec.normalize_obs else None
+    policy = extract_policy(
+        spec.env, spec.agent.actor, _member(state.agent.actor_params, k), stats,
+        member=k, env_steps=env_steps, precision=cfg.precision,
+    )  # fmt: skip
+    check_finite(policy)
+    return policy
+
+
+# --------------------------------------------------------------------------------------------
+# the .npz file
+# --------------------------------------------------------------------------------------------
+
+
+def npz_arrays(policy: PolicyArrays) -> dict[str, np.ndarray]:
+    """The arrays of a version-:data:`FORMAT_VERSION` policy file (read by
+    :mod:`td3_jax.policy_file`; no array needs pickle)."""
+    arrays = {
+        "format_version": np.array(FORMAT_VERSION), "env": np.array(policy.env),
+        "observation_size": np.array(policy.observation_size),
+        "action_size": np.array(policy.action_size), "layer_norm": np.array(policy.layer_norm),
+        "num_layers": np.array(len(policy.kernels)), "member": np.array(policy.member),
+        "env_steps": np.array(policy.env_steps), "precision": np.array(policy.precision),
+        "normalize": np.array(policy.normalize), "obs_mean": policy.obs_mean,
+        "obs_std": policy.obs_std, "obs_clip": np.float32(policy.obs_clip),
+        "max_action": policy.max_action, "action_low": policy.action_low,
+        "action_high": policy.action_high, "ln_epsilon": np.float32(policy.ln_epsilon),
+    }  # fmt: skip
+    for i, (kernel, bias) in enumerate(zip(policy.kernels, policy.biases, strict=True)):
+        arrays[f"kernel_{i}"], arrays[f"bias_{i}"] = kernel, bias
+    for i, (scale, bias) in enumerate(zip(policy.ln_scales, policy.ln_biases, strict=True)):
+        arrays[f"ln_scale_{i}"], arrays[f"ln_bias_{i}"] = scale, bias
+    return arrays
+
+
+def save_npz(policy: PolicyArrays, path: Path) -> Path:
+    """Writes the policy file ``path`` (``np.savez``; the name is kept as given)."""
+    path = Path(path)
+    with open(path, "wb") as file:  # (a file object: savez would append .npz to the name)
+        np.savez(file, **npz_arrays(policy))
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# the ONNX model
+# --------------------------------------------------------------------------------------------
+
+
+def require_onnx() -> Any:
+    """The ``onnx`` module, or :class:`ExportError` saying how to install it."""
+    try:
+        return importlib.import_module("onnx")
+    except ImportError:
+        raise ExportError(
+            "--format onnx needs the onnx package: pip install 'td3-jax[export]' "
+            "(or use --format npz, which needs only NumPy to run)"
+        ) from None
+
+
+class _Graph:
+    """Nodes and constants of an ONNX graph under construction (names made unique here)."""
+
+    def __init__(self, onnx: Any):
+        self.onnx, self.nodes, self.constants = onnx, [], []
+
+    def constant(self, name: str, value: np.ndarray) -> str:
+        self.constants.append(self.onnx.numpy_helper.from_array(_f32(value), name))
+        return name
+
+    def node(self, op: str, inputs: list[str], name: str, **attributes: Any) -> str:
+        self.nodes.append(self.onnx.helper.make_node(op, inputs, [name], name=name, **attributes))
+        return name
+
+
+def _onnx_normalize(graph: _Graph, policy: PolicyArrays, x: str) -> str:
+    """``clip((x - mean) / std, -clip, clip)``, or ``x`` without normalisation."""
+    if not policy.normalize:
+        return x
+    x = graph.node("Sub", [x, graph.constant("obs_mean", policy.obs_mean)], "obs_centred")
+    x = graph.node("Div", [x, graph.constant("obs_std", policy.obs_std)], "obs_scaled")
+    low = graph.constant("obs_clip_low", np.float32(-policy.obs_clip))
+    high = graph.constant("obs_clip_high", np.float32(policy.obs_clip))
+    return graph.node("Clip", [x, low, high], "obs_normalized")
+
+
+def _onnx_mlp(graph: _Graph, policy: PolicyArrays, x: str) -> str:
+    """The Dense layers (MatMul, Add), LayerNorm and ReLU after each hidden one."""
+    last = len(policy.kernels) - 1
+    for i, (kernel, bias) in enumerate(zip(policy.kernels, policy.biases, strict=True)):
+        x = graph.node("MatMul", [x, graph.constant(f"kernel_{i}", kernel)], f"matmul_{i}")
+        x = graph.node("Add", [x, graph.constant(f"bias_{i}", bias)], f"dense_{i}")
+        if i == last:
+            return x
+        if policy.layer_norm:
+            scale = graph.constant(f"ln_scale_{i}", policy.ln_scales[i])
+            shift = graph.constant(f"ln_bias_{i}", policy.ln_biases[i])
+            x = graph.node("LayerNormalization", [x, scale, shift], f"layer_norm_{i}",
+                           axis=-1, epsilon=policy.ln_epsilon)  # fmt: skip
+        x = graph.node("Relu", [x], f"relu_{i}")
+    return x
+
+
+def _onnx_action(graph: _Graph, policy: PolicyArrays, x: str) -> None:
+    """``max_action * tanh(x)`` mapped to ``[low, high]``, as the graph's output ``action``."""
+    x = graph.node("Tanh", [x], "tanh")
+    x = graph.node("Mul", [x, graph.constant("max_action", policy.max_action)], "agent_action")
+    one = graph.constant("one", np.float32(1.0))
+    x = graph.node("Clip", [x, graph.constant("minus_one", np.float32(-1.0)), one], "clipped")
+    x = graph.node("Add", [x, one], "shifted")
+    x = graph.node("Mul", [x, graph.constant("half", np.float32(0.5))], "unit_action")
+    span = graph.constant("action_span", policy.action_high - policy.action_low)
+    x = graph.node("Mul", [x, span], "scaled_action")
+    graph.node("Add", [graph.constant("action_low", policy.action_low), x], "action")
+
+
+def onnx_metadata(policy: PolicyArrays) -> dict[str, str]:
+    """The model's ``metadata_props``: where it comes from, sizes, bounds, opset."""
+    return {
+        "producer": "td3-jax", "format_version": str(FORMAT_VERSION), "env": policy.env,
+        "observation_size": str(policy.observation_size),
+        "action_size": str(policy.action_size), "layer_norm": str(policy.layer_norm).lower(),
+        "normalize_obs": str(policy.normalize).lower(), "member": str(policy.member),
+        "env_steps": str(policy.env_steps), "precision": policy.precision,
+        "action_low": repr(policy.action_low.tolist()),
+        "action_high": repr(policy.action_high.tolist()), "opset": str(ONNX_OPSET),
+    }  # fmt: skip
+
+
+def onnx_model(policy: PolicyArrays) -> Any:
+    """The policy as a checked ``onnx.ModelProto`` (opset :data:`ONNX_OPSET`): input ``obs``
+    float32 ``[batch, observation_size]``, output ``action`` float32 ``[batch, action_size]``."""
+    onnx = require_onnx()
+    helper, floats = onnx.helper, onnx.TensorProto.FLOAT
+    graph = _Graph(onnx)
+    _onnx_action(graph, policy, _onnx_mlp(graph, policy, _onnx_normalize(graph, policy, "obs")))
+    inputs = [helper.make_tensor_value_info("obs", floats, ["batch", policy.observation_size])]
+    outputs = [helper.make_tensor_value_info("action", floats, ["batch", policy.action_size])]
+    body = helper.make_graph(graph.nodes, "td3_jax_policy", inputs, outputs, graph.constants)
+    model = helper.make_model(body, opset_imports=[helper.make_opsetid("", ONNX_OPSET)],
+                              producer_name="td3-jax")  # fmt: skip
+    helper.set_model_props(model, onnx_metadata(policy))
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
+def save_onnx(policy: PolicyArrays, path: Path) -> Path:
+    """Writes the ONNX model of ``policy`` to ``path``."""
+    path = Path(path)
+    path.write_bytes(onnx_model(policy).SerializeToString())
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# the command
+# --------------------------------------------------------------------------------------------
+
+
+def default_output(run_dir: Path, fmt: str) -> Path:
+    """``run_dir/policy.onnx`` or ``run_dir/policy.npz``."""
+    return Path(run_dir) / f"policy.{fmt}"
+
+
+def _bounds(values: np.ndarray) -> str:
+    return f"{values[0]:g}" if np.all(values == values[0]) else f"[{', '.join(map(str, values))}]"
+
+
+def summary(policy: PolicyArrays) -> str:
+    """One line: environment, member, sizes and action bounds."""
+    return (
+        f"{policy.env} member {policy.member} at {policy.env_steps} env steps: "
+        f"obs {policy.observation_size} -> action {policy.action_size} in "
+        f"[{_bounds(policy.action_low)}, {_bounds(policy.action_high)}]"
+        f"{', layer norm' if policy.layer_norm else ''}"
+        f"{', normalised observations' if policy.normalize else ''}"
+    )
+
+
+def export_run(
+    run_dir: Path, fmt: str, out: Path | None = None, member: int | None = None
+) -> tuple[Path, PolicyArrays]:
+    """Exports a run's policy (:func:`load_run_policy`) as ``fmt`` to ``out`` (default
+    :func:`default_output`); returns ``(path written, policy)``."""
+    if fmt not in FORMATS:
+        raise ExportError(f"--format {fmt!r} is not one of {', '.join(FORMATS)}")
+    if fmt == "onnx":
+        require_onnx()  # before the (slower) restore
+    out = Path(out) if out is not None else default_output(run_dir, fmt)
+    if out.is_dir() or not out.parent.is_dir():
+        why = "is a directory" if out.is_dir() else f"has no folder {out.parent}"
+        raise ExportError(f"--out {out} {why}")
+    policy = load_run_policy(Path(run_dir), member)
+    try:
+        return (save_onnx if fmt == "onnx" else save_npz)(policy, out), policy
+    except OSError as err:
+        raise ExportError(f"--out {out}: cannot write it ({err.strerror or err})") from err
