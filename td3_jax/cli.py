@@ -25,7 +25,7 @@ from td3_jax.config import (
 )
 
 USAGE = """\
-usage: td3-jax {train,sweep,eval,export,plot,envs,presets} [FLAGS]
+usage: td3-jax {train,sweep,eval,export,render,plot,envs,presets} [FLAGS]
 
 Train TD3/DDPG on thousands of vectorised environments inside one compiled JAX program.
 
@@ -36,6 +36,7 @@ subcommands:
   eval      evaluate a run's newest checkpoint:  td3-jax eval --run runs/ant
   export    write a run's policy as ONNX or a NumPy-only .npz:
               td3-jax export --run runs/ant --format onnx
+  render    write a video of a run's policy:  td3-jax render --run runs/ant [--gif]
   plot      redraw a run's curve.png from its metrics.jsonl
   envs      list the environment names this installation knows
   presets   list the presets and what they set
@@ -149,6 +150,37 @@ class ExportCommand:
     member: int | None = None
     """Member (seed / swept setting) to export, from 0 (default: the best in the checkpoint's
     evaluation in metrics.jsonl; member 0 for a single-seed run)."""
+
+
+class RenderCommand:
+    """Write a video (MP4 or GIF) of the deterministic policy of a run's newest checkpoint.
+
+    The episodes are those `td3-jax eval` runs with the same --episodes and --seed (the same
+    returns); each ends at its termination or time limit, and they play one after another.
+    """
+
+    run: Path
+    """Run directory written by `td3-jax train`."""
+    out: Path | None = None
+    """Video file, .mp4 or .gif (default: RUN/rollout.mp4, RUN/rollout.gif with --gif)."""
+    gif: bool = False
+    """Write a GIF instead of an MP4."""
+    episodes: int = 1
+    """Episodes to render, one after another."""
+    seed: int = 12345
+    """Seed of the evaluation environments (td3-jax eval's default)."""
+    member: int | None = None
+    """Member of a multi-seed run or sweep (its index in members.json); default: the highest
+    return of the last evaluation in metrics.jsonl."""
+    camera: str | None = None
+    """A camera of the model, by name or index (-1: MuJoCo's free camera); default: a free
+    camera tracking the root body."""
+    width: int = 320
+    """Frame width in pixels."""
+    height: int = 240
+    """Frame height in pixels."""
+    fps: float = 30.0
+    """Frames per second of the video."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -446,6 +478,20 @@ def export_main(args: list[str]) -> None:
     print(summary(policy))
 
 
+def render_main(args: list[str]) -> None:
+    from td3_jax import render
+
+    command = _parse(RenderCommand, args, "td3-jax render")
+    out = render.video_path(command.run, command.out, command.gif)
+    rendered = render.render_run(
+        command.run, out, episodes=command.episodes, seed=command.seed, member=command.member,
+        camera=command.camera, width=command.width, height=command.height, fps=command.fps,
+    )  # fmt: skip
+    print(rendered.path)
+    for e, (frames, ret) in enumerate(zip(rendered.lengths, rendered.returns, strict=True)):
+        print(f"member {rendered.member} episode {e + 1}: {frames} frames, return {ret:.2f}")
+
+
 def plot_main(args: list[str]) -> None:
     from td3_jax.logger import plot_curve
 
@@ -473,6 +519,7 @@ COMMANDS = {
     "sweep": sweep_main,
     "eval": eval_main,
     "export": export_main,
+    "render": render_main,
     "plot": plot_main,
     "envs": envs_main,
     "presets": presets_main,

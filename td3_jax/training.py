@@ -474,27 +474,72 @@ def chunk(
     return state, summarize(totals, jnp.asarray(iterations), state)
 
 
-def _evaluation_step(spec: TrainSpec, state: TrainState, carry: tuple, _) -> tuple[tuple, None]:
+class Recording(NamedTuple):
+    """What :func:`evaluate_recorded` keeps of its first ``record`` environments, per step
+    (``T = episode_length``): ``positions [T, record, nq]`` after the step (the environment's
+    ``qpos_fn``), ``reward [T, record]``, and ``counted [T, record]``: the step belongs to the
+    environment's first episode (its reward is in the return)."""
+
+    positions: jax.Array
+    reward: jax.Array
+    counted: jax.Array
+
+
+def _first(tree: Any, count: int) -> Any:
+    return jax.tree.map(lambda x: x[:count], tree)
+
+
+def _evaluation_step(
+    spec: TrainSpec, state: TrainState, record: int, carry: tuple, _
+) -> tuple[tuple, Recording | None]:
+    """One deterministic-policy step of every evaluation environment; emits a
+    :class:`Recording` step of the first ``record`` environments (``None`` when 0)."""
     env_state, returns, alive = carry
     obs = envs.actor_observation(spec.env, normalize(spec, state.obs_stats, env_state.obs))
     action = safe_action(spec.agent.actor.apply(state.agent.actor_params, obs))
     # Only each environment's first episode counts: no resets needed.
     env_state, result = envs.step(spec.env, env_state, action, auto_reset=False)
     returns = returns + jnp.where(alive, result.reward, 0.0)
+    out = None
+    if record:
+        positions = jax.vmap(spec.env.qpos_fn)(_first(env_state.inner, record))
+        out = Recording(positions, result.reward[:record], alive[:record])
     alive = alive & ~(result.terminated | result.truncated)
-    return (env_state, returns, alive), None
+    return (env_state, returns, alive), out
 
 
-def evaluate(spec: TrainSpec, state: TrainState, key: PRNGKey) -> jax.Array:
-    """Returns ``[eval_envs]``: one deterministic-policy episode per evaluation environment."""
+def _evaluation(
+    spec: TrainSpec, state: TrainState, key: PRNGKey, record: int
+) -> tuple[jax.Array, Recording | None]:
+    """``(returns [eval_envs], recording)``: one episode per evaluation environment."""
     carry = (
         envs.reset(spec.env, key, spec.eval_envs),
         jnp.zeros((spec.eval_envs,), jnp.float32),
         jnp.ones((spec.eval_envs,), bool),
     )
-    step = functools.partial(_evaluation_step, spec, state)
-    (_, returns, _), _ = jax.lax.scan(step, carry, None, length=spec.env.episode_length)
-    return returns
+    step = functools.partial(_evaluation_step, spec, state, record)
+    (_, returns, _), recording = jax.lax.scan(step, carry, None, length=spec.env.episode_length)
+    return returns, recording
+
+
+def evaluate(spec: TrainSpec, state: TrainState, key: PRNGKey) -> jax.Array:
+    """Returns ``[eval_envs]``: one deterministic-policy episode per evaluation environment."""
+    return _evaluation(spec, state, key, 0)[0]
+
+
+def evaluate_recorded(
+    spec: TrainSpec, state: TrainState, key: PRNGKey, record: int
+) -> tuple[jax.Array, Recording]:
+    """:func:`evaluate` (the same episodes and returns ``[eval_envs]``) that also records the
+    first ``record`` environments step by step (:class:`Recording`), for rendering.
+
+    Needs an environment with a ``qpos_fn``; ``record`` is static, at most ``eval_envs``.
+    """
+    if spec.env.qpos_fn is None:
+        raise ValueError(f"{spec.env.name} has no qpos_fn: nothing to record")
+    if not 0 < record <= spec.eval_envs:
+        raise ValueError(f"record must be in 1..{spec.eval_envs}, got {record}")
+    return _evaluation(spec, state, key, record)
 
 
 def evaluation_key(spec: TrainSpec, state: TrainState) -> PRNGKey:

@@ -59,6 +59,10 @@ class Environment:
         see the actor's observation (the row is the observation).
       critic_offset: where the critics' observation starts in the row (0 when the actor's
         observation is a prefix of it).
+      mj_model: the ``mujoco.MjModel`` a MuJoCo renderer draws (``None``: not a MuJoCo scene);
+        for rendering only (:mod:`td3_jax.render`), training never reads it.
+      qpos_fn: ``qpos_fn(inner) -> [nq]`` the positions a frame is drawn from (MuJoCo's
+        ``qpos``; gymnax's Pendulum: its angle), or ``None`` (not renderable).
     """
 
     name: str
@@ -71,6 +75,8 @@ class Environment:
     step_fn: StepFn = dataclasses.field(repr=False)
     critic_observation_size: int | None = None
     critic_offset: int = 0
+    mj_model: Any = dataclasses.field(default=None, repr=False)
+    qpos_fn: Callable[[Any], jax.Array] | None = dataclasses.field(default=None, repr=False)
 
     @property
     def row_size(self) -> int:
@@ -130,10 +136,18 @@ def refuse_locomotion_options(name: str, options: EnvOptions) -> None:
         )
 
 
-def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
+def from_mjx_style(
+    name: str,
+    env: Any,
+    episode_length: int,
+    *,
+    mj_model: Any = None,
+    qpos_fn: Callable[[Any], jax.Array] | None = None,
+) -> Environment:
     """Wraps an environment with Brax's API (``reset(key)``/``step(state, action)`` returning a
     state with ``obs``, ``reward`` and ``done``; actions in ``[-1, 1]``), as Brax and MuJoCo
     Playground environments have. Without their episode wrappers, ``done`` is a termination.
+    ``mj_model`` and ``qpos_fn`` (of the source's state) are kept for rendering only.
     """
 
     def reset_fn(key):
@@ -160,6 +174,8 @@ def from_mjx_style(name: str, env: Any, episode_length: int) -> Environment:
         action_high=np.ones(env.action_size, np.float32),
         reset_fn=reset_fn,
         step_fn=step_fn,
+        mj_model=mj_model,
+        qpos_fn=qpos_fn,
     )
 
 

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+import jax
+
 from td3_jax.envs.base import Environment, from_mjx_style
 
 
@@ -10,6 +14,12 @@ def names() -> list[str]:
     from brax import envs
 
     return sorted(envs._envs)  # brax has no public listing; _envs is its registry
+
+
+def pipeline_qpos(state: Any) -> jax.Array:
+    """``[nq]`` joint positions of a Brax state (``pipeline_state.q``: MuJoCo's ``qpos`` on
+    every Brax backend)."""
+    return state.pipeline_state.q
 
 
 def make(
@@ -25,4 +35,5 @@ def make(
 
     env = envs.get_environment(name, backend=backend, **kwargs)
 
-    return from_mjx_style(f"brax/{name}", env, episode_length or 1000)
+    return from_mjx_style(f"brax/{name}", env, episode_length or 1000,
+                          mj_model=env.sys.mj_model, qpos_fn=pipeline_qpos)  # fmt: skip

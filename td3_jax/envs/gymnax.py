@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from td3_jax.envs.base import Environment
@@ -11,6 +15,11 @@ CONTINUOUS = ("Pendulum-v1", "MountainCarContinuous-v0")
 
 def names() -> list[str]:
     return list(CONTINUOUS)
+
+
+def pendulum_angle(state: Any) -> jax.Array:
+    """``[1]``: the pendulum's angle (0 upright) of a gymnax Pendulum state, for rendering."""
+    return jnp.reshape(state.theta, (1,))
 
 
 def make(
@@ -55,4 +64,5 @@ def make(
         action_high=np.broadcast_to(np.asarray(space.high, np.float32), (action_size,)).copy(),
         reset_fn=reset_fn,
         step_fn=step_fn,
+        qpos_fn=pendulum_angle if name == "Pendulum-v1" else None,
     )

@@ -325,6 +325,13 @@ def _step(env: Any, lay: Layout, rand: Randomization | None, inner: Any, action,
     return inner, row(lay, state.obs), state.reward, state.done > 0.5
 
 
+def _qpos(rand: Randomization | None, inner: Any) -> jax.Array:
+    """``[nq]`` joint positions of the task's state (held beside the drawn model fields when
+    randomised)."""
+    state = inner if rand is None else inner[0]
+    return state.data.qpos
+
+
 def make(
     task: str,
     *,
@@ -352,4 +359,6 @@ def make(
         step_fn=functools.partial(_step, env, lay, rand),
         critic_observation_size=lay.critic_size,
         critic_offset=lay.actor_size if lay.critic_size and not lay.prefix else 0,
+        mj_model=env.mj_model,
+        qpos_fn=functools.partial(_qpos, rand),
     )

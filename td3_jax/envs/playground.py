@@ -7,6 +7,10 @@ warp-lang. Install with ``pip install 'td3-jax[playground]'`` (``[locomotion]`` 
 
 from __future__ import annotations
 
+from typing import Any
+
+import jax
+
 from td3_jax.envs import locomotion
 from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style, refuse_locomotion_options
 
@@ -28,6 +32,11 @@ def names() -> list[str]:
     except ImportError:
         return []
     return suite + locomotion.names()
+
+
+def data_qpos(state: Any) -> jax.Array:
+    """``[nq]`` joint positions of a Playground state (``state.data.qpos``)."""
+    return state.data.qpos
 
 
 def make(
@@ -52,4 +61,5 @@ def make(
     env = suite.load(name, config=config, config_overrides={"impl": impl})
     length = int(episode_length or config.episode_length)
 
-    return from_mjx_style(f"playground/{name}", env, length)
+    return from_mjx_style(f"playground/{name}", env, length, mj_model=env.mj_model,
+                          qpos_fn=data_qpos)  # fmt: skip

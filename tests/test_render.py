@@ -1,0 +1,182 @@
+"""``td3-jax render``: rollout videos of a run's policy (td3_jax.render).
+
+The MuJoCo run is made by hand (config.json, members.json and a checkpoint of a fresh train
+state, as a run writes after its first chunk) so that no training chunk compiles: MJX programs
+take tens of seconds to compile on a CPU. Compiles: the init, ``evaluate_run``'s evaluation and
+the render's recorded evaluation, on brax/inverted_pendulum (plus cheap gymnax ones).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+from pathlib import Path
+
+import imageio.v2 as imageio
+import jax
+import numpy as np
+import pytest
+
+from td3_jax import cli, render, rundir
+from td3_jax.checkpoint import Checkpointer
+from td3_jax.config import TrainConfig
+from td3_jax.population import make_population, members
+
+EPISODE = 30  # time limit of the tiny runs
+WIDTH, HEIGHT = 64, 48
+SEED = 4321
+
+TINY = dict(num_envs=2, total_steps=64, eval_every=64, warmup_steps=32, batch_size=8,
+            updates_per_iter=1, hidden_sizes=(8, 8), eval_envs=2, episode_length=EPISODE,
+            buffer_size=128, seed=3)  # fmt: skip
+
+
+def make_run(out: Path, env: str, **overrides) -> Path:
+    """A run directory holding one checkpoint of a freshly initialised train state."""
+    cfg = TrainConfig(env=env, **{**TINY, **overrides})
+    population = members(cfg)
+    out.mkdir(parents=True)
+    rundir.save_config(cfg, population, out)
+    state = jax.jit(make_population(cfg, population).init)()
+    checkpointer = Checkpointer(out / rundir.CHECKPOINTS, cfg.keep_checkpoints)
+    checkpointer.save(1, state, {"env_steps": 0})
+    checkpointer.close()
+    return out
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
+    try:
+        cli.main(args)
+        code = 0
+    except SystemExit as exit_:
+        code = exit_.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def assert_one_line_error(code: int, err: str, *needles: str) -> None:
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("td3-jax: error: "), err
+    for needle in needles:
+        assert needle in lines[0], (needle, err)
+
+
+@pytest.fixture(scope="module")
+def mujoco_run(tmp_path_factory):
+    return make_run(tmp_path_factory.mktemp("render") / "run", "brax/inverted_pendulum")
+
+
+@pytest.fixture(scope="module")
+def rendered(mujoco_run):
+    """``td3-jax render`` of two episodes into an MP4, with its printed lines."""
+    out = mujoco_run / "two.mp4"
+    args = ["render", "--run", str(mujoco_run), "--out", str(out), "--episodes", "2",
+            "--seed", str(SEED), "--width", str(WIDTH), "--height", str(HEIGHT)]  # fmt: skip
+    with contextlib.redirect_stdout(io.StringIO()) as stdout:
+        cli.main(args)
+    return out, stdout.getvalue().splitlines()
+
+
+def test_rendered_video_matches_the_evaluation(mujoco_run, rendered):
+    out, lines = rendered
+    assert lines[0] == str(out)
+    frames = np.asarray(imageio.mimread(out, memtest=False))
+    assert frames.shape[1:] == (HEIGHT, WIDTH, 3)
+    # inverted_pendulum pays 1 per step until the pole passes 0.2 rad (termination) or the
+    # time limit: the evaluation's returns are the episodes' lengths, hence the frame counts.
+    _, _, _, returns = rundir.evaluate_run(mujoco_run, 2, SEED)
+    lengths = [int(r) for r in returns[0]]
+    np.testing.assert_array_equal(returns[0], lengths)
+    assert all(1 <= n <= EPISODE for n in lengths)
+    assert len(frames) == sum(lengths)
+    for e, n in enumerate(lengths):
+        assert lines[1 + e] == f"member 0 episode {e + 1}: {n} frames, return {returns[0][e]:.2f}"
+    # The pole moves: consecutive frames of an episode differ, and the scene is not blank.
+    first = frames[: lengths[0]].astype(np.int16)
+    assert lengths[0] >= 2 and np.abs(np.diff(first, axis=0)).max() > 30
+    assert frames.std() > 5
+
+
+def test_bad_camera_exits_2_before_compiling(mujoco_run, capsys):
+    code, _, err = run_cli(["render", "--run", str(mujoco_run), "--camera", "nope"], capsys)
+    assert_one_line_error(code, err, "--camera nope", "-1: the free camera")
+
+
+def test_no_opengl_exits_2_with_what_to_install(mujoco_run, capsys, monkeypatch):
+    def unavailable():
+        return render.gl_backend({}, probe=lambda backend: "no display")
+
+    monkeypatch.setattr(render, "default_gl_backend", unavailable)
+    code, _, err = run_cli(["render", "--run", str(mujoco_run)], capsys)
+    assert_one_line_error(code, err, "egl: no display", "osmesa: no display", "libosmesa6")
+    assert not (mujoco_run / "rollout.mp4").exists()
+
+
+def test_gl_backend_choice():
+    tried = []
+
+    def probe(backend):
+        tried.append(backend)
+        return None if backend == "osmesa" else "EGL not found"
+
+    assert render.gl_backend({}, probe=probe) == "osmesa" and tried == ["egl", "osmesa"]
+    assert render.gl_backend({"MUJOCO_GL": "EGL"}, probe=pytest.fail) == "egl"
+    with pytest.raises(render.GLUnavailableError) as err:
+        render.gl_backend({}, probe=lambda backend: f"{backend} missing")
+    message = str(err.value)
+    assert "\n" not in message
+    for needle in ("egl: egl missing", "osmesa: osmesa missing", "libegl1", "libosmesa6",
+                   "PyOpenGL", "MUJOCO_GL"):  # fmt: skip
+        assert needle in message, needle
+    with pytest.raises(render.GLUnavailableError, match="MUJOCO_GL=wgl is not one of"):
+        render.gl_backend({"MUJOCO_GL": "wgl"})
+
+
+def test_best_member_is_the_highest_last_return():
+    record = lambda *r: {"per_member": [{"eval_return_mean": x} for x in r]}
+    assert render.best_member([record(1.0, 9.0, 3.0), record(5.0, 2.0, None)], 3) == 0
+    assert render.best_member([record(None, 4.0, 7.5)], 3) == 2
+    assert render.best_member([record(None, None)], 2) == 0
+    assert render.best_member([], 4) == 0
+    assert render.best_member([{"eval_return_mean": 3.0}], 1) == 0
+
+
+def test_pendulum_gif_has_one_frame_per_step(tmp_path):
+    # gymnax's Pendulum never terminates: every episode runs to the time limit.
+    run = make_run(tmp_path / "pendulum", "gymnax/Pendulum-v1", episode_length=12)
+    result = render.render_run(run, run / "p.gif", episodes=2, seed=SEED, width=32, height=32)
+    frames = np.asarray(imageio.mimread(run / "p.gif"))
+    assert result.lengths == [12, 12] and frames.shape == (24, 32, 32, 3)
+    _, _, _, returns = rundir.evaluate_run(run, 2, SEED)
+    np.testing.assert_allclose(result.returns, returns[0], rtol=1e-6)
+    assert np.abs(np.diff(frames.astype(np.int16), axis=0)).max() > 30
+
+
+def test_pendulum_drawing_points_at_the_angle():
+    up, right = render.draw_pendulum(0.0, 40, 40), render.draw_pendulum(np.pi / 2, 40, 40)
+    red = lambda image: np.argwhere((image[..., 0] > 150) & (image[..., 1] < 120))
+    assert red(up)[:, 0].min() < 10 and np.ptp(red(up)[:, 1]) <= 4  # a vertical rod, upwards
+    assert red(right)[:, 1].max() > 30 and np.ptp(red(right)[:, 0]) <= 4  # horizontal, rightwards
+
+
+def test_errors_exit_2(tmp_path, capsys):
+    code, _, err = run_cli(["render", "--run", str(tmp_path)], capsys)
+    assert_one_line_error(code, err, "not a td3-jax run directory")
+    cfg = TrainConfig(env="gymnax/MountainCarContinuous-v0", **TINY)
+    (tmp_path / "car").mkdir()
+    (tmp_path / "empty").mkdir()
+    rundir.save_config(cfg, members(cfg), tmp_path / "car")
+    code, _, err = run_cli(["render", "--run", str(tmp_path / "car")], capsys)
+    assert_one_line_error(code, err, "gymnax/MountainCarContinuous-v0 cannot be rendered")
+    pendulum = dataclasses.replace(cfg, env="gymnax/Pendulum-v1")
+    rundir.save_config(pendulum, members(pendulum), tmp_path / "empty")
+    code, _, err = run_cli(["render", "--run", str(tmp_path / "empty")], capsys)
+    assert_one_line_error(code, err, "no checkpoint")
+    for flags, needle in ((["--out", "x.avi"], "must end in .mp4 or .gif"),
+                          (["--gif", "--out", "x.mp4"], "ends in .gif"),
+                          (["--episodes", "0"], "--episodes must be positive"),
+                          (["--member", "3"], "members 0..0")):  # fmt: skip
+        code, _, err = run_cli(["render", "--run", str(tmp_path / "empty"), *flags], capsys)
+        assert_one_line_error(code, err, needle)
