@@ -23,7 +23,9 @@ the optimised HLO: kind, shapes, bytes) and, with ``--profile DIR``, writes a
 
 ``--jobs K`` lets K points compile side by side (CPU work) while only one at a time runs on
 the GPUs (a lock), with ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so compiling points hold no GPU
-memory; compile seconds then include the contention. Outputs in ``--out DIR``:
+memory; compile seconds then include the contention. With K at least the number of points,
+every point compiles first and none is measured until all have compiled (a barrier), so no
+compile or GPU autotuning overlaps a measurement. Outputs in ``--out DIR``:
 ``scaling.json`` (meta + rows), ``scaling.csv``, ``scaling.md`` (date, device, versions,
 commit, table). Robots' meshes: ``MENAGERIE_ROOT`` is passed through to every point.
 
@@ -209,9 +211,14 @@ def run_point(point: dict[str, Any], args: argparse.Namespace, platform: str) ->
 
 def run_all(points: list[dict[str, Any]], args: argparse.Namespace, platform: str) -> list:
     """Every point (``args.jobs`` processes at a time; one at a time on the devices)."""
-    lock = args.out / ".device.lock"
+    lock, barrier = args.out / ".device.lock", args.out / ".compiled"
     lock.touch()
-    points = [{**p, "lock": str(lock)} for p in points]
+    barrier.mkdir(exist_ok=True)
+    for old in barrier.iterdir():
+        old.unlink()
+    together = args.jobs >= len(points) > 1  # all compile first, then all measure
+    points = [{**p, "lock": str(lock), "barrier": str(barrier) if together else None,
+               "barrier_size": len(points), "index": i} for i, p in enumerate(points)]  # fmt: skip
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         return list(pool.map(lambda p: run_point(p, args, platform), points))
 
@@ -432,6 +439,8 @@ def measure_point(point: dict[str, Any]) -> dict[str, Any]:
     cfg, name = point_config(point)
     chunk, init, hp, seconds = compile_point(cfg, point["devices"])
     found = collectives(chunk.as_text())
+    arrive(point)
+    wait_for_compiles(point)
     with open(point["lock"]) as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         state = init()
@@ -454,6 +463,25 @@ def measure_point(point: dict[str, Any]) -> dict[str, Any]:
             "collective_list": found[:200]}  # fmt: skip
 
 
+def arrive(point: dict[str, Any]) -> None:
+    """Marks this point compiled (or failed) for the others waiting at the barrier."""
+    if point.get("barrier"):
+        (Path(point["barrier"]) / str(point["index"])).touch()
+
+
+def wait_for_compiles(point: dict[str, Any], limit_s: float = 900.0) -> None:
+    """With every point compiling at once (``--jobs`` >= points), waits until all have
+    compiled, so no compile (GPU autotuning included) overlaps a measurement."""
+    if not point.get("barrier"):
+        return
+    deadline = time.monotonic() + limit_s
+    while len(list(Path(point["barrier"]).iterdir())) < point["barrier_size"]:
+        if time.monotonic() > deadline:
+            print("scaling: gave up waiting for the other points' compiles", file=sys.stderr)
+            return
+        time.sleep(0.5)
+
+
 def profile_chunk(chunk, hp, state, point: dict[str, Any]) -> float:
     """One more timed chunk under ``jax.profiler.trace``; its seconds (profiler included)."""
     import jax
@@ -472,6 +500,7 @@ def child_main(point: dict[str, Any]) -> None:
         row = measure_point(point)
     except Exception as err:  # e.g. out of memory: recorded, the command goes on
         row = {**point, "error": f"{type(err).__name__}: {err}"[:2000]}
+        arrive(point)  # (again, if it failed after compiling: harmless)
     print(RESULT_MARK + json.dumps(row), flush=True)
     sys.exit(1 if row.get("error") else 0)
 
