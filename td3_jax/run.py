@@ -39,7 +39,7 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     run_info,
     save_config,
 )
-from td3_jax.sharding import check_divisible, host_value, make_mesh
+from td3_jax.sharding import check_divisible, host_value, make_mesh, replay_layout_warning
 from td3_jax.stats import population_stats, return_stats
 
 __all__ = [
@@ -125,6 +125,9 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     ``(members, resume changes, program, compiled)``. Nothing is written yet."""
     validate(cfg)
     check_divisible(cfg, mesh.size)
+    layout = replay_layout_warning(cfg, mesh.size)
+    if layout and writer:
+        print(f"td3-jax: warning: {layout}", file=sys.stderr)
     if resume:
         population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
     else:

@@ -53,6 +53,26 @@ def check_divisible(cfg: TrainConfig, num_devices: int) -> None:
             )
 
 
+def replay_layout_warning(cfg: TrainConfig, num_devices: int) -> str | None:
+    """A warning when the replay ring's slices do not fall on whole devices (``None`` when they
+    do, or on one device).
+
+    With ``--replay-shards`` not a multiple of the device count, each slice's rows are split over
+    the devices: every gradient update then gathers its whole batch onto every device (one
+    all-reduce of ``batch x n_step`` rows) and computes the update there in full, and every
+    step's transitions are all-gathered before they are written. The numbers are right, but
+    the learner is not data-parallel.
+    """
+    if num_devices <= 1 or cfg.replay_shards % num_devices == 0:
+        return None
+    return (
+        f"--replay-shards {cfg.replay_shards} is not a multiple of the {num_devices} devices: "
+        "each update gathers its whole batch onto every device and computes it there in full; "
+        f"--replay-shards {num_devices} (or a multiple) keeps replay and updates on each device "
+        "(stratified sampling, so the numbers differ from --replay-shards 1)"
+    )
+
+
 def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -> Any:
     """NamedShardings for a train state: split env/buffer leaves, replicate the rest.
 

@@ -209,3 +209,18 @@ def test_eval_of_a_four_device_run_on_one_device(four_device_runs):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "seed=0" in proc.stdout
+
+
+def test_replay_slices_off_whole_devices_are_warned_about():
+    """The one-ring layout on several devices gathers every batch onto every device (seen in
+    the compiled chunk: no gradient all-reduce, the batch all-reduced instead): a warning."""
+    from td3_jax.config import TrainConfig
+    from td3_jax.sharding import replay_layout_warning
+
+    cfg = TrainConfig(**TINY)
+    assert replay_layout_warning(cfg, 1) is None
+    assert replay_layout_warning(TrainConfig(**{**TINY, "replay_shards": 8}), 4) is None
+    message = replay_layout_warning(cfg, 4)
+    assert "--replay-shards 1 is not a multiple of the 4 devices" in message
+    assert "--replay-shards 4" in message
+    assert replay_layout_warning(TrainConfig(**{**TINY, "replay_shards": 2}), 4) is not None
