@@ -152,6 +152,7 @@ class ExportCommand:
     evaluation in metrics.jsonl; member 0 for a single-seed run)."""
 
 
+@dataclasses.dataclass(frozen=True)
 class RenderCommand:
     """Write a video (MP4 or GIF) of the deterministic policy of a run's newest checkpoint.
 
