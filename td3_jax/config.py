@@ -441,7 +441,10 @@ _GPU_LOCOMOTION = dict(
 # critics (101 atoms on [-10, 10]) with the actor on the lower mean, AdamW with weight decay
 # 0.1, per-environment exploration scales drawn from [0.001, 0.4], critics 1024-512-256 and
 # actor 512-256-128, the online actor (no target actor) for target actions, bf16 matmuls.
-# Not yet tuned on td3-jax (the robot benchmark issue does that).
+# Measured with these settings (BENCHMARKS.md, 2026-11-22 session 3, one H200, compile
+# included): T1 33.6 at 428 s and 34.7 at 491 s (FastTD3's published 30-minute 33.8);
+# G1 7.7 at 481 s, rate-bound (physics at 1024 envs). Not tuned further yet: each setting
+# is FastTD3's, and no alternative has been measured on td3-jax.
 _PLAYGROUND_LOCOMOTION = dict(
     algo="td3",
     env_backend="jax",
