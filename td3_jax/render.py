@@ -183,8 +183,10 @@ def camera_id(model: Any, camera: str | None) -> int | None:
     return index
 
 
-def _camera(model: Any, index: int | None) -> Any:
-    """An ``MjvCamera`` for :func:`camera_id`'s ``index``."""
+def _camera(model: Any, index: int | None, qpos: np.ndarray | None = None) -> Any:
+    """An ``MjvCamera`` for :func:`camera_id`'s ``index``; the default tracking camera stands
+    three robot radii (:func:`robot_radius` at ``qpos``) from the robot, nearer than MuJoCo's
+    default free camera when the model's extent is set by a large floor."""
     import mujoco
 
     camera = mujoco.MjvCamera()
@@ -196,7 +198,26 @@ def _camera(model: Any, index: int | None) -> Any:
     if index is None and model.nbody > 1:
         camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
         camera.trackbodyid = 1
+        radius = robot_radius(model, qpos) if qpos is not None else None
+        if radius:
+            camera.distance = min(camera.distance, 3.0 * radius)
     return camera
+
+
+def robot_radius(model: Any, qpos: np.ndarray) -> float | None:
+    """The radius around body 1's subtree centre of mass that holds the bounding spheres of
+    every geom of body 1's tree at ``qpos [nq]`` (``None`` when that tree has no geom)."""
+    import mujoco
+
+    root = model.body_rootid[1]
+    robot = model.body_rootid[model.geom_bodyid] == root
+    if not robot.any():
+        return None
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    offsets = np.linalg.norm(data.geom_xpos[robot] - data.subtree_com[root], axis=1)
+    return float(np.max(offsets + model.geom_rbound[robot]))
 
 
 def _with_buffer(model: Any, width: int, height: int) -> Any:
@@ -218,7 +239,8 @@ def _draw_scene(model: Any, camera_index: int | None, positions: np.ndarray,
 
     data, scene = mujoco.MjData(model), mujoco.MjvScene(model, maxgeom=10_000)
     context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
-    camera, option, perturb = _camera(model, camera_index), mujoco.MjvOption(), mujoco.MjvPerturb()
+    camera = _camera(model, camera_index, positions[0] if len(positions) else None)
+    option, perturb = mujoco.MjvOption(), mujoco.MjvPerturb()
     viewport = mujoco.MjrRect(0, 0, width, height)
     frames = np.empty((len(positions), height, width, 3), np.uint8)
     try:
