@@ -189,7 +189,8 @@ def compare(multi: list[dict], single: list[dict], rtol: float, atol: float) -> 
     for key in COMPARED:
         pairs = [(a.get(key), b.get(key)) for a, b in zip(multi, single, strict=False)]
         diffs = [_difference(a, b) for a, b in pairs]
-        ok = all(d == 0.0 or d <= atol + rtol * max(abs(a), abs(b))
+        # (a diverged side logs null: inf difference, never within tolerance)
+        ok = all(d == 0.0 or (math.isfinite(d) and d <= atol + rtol * max(abs(a), abs(b)))
                  for (d, _), (a, b) in zip(diffs, pairs, strict=True))  # fmt: skip
         result["quantities"][key] = {"max_abs_diff": max((d for d, _ in diffs), default=0.0),
                                      "max_rel_diff": max((r for _, r in diffs), default=0.0),

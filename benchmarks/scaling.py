@@ -107,8 +107,11 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
 
 def plan(args: argparse.Namespace, available: int) -> list[dict[str, Any]]:
     """Every (env, mode, devices) point to measure; device counts beyond ``available`` are
-    dropped (with a note), the 1-device point is always first."""
+    dropped (with a note); the fewest devices come first."""
     counts = sorted({d for d in args.devices if 0 < d <= available})
+    if not counts:
+        raise SystemExit(f"scaling: none of --devices {args.devices} fits the {available} "
+                         "devices here")  # fmt: skip
     skipped = sorted(set(args.devices) - set(counts))
     if skipped:
         print(f"scaling: {available} devices here, skipping --devices {skipped}", flush=True)

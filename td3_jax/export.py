@@ -429,6 +429,8 @@ def export_run(
         raise ExportError(f"--format {fmt!r} is not one of {', '.join(FORMATS)}")
     if fmt == "onnx":
         require_onnx()  # before the (slower) restore
+    if not Path(run_dir).is_dir():
+        raise ExportError(f"--run {run_dir}: no such directory")
     out = Path(out) if out is not None else default_output(run_dir, fmt)
     if out.is_dir() or not out.parent.is_dir():
         why = "is a directory" if out.is_dir() else f"has no folder {out.parent}"

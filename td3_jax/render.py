@@ -52,9 +52,9 @@ GL_BACKENDS = ("egl", "osmesa")
 #: The backends ``MUJOCO_GL`` may name (each a ``mujoco.<name>`` module with a ``GLContext``).
 KNOWN_GL = ("egl", "osmesa", "glfw")
 GL_HELP = (
-    "install EGL (Debian/Ubuntu: apt-get install libegl1 libgl1, with Mesa's or the GPU "
-    "driver's libEGL) or OSMesa (apt-get install libosmesa6), and PyOpenGL (pip install "
-    "PyOpenGL), or set MUJOCO_GL to a backend that works here"
+    "install EGL (Debian/Ubuntu: apt-get install libegl1 libegl-mesa0 libgl1, with Mesa's or "
+    "the GPU driver's libEGL) or OSMesa (apt-get install libosmesa6), and PyOpenGL (pip "
+    "install PyOpenGL), or set MUJOCO_GL to a backend that works here"
 )
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
@@ -98,8 +98,7 @@ def _forking() -> Iterator[None]:
 def probe_gl(backend: str, timeout_s: float = 120.0) -> str | None:
     """``None`` when an offscreen OpenGL context of ``backend`` works in a fresh Python, else
     the last line of its error."""
-    env = {**os.environ, "MUJOCO_GL": backend}
-    env.pop("PYOPENGL_PLATFORM", None)  # each backend sets the platform it needs
+    env = {**os.environ, "MUJOCO_GL": backend}  # (PYOPENGL_PLATFORM kept: this process has it)
     try:
         with _forking():
             proc = subprocess.run([sys.executable, "-c", _PROBE, backend], env=env,
@@ -114,7 +113,8 @@ def probe_gl(backend: str, timeout_s: float = 120.0) -> str | None:
 
 def gl_backend(environ: dict | None = None, probe: Any = probe_gl) -> str:
     """The OpenGL backend to render with: ``MUJOCO_GL`` when set, else the first of
-    :data:`GL_BACKENDS` for which ``probe(backend)`` (error text or ``None``) succeeds.
+    :data:`GL_BACKENDS` for which ``probe(backend)`` (error text or ``None``) succeeds; only
+    ``PYOPENGL_PLATFORM``'s backend when that names one (PyOpenGL then loads no other).
 
     Raises :class:`GLUnavailableError` naming what to install when none works.
     """
@@ -124,8 +124,9 @@ def gl_backend(environ: dict | None = None, probe: Any = probe_gl) -> str:
         if given not in KNOWN_GL:
             raise GLUnavailableError(f"MUJOCO_GL={given} is not one of {', '.join(KNOWN_GL)}")
         return given
+    platform = environ.get("PYOPENGL_PLATFORM", "").strip().lower()
     failures = []
-    for backend in GL_BACKENDS:
+    for backend in (platform,) if platform in GL_BACKENDS else GL_BACKENDS:
         why = probe(backend)
         if why is None:
             return backend
@@ -332,18 +333,6 @@ def check_renderable(env: envs.Environment) -> None:
         )
 
 
-def best_member(records: list[dict], count: int) -> int:
-    """The member with the highest ``eval_return_mean`` in the last record of ``records``
-    (``metrics.jsonl``), the first of equals; 0 for a single member, no records, or every
-    member diverged (null returns)."""
-    per_member = records[-1].get("per_member") if records else None
-    if count == 1 or not per_member:
-        return 0
-    scores = [m.get("eval_return_mean") for m in per_member]
-    ranked = [i for i, s in enumerate(scores) if s is not None]
-    return max(ranked, key=lambda i: scores[i]) if ranked else 0
-
-
 def read_records(run_dir: Path) -> list[dict]:
     """The records of ``run_dir/metrics.jsonl`` (none if it is missing)."""
     path = Path(run_dir) / "metrics.jsonl"
@@ -352,10 +341,17 @@ def read_records(run_dir: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def choose_member(run_dir: Path, count: int, member: int | None) -> int:
-    """``member`` checked against the ``count`` members, or :func:`best_member`."""
+def choose_member(
+    run_dir: Path, count: int, member: int | None, env_steps: int | None = None
+) -> int:
+    """``member`` checked against the ``count`` members; by default the member ``td3-jax
+    export`` picks: the highest return of the evaluation at the checkpoint's ``env_steps``
+    in metrics.jsonl (else of the last one; :func:`td3_jax.export.best_member`), else 0."""
     if member is None:
-        return best_member(read_records(run_dir), count)
+        from td3_jax.export import best_member
+
+        best = best_member(read_records(run_dir), env_steps) if count > 1 else None
+        return best if best is not None and best < count else 0
     if not 0 <= member < count:
         raise RenderError(f"--member {member}: the run has members 0..{count - 1}")
     return member
@@ -373,7 +369,7 @@ def split_episodes(recording: training.Recording) -> tuple[list[np.ndarray], lis
 
 def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int | None = None,
             check: Any = None) -> Rollout:  # fmt: skip
-    """``episodes`` episodes of member ``member`` (default :func:`best_member`) of the newest
+    """``episodes`` episodes of member ``member`` (default: :func:`choose_member`) of the newest
     checkpoint in ``run_dir``, as ``td3-jax eval --episodes episodes --seed seed`` runs them.
 
     ``check(env)``, if given, runs once the environment is made, before anything compiles.
@@ -384,13 +380,14 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
 
     cfg = dataclasses.replace(load_config(run_dir), eval_envs=episodes)
     population = load_members(run_dir, cfg)
-    k = choose_member(run_dir, len(population), member)
+    choose_member(run_dir, len(population), member)  # a bad --member fails before compiling
     program = make_population(cfg, population)
     check_renderable(program.env)
     if check is not None:
         check(program.env)
     shardings = state_shardings(program.abstract_state, make_mesh(1))
-    state, _, _ = restore_state(program, run_dir, shardings=shardings)
+    state, meta, _ = restore_state(program, run_dir, shardings=shardings)
+    k = choose_member(run_dir, len(population), member, meta.get("env_steps"))
     key = jax.random.split(jax.random.PRNGKey(seed), len(population))[k]
     spec = dataclasses.replace(program.spec, axis_name=None)
     run = jax.jit(functools.partial(training.evaluate_recorded, spec, record=episodes))

@@ -67,6 +67,10 @@ def test_nan_on_both_sides_is_equal_on_one_side_is_not():
     one_sided = mp.compare([_record(q_mean=math.nan)], [_record()], 1.0, 1.0)
     assert not one_sided["equal"]
     assert one_sided["quantities"]["q_mean"]["max_abs_diff"] == math.inf
+    # metrics.jsonl writes a diverged member's numbers as null
+    logged = mp.compare([_record(q_mean=None)], [_record()], 1.0, 1.0)
+    assert not logged["equal"] and logged["quantities"]["q_mean"]["max_abs_diff"] == math.inf
+    assert mp.compare([_record(q_mean=None)], [_record(q_mean=None)], 0, 0)["equal"]
 
 
 def test_cpu_processes_see_their_own_device_count():
