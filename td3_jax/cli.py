@@ -172,7 +172,7 @@ class RenderCommand:
     """Seed of the evaluation environments (td3-jax eval's default)."""
     member: int | None = None
     """Member of a multi-seed run or sweep (its index in members.json); default: the highest
-    return of the last evaluation in metrics.jsonl."""
+    return of the checkpoint's evaluation in metrics.jsonl, as td3-jax export picks."""
     camera: str | None = None
     """A camera of the model, by name or index (-1: MuJoCo's free camera); default: a free
     camera tracking the root body."""
