@@ -550,6 +550,11 @@ def main(argv: list[str] | None = None) -> None:
     except NonFiniteError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(3)
+    except RuntimeError as err:
+        if "MUJOCO_GL" not in str(err):  # mujoco's import refuses an unknown MUJOCO_GL value
+            raise
+        print(f"td3-jax: error: {err} (unset it or use egl, osmesa or glfw)", file=sys.stderr)
+        sys.exit(2)
     except Interrupted as err:
         print(f"td3-jax: {err}", file=sys.stderr)
         sys.exit(130)

@@ -432,6 +432,9 @@ def export_run(
     if not Path(run_dir).is_dir():
         raise ExportError(f"--run {run_dir}: no such directory")
     out = Path(out) if out is not None else default_output(run_dir, fmt)
+    other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower(), fmt)
+    if other != fmt:
+        raise ExportError(f"--out {out} names an .{other} file but --format is {fmt}")
     if out.is_dir() or not out.parent.is_dir():
         why = "is a directory" if out.is_dir() else f"has no folder {out.parent}"
         raise ExportError(f"--out {out} {why}")

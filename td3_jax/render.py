@@ -112,7 +112,7 @@ def probe_gl(backend: str, timeout_s: float = 120.0) -> str | None:
 
 
 def gl_backend(environ: dict | None = None, probe: Any = probe_gl) -> str:
-    """The OpenGL backend to render with: ``MUJOCO_GL`` when set, else the first of
+    """The OpenGL backend to render with: ``MUJOCO_GL`` when set (and probed), else the first of
     :data:`GL_BACKENDS` for which ``probe(backend)`` (error text or ``None``) succeeds; only
     ``PYOPENGL_PLATFORM``'s backend when that names one (PyOpenGL then loads no other).
 
@@ -123,6 +123,9 @@ def gl_backend(environ: dict | None = None, probe: Any = probe_gl) -> str:
     if given:
         if given not in KNOWN_GL:
             raise GLUnavailableError(f"MUJOCO_GL={given} is not one of {', '.join(KNOWN_GL)}")
+        why = probe(given)
+        if why is not None:
+            raise GLUnavailableError(f"MUJOCO_GL={given} cannot render here ({why}); {GL_HELP}")
         return given
     platform = environ.get("PYOPENGL_PLATFORM", "").strip().lower()
     failures = []

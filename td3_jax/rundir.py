@@ -350,6 +350,13 @@ def _write_json(path: Path, value: Any) -> None:
 def _read_config(out_dir: Path) -> dict:
     path = Path(out_dir) / CONFIG_FILE
     if not path.exists():
+        try:
+            check_not_in_use(Path(out_dir))
+        except ConfigError:
+            raise ConfigError(
+                f"{out_dir} is being started by a td3-jax run ({lock_holder(out_dir)}) and holds "
+                "no config.json or checkpoint yet; try again after its first evaluation"
+            ) from None
         raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory")
     try:
         raw = json.loads(path.read_text())

@@ -373,6 +373,10 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
         ("--run", str(tiny_run), "--format", "npz", "--member", "2"): "out of range",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "a" / "b")):
             "has no folder",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "p.onnx")):
+            "names an .onnx file but --format is npz",
+        ("--run", str(tiny_run), "--format", "onnx", "--out", str(tmp_path / "p.NPZ")):
+            "names an .npz file but --format is onnx",
     }  # fmt: skip
     for args, message in cases.items():
         code, stderr = cli_error(capsys, "export", *args)

@@ -136,7 +136,11 @@ def test_gl_backend_choice():
         return None if backend == "osmesa" else "EGL not found"
 
     assert render.gl_backend({}, probe=probe) == "osmesa" and tried == ["egl", "osmesa"]
-    assert render.gl_backend({"MUJOCO_GL": "EGL"}, probe=pytest.fail) == "egl"
+    tried.clear()  # a forced backend is probed too, and its failure is one error
+    assert render.gl_backend({"MUJOCO_GL": "OSMesa"}, probe=probe) == "osmesa"
+    with pytest.raises(render.GLUnavailableError, match="MUJOCO_GL=egl cannot render here"):
+        render.gl_backend({"MUJOCO_GL": "EGL"}, probe=probe)
+    assert tried == ["osmesa", "egl"]
     tried.clear()  # PyOpenGL loads only PYOPENGL_PLATFORM's library: only that one is tried
     assert render.gl_backend({"PYOPENGL_PLATFORM": "osmesa"}, probe=probe) == "osmesa"
     assert tried == ["osmesa"]

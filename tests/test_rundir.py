@@ -165,6 +165,17 @@ def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
     rundir.acquire_lock(tmp_path).release()
 
 
+def test_reading_a_run_that_is_still_starting_says_so(tmp_path):
+    with pytest.raises(ConfigError, match=r"holds no config\.json: not a td3-jax run directory"):
+        rundir.load_config(tmp_path)
+    lock = rundir.acquire_lock(tmp_path)  # a run between its lock and its config.json
+    try:
+        with pytest.raises(ConfigError, match=r"is being started by a td3-jax run \(pid "):
+            rundir.load_config(tmp_path)
+    finally:
+        lock.release()
+
+
 # --------------------------------------------------------------------------------------------
 # what a fresh or resumed run accepts
 # --------------------------------------------------------------------------------------------
