@@ -236,8 +236,12 @@ def restore_checkpoint(run_dir: Path) -> tuple[Any, Any, Any, dict]:
 def load_run_policy(run_dir: Path, member: int | None = None) -> PolicyArrays:
     """The :class:`PolicyArrays` of member ``member`` of the run in ``run_dir`` (default: the
     best by the checkpoint's evaluation in metrics.jsonl, else member 0)."""
+    from td3_jax import rundir
     from td3_jax.logger import read_metrics
 
+    if member is not None:  # a bad --member fails before the (slower) restore
+        cfg = rundir.load_config(run_dir)
+        choose_member(member, len(rundir.load_members(run_dir, cfg)), [], 0)
     cfg, program, state, meta = restore_checkpoint(run_dir)
     env_steps = int(meta.get("env_steps", 0))
     records = read_metrics(Path(run_dir) / "metrics.jsonl")

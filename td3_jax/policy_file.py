@@ -26,6 +26,7 @@ Dense layers; ``ln_scale_i``, ``ln_bias_i`` (hidden layers) and ``ln_epsilon`` w
 
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -49,10 +50,12 @@ def read(path: str | Path) -> dict[str, np.ndarray]:
     """The arrays of the policy file ``path`` (float arrays as float32), checked for a known
     format version; :class:`PolicyFileError` otherwise."""
     path = Path(path)
+    if path.is_file() and not zipfile.is_zipfile(path):  # e.g. an ONNX model
+        raise PolicyFileError(f"{path} is not a policy file (an .npz of td3-jax export)")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
         raise PolicyFileError(f"cannot read {path} as a policy file ({err})") from err
     version = int(_get(arrays, "format_version", path))
     if version > FORMAT_VERSION:

@@ -265,9 +265,15 @@ def test_policy_file_refuses_bad_input(tmp_path):
     assert policy(np.zeros(5)).shape == (3,)  # one observation, no batch axis
     with pytest.raises(policy_file.PolicyFileError, match=r"takes observations \[\.\.\., 5\]"):
         policy(np.zeros((2, 8)))
-    (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(policy_file.PolicyFileError, match="cannot read"):
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")  # e.g. an ONNX model misnamed
+    with pytest.raises(policy_file.PolicyFileError, match="is not a policy file"):
         policy_file.load(tmp_path / "junk.npz")
+    with pytest.raises(policy_file.PolicyFileError, match="cannot read"):
+        policy_file.load(tmp_path / "missing.npz")
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(policy_file.PolicyFileError):
+        policy_file.load(truncated)
     arrays = dict(np.load(path))
     arrays["format_version"] = np.array(99)
     np.savez(tmp_path / "future.npz", **arrays)
