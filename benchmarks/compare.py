@@ -404,19 +404,12 @@ def _brax_settings(job: dict[str, Any]) -> tuple[dict[str, Any], str]:
     return {"published": published, "used": settings}, source
 
 
-def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
-    import brax_shim
-
-    result["shimmed"] = brax_shim.install()
+def _brax_train_kwargs(algo: str, used: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+    """``(brax.training module of algo, its train() keyword arguments)`` from the settings
+    (``network_factory`` turned into the factory function)."""
     import functools
 
-    import numpy as np
-
-    algo, env_name, budget = job["algo"], job["env"], job["budget_s"]
-    settings, source = _brax_settings(job)
-    result["settings"], result["source"] = settings, source
-    _announce(algo, source, settings["used"])
-    kwargs = dict(settings["used"])
+    kwargs = dict(used)
     if algo == "ppo":
         from brax.training.agents.ppo import networks as nets
         from brax.training.agents.ppo import train as agent
@@ -432,7 +425,20 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
     factory = kwargs.pop("network_factory", None)
     if factory:
         kwargs["network_factory"] = functools.partial(make_networks, **dict(factory))
+    return agent, kwargs
 
+
+def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
+    import brax_shim
+
+    result["shimmed"] = brax_shim.install()
+    import numpy as np
+
+    algo, env_name, budget = job["algo"], job["env"], job["budget_s"]
+    settings, source = _brax_settings(job)
+    result["settings"], result["source"] = settings, source
+    _announce(algo, source, settings["used"])
+    agent, kwargs = _brax_train_kwargs(algo, settings["used"])
     rows = result["rows"]
 
     def progress(num_steps, metrics):
@@ -723,7 +729,8 @@ def table(results: dict[str, dict], budget: float) -> str:
 # --------------------------------------------------------------------------------------------
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (see the module docstring)."""
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -770,127 +777,123 @@ def main(argv: list[str] | None = None) -> int:
         help="run nothing: write the CSV, plot, JSON and table from every algorithm's result in "
         "OUT (from earlier calls with --algos subsets, e.g. side by side on the GPUs of one host)",
     )
-    args = parser.parse_args(argv)
+    return parser
 
-    env = args.env.removeprefix("brax/").removeprefix("playground/")
+
+def resolve_env(parser: argparse.ArgumentParser, name: str) -> str:
+    """The environment's name as the workers take it (``ant``, ``CheetahRun``, ...), or a
+    parser error naming the known ones."""
+    env = name.removeprefix("brax/").removeprefix("playground/")
     if env.lower() in BRAX_ENVS:
-        env = env.lower()
-    else:  # importing Playground does not start a JAX backend (the workers own the GPU)
-        from mujoco_playground import dm_control_suite
+        return env.lower()
+    # importing Playground does not start a JAX backend (the workers own the GPU)
+    from mujoco_playground import dm_control_suite
 
-        if env not in dm_control_suite.ALL_ENVS and not is_locomotion_env(env):
-            known = ", ".join([*BRAX_ENVS, *sorted(dm_control_suite.ALL_ENVS)])
-            parser.error(
-                f"unknown environment {args.env!r}; known: {known} and Playground's "
-                "locomotion tasks (td3-jax envs)"
-            )
-    if args.budget_s <= 0:
-        parser.error("--budget-s must be positive")
-    flags = {
-        "ppo": parse_flags(args.ppo_flag, "--ppo-flag"),
-        "sac": parse_flags(args.sac_flag, "--sac-flag"),
-        "td3": parse_flags(args.td3_flag, "--td3-flag"),
-    }
-    td3_preset = args.td3_preset or default_td3_preset(env)
-    if "td3" in args.algos:  # bad td3 settings fail here, before any run starts
-        td3_config(
-            dict(
-                env=env, smoke=args.smoke, seed=args.seed, flags=flags["td3"], td3_preset=td3_preset
-            )
-        )
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    parts = out / f"compare_{env}_parts"
-    parts.mkdir(exist_ok=True)
+    if env not in dm_control_suite.ALL_ENVS and not is_locomotion_env(env):
+        known = ", ".join([*BRAX_ENVS, *sorted(dm_control_suite.ALL_ENVS)])
+        parser.error(f"unknown environment {name!r}; known: {known} and Playground's "
+                     "locomotion tasks (td3-jax envs)")  # fmt: skip
+    return env
 
-    started = dt.datetime.now(dt.UTC)
-    context = multiprocessing.get_context("spawn")
-    results: dict[str, dict] = {}
-    if args.merge:
-        for algo in ALGOS:
-            if (parts / f"{algo}.json").exists():
-                results[algo] = json.loads((parts / f"{algo}.json").read_text())
-        if not results:
-            parser.error(f"--merge: no results in {parts}")
-    for algo in [] if args.merge else args.algos:
-        result_path = parts / f"{algo}.json"
-        result_path.unlink(missing_ok=True)
-        job = dict(
-            algo=algo,
-            env=env,
-            budget_s=args.budget_s,
-            smoke=args.smoke,
-            seed=args.seed,
-            flags=flags[algo],
-            num_evals=args.num_evals or None,
-            sac_recipe=args.sac_recipe,
-            td3_preset=td3_preset,
-            td3_checkpoint=args.td3_checkpoint,
-            out=str(out),
-            result_path=str(result_path),
-        )
-        print(f"== {algo} on {env}, budget {args.budget_s:g} s", flush=True)
-        process = context.Process(target=_worker, args=(job,), name=f"compare-{algo}")
-        process.start()
-        process.join()
-        if result_path.exists():
-            results[algo] = json.loads(result_path.read_text())
-        else:
-            results[algo] = {
-                "algo": algo,
-                "rows": [],
-                "status": "failed",
-                "error": f"worker process ended with exit code {process.exitcode} and no result",
-            }
-            print(f"[{algo}] FAILED: {results[algo]['error']}", flush=True)
 
+def run_algo(job: dict[str, Any], context: Any) -> dict[str, Any]:
+    """Runs one algorithm's job in a fresh spawned process; its result (a failure record when
+    the process left none)."""
+    result_path = Path(job["result_path"])
+    result_path.unlink(missing_ok=True)
+    print(f"== {job['algo']} on {job['env']}, budget {job['budget_s']:g} s", flush=True)
+    process = context.Process(target=_worker, args=(job,), name=f"compare-{job['algo']}")
+    process.start()
+    process.join()
+    if result_path.exists():
+        return json.loads(result_path.read_text())
+    error = f"worker process ended with exit code {process.exitcode} and no result"
+    print(f"[{job['algo']}] FAILED: {error}", flush=True)
+    return {"algo": job["algo"], "rows": [], "status": "failed", "error": error}
+
+
+def merged_results(parser: argparse.ArgumentParser, parts: Path) -> dict[str, dict]:
+    """The results earlier calls left in ``parts`` (--merge)."""
+    results = {algo: json.loads((parts / f"{algo}.json").read_text())
+               for algo in ALGOS if (parts / f"{algo}.json").exists()}  # fmt: skip
+    if not results:
+        parser.error(f"--merge: no results in {parts}")
+    return results
+
+
+def summary_record(args: argparse.Namespace, env: str, results: dict[str, dict],
+                   started: dt.datetime) -> dict[str, Any]:  # fmt: skip
+    """The JSON summary: date, command, device, versions and each algorithm's settings."""
     devices = [r["device"] for r in results.values() if r.get("device")]
-    device = devices[0]["device_kind"] if devices else "unknown device"
-    stem = out / f"compare_{env}"
-    write_csv(stem.with_suffix(".csv"), env, results)
-    plot(stem.with_suffix(".png"), env, args.budget_s, results, device)
-    summary = {
+    within = lambda rows: sum(r["wall_s"] <= args.budget_s for r in rows)
+    return {
         "date": started.isoformat(timespec="seconds"),
         "command": [Path(sys.executable).name, *sys.argv],
-        "env": env,
-        "budget_s": args.budget_s,
-        "smoke": args.smoke,
-        "time_zero": TIME_ZERO,
+        "env": env, "budget_s": args.budget_s, "smoke": args.smoke, "time_zero": TIME_ZERO,
         "device": devices[0] if devices else None,
         "host": {"machine": platform.machine(), "cpus": os.cpu_count()},
         "versions": versions(),
         "algorithms": {
             algo: {key: value for key, value in result.items() if key not in ("rows", "algo")}
-            | {
-                "evals": len(result["rows"]),
-                "evals_within_budget": sum(r["wall_s"] <= args.budget_s for r in result["rows"]),
-            }
+            | {"evals": len(result["rows"]), "evals_within_budget": within(result["rows"])}
             for algo, result in results.items()
         },
-    }
-    stem.with_suffix(".json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    }  # fmt: skip
 
+
+def print_report(args: argparse.Namespace, env: str, results: dict[str, dict], device: str,
+                 stem: Path) -> None:  # fmt: skip
+    """The table, the published curves at the same times and what was written."""
     print()
-    print(
-        f"{env}, budget {args.budget_s:g} s per algorithm, {device}"
-        + (" (SMOKE)" if args.smoke else "")
-    )
+    print(f"{env}, budget {args.budget_s:g} s per algorithm, {device}"
+          + (" (SMOKE)" if args.smoke else ""))  # fmt: skip
     print("eval return of the last evaluation at or before each time (compile included):")
     print(table(results, args.budget_s))
+    points = time_points(args.budget_s)
     for algo, curve in published_curves(env).items():
-        points = time_points(args.budget_s)
         values = [published_at(curve, t) for t in points]
-        cells = ", ".join(
-            f"@{t:g} s {'-' if v is None else f'{v:.1f}'}"
-            for t, v in zip(points, values, strict=True)
-        )
+        cells = ", ".join(f"@{t:g} s {'-' if v is None else f'{v:.1f}'}"
+                          for t, v in zip(points, values, strict=True))  # fmt: skip
         print(f"published {algo} (A100, interpolated): {cells}")
     for name in (".csv", ".png", ".json"):
         print(f"wrote {stem.with_suffix(name)}")
-    failed = [a for a, r in results.items() if r["status"] != "ok"]
-    for algo in failed:
-        print(f"{algo} failed: {results[algo].get('error')}")
-    return 1 if failed else 0
+    for algo, result in results.items():
+        if result["status"] != "ok":
+            print(f"{algo} failed: {result.get('error')}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    env = resolve_env(parser, args.env)
+    if args.budget_s <= 0:
+        parser.error("--budget-s must be positive")
+    flags = {algo: parse_flags(getattr(args, f"{algo}_flag"), f"--{algo}-flag")
+             for algo in ("ppo", "sac", "td3")}  # fmt: skip
+    td3_preset = args.td3_preset or default_td3_preset(env)
+    if "td3" in args.algos:  # bad td3 settings fail here, before any run starts
+        td3_config(dict(env=env, smoke=args.smoke, seed=args.seed, flags=flags["td3"],
+                        td3_preset=td3_preset))  # fmt: skip
+    parts = args.out / f"compare_{env}_parts"
+    parts.mkdir(parents=True, exist_ok=True)
+    started = dt.datetime.now(dt.UTC)
+    context = multiprocessing.get_context("spawn")
+    results = merged_results(parser, parts) if args.merge else {}
+    for algo in [] if args.merge else args.algos:
+        job = dict(algo=algo, env=env, budget_s=args.budget_s, smoke=args.smoke, seed=args.seed,
+                   flags=flags[algo], num_evals=args.num_evals or None,
+                   sac_recipe=args.sac_recipe, td3_preset=td3_preset,
+                   td3_checkpoint=args.td3_checkpoint, out=str(args.out),
+                   result_path=str(parts / f"{algo}.json"))  # fmt: skip
+        results[algo] = run_algo(job, context)
+    summary = summary_record(args, env, results, started)
+    device = summary["device"]["device_kind"] if summary["device"] else "unknown device"
+    stem = args.out / f"compare_{env}"
+    write_csv(stem.with_suffix(".csv"), env, results)
+    plot(stem.with_suffix(".png"), env, args.budget_s, results, device)
+    stem.with_suffix(".json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    print_report(args, env, results, device, stem)
+    return 1 if any(r["status"] != "ok" for r in results.values()) else 0
 
 
 if __name__ == "__main__":
