@@ -491,6 +491,8 @@ def render_main(args: list[str]) -> None:
     print(rendered.path)
     for e, (frames, ret) in enumerate(zip(rendered.lengths, rendered.returns, strict=True)):
         print(f"member {rendered.member} episode {e + 1}: {frames} frames, return {ret:.2f}")
+    if rendered.env_steps is not None:
+        print(f"(the policy of the checkpoint at {rendered.env_steps} env steps)")
 
 
 def plot_main(args: list[str]) -> None:

@@ -325,6 +325,7 @@ class Rollout(NamedTuple):
     returns: np.ndarray
     positions: list[np.ndarray]
     rewards: list[np.ndarray]
+    env_steps: int | None = None  # the checkpoint's
 
 
 def check_renderable(env: envs.Environment) -> None:
@@ -395,7 +396,8 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
     spec = dataclasses.replace(program.spec, axis_name=None)
     run = jax.jit(functools.partial(training.evaluate_recorded, spec, record=episodes))
     returns, recording = run(jax.tree.map(lambda x: x[k], state), key)
-    return Rollout(program.env, k, np.asarray(returns), *split_episodes(recording))
+    return Rollout(program.env, k, np.asarray(returns), *split_episodes(recording),
+                   env_steps=meta.get("env_steps"))  # fmt: skip
 
 
 def rollout_frames(
@@ -476,6 +478,7 @@ class Rendered(NamedTuple):
     member: int
     lengths: list[int]
     returns: list[float]
+    env_steps: int | None = None  # the checkpoint's
 
 
 def check_writer(path: Path) -> None:
@@ -510,4 +513,4 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     frames = rollout_frames(result, camera=camera, width=width, height=height)
     write_video(out, np.concatenate(frames), fps)
     return Rendered(Path(out), result.member, [len(f) for f in frames],
-                    [float(r) for r in result.returns])  # fmt: skip
+                    [float(r) for r in result.returns], result.env_steps)  # fmt: skip

@@ -96,6 +96,7 @@ def rendered(mujoco_run):
 def test_rendered_video_matches_the_evaluation(mujoco_run, rendered):
     out, lines = rendered
     assert lines[0] == str(out)
+    assert lines[-1] == "(the policy of the checkpoint at 0 env steps)"  # make_run's meta
     frames = np.asarray(imageio.mimread(out, memtest=False))
     assert frames.shape[1:] == (HEIGHT, WIDTH, 3)
     # inverted_pendulum pays 1 per step until the pole passes 0.2 rad (termination) or the
