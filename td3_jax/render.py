@@ -32,7 +32,6 @@ import dataclasses
 import functools
 import importlib
 import importlib.util
-import json
 import os
 import subprocess
 import sys
@@ -337,14 +336,6 @@ def check_renderable(env: envs.Environment) -> None:
         )
 
 
-def read_records(run_dir: Path) -> list[dict]:
-    """The records of ``run_dir/metrics.jsonl`` (none if it is missing)."""
-    path = Path(run_dir) / "metrics.jsonl"
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-
-
 def choose_member(
     run_dir: Path, count: int, member: int | None, env_steps: int | None = None
 ) -> int:
@@ -353,8 +344,10 @@ def choose_member(
     in metrics.jsonl (else of the last one; :func:`td3_jax.export.best_member`), else 0."""
     if member is None:
         from td3_jax.export import best_member
+        from td3_jax.logger import read_metrics
 
-        best = best_member(read_records(run_dir), env_steps) if count > 1 else None
+        records = read_metrics(Path(run_dir) / "metrics.jsonl")
+        best = best_member(records, env_steps) if count > 1 else None
         return best if best is not None and best < count else 0
     if not 0 <= member < count:
         raise RenderError(f"--member {member}: the run has members 0..{count - 1}")
