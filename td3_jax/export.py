@@ -220,16 +220,13 @@ def restore_checkpoint(run_dir: Path) -> tuple[Any, Any, Any, dict]:
     """``(config, population program, state, meta)`` of a run's newest good checkpoint,
     restored onto one device (as :func:`td3_jax.rundir.evaluate_run` does)."""
     from td3_jax import rundir
-    from td3_jax.population import make_population
-    from td3_jax.sharding import make_mesh, state_shardings
 
     run_dir = Path(run_dir)
-    cfg = rundir.load_config(run_dir)  # one line for a directory without config.json
+    rundir.load_config(run_dir)  # one line for a directory without config.json
     if not rundir.checkpoint_steps(run_dir):
         raise ExportError(f"{run_dir / rundir.CHECKPOINTS} holds no checkpoint to export")
-    program = make_population(cfg, rundir.load_members(run_dir, cfg))
-    shardings = state_shardings(program.abstract_state, make_mesh(1))
-    state, meta, _ = rundir.restore_state(program, run_dir, shardings=shardings)
+    cfg, _, program = rundir.run_program(run_dir)
+    state, meta = rundir.restore_on_one_device(program, run_dir)
     return cfg, program, state, meta
 
 

@@ -371,19 +371,14 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
 
     ``check(env)``, if given, runs once the environment is made, before anything compiles.
     """
-    from td3_jax.population import make_population
-    from td3_jax.rundir import load_config, load_members, restore_state
-    from td3_jax.sharding import make_mesh, state_shardings
+    from td3_jax.rundir import restore_on_one_device, run_program
 
-    cfg = dataclasses.replace(load_config(run_dir), eval_envs=episodes)
-    population = load_members(run_dir, cfg)
+    _, population, program = run_program(run_dir, eval_envs=episodes)
     choose_member(run_dir, len(population), member)  # a bad --member fails before compiling
-    program = make_population(cfg, population)
     check_renderable(program.env)
     if check is not None:
         check(program.env)
-    shardings = state_shardings(program.abstract_state, make_mesh(1))
-    state, meta, _ = restore_state(program, run_dir, shardings=shardings)
+    state, meta = restore_on_one_device(program, run_dir)
     k = choose_member(run_dir, len(population), member, meta.get("env_steps"))
     key = jax.random.split(jax.random.PRNGKey(seed), len(population))[k]
     spec = dataclasses.replace(program.spec, axis_name=None)

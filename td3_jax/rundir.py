@@ -424,6 +424,22 @@ def restore_state(population: Population, out_dir: Path, keep: int = 3, sharding
         checkpointer.close()
 
 
+def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member], Population]:
+    """``(config, members, program)`` of a run directory, the config with ``changes`` (e.g.
+    ``eval_envs``) applied; nothing is compiled or restored yet."""
+    cfg = dataclasses.replace(load_config(out_dir), **changes)
+    population = load_members(out_dir, cfg)
+    return cfg, population, make_population(cfg, population)
+
+
+def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict]:
+    """``(state, meta)`` of the newest good checkpoint of ``out_dir`` on one device, whatever
+    device count wrote it."""
+    shardings = state_shardings(program.abstract_state, make_mesh(1))
+    state, meta, _ = restore_state(program, out_dir, shardings=shardings)
+    return state, meta
+
+
 def evaluate_run(
     out_dir: Path, episodes: int, seed: int
 ) -> tuple[TrainConfig, list[Member], dict, np.ndarray]:
@@ -433,10 +449,7 @@ def evaluate_run(
     uses the ``k``-th key of ``jax.random.split(PRNGKey(seed), members)``. Restores onto one
     device, whatever device count wrote the checkpoint.
     """
-    cfg = dataclasses.replace(load_config(out_dir), eval_envs=episodes)
-    population = load_members(out_dir, cfg)
-    program = make_population(cfg, population)
-    shardings = state_shardings(program.abstract_state, make_mesh(1))
-    state, meta, _ = restore_state(program, out_dir, shardings=shardings)
+    cfg, population, program = run_program(out_dir, eval_envs=episodes)
+    state, meta = restore_on_one_device(program, out_dir)
     keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
     return cfg, population, meta, np.asarray(jax.jit(program.evaluate)(state, keys))
