@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from td3_jax import normalization
 from td3_jax.config import ConfigError
 from td3_jax.policy_file import FORMAT_VERSION
 
@@ -39,9 +40,6 @@ from td3_jax.policy_file import FORMAT_VERSION
 FORMATS = ("onnx", "npz")
 #: The ONNX opset of exported models (LayerNormalization is in the default domain from 17).
 ONNX_OPSET = 17
-#: The observation normaliser's variance floor and clip (:mod:`td3_jax.normalization`).
-NORM_EPSILON = 1e-8
-NORM_CLIP = 10.0
 
 
 class ExportError(ConfigError):
@@ -130,7 +128,7 @@ def normalization_arrays(stats: Any, observation_size: int) -> tuple[bool, np.nd
         return False, np.zeros(size, np.float32), np.ones(size, np.float32)
     mean = _f32(stats.mean)[:observation_size]
     var = _f32(stats.var)[:observation_size]
-    return True, mean, np.sqrt(var + np.float32(NORM_EPSILON))
+    return True, mean, np.sqrt(var + np.float32(normalization.EPSILON))
 
 
 def extract_policy(
@@ -158,7 +156,7 @@ def extract_policy(
     max_action = np.broadcast_to(_f32(actor.max_action), (env.action_size,)).copy()
     return PolicyArrays(
         tuple(kernels), tuple(biases), tuple(scales), tuple(shifts),
-        float(nn.LayerNorm.epsilon), normalize, mean, std, NORM_CLIP, max_action,
+        float(nn.LayerNorm.epsilon), normalize, mean, std, normalization.CLIP, max_action,
         _f32(env.action_low), _f32(env.action_high), env.name, **origin,
     )  # fmt: skip
 

@@ -6,6 +6,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+#: The variance floor and the clip of :func:`normalize` (exported policies use the same).
+EPSILON = 1e-8
+CLIP = 10.0
+
 
 @struct.dataclass
 class RunningStats:
@@ -36,8 +40,8 @@ def update(stats: RunningStats, batch: jax.Array) -> RunningStats:
     return RunningStats(mean=mean, var=m2 / total, count=total)
 
 
-def normalize(stats: RunningStats, obs: jax.Array, clip: float = 10.0) -> jax.Array:
-    """``clip((obs - mean) / sqrt(var + 1e-8), -clip, clip)``; identity before any update."""
-    normalized = (obs - stats.mean) / jnp.sqrt(stats.var + 1e-8)
+def normalize(stats: RunningStats, obs: jax.Array, clip: float = CLIP) -> jax.Array:
+    """``clip((obs - mean) / sqrt(var + EPSILON), -clip, clip)``; identity before any update."""
+    normalized = (obs - stats.mean) / jnp.sqrt(stats.var + EPSILON)
     normalized = jnp.clip(normalized, -clip, clip)
     return jnp.where(stats.count > 0, normalized, obs)
