@@ -151,4 +151,7 @@ def initialize_distributed(
         num_processes=num_processes,
         process_id=process_id,
     )
+    from td3_jax.envs.mjx_devices import place_on_local_devices
+
+    place_on_local_devices()  # MJX would put every process's models on process 0's device
     return True

@@ -105,3 +105,23 @@ def test_two_processes_of_two_devices_give_the_four_device_numbers(tmp_path):
     assert [r["devices"] for r in multi] == [4, 4]
     assert [r["env_steps"] for r in multi] == [256, 512]
     assert (tmp_path / "comparison.md").read_text().count("| True |") == len(mp.COMPARED)
+
+
+@pytest.mark.timeout(600)
+def test_an_mjx_environment_trains_in_two_processes(tmp_path):
+    """MJX puts models on jax.devices()[0], process 0's device; process 1 must get its own
+    (td3_jax.envs.mjx_devices), or lowering its step fails. 2 x 1 against 1 x 2 CPU devices."""
+    flags = ["--env", "brax/inverted_pendulum", "--num-envs", "4", "--total-steps", "64",
+             "--eval-every", "32", "--warmup-steps", "16", "--batch-size", "16",
+             "--updates-per-iter", "1", "--hidden-sizes", "8", "--eval-envs", "2",
+             "--buffer-size", "128", "--episode-length", "16", "--replay-shards", "2",
+             "--compile-cache", "off"]  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "multiprocess.py"), "--platform", "cpu",
+         "--processes", "2", "--devices-per-process", "1", "--side-by-side", "--out",
+         str(tmp_path), "--", *flags],
+        env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
+    result = json.loads((tmp_path / "comparison.json").read_text())
+    assert result["records"] == [2, 2] and result["equal"], result["quantities"]

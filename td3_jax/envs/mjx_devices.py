@@ -1,0 +1,58 @@
+"""MJX on the local devices of a multi-process run.
+
+MJX's ``put_model``/``make_data``/``put_data`` place their arrays on ``jax.devices()[0]`` when no
+device is given. With several processes (``jax.distributed``) that is process 0's first device,
+which no other process can address: a Brax or Playground environment made there holds (and its
+traced step closes over) arrays that process 1 cannot lower ("Closing over jax.Array that spans
+non-addressable devices"). :func:`place_on_local_devices` makes MJX choose this process's first
+device of the same platform instead; with one process nothing changes.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import jax
+
+_MARK = "_td3_jax_local_devices"
+
+
+def local_device(device: Any) -> Any:
+    """``device`` when this process can address it, else this process's first device of the
+    same platform."""
+    local = jax.local_devices()
+    if device in local:
+        return device
+    same_platform = [d for d in local if d.platform == device.platform]
+    return (same_platform or local)[0]
+
+
+def with_local_default(resolve: Callable[..., tuple[Any, Any]]) -> Callable[..., tuple[Any, Any]]:
+    """Wraps MJX's ``_resolve_impl_and_device(impl, device) -> (impl, device)`` so a device it
+    picks by default is a local one; an explicit ``device`` is kept as given."""
+
+    @functools.wraps(resolve)
+    def resolve_locally(impl=None, device=None):
+        chosen_impl, chosen = resolve(impl, device)
+        return chosen_impl, chosen if device is not None else local_device(chosen)
+
+    setattr(resolve_locally, _MARK, True)
+    return resolve_locally
+
+
+def place_on_local_devices() -> bool:
+    """Makes MJX's default device this process's own (idempotent). Returns whether MJX was
+    found and adjusted; call it after ``jax.distributed.initialize`` and before making
+    environments."""
+    try:
+        from mujoco.mjx._src import io
+    except ImportError:  # MJX not installed: gymnax environments only
+        return False
+    resolve = getattr(io, "_resolve_impl_and_device", None)
+    if resolve is None:  # another MJX layout: leave it alone
+        return False
+    if not getattr(resolve, _MARK, False):
+        io._resolve_impl_and_device = with_local_default(resolve)
+    return True

@@ -1,0 +1,43 @@
+"""MJX's default device made process-local (td3_jax.envs.mjx_devices), with stand-in devices."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import jax
+import pytest
+
+from td3_jax.envs import mjx_devices
+
+
+@pytest.fixture
+def two_processes(monkeypatch):
+    """Process 1's view: global devices g0 (process 0's GPU), then its own c1 (CPU), g1 (GPU)."""
+    kinds = (("gpu", 0), ("cpu", 1), ("gpu", 2))
+    g0, c1, g1 = (SimpleNamespace(platform=p, id=i) for p, i in kinds)
+    monkeypatch.setattr(jax, "local_devices", lambda: [c1, g1])
+    return g0, c1, g1
+
+
+def test_a_remote_default_becomes_the_local_device_of_its_platform(two_processes):
+    g0, _c1, g1 = two_processes
+    resolve = mjx_devices.with_local_default(lambda impl, device: ("jax", device or g0))
+    assert resolve("jax") == ("jax", g1)  # not c1: same platform as MJX's pick
+    assert resolve(None, None) == ("jax", g1)
+
+
+def test_an_explicit_or_local_device_is_kept(two_processes):
+    g0, c1, _g1 = two_processes
+    resolve = mjx_devices.with_local_default(lambda impl, device: ("cpp", device or c1))
+    assert resolve("cpp") == ("cpp", c1)
+    assert resolve("jax", g0) == ("cpp", g0)  # asked for by name: not ours to change
+
+
+def test_patching_mjx_is_idempotent_and_keeps_one_process_unchanged():
+    io = pytest.importorskip("mujoco.mjx._src.io")
+    assert mjx_devices.place_on_local_devices()
+    patched = io._resolve_impl_and_device
+    assert mjx_devices.place_on_local_devices()
+    assert io._resolve_impl_and_device is patched  # not wrapped twice
+    _impl, device = io._resolve_impl_and_device("jax")
+    assert device == jax.devices()[0]  # one process: MJX's own choice
