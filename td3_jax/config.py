@@ -441,10 +441,10 @@ _GPU_LOCOMOTION = dict(
 # critics (101 atoms on [-10, 10]) with the actor on the lower mean, AdamW with weight decay
 # 0.1, per-environment exploration scales drawn from [0.001, 0.4], critics 1024-512-256 and
 # actor 512-256-128, the online actor (no target actor) for target actions, bf16 matmuls.
-# Measured with these settings (BENCHMARKS.md, 2026-11-22 session 3, one H200, compile
-# included): T1 33.6 at 428 s and 34.7 at 491 s (FastTD3's published 30-minute 33.8);
-# G1 7.7 at 481 s, rate-bound (physics at 1024 envs). Not tuned further yet: each setting
-# is FastTD3's, and no alternative has been measured on td3-jax.
+# With these settings (BENCHMARKS.md, 2026-11-22 session 3, one H200, compile included):
+# T1 33.6 at 428 s and 34.7 at 491 s (FastTD3's published 30-minute 33.8); G1 7.7 at 481 s,
+# bound by the physics rate at 1024 envs (24.7k env steps/s). The humanoids' presets change
+# one thing, measured (_HUMANOID_JOYSTICK).
 _PLAYGROUND_LOCOMOTION = dict(
     algo="td3",
     env_backend="jax",
@@ -478,6 +478,15 @@ _PLAYGROUND_LOCOMOTION = dict(
     pushes="off",
     domain_randomization=False,
 )
+
+# T1 and G1: 4096 environments with 8 updates per vectorised step (FastTD3's ratio of updates
+# to env steps, 2 per 1024, kept). MJX steps 4096 humanoids far faster than 1024 (G1 39k
+# against 24.7k env steps/s in the loop; T1 50k against 33k), and the 8 updates of 32768 fit
+# beside them. Measured one run per task on one H200 (BENCHMARKS.md, 2026-11-22 session 4,
+# compile included): G1 7.7 at 314 s, 12.3 at 365 s, 14.5 at 417 s (1024 envs: 3.3 at 399 s,
+# 7.7 at 481 s); T1 27.4 at 320 s, 31.7 at 361 s, 34.2 at 402 s (1024 envs: 26.6 at 301 s,
+# 29.6 at 364 s, 33.6 at 428 s). Go1 keeps 1024: its 8 updates per step already bound it.
+_HUMANOID_JOYSTICK = dict(_PLAYGROUND_LOCOMOTION, num_envs=4096, updates_per_iter=8)
 
 PRESETS: dict[str, dict] = {
     # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
@@ -565,8 +574,8 @@ PRESETS: dict[str, dict] = {
     # MuJoCo Playground's DM Control CheetahRun (pure-JAX MJX implementation), same settings.
     "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun", env_backend="jax"),
     # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
-    "t1": dict(_PLAYGROUND_LOCOMOTION, env="playground/T1JoystickFlatTerrain"),
-    "g1": dict(_PLAYGROUND_LOCOMOTION, env="playground/G1JoystickFlatTerrain"),
+    "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
+    "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain"),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
     # [0.2, 0.8], smoothing noise 0.2, 50k steps per environment; its kicks keep the task's
     # default (off).

@@ -87,6 +87,16 @@ def test_gpu_processes_get_disjoint_gpus(monkeypatch):
     assert mp.process_env("gpu", [2, 3])["CUDA_VISIBLE_DEVICES"] == "1,0"
 
 
+def test_gpu_processes_run_deterministic_ops_unless_told_otherwise(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/d")
+    assert mp.process_env("gpu", [0])["XLA_FLAGS"].split() == ["--xla_dump_to=/tmp/d",
+                                                                mp.DETERMINISTIC]  # fmt: skip
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_deterministic_ops=false")
+    assert mp.process_env("gpu", [0])["XLA_FLAGS"] == "--xla_gpu_deterministic_ops=false"
+    monkeypatch.delenv("XLA_FLAGS")
+    assert "deterministic" not in mp.process_env("cpu", [0, 1])["XLA_FLAGS"]  # CPUs already are
+
+
 @pytest.mark.timeout(600)
 def test_two_processes_of_two_devices_give_the_four_device_numbers(tmp_path):
     """2 x 2 CPU devices through jax.distributed against 1 x 4: same records (up to the

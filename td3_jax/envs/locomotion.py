@@ -355,8 +355,10 @@ def make(
         episode_length=int(episode_length or config.episode_length),
         action_low=-np.ones(env.action_size, np.float32),
         action_high=np.ones(env.action_size, np.float32),
-        reset_fn=functools.partial(_reset, env, lay, rand),
-        step_fn=functools.partial(_step, env, lay, rand),
+        # Jitted (as base.from_mjx_style does): the physics is traced once per input shape and
+        # shared by init, chunk and evaluation, instead of traced again by each (seconds each).
+        reset_fn=jax.jit(functools.partial(_reset, env, lay, rand)),
+        step_fn=jax.jit(functools.partial(_step, env, lay, rand)),
         critic_observation_size=lay.critic_size,
         critic_offset=lay.actor_size if lay.critic_size and not lay.prefix else 0,
         mj_model=env.mj_model,
