@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
@@ -26,6 +27,7 @@ from td3_jax.config import (
 
 USAGE = """\
 usage: td3-jax {train,sweep,eval,export,render,plot,envs,presets} [FLAGS]
+       td3-jax --version
 
 Train TD3/DDPG on thousands of vectorised environments inside one compiled JAX program.
 
@@ -535,16 +537,31 @@ def main(argv: list[str] | None = None) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE)
         return
+    if argv[0] in ("-V", "--version"):
+        from td3_jax import __version__
+
+        print(f"td3-jax {__version__}")
+        return
     command = COMMANDS.get(argv[0])
     if command is None:
         print(f"td3-jax: error: unknown subcommand {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
         sys.exit(2)
+    try:
+        _run_reporting_errors(command, argv[1:])
+    except BrokenPipeError:  # the reader of our output went away (`td3-jax ... | head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        sys.exit(141)  # 128 + SIGPIPE, as other command-line tools end
+
+
+def _run_reporting_errors(command, args: list[str]) -> None:
+    """Runs a subcommand; a known failure becomes one message and an exit code (2 bad input,
+    3 non-finite training, 130 interrupted)."""
     from td3_jax.checkpoint import CheckpointError
     from td3_jax.envs import EnvironmentOptionError, MissingAssetsError, UnknownEnvironmentError
     from td3_jax.run import NonFiniteError
 
     try:
-        command(argv[1:])
+        command(args)
     except (ConfigError, UnknownEnvironmentError, CheckpointError, MissingAssetsError,
             EnvironmentOptionError) as err:  # fmt: skip
         print(f"td3-jax: error: {err}", file=sys.stderr)

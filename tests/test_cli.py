@@ -148,6 +148,24 @@ def test_top_level_help():
     assert "td3-jax SUBCOMMAND --help" in proc.stdout
 
 
+def test_version_is_the_packaged_version(capsys):
+    import tomllib
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    cli.main(["--version"])
+    assert capsys.readouterr().out == f"td3-jax {pyproject['project']['version']}\n"
+
+
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`td3-jax train --help | head -1`: the reader goes away before the help is written."""
+    proc = subprocess.Popen([sys.executable, "-m", "td3_jax", "train", "--help"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    proc.stdout.close()  # closed before the child has imported anything: its write fails
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=300) == 141
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
 def test_train_help_lists_the_documented_flags():
     proc = td3_jax("train", "--help")
     assert proc.returncode == 0
