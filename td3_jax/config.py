@@ -443,8 +443,8 @@ _GPU_LOCOMOTION = dict(
 # actor 512-256-128, the online actor (no target actor) for target actions, bf16 matmuls.
 # With these settings (BENCHMARKS.md, 2026-11-22 session 3, one H200, compile included):
 # T1 33.6 at 428 s and 34.7 at 491 s (FastTD3's published 30-minute 33.8); G1 7.7 at 481 s,
-# bound by the physics rate at 1024 envs (24.7k env steps/s). The humanoids' presets change
-# one thing, measured (_HUMANOID_JOYSTICK).
+# bound by the physics rate at 1024 envs (24.7k env steps/s). Go1 keeps these (with its own
+# changes below); the humanoids' presets change their size (_HUMANOID_JOYSTICK).
 _PLAYGROUND_LOCOMOTION = dict(
     algo="td3",
     env_backend="jax",
@@ -480,13 +480,23 @@ _PLAYGROUND_LOCOMOTION = dict(
 )
 
 # T1 and G1: 4096 environments with 8 updates per vectorised step (FastTD3's ratio of updates
-# to env steps, 2 per 1024, kept). MJX steps 4096 humanoids far faster than 1024 (G1 39k
-# against 24.7k env steps/s in the loop; T1 50k against 33k), and the 8 updates of 32768 fit
-# beside them. Measured one run per task on one H200 (BENCHMARKS.md, 2026-11-22 session 4,
-# compile included): G1 7.7 at 314 s, 12.3 at 365 s, 14.5 at 417 s (1024 envs: 3.3 at 399 s,
-# 7.7 at 481 s); T1 27.4 at 320 s, 31.7 at 361 s, 34.2 at 402 s (1024 envs: 26.6 at 301 s,
-# 29.6 at 364 s, 33.6 at 428 s). Go1 keeps 1024: its 8 updates per step already bound it.
-_HUMANOID_JOYSTICK = dict(_PLAYGROUND_LOCOMOTION, num_envs=4096, updates_per_iter=8)
+# to env steps, 2 per 1024, kept), 128 evaluation episodes every 2,048,000 steps and a ring of
+# 8,388,608 transitions (2048 steps per environment; warm-up and run length stay in steps, so
+# per environment they are a quarter of FastTD3's). MJX steps 4096 humanoids far faster than
+# 1024 (G1 39k against 24.7k env steps/s in the loop; T1 50k against 33k), and the 8 updates
+# of 32768 fit beside them. Measured with exactly these settings, one run per task on one H200
+# (BENCHMARKS.md, 2026-11-22 session 4, compile included): G1 7.7 at 314 s, 12.3 at 365 s,
+# 14.5 at 417 s (1024 envs: 3.3 at 399 s, 7.7 at 481 s); T1 27.4 at 320 s, 31.7 at 361 s,
+# 34.2 at 402 s (1024 envs: 26.6 at 301 s, 29.6 at 364 s, 33.6 at 428 s). Other Playground
+# humanoids start from `t1` (robot_preset); they were not measured with it.
+_HUMANOID_JOYSTICK = dict(
+    _PLAYGROUND_LOCOMOTION,
+    num_envs=4096,
+    updates_per_iter=8,
+    eval_envs=128,
+    eval_every=2_048_000,
+    buffer_size=8_388_608,
+)
 
 PRESETS: dict[str, dict] = {
     # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
@@ -630,7 +640,8 @@ def device_defaults(env: str, accelerator: bool) -> TrainConfig:
 
 def robot_preset(env: str) -> str | None:
     """The preset a Playground robot task without its own starts from on an accelerator:
-    ``go1`` for the quadrupeds, ``t1`` for the humanoids (``None`` for other environments)."""
+    ``go1`` for the quadrupeds, ``t1`` for the humanoids (``None`` for other environments).
+    Only T1, G1 and Go1 were measured with their presets; the others start from them untuned."""
     source, _, task = env.partition("/")
     if source != "playground":
         return None

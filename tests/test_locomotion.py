@@ -313,7 +313,8 @@ def test_randomized_physics_is_what_steps(t1):
     assert row.shape == (180,) and len(fields) == 8
     # The step's program reads every drawn field (the physics runs on the drawn model).
     action = jax.ShapeDtypeStruct((23,), jnp.float32)
-    jaxpr = jax.make_jaxpr(env.step_fn)(inner, action, jax.random.PRNGKey(0)).jaxpr
+    # (the function inside step_fn's jit: the jit's own equation takes every input)
+    jaxpr = jax.make_jaxpr(env.step_fn.__wrapped__)(inner, action, jax.random.PRNGKey(0)).jaxpr
     used = {v for e in jaxpr.eqns for v in e.invars if isinstance(v, jax.extend.core.Var)}
     field_vars = jaxpr.invars[len(jax.tree.leaves(task_state)):][: len(fields)]
     assert all(v in used for v in field_vars)

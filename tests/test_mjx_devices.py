@@ -15,7 +15,12 @@ def two_processes(monkeypatch):
     """Process 1's view: global devices g0 (process 0's GPU), then its own c1 (CPU), g1 (GPU)."""
     kinds = (("gpu", 0), ("cpu", 1), ("gpu", 2))
     g0, c1, g1 = (SimpleNamespace(platform=p, id=i) for p, i in kinds)
-    monkeypatch.setattr(jax, "local_devices", lambda: [c1, g1])
+    local = [c1, g1]
+
+    def local_devices(backend=None):
+        return [d for d in local if backend in (None, d.platform)]
+
+    monkeypatch.setattr(jax, "local_devices", local_devices)
     return g0, c1, g1
 
 
@@ -33,8 +38,17 @@ def test_an_explicit_or_local_device_is_kept(two_processes):
     assert resolve("jax", g0) == ("cpp", g0)  # asked for by name: not ours to change
 
 
-def test_patching_mjx_is_idempotent_and_keeps_one_process_unchanged():
+@pytest.mark.usefixtures("two_processes")  # stand-in local devices: a CPU and a GPU, no TPU
+def test_a_platform_this_process_lacks_is_left_to_mjx():
+    tpu = SimpleNamespace(platform="tpu", id=9)
+    resolve = mjx_devices.with_local_default(lambda impl, device: ("jax", tpu))
+    assert resolve("jax") == ("jax", tpu)
+
+
+def test_patching_mjx_is_idempotent_and_keeps_one_process_unchanged(monkeypatch):
     io = pytest.importorskip("mujoco.mjx._src.io")
+    # restored after the test: no other test runs with the wrapped function
+    monkeypatch.setattr(io, "_resolve_impl_and_device", io._resolve_impl_and_device)
     assert mjx_devices.place_on_local_devices()
     patched = io._resolve_impl_and_device
     assert mjx_devices.place_on_local_devices()

@@ -21,12 +21,14 @@ _MARK = "_td3_jax_local_devices"
 
 def local_device(device: Any) -> Any:
     """``device`` when this process can address it, else this process's first device of the
-    same platform."""
-    local = jax.local_devices()
-    if device in local:
+    same platform (``device`` itself when this process has none of that platform)."""
+    if device in jax.local_devices():
         return device
-    same_platform = [d for d in local if d.platform == device.platform]
-    return (same_platform or local)[0]
+    try:
+        same_platform = jax.local_devices(backend=device.platform)
+    except RuntimeError:  # no such backend here
+        return device
+    return same_platform[0] if same_platform else device
 
 
 def with_local_default(resolve: Callable[..., tuple[Any, Any]]) -> Callable[..., tuple[Any, Any]]:
