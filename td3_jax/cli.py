@@ -292,6 +292,38 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
     )
 
 
+def rounding_note(cfg: TrainConfig) -> str | None:
+    """The line saying that ``--total-steps`` runs as whole chunks (None when it already is)."""
+    runs = cfg.num_chunks * cfg.steps_per_chunk
+    if runs == cfg.total_steps:
+        return None
+    return (
+        f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
+        f"{cfg.steps_per_chunk} steps between evaluations; --eval-every sets them)"
+    )
+
+
+def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
+    """A warning when a run sized for an accelerator is about to start on a CPU."""
+    if backend != "cpu" or (cfg.num_envs < 1024 and cfg.total_steps < 5_000_000):
+        return None
+    return (
+        f"this run is sized for a GPU ({cfg.num_envs} environments, {cfg.total_steps} steps, "
+        f"batch {cfg.batch_size}) and JAX found only a CPU: it will compile for minutes and "
+        "train for hours. For a CPU try --num-envs 16 --total-steps 20000 (or no --preset)"
+    )
+
+
+def _announce(cfg: TrainConfig, preset_name: str | None, source: str, backend: str) -> None:
+    """Prints which settings the run got, and warnings about its size, before it starts."""
+    for line in (_defaults_note(cfg, preset_name, source), rounding_note(cfg)):
+        if line:
+            print(line, flush=True)
+    warning = cpu_size_warning(cfg, backend)
+    if warning:
+        print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
+
+
 #: The persistent compilation cache's size cap (least recently used entries are evicted).
 CACHE_MAX_BYTES = 4 * 1024**3
 
@@ -360,9 +392,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     if source == "device":
         cfg = _scale_to_device(cfg, args)
-    note = _defaults_note(cfg, preset_name, source)
-    if note and jax.process_index() == 0:
-        print(note, flush=True)
+    if jax.process_index() == 0:
+        _announce(cfg, preset_name, source, jax.default_backend())
     try:
         records = train(
             cfg,

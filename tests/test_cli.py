@@ -646,3 +646,21 @@ def test_a_corrupt_newest_checkpoint_falls_back_to_the_previous_one(
     assert line.startswith(f"td3-jax: warning: checkpoint {checkpoints / '2'} is unreadable or ")
     assert line.endswith(f"; using checkpoint {checkpoints / '1'}")
     assert re.search(r"\b64\s+env\s+steps", out)  # checkpoint 1 is the state after 64 steps
+
+
+def test_total_steps_rounded_up_to_whole_chunks_is_announced():
+    # 16 envs, evaluations every 4000 steps: chunks of 250 iterations of 16 steps
+    cfg = TrainConfig(num_envs=16, eval_every=4000, total_steps=100)
+    assert cfg.steps_per_chunk == 4000
+    assert cli.rounding_note(cfg).startswith("--total-steps 100 runs as 4000 ")
+    assert cli.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=8000)) is None
+    assert "runs as 12000" in cli.rounding_note(
+        TrainConfig(num_envs=16, eval_every=4000, total_steps=8001))
+
+
+def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
+    ant = preset("ant")
+    assert "sized for a GPU" in cli.cpu_size_warning(ant, "cpu")
+    assert f"{ant.num_envs} environments" in cli.cpu_size_warning(ant, "cpu")
+    assert cli.cpu_size_warning(ant, "gpu") is None
+    assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None

@@ -548,8 +548,21 @@ def test_unknown_environment(name):
         envs.make(name)
     message = str(err.value)
     assert repr(name) in message
-    assert "brax/ant" in message and "gymnax/Pendulum-v1" in message
+    assert "brax/ant" in message and "gymnax/Pendulum-v1" in message  # nothing close: all
     assert isinstance(err.value, ValueError)
+
+
+@pytest.mark.parametrize(
+    ("name", "meant"),
+    [("Pendulum-v1", "gymnax/Pendulum-v1"), ("brax/Ant", "brax/ant"),
+     ("brax/humaniod", "brax/humanoid"), ("gymnax/pendulum-v1", "gymnax/Pendulum-v1")],
+)  # fmt: skip
+def test_a_mistyped_environment_gets_the_name_it_meant(name, meant):
+    with pytest.raises(UnknownEnvironmentError) as err:
+        envs.make(name)
+    message = str(err.value)
+    assert f"did you mean {meant}" in message, message
+    assert "brax/inverted_pendulum" not in message  # no full listing when a guess exists
 
 
 def test_known_names():

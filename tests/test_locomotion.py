@@ -414,3 +414,8 @@ def test_cli_training_run_on_t1(tmp_path):
     assert all(np.isfinite(r["critic_loss"]) and np.isfinite(r["eval_return_mean"])
                for r in records)  # fmt: skip
     assert records[-1]["eval_return_mean"] >= 0.0  # T1's reward is clipped at 0 from below
+
+
+def test_playgrounds_own_menagerie_is_where_playground_reads_it():
+    mjx_env = pytest.importorskip("mujoco_playground._src.mjx_env")
+    assert str(menagerie.playground_root()) == str(mjx_env.MENAGERIE_PATH)

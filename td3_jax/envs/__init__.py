@@ -7,6 +7,8 @@ tasks).
 
 from __future__ import annotations
 
+import difflib
+
 from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
@@ -32,7 +34,34 @@ _SOURCES = {"brax": _brax, "playground": _playground, "gymnax": _gymnax}
 
 
 class UnknownEnvironmentError(ValueError):
-    """An environment name that no source knows; the message lists the known names."""
+    """An environment name that no source knows; the message names the closest known ones
+    (or lists them all when none is close)."""
+
+
+def closest_names(name: str, names: list[str], limit: int = 3) -> list[str]:
+    """Known names a mistyped ``name`` probably meant: the same task under its source
+    (``Pendulum-v1`` -> ``gymnax/Pendulum-v1``) or in another case (``brax/Ant``), then the
+    closest spellings."""
+    task = name.rpartition("/")[2].lower()
+    same_task = [n for n in names if n.rpartition("/")[2].lower() == task]
+    by_task: dict[str, list[str]] = {}
+    for n in names:  # spelled like the task part alone, not like the shared "brax/" prefix
+        by_task.setdefault(n.rpartition("/")[2].lower(), []).append(n)
+    close = difflib.get_close_matches(task, list(by_task), n=limit, cutoff=0.75)
+    found = same_task + [n for c in close for n in by_task[c]]
+    return list(dict.fromkeys(found))[:limit]
+
+
+def _unknown_message(name: str, source: str) -> str:
+    names = known_names()
+    hint = ""
+    if source == "playground" and not _playground.names():
+        hint = " (playground tasks need: pip install 'td3-jax[playground]')"
+    guesses = closest_names(name, names)
+    if guesses:
+        return (f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? "
+                f"(`td3-jax envs` lists all {len(names)})")  # fmt: skip
+    return f"unknown environment {name!r}{hint}; known: {', '.join(names)}"
 
 
 def known_names() -> list[str]:
@@ -64,11 +93,7 @@ def make(
     source, _, task = name.partition("/")
     module = _SOURCES.get(source)
     if module is None or task not in module.names():
-        listing = ", ".join(known_names())
-        hint = ""
-        if source == "playground" and not _playground.names():
-            hint = " (playground tasks need: pip install 'td3-jax[playground]')"
-        raise UnknownEnvironmentError(f"unknown environment {name!r}{hint}; known: {listing}")
+        raise UnknownEnvironmentError(_unknown_message(name, source))
     options = options or EnvOptions()
     if source == "playground":
         return module.make(task, backend=backend, episode_length=episode_length, options=options)

@@ -72,7 +72,8 @@ def playground_root() -> Path | None:
     spec = importlib.util.find_spec("mujoco_playground")
     if spec is None or spec.origin is None:
         return None
-    return Path(spec.origin).parent.parent / "external_deps" / "mujoco_menagerie"
+    # mujoco_playground/_src/mjx_env.py: MENAGERIE_PATH = <package>/external_deps/...
+    return Path(spec.origin).parent / "external_deps" / "mujoco_menagerie"
 
 
 def candidates(menagerie: str | os.PathLike | None = None) -> list[tuple[str, Path | None]]:
@@ -115,7 +116,7 @@ def find_root(task: str, menagerie: str | os.PathLike | None = None) -> Path:
 
 def missing_message(task: str, folder: str, package: str, places: list) -> str:
     """The one error of a task whose robot folder is nowhere to be found."""
-    looked = "; ".join(f"{name}: {'not set' if root is None else root}" for name, root in places)
+    looked = "; ".join(f"{name}: {'absent' if root is None else root}" for name, root in places)
     own = places[-1][1] or "mujoco_playground/external_deps/mujoco_menagerie"
     return (
         f"playground/{task} needs the MuJoCo Menagerie robot folder '{folder}', found in none "
