@@ -23,6 +23,7 @@ from td3_jax.config import (
     device_defaults,
     env_preset,
     preset,
+    validate,
 )
 
 USAGE = """\
@@ -393,7 +394,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if source == "device":
         cfg = _scale_to_device(cfg, args)
     if jax.process_index() == 0:
-        _announce(cfg, preset_name, source, jax.default_backend())
+        _announce(validate(cfg), preset_name, source, jax.default_backend())
     try:
         records = train(
             cfg,
