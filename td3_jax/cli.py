@@ -63,8 +63,8 @@ class TrainCommand(TrainConfig):
     resume: bool = False
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
     --total-steps (to extend or shorten the run; not with --lr-schedule cosine),
-    --keep-checkpoints, --checkpoint-every, --eval-envs and --early-evaluation may differ from
-    the run's config.json; other flags must match."""
+    --keep-checkpoints, --checkpoint-every, --eval-envs, --early-evaluation and --menagerie may
+    differ from the run's config.json; other flags must match."""
     preset: PresetName | None = None  # type: ignore[valid-type]
     """Named settings to start from (see `td3-jax presets`); other flags override them.
     Default: the --env's own preset where one exists (said in one line), else settings for the
