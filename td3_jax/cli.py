@@ -7,6 +7,7 @@ Subcommands: ``train`` (flags from :class:`~td3_jax.config.TrainConfig`), ``eval
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.util
 import os
 import sys
@@ -315,13 +316,19 @@ def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
     )
 
 
-def _announce(cfg: TrainConfig, preset_name: str | None, source: str, backend: str) -> None:
-    """Prints which settings the run got, and warnings about its size, before it starts."""
+def _announce(cfg: TrainConfig, preset_name: str | None, source: str) -> None:
+    """Prints which settings the run got, before it starts."""
     for line in (_defaults_note(cfg, preset_name, source), rounding_note(cfg)):
         if line:
             print(line, flush=True)
-    warning = cpu_size_warning(cfg, backend)
-    if warning:
+
+
+def _warn_about_size(cfg: TrainConfig) -> None:
+    """Once the run's environment and directory are good: a GPU-sized run on a CPU is said."""
+    import jax
+
+    warning = cpu_size_warning(cfg, jax.default_backend())
+    if warning and jax.process_index() == 0:
         print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
@@ -394,7 +401,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if source == "device":
         cfg = _scale_to_device(cfg, args)
     if jax.process_index() == 0:
-        _announce(validate(cfg), preset_name, source, jax.default_backend())
+        _announce(validate(cfg), preset_name, source)
     try:
         records = train(
             cfg,
@@ -405,6 +412,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
             sweep=sweep,
             time_budget_s=command.time_budget_s,
             preset=preset_name,
+            on_prepared=functools.partial(_warn_about_size, cfg),
         )
     except KeyboardInterrupt:
         raise Interrupted(interrupted_message(command.out)) from None

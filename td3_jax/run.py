@@ -10,6 +10,7 @@ import dataclasses
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +70,7 @@ def train(
     time_budget_s: float | None = None,
     devices: int | None = None,
     preset: str | None = None,
+    on_prepared: Callable[[], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
@@ -91,6 +93,8 @@ def train(
       devices: data-parallel over this many devices (default: all; see :mod:`td3_jax.sharding`).
         num_envs and batch_size stay global, so the numbers do not depend on the device count.
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
+      on_prepared: called once the settings, environment and directory have been checked,
+        before anything compiles (the CLI prints its warnings there).
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0  # several processes: one writes the logs
@@ -99,6 +103,8 @@ def train(
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, mesh.size, writer, stop_after_chunks, time_budget_s)
     try:
+        if on_prepared is not None:
+            on_prepared()
         run.checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
         state, start_chunk = _start(run, program, compiled, resume)
         if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite

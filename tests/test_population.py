@@ -70,7 +70,10 @@ def test_population_record_carries_the_statistics_over_seeds(three_seeds):
 def test_a_swept_value_trains_like_a_run_configured_with_it(tmp_path):
     """Hyperparameters traced through vmap give the numbers of the constant-config run."""
     sweep = {"actor_lr": [1e-3, 1e-2], "tau": [0.005, 0.05]}
-    records = train(TINY, tmp_path / "sweep", progress=False, sweep=sweep)
+    prepared = []
+    records = train(TINY, tmp_path / "sweep", progress=False, sweep=sweep,
+                    on_prepared=lambda: prepared.append(len(list(tmp_path.iterdir()))))  # fmt: skip
+    assert prepared == [1]  # once, with the run's directory made (and locked), before training
     population = members(TINY, sweep)
     assert len(population) == 4 and len(records[-1]["per_member"]) == 4
     for index in (1, 2):  # two different combinations are enough
