@@ -79,9 +79,8 @@ def train(
     or one holding a previous run when ``resume`` is off, is refused before anything is written.
 
     Args:
-      resume: continue from the newest good checkpoint in ``out_dir`` with the members saved
-        there; ``cfg`` may differ from the saved config only in
-        :data:`td3_jax.rundir.SAFE_ON_RESUME` (recorded in config.json).
+      resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
+        may differ from the saved config only in :data:`td3_jax.rundir.SAFE_ON_RESUME`.
       progress: show a live progress display.
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
         trains ``cfg.seeds`` seeds, all in one program. A member whose losses or parameters
@@ -93,8 +92,7 @@ def train(
       devices: data-parallel over this many devices (default: all; see :mod:`td3_jax.sharding`).
         num_envs and batch_size stay global, so the numbers do not depend on the device count.
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
-      on_prepared: called once the settings, environment and directory have been checked,
-        before anything compiles (the CLI prints its warnings there).
+      on_prepared: called when settings, environment and directory are checked, before compiling.
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0  # several processes: one writes the logs
@@ -111,10 +109,7 @@ def train(
             return run.records
         compiled = compile_ahead(compiled, program, with_init=not resume)
         state = compiled.init() if state is None else state
-        if writer:
-            info = run_info(out_dir, resume=resume, preset=preset, changes=changes,
-                            at_env_steps=start_chunk * cfg.steps_per_chunk)  # fmt: skip
-            save_config(cfg, population, out_dir, info)
+        _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
         run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
         _loop(run, compiled, state, start_chunk)
@@ -124,6 +119,15 @@ def train(
         finally:
             run_lock.release()
     return run.records
+
+
+def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
+                  start_chunk: int) -> None:  # fmt: skip
+    """config.json for the run (or its resume), by the writing process only."""
+    if run.writer:
+        info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
+                        at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
+        save_config(run.cfg, run.population, run.out_dir, info)
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool):
