@@ -17,8 +17,11 @@ instead, to see each one's cost.
 over the preset's environments, traced and compiled once (the least any training program on
 this environment can compile), then its raw env steps/s from its third call.
 
-``--cache DIR`` turns JAX's persistent compilation cache on (a second identical process then
-compiles nothing). Run each measurement in its own process. Prints one JSON line of seconds.
+``--cache DIR`` turns on what ``td3-jax train`` turns on by default: JAX's persistent
+compilation cache in DIR and the traced programs in DIR/programs (a second identical process
+then makes no environment, traces nothing and compiles nothing; ``programs`` in the output
+says whether they were ``stored`` or ``traced``). Run each measurement in its own process.
+Prints one JSON line of seconds.
 """
 
 from __future__ import annotations
@@ -37,9 +40,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from td3_jax import envs, training  # noqa: E402
+from td3_jax import envs, program_cache, training  # noqa: E402
+from td3_jax.cli import enable_compile_cache  # noqa: E402
 from td3_jax.config import preset  # noqa: E402
-from td3_jax.population import compile_ahead, compile_for_mesh, make_population, members  # noqa: E402
+from td3_jax.population import compile_for_mesh, make_population, members  # noqa: E402
 from td3_jax.sharding import make_mesh  # noqa: E402
 
 FLOOR_STEPS = 100
@@ -65,6 +69,7 @@ def parse() -> argparse.Namespace:
     parser.add_argument("--floor", action="store_true", help="time the bare physics instead")
     parser.add_argument("--sequential", action="store_true", help="compile programs in turn")
     parser.add_argument("--cache", default=None, help="persistent compilation cache directory")
+    parser.add_argument("--loop-chunks", type=int, default=0, help="then time this many chunks")
     return parser.parse_args()
 
 
@@ -95,20 +100,23 @@ def floor(cfg, clock: Clock) -> dict[str, float]:
     return {"raw_env_steps_per_s": round(cfg.num_envs * FLOOR_STEPS / seconds)}
 
 
-def run_start(cfg, clock: Clock, sequential: bool) -> None:
-    """The command's start-up: environment, programs, init, first chunk, first evaluation."""
-    env = training.make_env(cfg)
-    clock.lap("make_env")
+def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int = 0) -> dict:
+    """The command's start-up: environment (or stored programs), programs, init, first chunk,
+    first evaluation."""
     population = members(cfg)
     mesh = make_mesh(None)
-    program = make_population(cfg, population, devices=mesh.size, env=env)
-    compiled = compile_for_mesh(program, mesh)
-    clock.lap("make_population")
     if sequential:
-        compiled = _compile_in_turn(compiled, program, clock)
+        env = training.make_env(cfg)
+        clock.lap("make_env")
+        program = make_population(cfg, population, devices=mesh.size, env=env)
+        compiled = _compile_in_turn(compile_for_mesh(program, mesh), program, clock)
+        stored = False
     else:
-        compiled = compile_ahead(compiled, program)
-        clock.lap("trace_and_compile_all")
+        source = program_cache.prepare(cfg, population, mesh, program_dir)
+        stored = source.entry is not None
+        clock.lap("load_programs" if stored else "make_env")
+        compiled = program_cache.compile_programs(source)
+        clock.lap("compile_all" if stored else "trace_and_compile_all")
     state = jax.block_until_ready(compiled.init())
     clock.lap("init_run")
     # The command's first call: the early part of the first chunk (all of it without one).
@@ -118,6 +126,17 @@ def run_start(cfg, clock: Clock, sequential: bool) -> None:
     clock.lap("first_chunk")
     jax.block_until_ready(compiled.evaluate(state))
     clock.lap("first_evaluation")
+    out = {"programs": "stored" if stored else "traced"}
+    if loop_chunks:
+        start = time.perf_counter()
+        for _ in range(loop_chunks):
+            state, metrics = compiled.chunk(
+                compiled.hyperparams, state, np.int32(cfg.iters_per_chunk)
+            )
+        jax.block_until_ready(metrics)
+        steps = loop_chunks * cfg.steps_per_chunk
+        out["loop_env_steps_per_s"] = round(steps / (time.perf_counter() - start))
+    return out
 
 
 def _compile_in_turn(compiled, program, clock: Clock):
@@ -145,11 +164,14 @@ def main() -> None:
     clock.lap("imports")
     jax.devices()
     clock.lap("backend_init")
-    if args.cache:
-        jax.config.update("jax_compilation_cache_dir", args.cache)
+    program_dir = enable_compile_cache(args.cache) if args.cache else None
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = dataclasses.replace(preset(args.preset), **changes)
-    extra = floor(cfg, clock) if args.floor else run_start(cfg, clock, args.sequential) or {}
+    extra = (
+        floor(cfg, clock)
+        if args.floor
+        else run_start(cfg, clock, args.sequential, program_dir, args.loop_chunks)
+    )
     total = round(time.time() - float(os.environ.get("TD3_LAUNCH", _SCRIPT_START)), 2)
     mode = "floor" if args.floor else ("sequential" if args.sequential else "ahead")
     print(json.dumps({"mode": mode, "preset": args.preset, **changes, **clock.times, **extra,

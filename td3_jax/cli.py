@@ -84,7 +84,9 @@ class TrainCommand(TrainConfig):
     """Several hosts: this process's index (or env JAX_PROCESS_ID)."""
     compile_cache: str = "~/.cache/td3-jax/jax"
     """Directory of JAX's persistent compilation cache, so a run with the same shapes starts
-    without compiling again (MJX programs take tens of seconds to compile); 'off' disables it."""
+    without compiling again (MJX programs take tens of seconds to compile), and of the traced
+    programs (its programs/ folder), so a run of the same settings (seed and learning rates
+    may differ) also skips making the environment and tracing; 'off' disables both."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -334,6 +336,8 @@ def _warn_about_size(cfg: TrainConfig) -> None:
 
 #: The persistent compilation cache's size cap (least recently used entries are evicted).
 CACHE_MAX_BYTES = 4 * 1024**3
+#: The folder of the compilation cache that holds the traced programs (td3_jax.program_cache).
+PROGRAMS_FOLDER = "programs"
 
 
 def stamp_cache_entries(path: Path) -> None:
@@ -352,10 +356,11 @@ def stamp_cache_entries(path: Path) -> None:
                 return
 
 
-def enable_compile_cache(directory: str) -> None:
-    """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off)."""
+def enable_compile_cache(directory: str) -> Path | None:
+    """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off) and
+    returns where the traced programs are kept (``directory/programs``; ``None`` when off)."""
     if directory.strip().lower() in ("off", "none", ""):
-        return
+        return None
     import jax
 
     path = Path(directory).expanduser()
@@ -369,6 +374,7 @@ def enable_compile_cache(directory: str) -> None:
     if importlib.util.find_spec("filelock") is not None:  # JAX's cache eviction needs it
         stamp_cache_entries(path)
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    return path / PROGRAMS_FOLDER
 
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
@@ -396,7 +402,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     from td3_jax.sharding import initialize_distributed
 
-    enable_compile_cache(command.compile_cache)
+    program_dir = enable_compile_cache(command.compile_cache)
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     if source == "device":
         cfg = _scale_to_device(cfg, args)
@@ -413,6 +419,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
             time_budget_s=command.time_budget_s,
             preset=preset_name,
             on_prepared=functools.partial(_warn_about_size, cfg),
+            program_dir=program_dir,
         )
     except KeyboardInterrupt:
         raise Interrupted(interrupted_message(command.out)) from None

@@ -116,6 +116,8 @@ class Population(NamedTuple):
       scheduled_evaluate: ``scheduled_evaluate(state) -> returns[num_members, eval_envs]``,
         with the run's own key schedule (:func:`td3_jax.training.evaluation_key`).
       abstract_state: shapes and dtypes of the state (for restoring checkpoints).
+      keys: the members' start keys (``[num_members, 2]``, from their seeds).
+      init_from_keys: ``init_from_keys(keys) -> state`` (``init`` is it of ``keys``).
     """
 
     members: list[Member]
@@ -126,6 +128,8 @@ class Population(NamedTuple):
     evaluate: Callable[[TrainState, jax.Array], jax.Array]
     scheduled_evaluate: Callable[[TrainState], jax.Array]
     abstract_state: Any
+    keys: jax.Array
+    init_from_keys: Callable[[jax.Array], TrainState]
 
     @property
     def env(self) -> envs.Environment:
@@ -137,6 +141,11 @@ def member_hyperparams(cfg: TrainConfig, population: list[Member]) -> training.H
     each = [training.hyperparams(dataclasses.replace(cfg, **dict(m.overrides)))
             for m in population]  # fmt: skip
     return jax.tree.map(lambda *xs: jnp.stack(xs), *each)
+
+
+def member_keys(population: list[Member]) -> jax.Array:
+    """Every member's start key (``[members, 2]``, :func:`td3_jax.training.key_for_seed`)."""
+    return jnp.stack([training.key_for_seed(m.seed) for m in population])
 
 
 def _add_axis(tree: Any) -> Any:
@@ -177,17 +186,18 @@ def make_population(
     """
     lone = len(population) == 1
     spec = training.make_spec(cfg, env, axis_name=None if lone else MEMBERS, env_groups=devices)
-    keys = jnp.stack([training.key_for_seed(m.seed) for m in population])
+    keys = member_keys(population)
     steps = [functools.partial(fn, spec) for fn in
              (training.init, training.evaluate, training.scheduled_evaluate)]  # fmt: skip
     batch = (lambda f: functools.partial(_lone, f)) if lone else (
         lambda f: jax.vmap(f, axis_name=MEMBERS))  # fmt: skip
-    init, evaluate, scheduled = map(batch, steps)
+    init_from_keys, evaluate, scheduled = map(batch, steps)
     chunk = _lone_chunk if lone else _members_chunk
-    init = functools.partial(init, keys)
+    init = functools.partial(init_from_keys, keys)
     return Population(population, spec, member_hyperparams(cfg, population), init,
                       functools.partial(chunk, spec), evaluate, scheduled,
-                      abstract_state=jax.eval_shape(init))  # fmt: skip
+                      abstract_state=jax.eval_shape(init), keys=keys,
+                      init_from_keys=init_from_keys)  # fmt: skip
 
 
 class Compiled(NamedTuple):

@@ -17,17 +17,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
-from td3_jax.population import (
-    Member,
-    Population,
-    compile_ahead,
-    compile_for_mesh,
-    make_population,
-    members,
-)
+from td3_jax.population import Member, members
 from td3_jax.rundir import (  # (re-exported: run.py was their home)
     CONFIG_FILE,
     MEMBERS_FILE,
@@ -40,7 +34,13 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     run_info,
     save_config,
 )
-from td3_jax.sharding import check_divisible, host_value, make_mesh, replay_layout_warning
+from td3_jax.sharding import (
+    check_divisible,
+    host_value,
+    make_mesh,
+    replay_layout_warning,
+    state_shardings,
+)
 from td3_jax.stats import population_stats, return_stats
 
 __all__ = [
@@ -71,6 +71,7 @@ def train(
     devices: int | None = None,
     preset: str | None = None,
     on_prepared: Callable[[], None] | None = None,
+    program_dir: Path | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
@@ -93,21 +94,24 @@ def train(
         num_envs and batch_size stay global, so the numbers do not depend on the device count.
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
       on_prepared: called when settings, environment and directory are checked, before compiling.
+      program_dir: keep the traced programs here, and take them from here when a run of the
+        same settings stored them (:mod:`td3_jax.program_cache`: no environment is made then).
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0  # several processes: one writes the logs
     mesh = make_mesh(devices)
-    population, changes, program, compiled = _prepare(cfg, out_dir, resume, sweep, mesh, writer)
+    population, changes = _prepare(cfg, out_dir, resume, sweep, mesh, writer)
+    source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume)
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, mesh.size, writer, stop_after_chunks, time_budget_s)
     try:
         if on_prepared is not None:
             on_prepared()
         run.checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
-        state, start_chunk = _start(run, program, compiled, resume)
+        state, start_chunk = _start(run, source, resume)
         if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
             return run.records
-        compiled = compile_ahead(compiled, program, with_init=not resume)
+        compiled = program_cache.compile_programs(source)
         state = compiled.init() if state is None else state
         _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
@@ -131,8 +135,7 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool):
-    """Checks ``cfg`` and the directory, then builds the population's program for ``mesh``:
-    ``(members, resume changes, program, compiled)``. Nothing is written yet."""
+    """Checks ``cfg`` and the directory: ``(members, resume changes)``. Nothing is written."""
     validate(cfg)
     check_divisible(cfg, mesh.size)
     layout = replay_layout_warning(cfg, mesh.size)
@@ -143,8 +146,7 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     else:
         check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}
-    program = make_population(cfg, population, devices=mesh.size)
-    return population, changes, program, compile_for_mesh(program, mesh)
+    return population, changes
 
 
 @dataclasses.dataclass
@@ -184,14 +186,14 @@ def _warn_on_failure(action: Any, what: str) -> None:
               "td3-jax plot redraws the curve", file=sys.stderr)  # fmt: skip
 
 
-def _start(run: _Run, program: Population, compiled: Any, resume: bool) -> tuple[Any, int]:
+def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, int]:
     """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run."""
     run.clock_start = time.perf_counter()
     if not resume:
         return None, 0
-    state, meta, start_chunk = run.checkpointer.restore(
-        program.abstract_state, shardings=compiled.shardings
-    )
+    abstract = program_cache.abstract_state(source)
+    shardings = state_shardings(abstract, source.mesh)
+    state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings)
     run.wall_offset = float(meta["wall_time_s"])
     run.diverged = set(meta.get("diverged_members", []))
     return state, start_chunk

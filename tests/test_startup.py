@@ -94,6 +94,12 @@ def on_event(name, *_, **__):
     counts["hits"] += name == "/jax/compilation_cache/cache_hits"
 jax.monitoring.register_event_duration_secs_listener(on_duration)
 jax.monitoring.register_event_listener(on_event)
+from td3_jax import training
+made = training.make_env
+def counted_make_env(*args, **kwargs):
+    counts["envs_made"] = counts.get("envs_made", 0) + 1
+    return made(*args, **kwargs)
+training.make_env = counted_make_env
 from td3_jax.cli import main
 try:
     main(sys.argv[1:])
@@ -115,11 +121,15 @@ def _counted_train(out, cache) -> dict[str, int]:
 
 
 def test_a_second_identical_run_compiles_nothing(tmp_path):
+    # ... and makes no environment: its programs come from the cache's programs/ folder, and
+    # only the compiles of the first run's environment creation are not looked up again.
     first = _counted_train(tmp_path / "a", tmp_path / "cache")
     second = _counted_train(tmp_path / "b", tmp_path / "cache")
     assert first["compiles"] > 0 and first["misses"] > 0, first
+    assert first["envs_made"] == 1, first
     assert second["misses"] == 0, f"the second run compiled again: {second}"
-    assert second["hits"] == first["misses"], (first, second)
+    assert "envs_made" not in second, f"the second run made its environment: {second}"
+    assert 3 <= second["hits"] <= first["misses"], (first, second)
 
 
 def test_a_cache_filled_without_the_size_cap_still_takes_new_entries(tmp_path):

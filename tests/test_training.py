@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from td3_jax import run as run_module
+from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import read_metrics
@@ -329,7 +329,7 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch):
         warmup_steps=16,
     )
     per_chunk = 32
-    real_make_population = run_module.make_population
+    real_make_population = program_cache.make_population
 
     def poisoned_make_population(cfg, population, **kwargs):
         program = real_make_population(cfg, population, **kwargs)
@@ -352,7 +352,7 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch):
 
         return program._replace(chunk=chunk)
 
-    monkeypatch.setattr(run_module, "make_population", poisoned_make_population)
+    monkeypatch.setattr(program_cache, "make_population", poisoned_make_population)
     out = tmp_path / "run"
     with pytest.raises(NonFiniteError, match=rf"env step {3 * per_chunk}\b") as info:
         train(cfg, out, progress=False)

@@ -1,0 +1,428 @@
+"""Traced programs kept across processes, so that a repeated run skips making its environment
+and tracing its programs.
+
+MJX programs are large: tracing a run's three programs (init, chunk, evaluation) takes seconds
+to a minute, and JAX's persistent compilation cache (:func:`td3_jax.cli.enable_compile_cache`)
+only helps after it, since its key is the traced program. This module keeps the traced
+programs themselves: each is exported with :mod:`jax.export` as a function of its flat list of
+array leaves and stored under ``DIR/<key>/``, where the key (:func:`fingerprint`) covers
+everything that shapes the programs: the settings other than the seed and the traced floats
+(:data:`td3_jax.population.SWEEPABLE`), the number of members, the devices, the versions of
+td3-jax's own source, of JAX and of the environment packages, and the robot's asset files.
+
+A later run with the same key deserialises the programs (milliseconds), compiles them (a
+persistent-cache hit when that cache is on) and never makes the environment. The seed, the
+learning rates and the other traced floats are arguments of the programs, so runs that differ
+only in them share an entry. An unreadable entry is a warning and is removed; the run then
+traces as usual. Entries are written whole (a temporary directory renamed into place) and the
+oldest beyond :data:`MAX_ENTRIES` are removed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.metadata
+import json
+import os
+import pickle
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+from jax import export
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from td3_jax.config import TrainConfig
+from td3_jax.population import (
+    SWEEPABLE,
+    Compiled,
+    Member,
+    Population,
+    compile_ahead,
+    compile_for_mesh,
+    make_population,
+    member_hyperparams,
+    member_keys,
+)
+from td3_jax.sharding import replicate, state_shardings
+
+#: Bump when what an entry holds changes.
+FORMAT = 1
+#: Entries kept (the least recently used beyond this are removed when one is written).
+MAX_ENTRIES = 24
+#: Settings that never shape a program: host-side only, or replaced by their None-ness.
+HOST_ONLY = ("seed", "keep_checkpoints", "checkpoint_every", "early_evaluation", "menagerie")
+#: Traced floats whose ``None`` means the algorithm's default value (not another program).
+DEFAULTED = ("actor_lr", "critic_lr", "tau")
+#: Packages whose code is traced into the programs.
+PACKAGES = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco", "mujoco-mjx", "playground",
+            "gymnax")  # fmt: skip
+#: JAX settings that change what tracing produces.
+JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_default_prng_impl",
+                "jax_threefry_partitionable", "jax_numpy_dtype_promotion")  # fmt: skip
+NAMES = ("chunk", "evaluate", "init")
+
+
+class FlatProgram(NamedTuple):
+    """One program as a function of its flat list of input leaves.
+
+    Attributes:
+      exported: the traced program (:class:`jax.export.Exported`).
+      in_specs, out_specs: each input and output leaf's :class:`PartitionSpec` on the mesh.
+      donate: the positions of the inputs whose buffers the program may reuse.
+    """
+
+    exported: export.Exported
+    in_specs: tuple[PartitionSpec, ...]
+    out_specs: tuple[PartitionSpec, ...]
+    donate: tuple[int, ...]
+
+
+@dataclasses.dataclass
+class Entry:
+    """A run's exported programs and their pytree structures.
+
+    ``trees`` (``{name: (input treedef, output treedef)}``, plus ``"state"``: the abstract
+    train state) loads in a thread: unpickling them imports the environment's packages (MJX),
+    which overlaps with compiling.
+    """
+
+    programs: dict[str, FlatProgram]
+    trees: Future
+
+
+def fingerprint(cfg: TrainConfig, overrides: list[tuple[str, ...]], mesh: Mesh) -> str:
+    """The key of the programs of ``cfg`` for members with these swept setting names on
+    ``mesh`` (hex digest; see the module docstring for what it covers)."""
+    settings = dataclasses.asdict(cfg)
+    for name in HOST_ONLY:
+        settings.pop(name)
+    for name in SWEEPABLE:  # traced: only whether one is set can shape a program
+        settings[name] = None if name in DEFAULTED else settings[name] is None
+    if cfg.lr_schedule == "constant":  # a schedule's length is part of the program
+        settings.pop("total_steps")
+    device = mesh.devices.flat[0]
+    described = {
+        "format": FORMAT,
+        "settings": settings,
+        "members": [list(names) for names in overrides],
+        "devices": [device.platform, device.device_kind, mesh.size, jax.process_count()],
+        "jax": {name: str(getattr(jax.config, name, None)) for name in JAX_SETTINGS},
+        "versions": {name: _version(name) for name in PACKAGES},
+        "source": source_digest(),
+        "assets": assets_digest(cfg),
+        "python": sys.version_info[:2],
+    }
+    text = json.dumps(described, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _version(package: str) -> str | None:
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def source_digest() -> str:
+    """A digest of td3-jax's own Python files (a changed file changes every key)."""
+    root = Path(__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def assets_digest(cfg: TrainConfig) -> str | None:
+    """For a Playground locomotion task, a digest of its robot folder's files (names, sizes,
+    modification times) and where it was found; ``None`` for other environments (their files
+    ship in the versioned packages). Raises as making the environment would when none is found.
+    """
+    from td3_jax.envs import menagerie
+
+    source, _, task = cfg.env.partition("/")
+    if source != "playground" or not any(task.startswith(p) for p in menagerie.ROBOTS):
+        return None
+    folder, _ = menagerie.robot(task)
+    root = menagerie.find_root(task, cfg.menagerie)
+    digest = hashlib.sha256(str(root.resolve()).encode())
+    for path in sorted((root / folder).rglob("*")):
+        if path.is_file():
+            stat = path.stat()
+            digest.update(f"{path.relative_to(root)} {stat.st_size} {stat.st_mtime_ns}".encode())
+    return digest.hexdigest()
+
+
+def export_flat(
+    fn: Callable,
+    args: tuple,
+    out_shardings: Callable[[Any], Any],
+    donate: tuple[int, ...] = (),
+) -> tuple[FlatProgram, tuple[Any, Any]]:
+    """Traces ``fn(*args)`` (``args``: ``jax.ShapeDtypeStruct`` leaves with shardings) and
+    exports it as a function of the flat input leaves: ``(program, (in_tree, out_tree))``.
+
+    ``out_shardings(out)``: the output's shardings (a tree like ``out``). ``donate``: the
+    positions in ``args`` whose leaves the program may reuse.
+    """
+    leaves, in_tree = jax.tree.flatten(args)
+    traced: dict[str, Any] = {}
+
+    def flat(*xs: jax.Array) -> list[jax.Array]:
+        out = fn(*jax.tree.unflatten(in_tree, list(xs)))
+        shardings = out_shardings(out)
+        out = jax.lax.with_sharding_constraint(out, shardings)
+        traced["tree"] = jax.tree.structure(out)
+        traced["specs"] = tuple(s.spec for s in jax.tree.leaves(shardings))
+        return jax.tree.leaves(out)
+
+    in_specs = tuple(x.sharding.spec for x in leaves)
+    exported = export.export(jax.jit(flat, in_shardings=[x.sharding for x in leaves]))(*leaves)
+    positions = _leaf_positions(args)
+    donated = tuple(i for arg in donate for i in positions[arg])
+    program = FlatProgram(exported, in_specs, traced["specs"], donated)
+    return program, (in_tree, traced["tree"])
+
+
+def _leaf_positions(args: tuple) -> list[range]:
+    """The flat leaf positions of each argument in ``args``."""
+    positions, start = [], 0
+    for arg in args:
+        count = len(jax.tree.leaves(arg))
+        positions.append(range(start, start + count))
+        start += count
+    return positions
+
+
+def compile_flat(program: FlatProgram, mesh: Mesh) -> Any:
+    """``program`` compiled for ``mesh``: called with the flat input leaves, returns the flat
+    output leaves (other shapes or placements raise instead of recompiling)."""
+    place = lambda specs: [NamedSharding(mesh, spec) for spec in specs]
+    in_shardings = place(program.in_specs)
+    out_shardings = place(program.out_specs)
+    jitted = jax.jit(program.exported.call, in_shardings=in_shardings,
+                     out_shardings=out_shardings, donate_argnums=program.donate)  # fmt: skip
+    avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s)
+             for a, s in zip(program.exported.in_avals, in_shardings, strict=True)]  # fmt: skip
+    return jitted.lower(*avals).compile()
+
+
+def as_tree_function(executable: Any, trees: tuple[Any, Any]) -> Callable:
+    """The flat ``executable`` called with and returning pytrees of ``trees``' structure."""
+    in_tree, out_tree = trees
+
+    def call(*args: Any) -> Any:
+        leaves, tree = jax.tree.flatten(args)
+        if tree != in_tree:
+            raise ValueError(f"expected arguments structured as {in_tree}, got {tree}")
+        return jax.tree.unflatten(out_tree, executable(*leaves))
+
+    return call
+
+
+def save(directory: Path, key: str, programs: dict[str, FlatProgram], trees: dict) -> None:
+    """Writes an entry under ``directory/key`` whole, or warns and writes nothing."""
+    target = directory / key
+    tmp = None
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=directory))
+        for name, program in programs.items():
+            (tmp / f"{name}.bin").write_bytes(program.exported.serialize())
+        layout = {name: (p.in_specs, p.out_specs, p.donate) for name, p in programs.items()}
+        (tmp / "layout.pkl").write_bytes(pickle.dumps({"format": FORMAT, "programs": layout}))
+        (tmp / "trees.pkl").write_bytes(pickle.dumps(trees))
+        os.replace(tmp, target)  # a directory of the same key written meanwhile: kept
+        tmp = None
+        _evict(directory)
+    except OSError as err:
+        _warn(f"could not keep the traced programs in {directory} ({err})")
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def load(directory: Path, key: str, names: tuple[str, ...]) -> Entry | None:
+    """The entry ``directory/key`` with these programs, or ``None`` when there is none (an
+    unreadable one is removed with a warning)."""
+    path = directory / key
+    if not (path / "trees.pkl").is_file():
+        return None
+    try:
+        layout = pickle.loads((path / "layout.pkl").read_bytes())
+        if layout.get("format") != FORMAT or not set(names) <= set(layout["programs"]):
+            return None
+        programs = {name: FlatProgram(export.deserialize(bytearray((path / f"{name}.bin")
+                                                                   .read_bytes())),
+                                      *layout["programs"][name])
+                    for name in names}  # fmt: skip
+        os.utime(path)  # recently used
+    except Exception as err:  # a partial or foreign directory: trace as usual
+        discard(path, err)
+        return None
+    pool = ThreadPoolExecutor(max_workers=1)
+    trees = pool.submit(lambda: pickle.loads((path / "trees.pkl").read_bytes()))
+    pool.shutdown(wait=False)
+    return Entry(programs, trees)
+
+
+def discard(path: Path, err: BaseException) -> None:
+    """Removes the unusable entry ``path``, with a warning naming the cause."""
+    _warn(f"ignored the unreadable traced programs in {path} ({type(err).__name__}: {err}); "
+          "tracing them again")  # fmt: skip
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def _evict(directory: Path) -> None:
+    """Removes the least recently used entries beyond :data:`MAX_ENTRIES`."""
+    entries = [p for p in directory.iterdir() if p.is_dir() and not p.name.startswith(".")]
+    entries.sort(key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in entries[MAX_ENTRIES:]:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _warn(message: str) -> None:
+    if jax.process_index() == 0:
+        print(f"td3-jax: warning: {message}", file=sys.stderr)
+
+
+@dataclasses.dataclass
+class Source:
+    """Where a run's programs come from: a stored :class:`Entry`, or ``program``, the
+    population traced now (and stored under ``directory/key`` once exported)."""
+
+    cfg: TrainConfig
+    population: list[Member]
+    mesh: Mesh
+    names: tuple[str, ...]
+    directory: Path | None = None
+    key: str | None = None
+    entry: Entry | None = None
+    program: Population | None = None
+
+
+def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path | None,
+            with_init: bool = True) -> Source:  # fmt: skip
+    """Looks the run's programs up in ``directory`` (``None``, or several processes: never)
+    and makes the population's program, environment included, only when none is stored."""
+    names = NAMES if with_init else NAMES[:2]
+    source = Source(cfg, population, mesh, names)
+    if directory is not None and jax.process_count() == 1:
+        overrides = [tuple(name for name, _ in m.overrides) for m in population]
+        source.key = fingerprint(cfg, overrides, mesh)
+        source.directory = Path(directory)
+        source.entry = load(source.directory, source.key, names)
+    if source.entry is None:
+        source.program = make_population(cfg, population, devices=mesh.size)
+    return source
+
+
+def abstract_state(source: Source) -> Any:
+    """Shapes and dtypes of the run's train state (for restoring a checkpoint)."""
+    if source.entry is not None:
+        trees = _stored_trees(source)
+        if trees is not None:
+            return trees["state"]
+    return source.program.abstract_state
+
+
+def _stored_trees(source: Source) -> dict | None:
+    """The entry's trees; an unreadable entry is discarded and the program made instead."""
+    try:
+        return source.entry.trees.result()
+    except Exception as err:  # e.g. a class it names no longer exists
+        discard(source.directory / source.key, err)
+        source.entry = None
+        source.program = make_population(source.cfg, source.population,
+                                          devices=source.mesh.size)  # fmt: skip
+        return None
+
+
+def compile_programs(source: Source) -> Compiled:
+    """The run's programs compiled side by side (stored ones deserialised; otherwise each is
+    traced, handed to a thread to compile while the next is traced, then stored).
+
+    Without a directory (or when exporting fails) they are compiled as jitted functions
+    (:func:`td3_jax.population.compile_ahead`), the same programs, stored nowhere.
+    """
+    if source.directory is None:
+        return _compile_plain(source)
+    try:
+        return _compile_exported(source)
+    except _ExportFailed as err:
+        _warn(f"the traced programs cannot be kept ({err.__cause__}); compiling them as usual")
+        return _compile_plain(source)
+
+
+class _ExportFailed(RuntimeError):
+    """jax.export refused a program (the run compiles it the usual way instead)."""
+
+
+def _compile_plain(source: Source) -> Compiled:
+    compiled = compile_for_mesh(source.program, source.mesh)
+    return compile_ahead(compiled, source.program, with_init="init" in source.names)
+
+
+def _compile_exported(source: Source) -> Compiled:
+    with ThreadPoolExecutor(max_workers=len(source.names)) as pool:
+        if source.entry is not None:
+            executables = {name: pool.submit(compile_flat, source.entry.programs[name],
+                                             source.mesh) for name in source.names}  # fmt: skip
+            trees = _stored_trees(source)
+        if source.entry is None:
+            executables, programs, trees = _export_each(source, pool)
+            if source.key is not None:
+                save(source.directory, source.key, programs, trees)
+        executables = {name: future.result() for name, future in executables.items()}
+    return _compiled(source, executables, trees)
+
+
+def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, dict]:
+    """Traces and exports each program, submitting its compile before tracing the next."""
+    program, mesh = source.program, source.mesh
+    replicated = NamedSharding(mesh, PartitionSpec())
+    shardings = state_shardings(program.abstract_state, mesh)
+    place = lambda tree, s: jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(
+        x.shape, x.dtype, sharding=s), tree, s)  # fmt: skip
+    everywhere = lambda tree: jax.tree.map(lambda _: replicated, tree)
+    state = place(program.abstract_state, shardings)
+    hp = place(jax.eval_shape(lambda: program.hyperparams), everywhere(program.hyperparams))
+    scalar = jax.ShapeDtypeStruct((), jax.numpy.int32, sharding=replicated)
+    keys = jax.ShapeDtypeStruct(program.keys.shape, program.keys.dtype, sharding=replicated)
+    plans = {
+        "chunk": (program.chunk, (hp, state, scalar),
+                  lambda out: (shardings, everywhere(out[1])), (1,)),
+        "evaluate": (program.scheduled_evaluate, (state,), everywhere, ()),
+        "init": (program.init_from_keys, (keys,), lambda out: shardings, ()),
+    }  # fmt: skip
+    executables, programs, trees = {}, {}, {"state": program.abstract_state}
+    for name in source.names:
+        try:
+            programs[name], trees[name] = export_flat(*plans[name])
+        except Exception as err:  # e.g. a custom call jax.export does not take
+            raise _ExportFailed(name) from err
+        executables[name] = pool.submit(compile_flat, programs[name], mesh)
+    return executables, programs, trees
+
+
+def _compiled(source: Source, executables: dict, trees: dict) -> Compiled:
+    """The run's :class:`~td3_jax.population.Compiled` over the flat executables."""
+    mesh = source.mesh
+    hp = member_hyperparams(source.cfg, source.population)
+    calls = {name: as_tree_function(executables[name], trees[name]) for name in executables}
+    keys = replicate(member_keys(source.population), mesh)
+    init = calls.get("init")
+    return Compiled(
+        shardings=state_shardings(trees["state"], mesh),
+        hyperparams=jax.tree.map(lambda x: replicate(x, mesh), hp),
+        init=(lambda: init(keys)) if init else None,
+        chunk=calls["chunk"],
+        evaluate=calls["evaluate"],
+    )

@@ -1,0 +1,135 @@
+"""The traced-program store: a repeated run makes no environment and traces nothing, and its
+numbers are those of a run traced from scratch (seed and learning rates included)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+from td3_jax import program_cache, training
+from td3_jax.config import TrainConfig
+from td3_jax.run import train
+from td3_jax.sharding import make_mesh
+
+TINY = TrainConfig(
+    env="gymnax/Pendulum-v1",
+    hidden_sizes=(8,),
+    num_envs=2,
+    eval_envs=2,
+    episode_length=16,
+    eval_every=32,
+    total_steps=3 * 32,
+    updates_per_iter=1,
+    batch_size=8,
+    buffer_size=256,
+    warmup_steps=16,
+)
+NUMBERS = ("env_steps", "eval_return_mean", "critic_loss", "actor_loss", "train_return_mean")
+
+
+def _numbers(records: list[dict]) -> list[tuple]:
+    return [tuple(r[k] for k in NUMBERS) for r in records]
+
+
+def _refuse(*_, **__):
+    """Stands in for making an environment (which tracing any program of one needs)."""
+    raise AssertionError("the environment was made: the programs were traced again")
+
+
+def _key(cfg: TrainConfig) -> str:
+    return program_cache.fingerprint(cfg, [()], make_mesh(None))
+
+
+def test_the_key_covers_what_shapes_the_programs_and_nothing_else():
+    base = _key(TINY)
+    same = [
+        {"seed": 7},
+        {"actor_lr": 3e-4, "critic_lr": 2e-4, "tau": 0.01, "discount": 0.9},
+        {"expl_noise": 0.3, "policy_noise": 0.1, "noise_clip": 0.2},
+        {"total_steps": 10 * 32},  # a constant learning rate: the length is the host's
+        {"keep_checkpoints": 1, "checkpoint_every": 2, "early_evaluation": False},
+    ]
+    for change in same:
+        assert _key(dataclasses.replace(TINY, **change)) == base, change
+    different = [
+        {"hidden_sizes": (16,)},
+        {"num_envs": 4},
+        {"eval_envs": 4},
+        {"seeds": 2},
+        {"algo": "ddpg"},
+        {"env": "brax/ant"},
+        {"max_grad_norm": 1.0},  # clipping on: a different program
+        {"lr_schedule": "cosine"},
+        {"episode_length": 8},
+    ]
+    keys = {_key(dataclasses.replace(TINY, **change)) for change in different}
+    assert base not in keys and len(keys) == len(different)
+    cosine = dataclasses.replace(TINY, lr_schedule="cosine")
+    assert _key(cosine) != _key(dataclasses.replace(cosine, total_steps=10 * 32))
+    mesh = make_mesh(None)
+    assert program_cache.fingerprint(TINY, [("actor_lr",)], mesh) != base  # a sweep's members
+
+
+def test_a_robots_key_follows_its_asset_files(tmp_path):
+    robot = tmp_path / "booster_t1"
+    robot.mkdir()
+    (robot / "t1.xml").write_text("<mujoco/>")
+    cfg = dataclasses.replace(TINY, env="playground/T1JoystickFlatTerrain", menagerie=str(tmp_path))
+    first = program_cache.assets_digest(cfg)
+    assert first is not None and program_cache.assets_digest(cfg) == first
+    (robot / "t1.xml").write_text("<mujoco model='changed'/>")
+    assert program_cache.assets_digest(cfg) != first
+    assert program_cache.assets_digest(TINY) is None  # gymnax: its package's version covers it
+
+
+def test_a_stored_run_traces_nothing_and_matches_a_traced_one(tmp_path, monkeypatch):
+    programs = tmp_path / "programs"
+    first = train(TINY, tmp_path / "a", progress=False, program_dir=programs)
+    (entry,) = [p for p in programs.iterdir() if not p.name.startswith(".")]
+    assert sorted(p.name for p in entry.iterdir()) == [
+        "chunk.bin", "evaluate.bin", "init.bin", "layout.pkl", "trees.pkl"]  # fmt: skip
+    traced = train(TINY, tmp_path / "b", progress=False)  # stored nowhere, jitted as usual
+    assert _numbers(first) == _numbers(traced)
+
+    monkeypatch.setattr(training, "make_env", _refuse)
+    again = train(TINY, tmp_path / "c", progress=False, program_dir=programs)
+    assert _numbers(again) == _numbers(first)
+
+    # Another seed and learning rate are arguments of the same programs: still nothing traced,
+    # and the numbers are a traced run's with those settings.
+    other = dataclasses.replace(TINY, seed=5, actor_lr=3e-4, critic_lr=5e-4)
+    stored = train(other, tmp_path / "d", progress=False, program_dir=programs)
+    monkeypatch.undo()
+    fresh = train(other, tmp_path / "e", progress=False)
+    assert _numbers(stored) == _numbers(fresh) != _numbers(first)
+
+
+def test_a_resume_takes_the_stored_programs(tmp_path, monkeypatch):
+    programs = tmp_path / "programs"
+    whole = train(TINY, tmp_path / "whole", progress=False, program_dir=programs)
+    train(TINY, tmp_path / "run", progress=False, program_dir=programs, stop_after_chunks=1)
+    monkeypatch.setattr(training, "make_env", _refuse)
+    rest = train(TINY, tmp_path / "run", progress=False, program_dir=programs, resume=True)
+    assert _numbers(rest) == _numbers(whole)[-len(rest) :] and len(rest) == 2
+
+
+def test_an_unreadable_entry_is_a_warning_and_is_traced_again(tmp_path, capsys):
+    programs = tmp_path / "programs"
+    first = train(TINY, tmp_path / "a", progress=False, program_dir=programs)
+    (entry,) = [p for p in programs.iterdir() if not p.name.startswith(".")]
+    (entry / "chunk.bin").write_bytes(b"not a program")
+    again = train(TINY, tmp_path / "b", progress=False, program_dir=programs)
+    assert "ignored the unreadable traced programs" in capsys.readouterr().err
+    assert _numbers(again) == _numbers(first)
+    assert (entry / "chunk.bin").read_bytes() != b"not a program"  # stored anew
+
+
+def test_a_program_export_refuses_is_compiled_as_usual(tmp_path, monkeypatch, capsys):
+    def refuse(*_, **__):
+        raise ValueError("custom call not exportable")
+
+    monkeypatch.setattr(program_cache, "export_flat", refuse)
+    records = train(TINY, tmp_path / "a", progress=False, program_dir=tmp_path / "programs")
+    assert "cannot be kept (custom call not exportable)" in capsys.readouterr().err
+    assert len(records) == 3
+    assert not (tmp_path / "programs").exists() or not os.listdir(tmp_path / "programs")
