@@ -115,6 +115,8 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
         source = program_cache.prepare(cfg, population, mesh, program_dir)
         stored = source.entry is not None
         clock.lap("load_programs" if stored else "make_env")
+        if stored:  # when each part of compile_all ends (seconds since it began)
+            _time_parts(source, clock)
         compiled = program_cache.compile_programs(source)
         clock.lap("compile_all" if stored else "trace_and_compile_all")
     state = jax.block_until_ready(compiled.init())
@@ -137,6 +139,21 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
         steps = loop_chunks * cfg.steps_per_chunk
         out["loop_env_steps_per_s"] = round(steps / (time.perf_counter() - start))
     return out
+
+
+def _time_parts(source, clock: Clock) -> None:
+    """Records in ``clock.times`` when the stored trees are unpickled and each stored program
+    is compiled (read back from the compilation cache), in seconds from now."""
+    start, compile_flat = time.time(), program_cache.compile_flat
+    since = lambda: round(time.time() - start, 2)
+
+    def timed(program, mesh):
+        executable = compile_flat(program, mesh)
+        clock.times[f"compile_all_{len(program.out_specs)}_outputs_done"] = since()
+        return executable
+
+    program_cache.compile_flat = timed
+    source.entry.trees.add_done_callback(lambda _: clock.times.update(compile_all_trees=since()))
 
 
 def _compile_in_turn(compiled, program, clock: Clock):

@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from td3_jax import envs, training
 from td3_jax.config import ConfigError, TrainConfig, validate
@@ -137,15 +138,28 @@ class Population(NamedTuple):
 
 
 def member_hyperparams(cfg: TrainConfig, population: list[Member]) -> training.Hyperparams:
-    """Every member's :func:`~td3_jax.training.hyperparams`, stacked (leaves ``[members]``)."""
-    each = [training.hyperparams(dataclasses.replace(cfg, **dict(m.overrides)))
-            for m in population]  # fmt: skip
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *each)
+    """Every member's :func:`~td3_jax.training.hyperparams`, stacked (numpy leaves
+    ``[members]``, computed on the host: no accelerator compiles before the run's programs)."""
+    each = lambda: [training.hyperparams(dataclasses.replace(cfg, **dict(m.overrides)))
+                    for m in population]  # fmt: skip
+    return on_host(lambda: jax.tree.map(lambda *xs: jnp.stack(xs), *each()))
 
 
-def member_keys(population: list[Member]) -> jax.Array:
-    """Every member's start key (``[members, 2]``, :func:`td3_jax.training.key_for_seed`)."""
-    return jnp.stack([training.key_for_seed(m.seed) for m in population])
+def member_keys(population: list[Member]) -> np.ndarray:
+    """Every member's start key (``[members, 2]``, :func:`td3_jax.training.key_for_seed`),
+    computed on the host."""
+    return on_host(lambda: jnp.stack([training.key_for_seed(m.seed) for m in population]))
+
+
+def on_host(make: Callable[[], Any]) -> Any:
+    """``make()`` computed on the CPU, as numpy arrays: a few tiny operations that would each
+    be compiled (or looked up in the compilation cache) for the accelerator otherwise."""
+    try:
+        cpu = jax.devices("cpu")[0]
+    except RuntimeError:  # no CPU backend (JAX_PLATFORMS names only the accelerator)
+        return jax.tree.map(np.asarray, make())
+    with jax.default_device(cpu):
+        return jax.tree.map(np.asarray, make())
 
 
 def _add_axis(tree: Any) -> Any:

@@ -375,13 +375,22 @@ def _compile_exported(source: Source) -> Compiled:
         if source.entry is not None:
             executables = {name: pool.submit(compile_flat, source.entry.programs[name],
                                              source.mesh) for name in source.names}  # fmt: skip
+            inputs = _placed_inputs(source)  # while the programs are read back
             trees = _stored_trees(source)
         if source.entry is None:
             executables, programs, trees = _export_each(source, pool)
             if source.key is not None:
                 save(source.directory, source.key, programs, trees)
+            inputs = _placed_inputs(source)
         executables = {name: future.result() for name, future in executables.items()}
-    return _compiled(source, executables, trees)
+    return _compiled(source, executables, trees, *inputs)
+
+
+def _placed_inputs(source: Source) -> tuple[Any, Any]:
+    """The members' hyperparameters and start keys, replicated on the mesh."""
+    hp = member_hyperparams(source.cfg, source.population)
+    place = lambda x: replicate(x, source.mesh)
+    return jax.tree.map(place, hp), place(member_keys(source.population))
 
 
 def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, dict]:
@@ -412,16 +421,13 @@ def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, 
     return executables, programs, trees
 
 
-def _compiled(source: Source, executables: dict, trees: dict) -> Compiled:
+def _compiled(source: Source, executables: dict, trees: dict, hp: Any, keys: Any) -> Compiled:
     """The run's :class:`~td3_jax.population.Compiled` over the flat executables."""
-    mesh = source.mesh
-    hp = member_hyperparams(source.cfg, source.population)
     calls = {name: as_tree_function(executables[name], trees[name]) for name in executables}
-    keys = replicate(member_keys(source.population), mesh)
     init = calls.get("init")
     return Compiled(
-        shardings=state_shardings(trees["state"], mesh),
-        hyperparams=jax.tree.map(lambda x: replicate(x, mesh), hp),
+        shardings=state_shardings(trees["state"], source.mesh),
+        hyperparams=hp,
         init=(lambda: init(keys)) if init else None,
         chunk=calls["chunk"],
         evaluate=calls["evaluate"],
