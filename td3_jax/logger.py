@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +29,7 @@ class MetricsLogger:
         with self.path.open("w") as f:
             for record in kept:
                 f.write(json.dumps(record) + "\n")
-        from tensorboardX import SummaryWriter
-
+        SummaryWriter = _summary_writer_class()
         # On resume, points logged after the restored checkpoint are dropped here too.
         purge = resume_env_steps + 1 if resume_env_steps else None
         self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"), purge_step=purge)
@@ -48,6 +48,26 @@ class MetricsLogger:
     def close(self) -> None:
         if self.enabled:
             self._tb.close()
+
+
+def _summary_writer_class() -> type:
+    """tensorboardX's ``SummaryWriter``, imported without PyTorch.
+
+    tensorboardX's writer module imports ``torch`` when it is installed, only to name a type
+    (several seconds at every run's start on a machine with PyTorch). Unless something has
+    already imported it, ``torch`` is hidden while tensorboardX loads and then made importable
+    again; td3-jax logs plain floats, which need no ``torch``.
+    """
+    if "tensorboardX.writer" in sys.modules or "torch" in sys.modules:
+        from tensorboardX import SummaryWriter
+
+        return SummaryWriter
+    sys.modules["torch"] = None  # an ImportError for tensorboardX's `import torch`
+    try:
+        from tensorboardX import SummaryWriter
+    finally:
+        del sys.modules["torch"]
+    return SummaryWriter
 
 
 def _number(value: Any) -> float:

@@ -129,7 +129,7 @@ class Population(NamedTuple):
     evaluate: Callable[[TrainState, jax.Array], jax.Array]
     scheduled_evaluate: Callable[[TrainState], jax.Array]
     abstract_state: Any
-    keys: jax.Array
+    keys: np.ndarray
     init_from_keys: Callable[[jax.Array], TrainState]
 
     @property
@@ -155,7 +155,7 @@ def on_host(make: Callable[[], Any]) -> Any:
     """``make()`` computed on the CPU, as numpy arrays: a few tiny operations that would each
     be compiled (or looked up in the compilation cache) for the accelerator otherwise."""
     try:
-        cpu = jax.devices("cpu")[0]
+        cpu = jax.local_devices(backend="cpu")[0]  # this process's own (several processes)
     except RuntimeError:  # no CPU backend (JAX_PLATFORMS names only the accelerator)
         return jax.tree.map(np.asarray, make())
     with jax.default_device(cpu):

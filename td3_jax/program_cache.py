@@ -5,22 +5,28 @@ MJX programs are large: tracing a run's three programs (init, chunk, evaluation)
 to a minute, and JAX's persistent compilation cache (:func:`td3_jax.cli.enable_compile_cache`)
 only helps after it, since its key is the traced program. This module keeps the traced
 programs themselves: each is exported with :mod:`jax.export` as a function of its flat list of
-array leaves and stored under ``DIR/<key>/``, where the key (:func:`fingerprint`) covers
-everything that shapes the programs: the settings other than the seed and the traced floats
-(:data:`td3_jax.population.SWEEPABLE`), the number of members, the devices, the versions of
-td3-jax's own source, of JAX and of the environment packages, and the robot's asset files.
+array leaves and stored under ``DIR/<key>/``, where the key (:func:`fingerprint`) covers what
+shapes the programs: the settings other than the seed and the traced floats
+(:data:`td3_jax.population.SWEEPABLE`), the number of members, the devices, JAX's settings,
+td3-jax's own source, the versions of JAX and of the environment packages, and the robot's
+asset files. It does not see code changed under an unchanged version (an editable install of
+Brax or Playground being edited): use ``--compile-cache off`` or another directory then.
 
 A later run with the same key deserialises the programs (milliseconds), compiles them (a
 persistent-cache hit when that cache is on) and never makes the environment. The seed, the
 learning rates and the other traced floats are arguments of the programs, so runs that differ
-only in them share an entry. An unreadable entry is a warning and is removed; the run then
-traces as usual. Entries are written whole (a temporary directory renamed into place) and the
-oldest beyond :data:`MAX_ENTRIES` are removed.
+only in them share an entry. An entry that cannot be read or compiled is a warning and is
+removed, and the run traces as usual; so is a program :mod:`jax.export` refuses (it is then
+compiled as a jitted function and not stored). Entries are written whole (a temporary
+directory renamed into place) and the least recently used beyond :data:`MAX_ENTRIES` are
+removed. Several processes of one run (:mod:`jax.distributed`) do not use it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import hashlib
 import importlib.metadata
 import json
@@ -29,6 +35,7 @@ import pickle
 import shutil
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -56,16 +63,18 @@ from td3_jax.sharding import replicate, state_shardings
 FORMAT = 1
 #: Entries kept (the least recently used beyond this are removed when one is written).
 MAX_ENTRIES = 24
-#: Settings that never shape a program: host-side only, or replaced by their None-ness.
+#: Settings that never shape a program (host-side only; ``menagerie``: the asset digest
+#: stands for it).
 HOST_ONLY = ("seed", "keep_checkpoints", "checkpoint_every", "early_evaluation", "menagerie")
 #: Traced floats whose ``None`` means the algorithm's default value (not another program).
 DEFAULTED = ("actor_lr", "critic_lr", "tau")
 #: Packages whose code is traced into the programs.
-PACKAGES = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco", "mujoco-mjx", "playground",
-            "gymnax")  # fmt: skip
-#: JAX settings that change what tracing produces.
-JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_default_prng_impl",
-                "jax_threefry_partitionable", "jax_numpy_dtype_promotion")  # fmt: skip
+PACKAGES = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco", "mujoco-core", "mujoco-mjx",
+            "warp-lang", "playground", "gymnax")  # fmt: skip
+#: Parts of JAX settings' names that mark them as not changing what tracing produces (every
+#: other setting is in the key).
+UNTRACED_SETTINGS = ("cache", "log", "traceback", "debug", "profil", "topology", "platform",
+                     "dump")  # fmt: skip
 NAMES = ("chunk", "evaluate", "init")
 
 
@@ -113,7 +122,7 @@ def fingerprint(cfg: TrainConfig, overrides: list[tuple[str, ...]], mesh: Mesh) 
         "settings": settings,
         "members": [list(names) for names in overrides],
         "devices": [device.platform, device.device_kind, mesh.size, jax.process_count()],
-        "jax": {name: str(getattr(jax.config, name, None)) for name in JAX_SETTINGS},
+        "jax": _jax_settings(),
         "versions": {name: _version(name) for name in PACKAGES},
         "source": source_digest(),
         "assets": assets_digest(cfg),
@@ -121,6 +130,12 @@ def fingerprint(cfg: TrainConfig, overrides: list[tuple[str, ...]], mesh: Mesh) 
     }
     text = json.dumps(described, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _jax_settings() -> dict[str, str]:
+    """JAX's settings that may change a trace (all but :data:`UNTRACED_SETTINGS`)."""
+    values = jax.config.values.items()
+    return {k: str(v) for k, v in values if not any(part in k for part in UNTRACED_SETTINGS)}
 
 
 def _version(package: str) -> str | None:
@@ -228,45 +243,62 @@ def as_tree_function(executable: Any, trees: tuple[Any, Any]) -> Callable:
 
 
 def save(directory: Path, key: str, programs: dict[str, FlatProgram], trees: dict) -> None:
-    """Writes an entry under ``directory/key`` whole, or warns and writes nothing."""
+    """Writes an entry under ``directory/key`` whole (replacing an incomplete one), or warns
+    and writes nothing; another process's entry of the same key, written meanwhile, is kept."""
     target = directory / key
     tmp = None
     try:
         directory.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=directory))
-        for name, program in programs.items():
-            (tmp / f"{name}.bin").write_bytes(program.exported.serialize())
-        layout = {name: (p.in_specs, p.out_specs, p.donate) for name, p in programs.items()}
-        (tmp / "layout.pkl").write_bytes(pickle.dumps({"format": FORMAT, "programs": layout}))
-        (tmp / "trees.pkl").write_bytes(pickle.dumps(trees))
-        os.replace(tmp, target)  # a directory of the same key written meanwhile: kept
-        tmp = None
+        _write_entry(tmp, programs, trees)
+        shutil.rmtree(target, ignore_errors=True)  # an incomplete entry (see load)
+        try:
+            os.replace(tmp, target)
+        except OSError as err:
+            if err.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+        else:
+            tmp = None
         _evict(directory)
-    except OSError as err:
-        _warn(f"could not keep the traced programs in {directory} ({err})")
+    except Exception as err:  # a full disk, a read-only cache, an unpicklable structure
+        _warn(f"could not keep the traced programs in {directory} ({type(err).__name__}: {err})")
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+def _write_entry(path: Path, programs: dict[str, FlatProgram], trees: dict) -> None:
+    """The files of an entry, readable by whoever may read ``path``'s parent."""
+    for name, program in programs.items():
+        (path / f"{name}.bin").write_bytes(program.exported.serialize())
+    layout = {name: (p.in_specs, p.out_specs, p.donate) for name, p in programs.items()}
+    (path / "layout.pkl").write_bytes(pickle.dumps({"format": FORMAT, "programs": layout}))
+    (path / "trees.pkl").write_bytes(pickle.dumps(trees))
+    umask = os.umask(0)
+    os.umask(umask)
+    path.chmod(0o777 & ~umask)  # mkdtemp made it private
+
+
 def load(directory: Path, key: str, names: tuple[str, ...]) -> Entry | None:
-    """The entry ``directory/key`` with these programs, or ``None`` when there is none (an
-    unreadable one is removed with a warning)."""
+    """The entry ``directory/key`` with these programs, or ``None``: when there is none, when
+    it lacks one of them (the run then traces and replaces it), or when it is unreadable (it
+    is removed with a warning)."""
     path = directory / key
-    if not (path / "trees.pkl").is_file():
-        return None
     try:
+        if not (path / "trees.pkl").is_file():
+            return None
         layout = pickle.loads((path / "layout.pkl").read_bytes())
-        if layout.get("format") != FORMAT or not set(names) <= set(layout["programs"]):
+        if not set(names) <= set(layout["programs"]):
             return None
         programs = {name: FlatProgram(export.deserialize(bytearray((path / f"{name}.bin")
                                                                    .read_bytes())),
                                       *layout["programs"][name])
                     for name in names}  # fmt: skip
-        os.utime(path)  # recently used
     except Exception as err:  # a partial or foreign directory: trace as usual
         discard(path, err)
         return None
+    with contextlib.suppress(OSError):  # recently used (a read-only cache stays as it is)
+        os.utime(path)
     pool = ThreadPoolExecutor(max_workers=1)
     trees = pool.submit(lambda: pickle.loads((path / "trees.pkl").read_bytes()))
     pool.shutdown(wait=False)
@@ -275,16 +307,22 @@ def load(directory: Path, key: str, names: tuple[str, ...]) -> Entry | None:
 
 def discard(path: Path, err: BaseException) -> None:
     """Removes the unusable entry ``path``, with a warning naming the cause."""
-    _warn(f"ignored the unreadable traced programs in {path} ({type(err).__name__}: {err}); "
+    _warn(f"ignored the unusable traced programs in {path} ({type(err).__name__}: {err}); "
           "tracing them again")  # fmt: skip
     shutil.rmtree(path, ignore_errors=True)
 
 
 def _evict(directory: Path) -> None:
-    """Removes the least recently used entries beyond :data:`MAX_ENTRIES`."""
-    entries = [p for p in directory.iterdir() if p.is_dir() and not p.name.startswith(".")]
-    entries.sort(key=lambda p: p.stat().st_mtime, reverse=True)
-    for old in entries[MAX_ENTRIES:]:
+    """Removes the least recently used entries beyond :data:`MAX_ENTRIES`, and temporary
+    folders older than an hour (left by processes that were killed while writing)."""
+    stamped = []
+    for path in directory.iterdir():
+        with contextlib.suppress(OSError):  # removed meanwhile by another process
+            stamped.append((path.stat().st_mtime, path))
+    stale = time.time() - 3600
+    temporary = [p for t, p in stamped if p.name.startswith(".") and t < stale]
+    entries = sorted((item for item in stamped if not item[1].name.startswith(".")), reverse=True)
+    for old in temporary + [p for _, p in entries[MAX_ENTRIES:]]:
         shutil.rmtree(old, ignore_errors=True)
 
 
@@ -325,37 +363,41 @@ def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: P
 
 
 def abstract_state(source: Source) -> Any:
-    """Shapes and dtypes of the run's train state (for restoring a checkpoint)."""
+    """Shapes and dtypes of the run's train state (for restoring a checkpoint); an entry whose
+    structure cannot be read is given up (:func:`_give_up_entry`)."""
     if source.entry is not None:
-        trees = _stored_trees(source)
-        if trees is not None:
-            return trees["state"]
+        try:
+            return source.entry.trees.result()["state"]
+        except Exception as err:  # e.g. a class it names no longer exists
+            _give_up_entry(source, err)
     return source.program.abstract_state
 
 
-def _stored_trees(source: Source) -> dict | None:
-    """The entry's trees; an unreadable entry is discarded and the program made instead."""
-    try:
-        return source.entry.trees.result()
-    except Exception as err:  # e.g. a class it names no longer exists
-        discard(source.directory / source.key, err)
-        source.entry = None
-        source.program = make_population(source.cfg, source.population,
-                                          devices=source.mesh.size)  # fmt: skip
-        return None
+def _give_up_entry(source: Source, err: BaseException) -> None:
+    """Discards the source's unusable entry and makes the population's program instead (its
+    environment included), so the run traces as if nothing had been stored."""
+    discard(source.directory / source.key, err)
+    source.entry = None
+    source.program = make_population(source.cfg, source.population, devices=source.mesh.size)
 
 
 def compile_programs(source: Source) -> Compiled:
-    """The run's programs compiled side by side (stored ones deserialised; otherwise each is
-    traced, handed to a thread to compile while the next is traced, then stored).
+    """The run's programs compiled side by side: stored ones read back, otherwise each is
+    traced, handed to a thread to compile while the next is traced, then stored.
 
     Without a directory (or when exporting fails) they are compiled as jitted functions
-    (:func:`td3_jax.population.compile_ahead`), the same programs, stored nowhere.
+    (:func:`td3_jax.population.compile_ahead`), the same programs, stored nowhere. A stored
+    entry that fails to compile is given up and the programs traced instead.
     """
     if source.directory is None:
         return _compile_plain(source)
+    if source.entry is not None:
+        try:
+            return _compile_stored(source)
+        except Exception as err:  # e.g. a program that reads back but does not compile
+            _give_up_entry(source, err)
     try:
-        return _compile_exported(source)
+        return _compile_traced(source)
     except _ExportFailed as err:
         _warn(f"the traced programs cannot be kept ({err.__cause__}); compiling them as usual")
         return _compile_plain(source)
@@ -370,19 +412,25 @@ def _compile_plain(source: Source) -> Compiled:
     return compile_ahead(compiled, source.program, with_init="init" in source.names)
 
 
-def _compile_exported(source: Source) -> Compiled:
+def _compile_stored(source: Source) -> Compiled:
+    """The stored programs compiled side by side (read back from the compilation cache)."""
     with ThreadPoolExecutor(max_workers=len(source.names)) as pool:
-        if source.entry is not None:
-            executables = {name: pool.submit(compile_flat, source.entry.programs[name],
-                                             source.mesh) for name in source.names}  # fmt: skip
-            inputs = _placed_inputs(source)  # while the programs are read back
-            trees = _stored_trees(source)
-        if source.entry is None:
-            executables, programs, trees = _export_each(source, pool)
-            if source.key is not None:
-                save(source.directory, source.key, programs, trees)
-            inputs = _placed_inputs(source)
-        executables = {name: future.result() for name, future in executables.items()}
+        futures = {name: pool.submit(compile_flat, source.entry.programs[name], source.mesh)
+                   for name in source.names}  # fmt: skip
+        inputs = _placed_inputs(source)  # while the programs are read back
+        trees = source.entry.trees.result()
+        executables = {name: future.result() for name, future in futures.items()}
+    return _compiled(source, executables, trees, *inputs)
+
+
+def _compile_traced(source: Source) -> Compiled:
+    """The programs traced and exported (all of them, so the stored entry is complete), the
+    run's compiled side by side, then stored."""
+    with ThreadPoolExecutor(max_workers=len(NAMES)) as pool:
+        futures, programs, trees = _export_each(source, pool)
+        save(source.directory, source.key, programs, trees)
+        inputs = _placed_inputs(source)
+        executables = {name: future.result() for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
@@ -394,7 +442,8 @@ def _placed_inputs(source: Source) -> tuple[Any, Any]:
 
 
 def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, dict]:
-    """Traces and exports each program, submitting its compile before tracing the next."""
+    """Traces and exports each program, submitting the compile of each the run needs before
+    tracing the next."""
     program, mesh = source.program, source.mesh
     replicated = NamedSharding(mesh, PartitionSpec())
     shardings = state_shardings(program.abstract_state, mesh)
@@ -412,12 +461,13 @@ def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, 
         "init": (program.init_from_keys, (keys,), lambda out: shardings, ()),
     }  # fmt: skip
     executables, programs, trees = {}, {}, {"state": program.abstract_state}
-    for name in source.names:
+    for name in NAMES:
         try:
             programs[name], trees[name] = export_flat(*plans[name])
         except Exception as err:  # e.g. a custom call jax.export does not take
             raise _ExportFailed(name) from err
-        executables[name] = pool.submit(compile_flat, programs[name], mesh)
+        if name in source.names:  # a resume needs no init, but the entry keeps it
+            executables[name] = pool.submit(compile_flat, programs[name], mesh)
     return executables, programs, trees
 
 

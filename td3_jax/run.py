@@ -93,7 +93,8 @@ def train(
       devices: data-parallel over this many devices (default: all; see :mod:`td3_jax.sharding`).
         num_envs and batch_size stay global, so the numbers do not depend on the device count.
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
-      on_prepared: called when settings, environment and directory are checked, before compiling.
+      on_prepared: called when the settings and directory are checked and the environment made
+        (or its programs found stored), before compiling.
       program_dir: keep the traced programs here, and take them from here when a run of the
         same settings stored them (:mod:`td3_jax.program_cache`: no environment is made then).
     """

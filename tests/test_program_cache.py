@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import jax
+
 from td3_jax import program_cache, training
 from td3_jax.config import TrainConfig
 from td3_jax.run import train
@@ -61,6 +63,10 @@ def test_the_key_covers_what_shapes_the_programs_and_nothing_else():
         {"max_grad_norm": 1.0},  # clipping on: a different program
         {"lr_schedule": "cosine"},
         {"episode_length": 8},
+        {"expl_noise_min": 0.01, "expl_noise_max": 0.4},  # per-environment stds: a draw state
+        {"actor_obs_key": "privileged_state"},
+        {"pushes": "off"},
+        {"domain_randomization": True},
     ]
     keys = {_key(dataclasses.replace(TINY, **change)) for change in different}
     assert base not in keys and len(keys) == len(different)
@@ -68,6 +74,8 @@ def test_the_key_covers_what_shapes_the_programs_and_nothing_else():
     assert _key(cosine) != _key(dataclasses.replace(cosine, total_steps=10 * 32))
     mesh = make_mesh(None)
     assert program_cache.fingerprint(TINY, [("actor_lr",)], mesh) != base  # a sweep's members
+    with jax.default_matmul_precision("highest"):  # a JAX setting that changes the trace
+        assert _key(TINY) != base
 
 
 def test_a_robots_key_follows_its_asset_files(tmp_path):
@@ -113,15 +121,36 @@ def test_a_resume_takes_the_stored_programs(tmp_path, monkeypatch):
     assert _numbers(rest) == _numbers(whole)[-len(rest) :] and len(rest) == 2
 
 
-def test_an_unreadable_entry_is_a_warning_and_is_traced_again(tmp_path, capsys):
+def test_a_resume_that_traces_stores_what_a_fresh_run_needs(tmp_path, monkeypatch):
+    # The first store is a resume's (it compiles no init, but stores it): a fresh run after it
+    # then makes no environment either.
+    expected = train(TINY, tmp_path / "plain", progress=False)
+    train(TINY, tmp_path / "run", progress=False, stop_after_chunks=1)
+    programs = tmp_path / "programs"
+    train(TINY, tmp_path / "run", progress=False, program_dir=programs, resume=True)
+    monkeypatch.setattr(training, "make_env", _refuse)
+    fresh = train(TINY, tmp_path / "fresh", progress=False, program_dir=programs)
+    assert _numbers(fresh) == _numbers(expected)
+
+
+def test_an_unusable_entry_is_a_warning_and_is_traced_again(tmp_path, capsys):
+    # Unreadable bytes, a program that reads back but does not compile (another program's in
+    # its place) and an unreadable structure: each is reported, traced again and stored anew.
     programs = tmp_path / "programs"
     first = train(TINY, tmp_path / "a", progress=False, program_dir=programs)
     (entry,) = [p for p in programs.iterdir() if not p.name.startswith(".")]
-    (entry / "chunk.bin").write_bytes(b"not a program")
-    again = train(TINY, tmp_path / "b", progress=False, program_dir=programs)
-    assert "ignored the unreadable traced programs" in capsys.readouterr().err
-    assert _numbers(again) == _numbers(first)
-    assert (entry / "chunk.bin").read_bytes() != b"not a program"  # stored anew
+    breakages = {
+        "chunk.bin": lambda: b"not a program",
+        "evaluate.bin": lambda: (entry / "init.bin").read_bytes(),
+        "trees.pkl": lambda: b"not a pickle",
+    }
+    for run, (name, broken) in enumerate(breakages.items()):
+        bad = broken()
+        (entry / name).write_bytes(bad)
+        again = train(TINY, tmp_path / f"b{run}", progress=False, program_dir=programs)
+        assert "ignored the unusable traced programs" in capsys.readouterr().err, name
+        assert _numbers(again) == _numbers(first), name
+        assert (entry / name).read_bytes() != bad, name  # stored anew
 
 
 def test_a_program_export_refuses_is_compiled_as_usual(tmp_path, monkeypatch, capsys):

@@ -143,3 +143,26 @@ def test_a_cache_filled_without_the_size_cap_still_takes_new_entries(tmp_path):
     assert (cache / "jit_old-0123-atime").exists()
     written = [p for p in cache.glob("*-cache") if p.name != "jit_old-0123-cache"]
     assert len(written) == counts["misses"], (counts, sorted(p.name for p in written))
+
+
+def test_the_metrics_logger_does_not_import_pytorch(tmp_path):
+    # tensorboardX's writer imports torch when it can (seconds at every start on a machine with
+    # PyTorch); a stand-in torch package on the path records whether anything imported it.
+    fake = tmp_path / "site" / "torch"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("import builtins\nbuiltins.TORCH_IMPORTED = True\n")
+    script = (
+        "import builtins, sys\n"
+        f"sys.path.insert(0, {str(tmp_path / 'site')!r})\n"
+        "from td3_jax.logger import MetricsLogger\n"
+        f"logger = MetricsLogger({str(tmp_path / 'run')!r})\n"
+        "logger.write({'env_steps': 1, 'eval_return_mean': 2.0})\n"
+        "logger.close()\n"
+        "assert not getattr(builtins, 'TORCH_IMPORTED', False), 'torch was imported'\n"
+        "import torch\n"  # and torch stays importable afterwards
+        "assert builtins.TORCH_IMPORTED\n"
+    )
+    (tmp_path / "run").mkdir()
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
