@@ -85,8 +85,9 @@ class TrainCommand(TrainConfig):
     compile_cache: str = "~/.cache/td3-jax/jax"
     """Directory of JAX's persistent compilation cache, so a run with the same shapes starts
     without compiling again (MJX programs take tens of seconds to compile), and of the traced
-    programs (its programs/ folder), so a run of the same settings (seed and learning rates
-    may differ) also skips making the environment and tracing; 'off' disables both."""
+    programs (its programs/ folder), so a run of the same settings (the seed and the float
+    settings that --sweep-* takes may differ) also skips making the environment and tracing;
+    'off' disables both."""
 
 
 @dataclasses.dataclass(frozen=True)

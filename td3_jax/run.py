@@ -75,36 +75,31 @@ def train(
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
-    Returns the evaluation records written by this call (also appended to metrics.jsonl). The
-    run holds ``out_dir``'s lock throughout (see :mod:`td3_jax.rundir`); a directory in use,
-    or one holding a previous run when ``resume`` is off, is refused before anything is written.
+    Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
+    throughout (:mod:`td3_jax.rundir`); a busy one, or a used one without ``resume``, is refused.
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
         may differ from the saved config only in :data:`td3_jax.rundir.SAFE_ON_RESUME`.
       progress: show a live progress display.
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
-        trains ``cfg.seeds`` seeds, all in one program. A member whose losses or parameters
-        become non-finite is marked diverged (its records hold null returns) and the others go
-        on; the run stops only when every member has diverged.
+        trains ``cfg.seeds`` seeds in one program. A member whose losses or parameters become
+        non-finite is marked diverged (null returns); the run stops when all have diverged.
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call; for tests.
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock (compile included; counted across resumes). The run stays resumable.
-      devices: data-parallel over this many devices (default: all; see :mod:`td3_jax.sharding`).
-        num_envs and batch_size stay global, so the numbers do not depend on the device count.
+      devices: data-parallel over this many devices (default: all; :mod:`td3_jax.sharding`);
+        num_envs and batch_size stay global, so the numbers do not depend on it.
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
-      on_prepared: called when the settings and directory are checked and the environment made
-        (or its programs found stored), before compiling.
-      program_dir: keep the traced programs here, and take them from here when a run of the
-        same settings stored them (:mod:`td3_jax.program_cache`: no environment is made then).
+      on_prepared: called once settings, directory and environment are checked (not compiled).
+      program_dir: where traced programs are stored and found (:mod:`td3_jax.program_cache`).
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0  # several processes: one writes the logs
-    mesh = make_mesh(devices)
-    population, changes = _prepare(cfg, out_dir, resume, sweep, mesh, writer)
-    source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume)
+    prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir)
+    population, changes, source = prepared
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
-    run = _Run(cfg, out_dir, population, mesh.size, writer, stop_after_chunks, time_budget_s)
+    run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s)
     try:
         if on_prepared is not None:
             on_prepared()
@@ -135,8 +130,10 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
         save_config(run.cfg, run.population, run.out_dir, info)
 
 
-def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool):
-    """Checks ``cfg`` and the directory: ``(members, resume changes)``. Nothing is written."""
+def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
+             program_dir: Path | None):  # fmt: skip
+    """Checks ``cfg`` and the directory, then finds the run's programs (stored ones, else the
+    environment is made): ``(members, resume changes, program source)``. Nothing is written."""
     validate(cfg)
     check_divisible(cfg, mesh.size)
     layout = replay_layout_warning(cfg, mesh.size)
@@ -147,7 +144,10 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     else:
         check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}
-    return population, changes
+    source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume)
+    if source.entry is not None and writer:
+        print(f"using the traced programs stored in {source.directory / source.key}")
+    return population, changes, source
 
 
 @dataclasses.dataclass

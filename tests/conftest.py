@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
+
 import jax
 from hypothesis import HealthCheck, settings
+
+# The CLI's default --compile-cache is ~/.cache/td3-jax/jax (with its traced programs): tests
+# that leave it at its default write into a home of their own, not the user's cache.
+os.environ["HOME"] = tempfile.mkdtemp(prefix="td3-jax-tests-home-")
 
 # Everything in the library is float32 / int32; keep the tests on the same footing.
 jax.config.update("jax_enable_x64", False)
