@@ -255,6 +255,17 @@ def _with_sharding(abstract: Any, shardings: Any) -> Any:
     )
 
 
+def chunk_argument_specs(program: Population, shardings: Any) -> tuple[Any, Any, Any]:
+    """The chunk's abstract arguments ``(hp, state, iterations)`` placed on a mesh: the state
+    by ``shardings`` (:func:`td3_jax.sharding.state_shardings`), the others replicated."""
+    mesh = jax.tree.leaves(shardings)[0].mesh
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    hp = jax.eval_shape(lambda: program.hyperparams)
+    hp_spec = _with_sharding(hp, jax.tree.map(lambda _: replicated, hp))
+    iterations = jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
+    return hp_spec, _with_sharding(program.abstract_state, shardings), iterations
+
+
 def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True) -> Compiled:
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
@@ -263,11 +274,7 @@ def compile_ahead(compiled: Compiled, program: Population, with_init: bool = Tru
     the compiled executables: calling them with other shapes or shardings raises instead of
     recompiling.
     """
-    state_spec = _with_sharding(program.abstract_state, compiled.shardings)
-    hp = compiled.hyperparams
-    hp_spec = _with_sharding(jax.eval_shape(lambda: hp), jax.tree.map(lambda x: x.sharding, hp))
-    replicated = jax.tree.leaves(hp_spec)[0].sharding
-    iterations = jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
+    hp_spec, state_spec, iterations = chunk_argument_specs(program, compiled.shardings)
     programs = {
         "chunk": lambda: compiled.chunk.lower(hp_spec, state_spec, iterations),
         "evaluate": lambda: compiled.evaluate.lower(state_spec),

@@ -51,6 +51,7 @@ from td3_jax.population import (
     Compiled,
     Member,
     Population,
+    chunk_argument_specs,
     compile_ahead,
     compile_for_mesh,
     make_population,
@@ -272,7 +273,7 @@ def _write_entry(path: Path, programs: dict[str, FlatProgram], trees: dict) -> N
     for name, program in programs.items():
         (path / f"{name}.bin").write_bytes(program.exported.serialize())
     layout = {name: (p.in_specs, p.out_specs, p.donate) for name, p in programs.items()}
-    (path / "layout.pkl").write_bytes(pickle.dumps({"format": FORMAT, "programs": layout}))
+    (path / "layout.pkl").write_bytes(pickle.dumps({"programs": layout}))
     (path / "trees.pkl").write_bytes(pickle.dumps(trees))
     umask = os.umask(0)
     os.umask(umask)
@@ -447,12 +448,8 @@ def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, 
     program, mesh = source.program, source.mesh
     replicated = NamedSharding(mesh, PartitionSpec())
     shardings = state_shardings(program.abstract_state, mesh)
-    place = lambda tree, s: jax.tree.map(lambda x, s: jax.ShapeDtypeStruct(
-        x.shape, x.dtype, sharding=s), tree, s)  # fmt: skip
     everywhere = lambda tree: jax.tree.map(lambda _: replicated, tree)
-    state = place(program.abstract_state, shardings)
-    hp = place(jax.eval_shape(lambda: program.hyperparams), everywhere(program.hyperparams))
-    scalar = jax.ShapeDtypeStruct((), jax.numpy.int32, sharding=replicated)
+    hp, state, scalar = chunk_argument_specs(program, shardings)
     keys = jax.ShapeDtypeStruct(program.keys.shape, program.keys.dtype, sharding=replicated)
     plans = {
         "chunk": (program.chunk, (hp, state, scalar),
