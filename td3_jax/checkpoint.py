@@ -4,7 +4,9 @@ A checkpoint holds every leaf of the :class:`~td3_jax.training.TrainState` (para
 optimiser states, normaliser, replay buffer, environment states, RNG keys and counters) plus a
 small JSON record of host-side progress, the arrays' layout and a SHA-256 of every array. Orbax
 writes each checkpoint to a temporary folder and renames it when complete, so a run killed
-mid-write keeps its previous checkpoint; only the newest ``keep`` are kept.
+mid-write keeps its previous checkpoint; only the newest ``keep`` are kept. A save may run in
+the background (``background=True``): it returns once the arrays are copied off the device, so
+the caller may reuse (donate) them, and the disk write overlaps the caller's next work.
 
 Failures are clean: a restored array whose bytes differ from those saved (bit rot, a garbled
 file) makes the checkpoint corrupt, and restoring the newest checkpoint then falls back to the
@@ -87,12 +89,15 @@ class Checkpointer:
         self.directory = Path(directory).absolute()
         self._keep = keep
         self._manager: ocp.CheckpointManager | None = None
+        self._pending: int | None = None  # the step of a background write not yet waited for
         _quiet_closed_loop_callbacks()
         if create:
             self._manager = self._new_manager()
 
     def steps(self) -> list[int]:
-        """The steps of the complete checkpoints in the directory, oldest first."""
+        """The steps of the complete checkpoints in the directory, oldest first (after waiting
+        for a background write; its failure raises :class:`CheckpointWriteError`)."""
+        self.wait()
         if self._manager is None and not self.directory.is_dir():
             return []
         return sorted(self._orbax().all_steps())
@@ -102,12 +107,18 @@ class Checkpointer:
         steps = self.steps()
         return steps[-1] if steps else None
 
-    def save(self, step: int, state: Any, meta: dict) -> None:
-        """Writes checkpoint ``step`` and waits until it is complete on disk.
+    def save(self, step: int, state: Any, meta: dict, *, background: bool = False) -> None:
+        """Writes checkpoint ``step`` and waits until it is complete on disk; with
+        ``background``, returns once ``state`` is copied to host memory and finishes the write
+        while the caller goes on (the next save, :meth:`wait`, :meth:`steps` or :meth:`close`
+        waits for it).
 
-        Checkpoints at ``step`` or later (left by a run resumed from an older checkpoint) are
-        replaced. A failed write removes what it left and raises :class:`CheckpointWriteError`.
+        A background write still running is finished first. Checkpoints at ``step`` or later
+        (left by a run resumed from an older checkpoint) are replaced. A failed write removes
+        what it left and raises :class:`CheckpointWriteError` (a background one, where it is
+        waited for).
         """
+        self.wait()
         _quiet_closed_loop_callbacks()
         leaves = _leaves_with_paths(state)
         record = {
@@ -124,11 +135,42 @@ class Checkpointer:
             for stale in [s for s in manager.all_steps() if s >= step]:
                 manager.delete(stale)
             saved = manager.save(step, args=args)
-            manager.wait_until_finished()
         except Exception as err:  # orbax / tensorstore wrap OS errors in many types
             raise self._write_failed(step, err) from err
         if not saved:
             raise self._write_failed(step, RuntimeError("orbax skipped the save"))
+        self._pending = step
+        if not background:
+            self.wait()
+
+    def wait(self) -> None:
+        """Waits until a background write is complete on disk (nothing to do without one); a
+        failed one removes what it left and raises :class:`CheckpointWriteError`."""
+        step, self._pending = self._pending, None
+        if step is None or self._manager is None:
+            return
+        try:
+            self._manager.wait_until_finished()
+        except Exception as err:  # orbax / tensorstore wrap OS errors in many types
+            raise self._write_failed(step, err) from err
+
+    def check_space(self, state: Any) -> None:
+        """Raises :class:`CheckpointWriteError` when the disk holding the directory has too
+        little free space for the checkpoints of ``state`` to come: ``keep`` kept and one more
+        being written, less those already there (which are replaced)."""
+        size = state_bytes(state)
+        existing = len(self.steps())
+        need = (max(self._keep - existing, 0) + 1) * size
+        probe = next(p for p in (self.directory, *self.directory.parents) if p.exists())
+        free = shutil.disk_usage(probe).free
+        if free < need:
+            raise CheckpointWriteError(
+                f"the disk holding {self.directory} has {_gb(free)} free, and this run's "
+                f"checkpoints need {_gb(need)} ({self._keep} kept and one being written, "
+                f"{_gb(size)} each: the whole train state, replay buffer included); pass "
+                f"{'--keep-checkpoints 1, ' if self._keep > 1 else ''}a smaller --buffer-size "
+                "or an --out on a larger disk"
+            )
 
     def restore(
         self, abstract_state: Any, step: int | None = None, shardings: Any = None
@@ -164,7 +206,14 @@ class Checkpointer:
         raise CheckpointError(f"no checkpoint found in {self.directory}")
 
     def close(self) -> None:
-        """Waits for outstanding writes and releases orbax's resources."""
+        """Waits for outstanding writes (a failed one raises :class:`CheckpointWriteError`)
+        and releases orbax's resources."""
+        try:
+            self.wait()
+        finally:
+            self._close_manager()
+
+    def _close_manager(self) -> None:
         if self._manager is not None:
             self._manager.close()
             self._manager = None
@@ -221,6 +270,22 @@ class Checkpointer:
         return CheckpointWriteError(
             f"could not write checkpoint {self.directory / str(step)}: {cause}; {last}"
         )
+
+
+def state_bytes(state: Any) -> int:
+    """The bytes of every array in ``state`` (what a checkpoint of it holds; typed PRNG keys
+    counted as their key data)."""
+
+    def nbytes(x: Any) -> int:
+        if jnp.issubdtype(x.dtype, jax.dtypes.extended):
+            x = jax.random.key_data(x)
+        return int(math.prod(x.shape)) * np.dtype(x.dtype).itemsize
+
+    return sum(nbytes(x) for x in jax.tree.leaves(state))
+
+
+def _gb(size: int) -> str:
+    return f"{size / 1e9:.1f} GB" if size >= 1e8 else f"{size / 1e6:.1f} MB"
 
 
 def _leaves_with_paths(tree: Any) -> list[tuple[str, Any]]:

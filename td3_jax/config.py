@@ -477,24 +477,35 @@ _PLAYGROUND_LOCOMOTION = dict(
     precision="bfloat16",
     pushes="off",
     domain_randomization=False,
+    # A checkpoint holds the whole train state, the replay ring included: 15-19 GB here (G1's
+    # ring of 8.4M transitions is 15.5 GB), so one is kept (two on disk while the next is
+    # written) rather than three.
+    keep_checkpoints=1,
 )
 
 # T1 and G1: 4096 environments with 8 updates per vectorised step (FastTD3's ratio of updates
-# to env steps, 2 per 1024, kept), 128 evaluation episodes every 2,048,000 steps and a ring of
-# 8,388,608 transitions (2048 steps per environment; warm-up and run length stay in steps, so
-# per environment they are a quarter of FastTD3's). MJX steps 4096 humanoids far faster than
-# 1024 (G1 39k against 24.7k env steps/s in the loop; T1 50k against 33k), and the 8 updates
-# of 32768 fit beside them. Measured with exactly these settings, one run per task on one H200
-# (BENCHMARKS.md, 2026-11-22 session 4, compile included): G1 7.7 at 314 s, 12.3 at 365 s,
-# 14.5 at 417 s (1024 envs: 3.3 at 399 s, 7.7 at 481 s); T1 27.4 at 320 s, 31.7 at 361 s,
-# 34.2 at 402 s (1024 envs: 26.6 at 301 s, 29.6 at 364 s, 33.6 at 428 s). Other Playground
-# humanoids start from `t1` (robot_preset); they were not measured with it.
+# to env steps, 2 per 1024, kept), 128 evaluation episodes every 4,096,000 steps (below) and a
+# ring of 8,388,608 transitions (2048 steps per environment; warm-up and run length stay in
+# steps, so per environment they are a quarter of FastTD3's). MJX steps 4096 humanoids far
+# faster than 1024 (G1 39k against 24.7k env steps/s in the loop; T1 50k against 33k), and the
+# 8 updates of 32768 fit beside them. Measured with these settings (evaluations every 2,048,000
+# steps then), one run per task on one H200 (BENCHMARKS.md, 2026-11-22 session 4, compile
+# included): G1 7.7 at 314 s, 12.3 at 365 s, 14.5 at 417 s (1024 envs: 3.3 at 399 s, 7.7 at
+# 481 s); T1 27.4 at 320 s, 31.7 at 361 s, 34.2 at 402 s (1024 envs: 26.6 at 301 s, 29.6 at
+# 364 s, 33.6 at 428 s). Other Playground humanoids start from `t1` (robot_preset); they were
+# not measured with it.
+# An evaluation (1000 steps of 128 environments, bound by the latency of each MJX step) takes
+# 15.2 s on G1 while the loop trains at 55k env steps/s (BENCHMARKS.md, 2026-11-22 session 6):
+# every 2,048,000 steps it cost 29% of the wall-clock, every 4,096,000 steps (about 75 s of
+# training) it costs 17%. The early evaluation is off: after 512k steps it says nothing yet
+# (-7 on G1) and costs those 15 s.
 _HUMANOID_JOYSTICK = dict(
     _PLAYGROUND_LOCOMOTION,
     num_envs=4096,
     updates_per_iter=8,
     eval_envs=128,
-    eval_every=2_048_000,
+    eval_every=4_096_000,
+    early_evaluation=False,
     buffer_size=8_388_608,
 )
 

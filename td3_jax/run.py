@@ -109,6 +109,7 @@ def train(
             return run.records
         compiled = program_cache.compile_programs(source)
         state = compiled.init() if state is None else state
+        run.checkpointer.check_space(state)
         _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
         run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
@@ -204,7 +205,8 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
     """Chunks, evaluations, records and checkpoints until the run's end or a stop condition.
 
     A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
-    rest) with an evaluation after each; checkpoints are taken after whole chunks only.
+    rest) with an evaluation after each; checkpoints are taken after whole chunks only, written
+    in the background while the next chunk runs (the last one is waited for).
     """
     cfg = run.cfg
     early = cfg.early_iterations if start_chunk == 0 else 0
@@ -222,7 +224,7 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
         if last or (index + 1) % cfg.checkpoint_every == 0:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged)}  # fmt: skip
-            run.checkpointer.save(index + 1, state, meta)
+            run.checkpointer.save(index + 1, state, meta, background=not last)
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:

@@ -508,3 +508,69 @@ def test_a_checkpoint_of_an_older_format_says_so(tmp_path, state, abstract):
     edit_meta(tmp_path / "1", as_format_one)
     with pytest.raises(CheckpointError, match=r"another td3-jax version .*format 1, this version"):
         Checkpointer(tmp_path).restore(abstract, step=1)
+
+
+def test_a_background_save_survives_the_caller_donating_the_state(tmp_path, abstract, state):
+    """A background save returns before the disk write; the caller may then hand the arrays to a
+    program that donates (overwrites) them, as the training loop's next chunk does."""
+    original = scramble(state, seed=11)
+    expected = jax.tree.map(np.array, original)  # host copies, taken before anything is donated
+    ckpt = Checkpointer(tmp_path)
+    ckpt.save(1, original, {"step": 1}, background=True)
+    zero = lambda x: jnp.logical_xor(x, x) if x.dtype == jnp.bool_ else x - x
+    overwrite = jax.jit(lambda tree: jax.tree.map(zero, tree), donate_argnums=0)
+    zeros = jax.block_until_ready(overwrite(original))
+    assert all(not np.asarray(x).any() for x in jax.tree.leaves(zeros))
+    assert all(x.is_deleted() for x in jax.tree.leaves(original))  # donated, so reusable
+    ckpt.wait()
+    assert step_dirs(tmp_path) == [1]
+    restored, meta, step = ckpt.restore(abstract)
+    assert (meta, step) == ({"step": 1}, 1)
+    assert_bit_exact(restored, expected)
+    ckpt.close()
+
+
+def test_a_background_write_that_fails_raises_where_it_is_waited_for(tmp_path, state, monkeypatch):
+    ckpt = Checkpointer(tmp_path, keep=3)
+    ckpt.save(4, state, {"step": 4}, background=True)
+    assert ckpt.steps() == [4]  # steps() waits for the write
+    with monkeypatch.context() as patch:
+        fail_writes_under(patch, tmp_path, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+        with pytest.raises(CheckpointWriteError) as err:
+            ckpt.save(5, scramble(state, seed=5), {"step": 5}, background=True)
+            ckpt.wait()
+    assert str(err.value).startswith(f"could not write checkpoint {tmp_path / '5'}: no space left")
+    assert leftovers(tmp_path) == [] and ckpt.steps() == [4]
+    ckpt.close()
+
+
+@pytest.mark.parametrize(
+    ("keep", "existing", "free_checkpoints", "fits"),
+    [(3, 0, 4, True), (3, 0, 3.9, False), (1, 0, 2, True), (1, 0, 1.9, False),
+     (3, 2, 2, True), (3, 2, 1.9, False), (2, 3, 1, True), (2, 3, 0.9, False)],
+)  # fmt: skip
+def test_check_space_asks_for_the_kept_checkpoints_and_one_being_written(
+    tmp_path, state, monkeypatch, keep, existing, free_checkpoints, fits
+):
+    """Free space needed: (keep - checkpoints already there, at least 0, + 1) checkpoints."""
+    import shutil
+
+    from td3_jax import checkpoint
+
+    size = sum(np.asarray(x).nbytes for x in jax.tree.leaves(state))
+    assert checkpoint.state_bytes(state) == size
+    ckpt = Checkpointer(tmp_path / "ckpt", keep=max(keep, existing))
+    for step in range(1, existing + 1):
+        ckpt.save(step, state, {})
+    ckpt.close()
+    free = int(free_checkpoints * size)
+    usage = shutil.disk_usage(tmp_path)._replace(free=free)
+    monkeypatch.setattr(checkpoint.shutil, "disk_usage", lambda path: usage)
+    ckpt = Checkpointer(tmp_path / "ckpt", keep=keep)
+    if fits:
+        ckpt.check_space(state)
+    else:
+        with pytest.raises(CheckpointWriteError, match="checkpoints need") as err:
+            ckpt.check_space(state)
+        assert ("--keep-checkpoints 1" in str(err.value)) == (keep > 1)
+    ckpt.close()

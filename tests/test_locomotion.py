@@ -380,6 +380,10 @@ def test_presets_follow_fasttd3():
     # The humanoids keep FastTD3's 2 updates per 1024 env steps, over 4096 environments.
     for name in ("t1", "g1"):
         assert (preset(name).num_envs, preset(name).updates_per_iter) == (4096, 8)
+        # An evaluation costs 15 s there: every 4,096,000 steps, none after 512k steps.
+        assert (preset(name).eval_every, preset(name).early_evaluation) == (4_096_000, False)
+    # Their checkpoints hold rings of 10M transitions (15-19 GB): one is kept.
+    assert {preset(name).keep_checkpoints for name in ("t1", "g1", "go1")} == {1}
     assert preset("t1").pushes == "off"
     assert (preset("go1").num_envs, preset("go1").updates_per_iter) == (1024, 8)
     assert set(PRESETS) >= {"t1", "g1", "go1"}

@@ -346,3 +346,58 @@ def test_a_directory_of_other_files_is_refused(tmp_path, capsys):
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "a directory of other files (data, thesis.tex)" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "thesis.tex"]
+
+
+# --------------------------------------------------------------------------------------------
+# checkpoints written in the background, and the disk they need
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_background_checkpoint_that_fails_stops_the_run_with_its_records_kept(
+    tmp_path, capsys, monkeypatch
+):
+    """Checkpoint 2 is written while chunk 3 runs; its failure (a full disk) stops the run at
+    the next save with one error line naming the last good checkpoint, and every chunk's record
+    stays in metrics.jsonl."""
+    import builtins
+    import errno
+
+    out = tmp_path / "run"
+    failing = str(out / "checkpoints" / "2")
+    real_open = builtins.open
+
+    def open_(file, mode="r", *args, **kwargs):
+        if str(file).startswith(failing) and any(flag in mode for flag in "wax+"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_)
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--total-steps", "192", "--out", str(out)],
+                           capsys)  # fmt: skip
+    monkeypatch.undo()
+    assert code != 0
+    assert error_line(err) == (
+        f"td3-jax: error: could not write checkpoint {out / 'checkpoints' / '2'}: no space left "
+        f"on the disk holding {out / 'checkpoints'}; the last good checkpoint is "
+        f"{out / 'checkpoints' / '1'}"
+    )
+    assert [r["env_steps"] for r in records(out)][-1] == 192
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["1"]
+
+
+def test_a_run_whose_checkpoints_cannot_fit_is_refused_before_training(
+    tmp_path, capsys, monkeypatch
+):
+    import shutil
+
+    from td3_jax import checkpoint
+
+    usage = shutil.disk_usage(tmp_path)._replace(free=1000)
+    monkeypatch.setattr(checkpoint.shutil, "disk_usage", lambda path: usage)
+    out = tmp_path / "run"
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code != 0
+    line = error_line(err)
+    assert f"the disk holding {out / 'checkpoints'} has 0.0 MB free" in line
+    assert "(3 kept and one being written" in line and "--keep-checkpoints 1" in line
+    assert not (out / "metrics.jsonl").exists()
