@@ -71,7 +71,7 @@ class TrainCommand(TrainConfig):
     Default: the --env's own preset where one exists (said in one line), else settings for the
     device (a GPU gets thousands of environments)."""
     quiet: bool = False
-    """No live progress display."""
+    """No progress display (a live bar on a terminal, else one line per evaluation)."""
     time_budget_s: float | None = None
     """Stop after the first chunk that ends past this wall-clock budget (compile included)."""
     devices: int | None = None

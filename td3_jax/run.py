@@ -321,43 +321,27 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> 
 
 
 class _Progress:
-    """A rich progress bar: env steps, env steps/s, last evaluation return, time left."""
+    """A rich progress bar (env steps, env steps/s, last evaluation return, time left); where
+    the output is not a terminal (a log file, a batch job), one plain line per evaluation."""
 
     def __init__(self, cfg: TrainConfig, start_chunk: int, enabled: bool):
-        self.enabled = enabled
-        if not enabled:
-            return
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
+        from rich.console import Console
 
-        self._progress = Progress(
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("env steps"),
-            TextColumn("{task.fields[rate]}"),
-            TextColumn("eval {task.fields[ret]}"),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-        )
-        total = cfg.num_chunks * cfg.steps_per_chunk
-        self._task = self._progress.add_task(
-            f"{cfg.algo} {cfg.env}",
-            total=total,
-            completed=start_chunk * cfg.steps_per_chunk,
-            rate="compiling...",
-            ret="-",
-        )
-        self._progress.start()
+        self.enabled = enabled
+        self.total = cfg.num_chunks * cfg.steps_per_chunk
+        self.lines = enabled and not Console().is_terminal
+        self.title = f"{cfg.algo} {cfg.env}"
+        if enabled and not self.lines:
+            done = start_chunk * cfg.steps_per_chunk
+            self._progress, self._task = _progress_bar(self.title, self.total, done)
 
     def update(self, record: dict) -> None:
-        if self.enabled:
+        if self.lines:  # the run's wall-clock: compile included, counted across resumes
+            print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, "
+                  f"{record['env_steps_per_s']:,.0f} env steps/s, eval "
+                  f"{record['eval_return_mean']:.1f}, {record['wall_time_s']:.0f} s",
+                  flush=True)  # fmt: skip
+        elif self.enabled:
             self._progress.update(
                 self._task,
                 completed=record["env_steps"],
@@ -366,5 +350,32 @@ class _Progress:
             )
 
     def close(self) -> None:
-        if self.enabled:
+        if self.enabled and not self.lines:
             self._progress.stop()
+
+
+def _progress_bar(title: str, total: int, completed: int) -> tuple[Any, Any]:
+    """A started rich progress bar and its task."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    progress = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("env steps"),
+        TextColumn("{task.fields[rate]}"),
+        TextColumn("eval {task.fields[ret]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    task = progress.add_task(title, total=total, completed=completed, rate="compiling...",
+                             ret="-")  # fmt: skip
+    progress.start()
+    return progress, task

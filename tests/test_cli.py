@@ -664,3 +664,18 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert f"{ant.num_envs} environments" in cli.cpu_size_warning(ant, "cpu")
     assert cli.cpu_size_warning(ant, "gpu") is None
     assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None
+
+
+def test_progress_into_a_log_file_is_one_line_per_evaluation(tmp_path, capsys):
+    """Where stdout is not a terminal (here captured; a log file, a batch job), the live bar
+    becomes one plain line per evaluation, each naming that record's numbers."""
+    out = tmp_path / "run"
+    code, stdout, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 0, err
+    records = read_records(out)
+    lines = [line for line in stdout.splitlines() if line.startswith("td3 gymnax/Pendulum-v1: ")]
+    assert len(lines) == len(records) == 2
+    for line, record in zip(lines, records, strict=True):
+        assert f": {record['env_steps']:,}/128 env steps, " in line
+        assert f", eval {record['eval_return_mean']:.1f}, " in line
+    assert "━" not in stdout  # no bar drawn
