@@ -154,23 +154,45 @@ class Checkpointer:
         except Exception as err:  # orbax / tensorstore wrap OS errors in many types
             raise self._write_failed(step, err) from err
 
+    def check(self) -> None:
+        """Raises :class:`CheckpointWriteError` if a background write has already failed
+        (without waiting for one still running)."""
+        if self._pending is None or self._manager is None:
+            return
+        try:
+            self._manager.check_for_errors()
+        except Exception as err:  # orbax / tensorstore wrap OS errors in many types
+            step, self._pending = self._pending, None
+            raise self._write_failed(step, err) from err
+
+    @property
+    def pending(self) -> int | None:
+        """The step of a background write not yet waited for, or None."""
+        return self._pending
+
     def check_space(self, state: Any) -> None:
         """Raises :class:`CheckpointWriteError` when the disk holding the directory has too
-        little free space for the checkpoints of ``state`` to come: ``keep`` kept and one more
-        being written, less those already there (which are replaced)."""
+        little free space for the checkpoints of ``state`` (arrays or their shapes) to come:
+        ``keep`` kept and one more being written, less those already there (replaced)."""
         size = state_bytes(state)
         existing = len(self.steps())
         need = (max(self._keep - existing, 0) + 1) * size
         probe = next(p for p in (self.directory, *self.directory.parents) if p.exists())
         free = shutil.disk_usage(probe).free
-        if free < need:
-            raise CheckpointWriteError(
-                f"the disk holding {self.directory} has {_gb(free)} free, and this run's "
-                f"checkpoints need {_gb(need)} ({self._keep} kept and one being written, "
-                f"{_gb(size)} each: the whole train state, replay buffer included); pass "
-                f"{'--keep-checkpoints 1, ' if self._keep > 1 else ''}a smaller --buffer-size "
-                "or an --out on a larger disk"
-            )
+        if free >= need:
+            return
+        there = f", less the {existing} already there" if existing else ""
+        fixes = ["--keep-checkpoints 1"] if self._keep > 1 else []
+        if existing:  # a resume: sizes and --out are the run's own
+            fixes.append("free space on that disk or move the run directory to a larger one")
+        else:
+            fixes += ["a smaller --buffer-size", "an --out on a larger disk"]
+        raise CheckpointWriteError(
+            f"the disk holding {self.directory} has {_gb(free)} free, and this run's "
+            f"checkpoints need {_gb(need)} ({self._keep} kept and one being written{there}; "
+            f"{_gb(size)} each: the whole train state, replay buffer included); use "
+            + ", or ".join(fixes)
+        )
 
     def restore(
         self, abstract_state: Any, step: int | None = None, shardings: Any = None
@@ -273,12 +295,12 @@ class Checkpointer:
 
 
 def state_bytes(state: Any) -> int:
-    """The bytes of every array in ``state`` (what a checkpoint of it holds; typed PRNG keys
-    counted as their key data)."""
+    """The bytes of every array in ``state`` (arrays or ``ShapeDtypeStruct``s): what a
+    checkpoint of it holds, typed PRNG keys counted as their key data."""
 
     def nbytes(x: Any) -> int:
         if jnp.issubdtype(x.dtype, jax.dtypes.extended):
-            x = jax.random.key_data(x)
+            x = jax.eval_shape(jax.random.key_data, x)
         return int(math.prod(x.shape)) * np.dtype(x.dtype).itemsize
 
     return sum(nbytes(x) for x in jax.tree.leaves(state))

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from td3_jax import program_cache
-from td3_jax.checkpoint import Checkpointer
+from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import Member, members
@@ -107,9 +107,7 @@ def train(
         state, start_chunk = _start(run, source, resume)
         if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
             return run.records
-        compiled = program_cache.compile_programs(source)
-        state = compiled.init() if state is None else state
-        run.checkpointer.check_space(state)
+        compiled, state = _programs_and_state(run, source, state)
         _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
         run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
@@ -120,6 +118,22 @@ def train(
         finally:
             run_lock.release()
     return run.records
+
+
+def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> tuple[Any, Any]:
+    """The compiled programs and the run's state (``state`` restored, else initialised), once
+    the disk is known to have room for the run's checkpoints: checked before compiling where
+    the state's shapes are at hand (a restored state, programs traced in this process), after
+    it where they come with the stored programs."""
+    known = state if state is not None else None if source.entry else source.program.abstract_state
+    if known is not None:
+        run.checkpointer.check_space(known)
+    compiled = program_cache.compile_programs(source)
+    if state is None:
+        state = compiled.init()
+    if known is None:
+        run.checkpointer.check_space(state)
+    return compiled, state
 
 
 def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
@@ -171,21 +185,28 @@ class _Run:
     wall_offset: float = 0.0
 
     def close(self) -> None:
-        """Closes the outputs (each on its own) and redraws the curve; a failure here is a
-        warning, so it never hides the error that ended the run."""
-        for part in (self.display, self.logger, self.checkpointer):
+        """Closes the outputs (each on its own; a checkpoint still being written is finished)
+        and redraws the curve; a failure here is a warning, so it never hides the error that
+        ended the run."""
+        for part in (self.display, self.logger):
             if part is not None:
                 _warn_on_failure(part.close, "closing the run's outputs")
+        if self.checkpointer is not None:
+            if self.writer and self.checkpointer.pending is not None:
+                print(f"td3-jax: finishing checkpoint {self.checkpointer.pending}...",
+                      file=sys.stderr)  # fmt: skip
+            _warn_on_failure(self.checkpointer.close, "", hint="")
         if self.writer and self.logger is not None:
             _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png")
 
 
-def _warn_on_failure(action: Any, what: str) -> None:
+def _warn_on_failure(action: Any, what: str, hint: str = "td3-jax plot redraws the curve") -> None:
+    """Runs ``action``; an error becomes a warning: ``what`` failed (the error); ``hint``."""
     try:
         action()
     except Exception as err:  # e.g. a full disk: the records are kept, the curve is not
-        print(f"td3-jax: warning: {what} failed ({type(err).__name__}: {err}); "
-              "td3-jax plot redraws the curve", file=sys.stderr)  # fmt: skip
+        text = f"{what} failed ({type(err).__name__}: {err})" if what else str(err)
+        print(f"td3-jax: warning: {text}" + (f"; {hint}" if hint else ""), file=sys.stderr)
 
 
 def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, int]:
@@ -220,6 +241,7 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
             run.logger.write(record)
             run.records.append(record)
             run.display.update(record)
+            run.checkpointer.check()  # a background write that failed stops the run now
         last = index + 1 == cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
         if last or (index + 1) % cfg.checkpoint_every == 0:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
@@ -311,13 +333,16 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> 
         return
     if not bad:
         return
-    last = run.checkpointer.latest_step()
+    try:
+        last, failed = run.checkpointer.latest_step(), ""
+    except CheckpointWriteError as err:  # the write before this chunk failed as well
+        last, failed = run.checkpointer.latest_step(), f"; also, {err}"
     kept = (f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
             if last else "no checkpoint had been written yet")  # fmt: skip
     who = lambda i: f" ({population[i].label()})" if len(population) > 1 else ""
     described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
     raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
-                         f"stopped, {kept}")  # fmt: skip
+                         f"stopped, {kept}{failed}")  # fmt: skip
 
 
 class _Progress:

@@ -530,17 +530,45 @@ def test_a_background_save_survives_the_caller_donating_the_state(tmp_path, abst
     ckpt.close()
 
 
-def test_a_background_write_that_fails_raises_where_it_is_waited_for(tmp_path, state, monkeypatch):
-    ckpt = Checkpointer(tmp_path, keep=3)
+@pytest.mark.parametrize("keep", [1, 3])
+def test_a_background_write_that_fails_raises_where_it_is_waited_for(
+    tmp_path, abstract, state, monkeypatch, keep
+):
+    ckpt = Checkpointer(tmp_path, keep=keep)
     ckpt.save(4, state, {"step": 4}, background=True)
-    assert ckpt.steps() == [4]  # steps() waits for the write
+    assert ckpt.pending == 4
+    assert ckpt.steps() == [4] and ckpt.pending is None  # steps() waits for the write
     with monkeypatch.context() as patch:
         fail_writes_under(patch, tmp_path, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+        ckpt.save(5, scramble(state, seed=5), {"step": 5}, background=True)  # returns
         with pytest.raises(CheckpointWriteError) as err:
-            ckpt.save(5, scramble(state, seed=5), {"step": 5}, background=True)
             ckpt.wait()
     assert str(err.value).startswith(f"could not write checkpoint {tmp_path / '5'}: no space left")
+    assert str(err.value).endswith(f"the last good checkpoint is {tmp_path / '4'}")
     assert leftovers(tmp_path) == [] and ckpt.steps() == [4]
+    assert_bit_exact(ckpt.restore(abstract)[0], state)  # also with keep=1: 4 is not deleted
+    ckpt.close()
+
+
+def test_check_raises_a_failed_background_write_without_waiting(tmp_path, state, monkeypatch):
+    import time
+
+    ckpt = Checkpointer(tmp_path)
+    ckpt.check()  # nothing pending: nothing to say
+    with monkeypatch.context() as patch:
+        fail_writes_under(patch, tmp_path, OSError(errno.EIO, os.strerror(errno.EIO)))
+        ckpt.save(1, state, {}, background=True)
+        raised = None
+        for _ in range(400):  # until the write has failed
+            try:
+                ckpt.check()
+            except CheckpointWriteError as err:
+                raised = err
+                break
+            time.sleep(0.025)
+    assert raised is not None
+    assert str(raised).startswith(f"could not write checkpoint {tmp_path / '1'}")
+    assert ckpt.pending is None and ckpt.steps() == []
     ckpt.close()
 
 

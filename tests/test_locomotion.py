@@ -382,7 +382,7 @@ def test_presets_follow_fasttd3():
         assert (preset(name).num_envs, preset(name).updates_per_iter) == (4096, 8)
         # An evaluation costs 15 s there: every 4,096,000 steps, none after 512k steps.
         assert (preset(name).eval_every, preset(name).early_evaluation) == (4_096_000, False)
-    # Their checkpoints hold rings of 10M transitions (15-19 GB): one is kept.
+    # Their checkpoints hold rings of 8.4M (t1, g1) and 10.5M (go1) transitions: one is kept.
     assert {preset(name).keep_checkpoints for name in ("t1", "g1", "go1")} == {1}
     assert preset("t1").pushes == "off"
     assert (preset("go1").num_envs, preset("go1").updates_per_iter) == (1024, 8)

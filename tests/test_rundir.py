@@ -375,7 +375,7 @@ def test_a_background_checkpoint_that_fails_stops_the_run_with_its_records_kept(
     code, _, err = run_cli(["train", *TINY_FLAGS, "--total-steps", "192", "--out", str(out)],
                            capsys)  # fmt: skip
     monkeypatch.undo()
-    assert code != 0
+    assert code == 2
     assert error_line(err) == (
         f"td3-jax: error: could not write checkpoint {out / 'checkpoints' / '2'}: no space left "
         f"on the disk holding {out / 'checkpoints'}; the last good checkpoint is "
@@ -396,7 +396,7 @@ def test_a_run_whose_checkpoints_cannot_fit_is_refused_before_training(
     monkeypatch.setattr(checkpoint.shutil, "disk_usage", lambda path: usage)
     out = tmp_path / "run"
     code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
-    assert code != 0
+    assert code == 2
     line = error_line(err)
     assert f"the disk holding {out / 'checkpoints'} has 0.0 MB free" in line
     assert "(3 kept and one being written" in line and "--keep-checkpoints 1" in line

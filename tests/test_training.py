@@ -319,7 +319,10 @@ def test_params_finite_flag(learn):
     assert float(metrics["params_finite"]) == 0.0
 
 
-def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch):
+@pytest.mark.parametrize("second_write_fails", [False, True])
+def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch, second_write_fails):
+    """Also when checkpoint 2, written in the background during the bad chunk, fails: the
+    message is still the divergence, naming checkpoint 1 as the one kept and the failure."""
     cfg = TrainConfig(
         **{**TINY, "episode_length": 8},
         eval_every=32,
@@ -354,21 +357,43 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch):
 
     monkeypatch.setattr(program_cache, "make_population", poisoned_make_population)
     out = tmp_path / "run"
+    if second_write_fails:
+        fail_writes_under(monkeypatch, out / "checkpoints" / "2")
     with pytest.raises(NonFiniteError, match=rf"env step {3 * per_chunk}\b") as info:
         train(cfg, out, progress=False)
+    monkeypatch.undo()
+    kept = 1 if second_write_fails else 2
     assert "parameters" in str(info.value)
-    assert f"after {2 * per_chunk} env steps" in str(info.value)
+    assert f"after {kept * per_chunk} env steps" in str(info.value)
+    failed = f"; also, could not write checkpoint {out / 'checkpoints' / '2'}: OSError"
+    assert (failed in str(info.value)) == second_write_fails
 
-    # The two good chunks are logged and checkpointed; the bad one is not.
+    # The two good chunks are logged and the checkpoints written are kept; the bad one is not.
     assert [r["env_steps"] for r in read_metrics(out / "metrics.jsonl")] == [32, 64]
     checkpointer = Checkpointer(out / "checkpoints", cfg.keep_checkpoints)
     try:
-        assert checkpointer.latest_step() == 2
+        assert checkpointer.latest_step() == kept
     finally:
         checkpointer.close()
     state, meta, step = restore(cfg, out)
-    assert step == 2 and meta["env_steps"] == 64 and int(state.env_steps[0]) == 64
+    assert step == kept and int(state.env_steps[0]) == meta["env_steps"] == kept * per_chunk
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.agent))
+
+
+def fail_writes_under(monkeypatch, prefix) -> None:
+    """Every Python-level open for writing of a path starting with ``prefix`` raises EIO."""
+    import builtins
+    import errno
+    import os
+
+    real_open = builtins.open
+
+    def open_(file, mode="r", *args, **kwargs):
+        if str(file).startswith(str(prefix)) and any(flag in mode for flag in "wax+"):
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_)
 
 
 # --------------------------------------------------------------------------------------------
