@@ -600,5 +600,10 @@ def test_check_space_asks_for_the_kept_checkpoints_and_one_being_written(
     else:
         with pytest.raises(CheckpointWriteError, match="checkpoints need") as err:
             ckpt.check_space(state)
-        assert ("--keep-checkpoints 1" in str(err.value)) == (keep > 1)
+        message = str(err.value)
+        assert ("--keep-checkpoints 1" in message) == (keep > 1)
+        # On resume (checkpoints already there) the sizes and --out are the run's own.
+        assert (f"less the {existing} already there" in message) == (existing > 0)
+        assert ("--buffer-size" in message) == (existing == 0)
+        assert ("free space on that disk" in message) == (existing > 0)
     ckpt.close()
