@@ -7,6 +7,7 @@ Subcommands: ``train`` (flags from :class:`~td3_jax.config.TrainConfig`), ``eval
 from __future__ import annotations
 
 import dataclasses
+import errno
 import functools
 import importlib.util
 import os
@@ -298,14 +299,18 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
 
 
 def rounding_note(cfg: TrainConfig) -> str | None:
-    """The line saying that ``--total-steps`` runs as whole chunks (None when it already is)."""
+    """The line saying that ``--eval-every`` runs as whole iterations and ``--total-steps`` as
+    whole chunks (None when both already are)."""
+    notes = []
+    if cfg.steps_per_chunk != cfg.eval_every:
+        notes.append(f"--eval-every {cfg.eval_every} runs as {cfg.steps_per_chunk} (whole "
+                     f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
     runs = cfg.num_chunks * cfg.steps_per_chunk
-    if runs == cfg.total_steps:
-        return None
-    return (
-        f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
-        f"{cfg.steps_per_chunk} steps between evaluations; --eval-every sets them)"
-    )
+    if runs != cfg.total_steps:
+        notes.append(f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
+                     f"{cfg.steps_per_chunk} steps between evaluations; --eval-every sets "
+                     "them)")  # fmt: skip
+    return "; ".join(notes) or None
 
 
 def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
@@ -601,6 +606,9 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(141)  # 128 + SIGPIPE, as other command-line tools end
 
 
+_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+
+
 def _run_reporting_errors(command, args: list[str]) -> None:
     """Runs a subcommand; a known failure becomes one message and an exit code (2 bad input,
     3 non-finite training, 130 interrupted)."""
@@ -625,6 +633,12 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     except Interrupted as err:
         print(f"td3-jax: {err}", file=sys.stderr)
         sys.exit(130)
+    except OSError as err:  # a full disk, a quota, a read-only file system while writing outputs
+        if err.errno not in _DISK_ERRNOS:
+            raise
+        where = f": {err.filename}" if err.filename else ""
+        print(f"td3-jax: error: could not write{where} ({err.strerror})", file=sys.stderr)
+        sys.exit(2)
     except KeyboardInterrupt:
         print("td3-jax: interrupted", file=sys.stderr)
         sys.exit(130)

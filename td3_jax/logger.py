@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from td3_jax.config import ConfigError
+
 
 class MetricsLogger:
     """Appends one JSON object per evaluation to ``metrics.jsonl`` and mirrors it to TensorBoard.
@@ -26,9 +28,9 @@ class MetricsLogger:
             for r in read_metrics(self.path)
             if resume_env_steps is not None and r["env_steps"] <= resume_env_steps
         ]
-        with self.path.open("w") as f:
-            for record in kept:
-                f.write(json.dumps(record) + "\n")
+        tmp = self.path.with_name(self.path.name + ".tmp")  # rewritten whole, then renamed
+        tmp.write_text("".join(json.dumps(record) + "\n" for record in kept))
+        tmp.replace(self.path)
         SummaryWriter = _summary_writer_class()
         # On resume, points logged after the restored checkpoint are dropped here too.
         purge = resume_env_steps + 1 if resume_env_steps else None
@@ -76,11 +78,25 @@ def _number(value: Any) -> float:
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:
-    """The records of a ``metrics.jsonl`` (an empty list when there is none yet)."""
+    """The records of a ``metrics.jsonl`` (an empty list when there is none yet).
+
+    A last line cut short (a run killed, or a disk that filled, while appending it) is left
+    out with a warning; any other line that is not JSON raises :class:`~td3_jax.config.ConfigError`.
+    """
     path = Path(path)
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    records = []
+    for number, line in enumerate(lines, start=1):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if number < len(lines):
+                raise ConfigError(f"line {number} of {path} is not a JSON record ({err})") from err
+            print(f"td3-jax: warning: the last line of {path} is incomplete (the run stopped "
+                  "while writing it); it is left out", file=sys.stderr)  # fmt: skip
+    return records
 
 
 def plot_curve(out_dir: Path) -> Path | None:

@@ -342,9 +342,15 @@ def save_config(
 
 
 def _write_json(path: Path, value: Any) -> None:
+    """Writes ``value`` to a temporary file renamed to ``path``; a failed write (a full disk)
+    removes the temporary file and raises."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, indent=2) + "\n")
-    tmp.replace(path)
+    try:
+        tmp.write_text(json.dumps(value, indent=2) + "\n")
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _read_config(out_dir: Path) -> dict:

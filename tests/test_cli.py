@@ -656,6 +656,11 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
     assert cli.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=8000)) is None
     assert "runs as 12000" in cli.rounding_note(
         TrainConfig(num_envs=16, eval_every=4000, total_steps=8001))
+    # --eval-every runs as whole iterations: 130 steps of 4 envs are 32 iterations, 128 steps.
+    note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=130, total_steps=256))
+    assert note == "--eval-every 130 runs as 128 (whole iterations of 4 env steps)"
+    note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=2, total_steps=8))
+    assert note.startswith("--eval-every 2 runs as 4 (") and "--total-steps" not in note
 
 
 def test_a_gpu_sized_run_on_a_cpu_is_warned_about():

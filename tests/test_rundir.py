@@ -401,3 +401,56 @@ def test_a_run_whose_checkpoints_cannot_fit_is_refused_before_training(
     assert f"the disk holding {out / 'checkpoints'} has 0.0 MB free" in line
     assert "(3 kept and one being written" in line and "--keep-checkpoints 1" in line
     assert not (out / "metrics.jsonl").exists()
+
+
+def test_a_last_metrics_line_cut_short_is_left_out_and_the_run_resumes(tmp_path, capsys):
+    """A run killed (or a disk filled) while appending to metrics.jsonl leaves half a line:
+    reading it warns and leaves it out; the resume rewrites the file without it."""
+    from td3_jax.logger import read_metrics
+
+    out = tmp_path / "run"
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 0, err
+    metrics = out / "metrics.jsonl"
+    whole = records(out)
+    metrics.write_text(metrics.read_text() + '{"env_steps": 192, "eval_ret')
+    assert read_metrics(metrics) == whole
+    assert "the last line of" in capsys.readouterr().err
+    code, _, err = run_cli(
+        ["train", "--resume", "--total-steps", "256", "--out", str(out), "--quiet"], capsys
+    )
+    assert code == 0, err
+    assert [r["env_steps"] for r in records(out)] == [64, 128, 192, 256]
+    # A broken line before the last is not guessed at: one line, exit 2.
+    lines = metrics.read_text().splitlines()
+    metrics.write_text("\n".join([lines[0], "{oops", *lines[1:]]) + "\n")
+    code, _, err = run_cli(["plot", "--run", str(out)], capsys)
+    assert code == 2 and "line 2 of" in error_line(err)
+
+
+def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporary_file(
+    tmp_path, capsys, monkeypatch
+):
+    import errno
+    from pathlib import Path as _Path
+
+    real_write_text = _Path.write_text
+
+    def write_text(self, *args, **kwargs):
+        if self.name == "config.json.tmp":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return real_write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(_Path, "write_text", write_text)
+    out = tmp_path / "run"
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    monkeypatch.undo()
+    assert code == 2
+    assert error_line(err) == (
+        f"td3-jax: error: could not write: {out / 'config.json.tmp'} "
+        f"({os.strerror(errno.ENOSPC)})"
+    )
+    assert not (out / "config.json.tmp").exists()
+    # Once there is room, the same --out starts (nothing half-written blocks it).
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 0, err
