@@ -6,14 +6,18 @@ Subcommands: ``train`` (flags from :class:`~td3_jax.config.TrainConfig`), ``eval
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import functools
 import importlib.util
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import tyro
 
@@ -415,18 +419,19 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if jax.process_index() == 0:
         _announce(validate(cfg), preset_name, source)
     try:
-        records = train(
-            cfg,
-            command.out,
-            devices=command.devices,
-            resume=command.resume,
-            progress=not command.quiet,
-            sweep=sweep,
-            time_budget_s=command.time_budget_s,
-            preset=preset_name,
-            on_prepared=functools.partial(_warn_about_size, cfg),
-            program_dir=program_dir,
-        )
+        with _ctrl_c_handler():
+            records = train(
+                cfg,
+                command.out,
+                devices=command.devices,
+                resume=command.resume,
+                progress=not command.quiet,
+                sweep=sweep,
+                time_budget_s=command.time_budget_s,
+                preset=preset_name,
+                on_prepared=functools.partial(_warn_about_size, cfg),
+                program_dir=program_dir,
+            )
     except KeyboardInterrupt:
         raise Interrupted(interrupted_message(command.out)) from None
     if not records:
@@ -609,6 +614,44 @@ def main(argv: list[str] | None = None) -> None:
 _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 
+@contextlib.contextmanager
+def _ctrl_c_handler() -> Iterator[None]:
+    """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
+    :data:`td3_jax.run.STOP` (so the run stops at its next chunk boundary even where Python
+    discards that exception); a second one ends the process at once."""
+    from td3_jax import run as run_module
+
+    def on_ctrl_c(signum: int, frame: Any) -> None:
+        if run_module.STOP.is_set():
+            print("td3-jax: interrupted again: stopping now", file=sys.stderr, flush=True)
+            os._exit(130)
+        run_module.STOP.set()
+        print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, on_ctrl_c)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        run_module.STOP.clear()
+
+
+def _exit_interrupted(message: str) -> None:
+    """Prints ``message`` and exits with 130 at once: an XLA compile still running on a
+    background thread (it cannot be interrupted) is abandoned rather than waited for."""
+    print(message, file=sys.stderr)
+    population = sys.modules.get("td3_jax.population")  # not imported: nothing compiles
+    if population is not None and population.background_work_running():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(130)
+
+
 def _run_reporting_errors(command, args: list[str]) -> None:
     """Runs a subcommand; a known failure becomes one message and an exit code (2 bad input,
     3 non-finite training, 130 interrupted)."""
@@ -631,8 +674,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
         print(f"td3-jax: error: {err} (unset it or use egl, osmesa or glfw)", file=sys.stderr)
         sys.exit(2)
     except Interrupted as err:
-        print(f"td3-jax: {err}", file=sys.stderr)
-        sys.exit(130)
+        _exit_interrupted(f"td3-jax: {err}")
     except OSError as err:  # a full disk, a quota, a read-only file system while writing outputs
         if err.errno not in _DISK_ERRNOS:
             raise
@@ -640,5 +682,4 @@ def _run_reporting_errors(command, args: list[str]) -> None:
         print(f"td3-jax: error: could not write{where} ({err.strerror})", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
-        print("td3-jax: interrupted", file=sys.stderr)
-        sys.exit(130)
+        _exit_interrupted("td3-jax: interrupted")

@@ -15,8 +15,9 @@ import dataclasses
 import functools
 import itertools
 import math
+import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future
 from typing import Any, NamedTuple
 
 import jax
@@ -281,6 +282,35 @@ def compile_ahead(compiled: Compiled, program: Population, with_init: bool = Tru
     }
     if with_init:
         programs["init"] = compiled.init.lower
-    with ThreadPoolExecutor(max_workers=len(programs)) as pool:
-        futures = {name: pool.submit(lower().compile) for name, lower in programs.items()}
-        return compiled._replace(**{name: f.result() for name, f in futures.items()})
+    futures = {name: in_background(lower().compile) for name, lower in programs.items()}
+    return compiled._replace(**{name: f.result() for name, f in futures.items()})
+
+
+_BACKGROUND: set[threading.Thread] = set()
+
+
+def in_background(function: Callable[..., Any], *args: Any) -> Future:
+    """``function(*args)`` on a thread of its own, as a future.
+
+    The thread is a daemon: a run stopped (Ctrl-C) while XLA compiles does not wait for the
+    compile to finish (see :func:`background_work_running`).
+    """
+    future: Future = Future()
+
+    def work() -> None:
+        try:
+            future.set_result(function(*args))
+        except BaseException as err:  # handed to whoever waits for the result
+            future.set_exception(err)
+        finally:
+            _BACKGROUND.discard(threading.current_thread())
+
+    thread = threading.Thread(target=work, name="td3-jax compile", daemon=True)
+    _BACKGROUND.add(thread)
+    thread.start()
+    return future
+
+
+def background_work_running() -> bool:
+    """Whether a thread of :func:`in_background` is still working (e.g. compiling)."""
+    return any(thread.is_alive() for thread in list(_BACKGROUND))

@@ -37,7 +37,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -54,6 +54,7 @@ from td3_jax.population import (
     chunk_argument_specs,
     compile_ahead,
     compile_for_mesh,
+    in_background,
     make_population,
     member_hyperparams,
     member_keys,
@@ -300,9 +301,7 @@ def load(directory: Path, key: str, names: tuple[str, ...]) -> Entry | None:
         return None
     with contextlib.suppress(OSError):  # recently used (a read-only cache stays as it is)
         os.utime(path)
-    pool = ThreadPoolExecutor(max_workers=1)
-    trees = pool.submit(lambda: pickle.loads((path / "trees.pkl").read_bytes()))
-    pool.shutdown(wait=False)
+    trees = in_background(lambda: pickle.loads((path / "trees.pkl").read_bytes()))
     return Entry(programs, trees)
 
 
@@ -415,23 +414,21 @@ def _compile_plain(source: Source) -> Compiled:
 
 def _compile_stored(source: Source) -> Compiled:
     """The stored programs compiled side by side (read back from the compilation cache)."""
-    with ThreadPoolExecutor(max_workers=len(source.names)) as pool:
-        futures = {name: pool.submit(compile_flat, source.entry.programs[name], source.mesh)
-                   for name in source.names}  # fmt: skip
-        inputs = _placed_inputs(source)  # while the programs are read back
-        trees = source.entry.trees.result()
-        executables = {name: future.result() for name, future in futures.items()}
+    futures = {name: in_background(compile_flat, source.entry.programs[name], source.mesh)
+               for name in source.names}  # fmt: skip
+    inputs = _placed_inputs(source)  # while the programs are read back
+    trees = source.entry.trees.result()
+    executables = {name: future.result() for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
 def _compile_traced(source: Source) -> Compiled:
     """The programs traced and exported (all of them, so the stored entry is complete), the
     run's compiled side by side, then stored."""
-    with ThreadPoolExecutor(max_workers=len(NAMES)) as pool:
-        futures, programs, trees = _export_each(source, pool)
-        save(source.directory, source.key, programs, trees)
-        inputs = _placed_inputs(source)
-        executables = {name: future.result() for name, future in futures.items()}
+    futures, programs, trees = _export_each(source)
+    save(source.directory, source.key, programs, trees)
+    inputs = _placed_inputs(source)
+    executables = {name: future.result() for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
@@ -442,7 +439,7 @@ def _placed_inputs(source: Source) -> tuple[Any, Any]:
     return jax.tree.map(place, hp), place(member_keys(source.population))
 
 
-def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, dict]:
+def _export_each(source: Source) -> tuple[dict, dict, dict]:
     """Traces and exports each program, submitting the compile of each the run needs before
     tracing the next."""
     program, mesh = source.program, source.mesh
@@ -464,7 +461,7 @@ def _export_each(source: Source, pool: ThreadPoolExecutor) -> tuple[dict, dict, 
         except Exception as err:  # e.g. a custom call jax.export does not take
             raise _ExportFailed(name) from err
         if name in source.names:  # a resume needs no init, but the entry keeps it
-            executables[name] = pool.submit(compile_flat, programs[name], mesh)
+            executables[name] = in_background(compile_flat, programs[name], mesh)
     return executables, programs, trees
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -128,6 +129,7 @@ def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> 
     known = state if state is not None else None if source.entry else source.program.abstract_state
     if known is not None:
         run.checkpointer.check_space(known)
+    _stopping(run, 0)  # a Ctrl-C Python discarded while the environment was made
     compiled = program_cache.compile_programs(source)
     if state is None:
         state = compiled.init()
@@ -163,6 +165,12 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     if source.entry is not None and writer:
         print(f"using the traced programs stored in {source.directory / source.key}")
     return population, changes, source
+
+
+#: Set to stop a run at its next chunk boundary (as a Ctrl-C would). The CLI's Ctrl-C handler
+#: sets it as well as raising KeyboardInterrupt, which Python discards where it lands in a
+#: garbage-collection callback; the run then stops here instead of running on.
+STOP = threading.Event()
 
 
 @dataclasses.dataclass
@@ -250,7 +258,10 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:
-    """Whether this call stops before its next chunk (chunk limit or wall-clock budget)."""
+    """Whether this call stops before its next chunk (chunk limit or wall-clock budget);
+    raises KeyboardInterrupt when :data:`STOP` is set."""
+    if STOP.is_set():
+        raise KeyboardInterrupt
     if run.stop_after_chunks is not None and chunks_done >= run.stop_after_chunks:
         return True
     budget = run.time_budget_s

@@ -684,3 +684,91 @@ def test_progress_into_a_log_file_is_one_line_per_evaluation(tmp_path, capsys):
         assert f": {record['env_steps']:,}/128 env steps, " in line
         assert f", eval {record['eval_return_mean']:.1f}, " in line
     assert "━" not in stdout  # no bar drawn
+
+
+def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
+    capsys, monkeypatch, tmp_path
+):
+    """A compile runs on a daemon thread (XLA cannot be interrupted): Ctrl-C then ends the
+    process at once (os._exit) instead of joining it; with nothing running, a normal exit."""
+    import threading
+
+    from td3_jax import population
+
+    compiling = threading.Event()
+    done = threading.Event()
+    exits = []
+
+    def interrupted_train(cfg, out_dir, **kwargs):
+        population.in_background(lambda: (compiling.set(), done.wait(60)))
+        compiling.wait(10)
+        raise KeyboardInterrupt
+
+    def fake_exit(code):
+        exits.append(code)
+        raise SystemExit(code)
+
+    monkeypatch.setattr(run_module, "train", interrupted_train)
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "a")], capsys)
+    assert (code, exits) == (130, [130]) and "interrupted" in err
+    assert population.background_work_running()
+    done.set()
+    for thread in list(population._BACKGROUND):
+        assert thread.daemon
+        thread.join(10)
+    assert not population.background_work_running()
+    def plain_interrupt(cfg, out_dir, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_module, "train", plain_interrupt)
+    code, _, _ = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "b")], capsys)
+    assert (code, exits) == (130, [130])  # a plain sys.exit: nothing was compiling
+
+
+def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
+    tmp_path, capsys, monkeypatch
+):
+    """The CLI's Ctrl-C handler raises KeyboardInterrupt and sets run.STOP; a run whose
+    interrupt was swallowed (as in a garbage-collection callback) stops at its next chunk
+    boundary; a second Ctrl-C ends the process at once; the handler is removed afterwards."""
+    import signal
+
+    exits = []
+
+    def fake_exit(code):
+        exits.append(code)
+        raise SystemExit(code)
+
+    real_train = run_module.train
+
+    def train_with_a_swallowed_ctrl_c(*args, **kwargs):
+        try:
+            signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt:
+            pass  # discarded, as Python does inside a gc callback
+        return real_train(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "train", train_with_a_swallowed_ctrl_c)
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)  # a stored program's read-back may be running
+    out = tmp_path / "run"
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 130
+    assert err.splitlines()[0] == "td3-jax: stopping (Ctrl-C again to stop at once)"
+    assert "interrupted before the first checkpoint" in err
+    assert not (out / "metrics.jsonl").exists() or read_records(out) == []  # no chunk ran
+    assert not run_module.STOP.is_set()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+    def train_with_two_ctrl_c(*args, **kwargs):
+        try:
+            signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt:
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(run_module, "train", train_with_two_ctrl_c)
+    exits.clear()
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "again")], capsys)
+    assert (code, exits) == (130, [130])
+    assert "td3-jax: interrupted again: stopping now" in err
+    run_module.STOP.clear()
