@@ -156,8 +156,12 @@ class Checkpointer:
 
     def check(self) -> None:
         """Raises :class:`CheckpointWriteError` if a background write has already failed
-        (without waiting for one still running)."""
+        (without waiting for one still running: a finished one is waited for, which raises
+        its failure)."""
         if self._pending is None or self._manager is None:
+            return
+        if not self._manager.is_saving_in_progress():
+            self.wait()
             return
         try:
             self._manager.check_for_errors()

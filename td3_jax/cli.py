@@ -619,25 +619,39 @@ def _ctrl_c_handler() -> Iterator[None]:
     """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
     :data:`td3_jax.run.STOP` (so the run stops at its next chunk boundary even where Python
     discards that exception); a second one ends the process at once."""
+    import jax
+
     from td3_jax import run as run_module
+
+    say = jax.process_index() == 0  # several processes: one speaks
 
     def on_ctrl_c(signum: int, frame: Any) -> None:
         if run_module.STOP.is_set():
-            print("td3-jax: interrupted again: stopping now", file=sys.stderr, flush=True)
+            if say:
+                print("td3-jax: interrupted again: stopping now", file=sys.stderr, flush=True)
             os._exit(130)
         run_module.STOP.set()
-        print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+        if say:
+            print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
         raise KeyboardInterrupt
+
+    def unraisable(args: Any) -> None:  # a discarded Ctrl-C: the run stops through STOP
+        if not isinstance(args.exc_value, KeyboardInterrupt):
+            previous_hook(args)
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, on_ctrl_c)
+    previous, previous_hook = signal.signal(signal.SIGINT, on_ctrl_c), sys.unraisablehook
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-        run_module.STOP.clear()
+        try:
+            signal.signal(signal.SIGINT, previous)
+            sys.unraisablehook = previous_hook
+        finally:
+            run_module.STOP.clear()
 
 
 def _exit_interrupted(message: str) -> None:
@@ -675,11 +689,11 @@ def _run_reporting_errors(command, args: list[str]) -> None:
         sys.exit(2)
     except Interrupted as err:
         _exit_interrupted(f"td3-jax: {err}")
-    except OSError as err:  # a full disk, a quota, a read-only file system while writing outputs
+    except OSError as err:  # a full disk, a quota, a read-only file system, no permission
         if err.errno not in _DISK_ERRNOS:
             raise
-        where = f": {err.filename}" if err.filename else ""
-        print(f"td3-jax: error: could not write{where} ({err.strerror})", file=sys.stderr)
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"td3-jax: error: {where}{err.strerror}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         _exit_interrupted("td3-jax: interrupted")

@@ -29,8 +29,12 @@ class MetricsLogger:
             if resume_env_steps is not None and r["env_steps"] <= resume_env_steps
         ]
         tmp = self.path.with_name(self.path.name + ".tmp")  # rewritten whole, then renamed
-        tmp.write_text("".join(json.dumps(record) + "\n" for record in kept))
-        tmp.replace(self.path)
+        try:
+            tmp.write_text("".join(json.dumps(record) + "\n" for record in kept))
+            tmp.replace(self.path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
         SummaryWriter = _summary_writer_class()
         # On resume, points logged after the restored checkpoint are dropped here too.
         purge = resume_env_steps + 1 if resume_env_steps else None
@@ -94,8 +98,9 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
         except json.JSONDecodeError as err:
             if number < len(lines):
                 raise ConfigError(f"line {number} of {path} is not a JSON record ({err})") from err
-            print(f"td3-jax: warning: the last line of {path} is incomplete (the run stopped "
-                  "while writing it); it is left out", file=sys.stderr)  # fmt: skip
+            print(f"td3-jax: warning: the last line of {path} is incomplete (a run stopped "
+                  "while writing it, or is writing it now); it is left out",
+                  file=sys.stderr)  # fmt: skip
     return records
 
 

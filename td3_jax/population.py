@@ -17,7 +17,7 @@ import itertools
 import math
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
 from typing import Any, NamedTuple
 
 import jax
@@ -271,29 +271,67 @@ def compile_ahead(compiled: Compiled, program: Population, with_init: bool = Tru
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
     Each program is traced (Python, one at a time) and handed to a thread that compiles it
-    while the next is traced: the chunk first, as it takes longest. The returned functions are
-    the compiled executables: calling them with other shapes or shardings raises instead of
-    recompiling.
+    while the next is traced: the chunk first, as it takes longest. The evaluation's compile
+    starts once the chunk's is done and is waited for at the first evaluation, so it runs
+    during the first chunk instead of competing with the chunk's compile for the host's cores.
+    The returned functions call the compiled executables: calling them with other shapes or
+    shardings raises instead of recompiling.
     """
     hp_spec, state_spec, iterations = chunk_argument_specs(program, compiled.shardings)
-    programs = {
-        "chunk": lambda: compiled.chunk.lower(hp_spec, state_spec, iterations),
-        "evaluate": lambda: compiled.evaluate.lower(state_spec),
-    }
-    if with_init:
-        programs["init"] = compiled.init.lower
-    futures = {name: in_background(lower().compile) for name, lower in programs.items()}
-    return compiled._replace(**{name: f.result() for name, f in futures.items()})
+    chunk = in_background(compiled.chunk.lower(hp_spec, state_spec, iterations).compile)
+    stop_if_asked()
+    evaluate = after(chunk, compiled.evaluate.lower(state_spec).compile)
+    stop_if_asked()
+    init = in_background(compiled.init.lower().compile) if with_init else None
+    ready = {"chunk": result(chunk), **({"init": result(init)} if init else {})}
+    return compiled._replace(**ready, evaluate=when_ready(evaluate))
+
+
+def after(first: Future, function: Callable[..., Any], *args: Any) -> Future:
+    """``function(*args)`` in the background once ``first`` has finished (however it ends)."""
+
+    def chained() -> Any:
+        wait([first])
+        return function(*args)
+
+    return in_background(chained)
+
+
+def when_ready(program: Future) -> Callable[..., Any]:
+    """A function that calls the compiled program ``program`` will hold, waiting for it once."""
+    return lambda *args: result(program)(*args)
 
 
 _BACKGROUND: set[threading.Thread] = set()
+
+#: Set to stop a run (as a Ctrl-C would): compiles are no longer waited for, and a run stops at
+#: its next chunk boundary after checkpointing it (:func:`td3_jax.run.train`). The CLI's
+#: Ctrl-C handler sets it as well as raising KeyboardInterrupt, which Python discards where it
+#: lands in a garbage-collection callback or a finaliser.
+STOP = threading.Event()
+
+
+def stop_if_asked() -> None:
+    """Raises KeyboardInterrupt when :data:`STOP` is set."""
+    if STOP.is_set():
+        raise KeyboardInterrupt
+
+
+def result(future: Future) -> Any:
+    """``future.result()``, given up with KeyboardInterrupt once :data:`STOP` is set."""
+    while True:
+        try:
+            return future.result(timeout=0.2)
+        except TimeoutError:
+            stop_if_asked()
 
 
 def in_background(function: Callable[..., Any], *args: Any) -> Future:
     """``function(*args)`` on a thread of its own, as a future.
 
-    The thread is a daemon: a run stopped (Ctrl-C) while XLA compiles does not wait for the
-    compile to finish (see :func:`background_work_running`).
+    The thread is not a daemon (a daemon thread still compiling when the interpreter exits
+    aborts the process); the CLI ends a stopped run with ``os._exit`` instead of waiting for
+    it (see :func:`background_work_running`).
     """
     future: Future = Future()
 
@@ -305,7 +343,7 @@ def in_background(function: Callable[..., Any], *args: Any) -> Future:
         finally:
             _BACKGROUND.discard(threading.current_thread())
 
-    thread = threading.Thread(target=work, name="td3-jax compile", daemon=True)
+    thread = threading.Thread(target=work, name="td3-jax compile")
     _BACKGROUND.add(thread)
     thread.start()
     return future

@@ -51,6 +51,7 @@ from td3_jax.population import (
     Compiled,
     Member,
     Population,
+    after,
     chunk_argument_specs,
     compile_ahead,
     compile_for_mesh,
@@ -58,6 +59,8 @@ from td3_jax.population import (
     make_population,
     member_hyperparams,
     member_keys,
+    result,
+    stop_if_asked,
 )
 from td3_jax.sharding import replicate, state_shardings
 
@@ -232,14 +235,16 @@ def compile_flat(program: FlatProgram, mesh: Mesh) -> Any:
 
 
 def as_tree_function(executable: Any, trees: tuple[Any, Any]) -> Callable:
-    """The flat ``executable`` called with and returning pytrees of ``trees``' structure."""
+    """The flat ``executable`` (or a future of it, waited for at the first call) called with
+    and returning pytrees of ``trees``' structure."""
     in_tree, out_tree = trees
 
     def call(*args: Any) -> Any:
         leaves, tree = jax.tree.flatten(args)
         if tree != in_tree:
             raise ValueError(f"expected arguments structured as {in_tree}, got {tree}")
-        return jax.tree.unflatten(out_tree, executable(*leaves))
+        ready = result(executable) if isinstance(executable, Future) else executable
+        return jax.tree.unflatten(out_tree, ready(*leaves))
 
     return call
 
@@ -417,8 +422,8 @@ def _compile_stored(source: Source) -> Compiled:
     futures = {name: in_background(compile_flat, source.entry.programs[name], source.mesh)
                for name in source.names}  # fmt: skip
     inputs = _placed_inputs(source)  # while the programs are read back
-    trees = source.entry.trees.result()
-    executables = {name: future.result() for name, future in futures.items()}
+    trees = result(source.entry.trees)
+    executables = {name: result(future) for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
@@ -428,7 +433,8 @@ def _compile_traced(source: Source) -> Compiled:
     futures, programs, trees = _export_each(source)
     save(source.directory, source.key, programs, trees)
     inputs = _placed_inputs(source)
-    executables = {name: future.result() for name, future in futures.items()}
+    executables = {name: future if name == "evaluate" else result(future)  # see _export_each
+                   for name, future in futures.items()}  # fmt: skip
     return _compiled(source, executables, trees, *inputs)
 
 
@@ -441,7 +447,7 @@ def _placed_inputs(source: Source) -> tuple[Any, Any]:
 
 def _export_each(source: Source) -> tuple[dict, dict, dict]:
     """Traces and exports each program, submitting the compile of each the run needs before
-    tracing the next."""
+    tracing the next; the evaluation's waits for the chunk's (:func:`compile_ahead` says why)."""
     program, mesh = source.program, source.mesh
     replicated = NamedSharding(mesh, PartitionSpec())
     shardings = state_shardings(program.abstract_state, mesh)
@@ -456,11 +462,14 @@ def _export_each(source: Source) -> tuple[dict, dict, dict]:
     }  # fmt: skip
     executables, programs, trees = {}, {}, {"state": program.abstract_state}
     for name in NAMES:
+        stop_if_asked()
         try:
             programs[name], trees[name] = export_flat(*plans[name])
         except Exception as err:  # e.g. a custom call jax.export does not take
             raise _ExportFailed(name) from err
-        if name in source.names:  # a resume needs no init, but the entry keeps it
+        if name == "evaluate":  # after the chunk's compile, during the first chunk's run
+            executables[name] = after(executables["chunk"], compile_flat, programs[name], mesh)
+        elif name in source.names:  # a resume needs no init, but the entry keeps it
             executables[name] = in_background(compile_flat, programs[name], mesh)
     return executables, programs, trees
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,6 +17,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from td3_jax import population as population_module
 from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
@@ -82,7 +82,7 @@ def train(
     Args:
       resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
         may differ from the saved config only in :data:`td3_jax.rundir.SAFE_ON_RESUME`.
-      progress: show a live progress display.
+      progress: show progress (a live bar on a terminal, else one line per evaluation).
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
         trains ``cfg.seeds`` seeds in one program. A member whose losses or parameters become
         non-finite is marked diverged (null returns); the run stops when all have diverged.
@@ -113,10 +113,12 @@ def train(
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
         run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
         _loop(run, compiled, state, start_chunk)
+        population_module.stop_if_asked()  # stopped by STOP: as interrupted, once checkpointed
     finally:
         try:
             run.close()
         finally:
+            STOP.clear()
             run_lock.release()
     return run.records
 
@@ -129,7 +131,7 @@ def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> 
     known = state if state is not None else None if source.entry else source.program.abstract_state
     if known is not None:
         run.checkpointer.check_space(known)
-    _stopping(run, 0)  # a Ctrl-C Python discarded while the environment was made
+    population_module.stop_if_asked()  # a Ctrl-C Python discarded while tracing
     compiled = program_cache.compile_programs(source)
     if state is None:
         state = compiled.init()
@@ -167,10 +169,9 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     return population, changes, source
 
 
-#: Set to stop a run at its next chunk boundary (as a Ctrl-C would). The CLI's Ctrl-C handler
-#: sets it as well as raising KeyboardInterrupt, which Python discards where it lands in a
-#: garbage-collection callback; the run then stops here instead of running on.
-STOP = threading.Event()
+#: Set to stop a run (:data:`td3_jax.population.STOP`): at its next chunk boundary, after
+#: checkpointing that chunk, :func:`train` raises KeyboardInterrupt; it clears it on return.
+STOP = population_module.STOP
 
 
 @dataclasses.dataclass
@@ -258,10 +259,10 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:
-    """Whether this call stops before its next chunk (chunk limit or wall-clock budget);
-    raises KeyboardInterrupt when :data:`STOP` is set."""
+    """Whether this call stops before its next chunk (chunk limit, wall-clock budget or
+    :data:`STOP`)."""
     if STOP.is_set():
-        raise KeyboardInterrupt
+        return True
     if run.stop_after_chunks is not None and chunks_done >= run.stop_after_chunks:
         return True
     budget = run.time_budget_s

@@ -447,10 +447,36 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
     monkeypatch.undo()
     assert code == 2
     assert error_line(err) == (
-        f"td3-jax: error: could not write: {out / 'config.json.tmp'} "
-        f"({os.strerror(errno.ENOSPC)})"
+        f"td3-jax: error: {out / 'config.json.tmp'}: {os.strerror(errno.ENOSPC)}"
     )
     assert not (out / "config.json.tmp").exists()
     # Once there is room, the same --out starts (nothing half-written blocks it).
     code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     assert code == 0, err
+
+
+def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path, monkeypatch):
+    """run.STOP (set by the CLI's Ctrl-C handler, also when Python discards the interrupt)
+    stops a run at the next chunk boundary: that chunk is logged and checkpointed, then the run
+    raises KeyboardInterrupt and clears STOP, so the next run is not stopped by it."""
+    from td3_jax.checkpoint import Checkpointer
+
+    real = run_module._chunk_and_record
+
+    def chunk_then_stop(*args, **kwargs):
+        out = real(*args, **kwargs)
+        run_module.STOP.set()
+        return out
+
+    monkeypatch.setattr(run_module, "_chunk_and_record", chunk_then_stop)
+    cfg = dataclasses.replace(SMALL, total_steps=192, warmup_steps=16, hidden_sizes=(8,))
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_module.train(cfg, out, progress=False)
+    assert not run_module.STOP.is_set()
+    assert [r["env_steps"] for r in records(out)] == [64]
+    checkpointer = Checkpointer(out / "checkpoints", create=False)
+    assert checkpointer.steps() == [1]
+    checkpointer.close()
+    monkeypatch.undo()
+    assert len(run_module.train(cfg, out, resume=True, progress=False)) == 2  # 128, 192
