@@ -17,7 +17,7 @@ import itertools
 import math
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, wait
+from concurrent.futures import Future
 from typing import Any, NamedTuple
 
 import jax
@@ -271,35 +271,23 @@ def compile_ahead(compiled: Compiled, program: Population, with_init: bool = Tru
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
     Each program is traced (Python, one at a time) and handed to a thread that compiles it
-    while the next is traced: the chunk first, as it takes longest. The evaluation's compile
-    starts once the chunk's is done and is waited for at the first evaluation, so it runs
-    during the first chunk instead of competing with the chunk's compile for the host's cores.
-    The returned functions call the compiled executables: calling them with other shapes or
-    shardings raises instead of recompiling.
+    while the next is traced: the chunk first, as it takes longest. (Compiling the evaluation
+    during the first chunk instead gained nothing on G1: its autotuning waits for the GPU,
+    which the chunk holds.) The returned functions are the compiled executables: calling them
+    with other shapes or shardings raises instead of recompiling.
     """
     hp_spec, state_spec, iterations = chunk_argument_specs(program, compiled.shardings)
-    chunk = in_background(compiled.chunk.lower(hp_spec, state_spec, iterations).compile)
-    stop_if_asked()
-    evaluate = after(chunk, compiled.evaluate.lower(state_spec).compile)
-    stop_if_asked()
-    init = in_background(compiled.init.lower().compile) if with_init else None
-    ready = {"chunk": result(chunk), **({"init": result(init)} if init else {})}
-    return compiled._replace(**ready, evaluate=when_ready(evaluate))
-
-
-def after(first: Future, function: Callable[..., Any], *args: Any) -> Future:
-    """``function(*args)`` in the background once ``first`` has finished (however it ends)."""
-
-    def chained() -> Any:
-        wait([first])
-        return function(*args)
-
-    return in_background(chained)
-
-
-def when_ready(program: Future) -> Callable[..., Any]:
-    """A function that calls the compiled program ``program`` will hold, waiting for it once."""
-    return lambda *args: result(program)(*args)
+    programs = {
+        "chunk": lambda: compiled.chunk.lower(hp_spec, state_spec, iterations),
+        "evaluate": lambda: compiled.evaluate.lower(state_spec),
+    }
+    if with_init:
+        programs["init"] = compiled.init.lower
+    futures = {}
+    for name, lower in programs.items():
+        futures[name] = in_background(lower().compile)
+        stop_if_asked()
+    return compiled._replace(**{name: result(f) for name, f in futures.items()})
 
 
 _BACKGROUND: set[threading.Thread] = set()

@@ -51,7 +51,6 @@ from td3_jax.population import (
     Compiled,
     Member,
     Population,
-    after,
     chunk_argument_specs,
     compile_ahead,
     compile_for_mesh,
@@ -235,16 +234,14 @@ def compile_flat(program: FlatProgram, mesh: Mesh) -> Any:
 
 
 def as_tree_function(executable: Any, trees: tuple[Any, Any]) -> Callable:
-    """The flat ``executable`` (or a future of it, waited for at the first call) called with
-    and returning pytrees of ``trees``' structure."""
+    """The flat ``executable`` called with and returning pytrees of ``trees``' structure."""
     in_tree, out_tree = trees
 
     def call(*args: Any) -> Any:
         leaves, tree = jax.tree.flatten(args)
         if tree != in_tree:
             raise ValueError(f"expected arguments structured as {in_tree}, got {tree}")
-        ready = result(executable) if isinstance(executable, Future) else executable
-        return jax.tree.unflatten(out_tree, ready(*leaves))
+        return jax.tree.unflatten(out_tree, executable(*leaves))
 
     return call
 
@@ -433,8 +430,7 @@ def _compile_traced(source: Source) -> Compiled:
     futures, programs, trees = _export_each(source)
     save(source.directory, source.key, programs, trees)
     inputs = _placed_inputs(source)
-    executables = {name: future if name == "evaluate" else result(future)  # see _export_each
-                   for name, future in futures.items()}  # fmt: skip
+    executables = {name: result(future) for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
@@ -447,7 +443,7 @@ def _placed_inputs(source: Source) -> tuple[Any, Any]:
 
 def _export_each(source: Source) -> tuple[dict, dict, dict]:
     """Traces and exports each program, submitting the compile of each the run needs before
-    tracing the next; the evaluation's waits for the chunk's (:func:`compile_ahead` says why)."""
+    tracing the next."""
     program, mesh = source.program, source.mesh
     replicated = NamedSharding(mesh, PartitionSpec())
     shardings = state_shardings(program.abstract_state, mesh)
@@ -467,9 +463,7 @@ def _export_each(source: Source) -> tuple[dict, dict, dict]:
             programs[name], trees[name] = export_flat(*plans[name])
         except Exception as err:  # e.g. a custom call jax.export does not take
             raise _ExportFailed(name) from err
-        if name == "evaluate":  # after the chunk's compile, during the first chunk's run
-            executables[name] = after(executables["chunk"], compile_flat, programs[name], mesh)
-        elif name in source.names:  # a resume needs no init, but the entry keeps it
+        if name in source.names:  # a resume needs no init, but the entry keeps it
             executables[name] = in_background(compile_flat, programs[name], mesh)
     return executables, programs, trees
 

@@ -181,22 +181,3 @@ def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
     table = captured.out[captured.out.index("rank") :]
     assert table.index("critic_lr=0.001") < table.index("critic_lr=1e+30")  # diverged: last
 
-
-def test_after_runs_only_once_the_first_is_done_and_when_ready_waits_for_the_program():
-    """The evaluation's compile is chained after the chunk's (so they do not compete for the
-    host) and waited for at the first evaluation."""
-    import threading
-
-    from td3_jax.population import after, background_work_running, in_background, when_ready
-
-    release = threading.Event()
-    order = []
-    first = in_background(lambda: (release.wait(10), order.append("first")))
-    second = after(first, lambda: (order.append("second"), lambda x: x + 1)[1])
-    assert not second.done() and order == [] and background_work_running()
-    release.set()
-    assert when_ready(second)(41) == 42 and order == ["first", "second"]
-    failing = in_background(lambda: 1 / 0)
-    assert after(failing, lambda: "runs anyway").result() == "runs anyway"
-    with pytest.raises(ZeroDivisionError):
-        failing.result()
