@@ -113,7 +113,6 @@ def train(
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
         run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
         _loop(run, compiled, state, start_chunk)
-        population_module.stop_if_asked()  # stopped by STOP: as interrupted, once checkpointed
     finally:
         try:
             run.close()
@@ -236,7 +235,8 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
 
     A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
     rest) with an evaluation after each; checkpoints are taken after whole chunks only, written
-    in the background while the next chunk runs (the last one is waited for).
+    in the background while the next chunk runs (the last one is waited for). Stopped by
+    :data:`STOP`, it raises KeyboardInterrupt once that chunk is checkpointed.
     """
     cfg = run.cfg
     early = cfg.early_iterations if start_chunk == 0 else 0
@@ -256,6 +256,7 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged)}  # fmt: skip
             run.checkpointer.save(index + 1, state, meta, background=not last)
+    population_module.stop_if_asked()  # stopped by STOP: as interrupted, once checkpointed
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:
