@@ -155,19 +155,11 @@ class Checkpointer:
             raise self._write_failed(step, err) from err
 
     def check(self) -> None:
-        """Raises :class:`CheckpointWriteError` if a background write has already failed
-        (without waiting for one still running: a finished one is waited for, which raises
-        its failure)."""
-        if self._pending is None or self._manager is None:
-            return
-        if not self._manager.is_saving_in_progress():
+        """Raises :class:`CheckpointWriteError` if a background write has already failed,
+        without waiting for one still running (a finished one is waited for: orbax raises a
+        failure only there)."""
+        if self._manager is not None and not self._manager.is_saving_in_progress():
             self.wait()
-            return
-        try:
-            self._manager.check_for_errors()
-        except Exception as err:  # orbax / tensorstore wrap OS errors in many types
-            step, self._pending = self._pending, None
-            raise self._write_failed(step, err) from err
 
     @property
     def pending(self) -> int | None:

@@ -28,13 +28,7 @@ class MetricsLogger:
             for r in read_metrics(self.path)
             if resume_env_steps is not None and r["env_steps"] <= resume_env_steps
         ]
-        tmp = self.path.with_name(self.path.name + ".tmp")  # rewritten whole, then renamed
-        try:
-            tmp.write_text("".join(json.dumps(record) + "\n" for record in kept))
-            tmp.replace(self.path)
-        except OSError:
-            tmp.unlink(missing_ok=True)
-            raise
+        write_atomically(self.path, "".join(json.dumps(record) + "\n" for record in kept))
         SummaryWriter = _summary_writer_class()
         # On resume, points logged after the restored checkpoint are dropped here too.
         purge = resume_env_steps + 1 if resume_env_steps else None
@@ -54,6 +48,18 @@ class MetricsLogger:
     def close(self) -> None:
         if self.enabled:
             self._tb.close()
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Writes ``text`` to a temporary file renamed to ``path``, so a reader sees the old file
+    or the new one; a failed write (a full disk) removes the temporary file and raises."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _summary_writer_class() -> type:

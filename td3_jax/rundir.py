@@ -28,6 +28,7 @@ import numpy as np
 
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig, as_flag, flag
+from td3_jax.logger import write_atomically
 from td3_jax.population import SWEEPABLE, Member, Population, make_population, members
 from td3_jax.sharding import make_mesh, state_shardings
 
@@ -342,15 +343,7 @@ def save_config(
 
 
 def _write_json(path: Path, value: Any) -> None:
-    """Writes ``value`` to a temporary file renamed to ``path``; a failed write (a full disk)
-    removes the temporary file and raises."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(json.dumps(value, indent=2) + "\n")
-        tmp.replace(path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_atomically(path, json.dumps(value, indent=2) + "\n")
 
 
 def _read_config(out_dir: Path) -> dict:
