@@ -202,7 +202,7 @@ class Checkpointer:
 
         Without ``step``, a corrupt newest checkpoint is skipped for the next older one, with a
         one-line warning on stderr; the returned ``step`` says which was used. If all are
-        corrupt, the newest one's :class:`CorruptCheckpointError` is raised.
+        corrupt, one :class:`CorruptCheckpointError` names each of them and why.
         """
         _quiet_closed_loop_callbacks()
         if step is not None:
@@ -219,8 +219,11 @@ class Checkpointer:
                 reasons = "; ".join(str(err) for err in skipped)
                 print(f"td3-jax: warning: {reasons}; using checkpoint {used}", file=sys.stderr)
             return result
-        if skipped:
+        if len(skipped) == 1:
             raise skipped[0]
+        if skipped:
+            reasons = "; ".join(str(err) for err in skipped)
+            raise CorruptCheckpointError(f"no usable checkpoint in {self.directory}: {reasons}")
         raise CheckpointError(f"no checkpoint found in {self.directory}")
 
     def close(self) -> None:

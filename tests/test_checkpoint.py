@@ -13,6 +13,7 @@ import errno
 import json
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import jax
@@ -389,16 +390,27 @@ def test_fallback_skips_every_corrupt_checkpoint_in_one_line(three_steps, capsys
 
 
 @pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
-def test_when_every_checkpoint_is_corrupt_the_newest_error_is_raised(three_steps, capsys):
+def test_when_every_checkpoint_is_corrupt_the_error_names_each_of_them(three_steps, capsys):
     directory, trees = three_steps
     for step in (1, 2, 3):
         bit_rot(directory / str(step))
     with pytest.raises(CorruptCheckpointError) as err:
         Checkpointer(directory).restore(jax.eval_shape(lambda: trees[3]))
+    assert str(err.value) == f"no usable checkpoint in {directory}: " + "; ".join(
+        f"checkpoint {directory / str(step)} is corrupt (array ['big'] fails its checksum)"
+        for step in (3, 2, 1)
+    )
+    assert capsys.readouterr().err == ""
+    # With one checkpoint, its own error is the message.
+    for step in (1, 2):
+        shutil.rmtree(directory / str(step))
+    only = Checkpointer(directory, keep=3)
+    with pytest.raises(CorruptCheckpointError) as err:
+        only.restore(jax.eval_shape(lambda: trees[3]))
     assert str(err.value) == (
         f"checkpoint {directory / '3'} is corrupt (array ['big'] fails its checksum)"
     )
-    assert capsys.readouterr().err == ""
+    only.close()
 
 
 def test_a_newest_checkpoint_of_another_configuration_does_not_fall_back(tmp_path, capsys):

@@ -393,10 +393,12 @@ def test_corrupted_checkpoint_metadata_exits_2(finished_run, tmp_path, capsys):
     for step in ("1", "2"):  # (with one good checkpoint left, restore would fall back to it)
         (run_dir / "checkpoints" / step / "meta" / "metadata").write_text("{not json")
     code, _, err = main(["eval", "--run", str(run_dir), "--episodes", "2"], capsys)
-    assert_one_line_error(code, err, "checkpoints/2", "corrupt")
+    # every checkpoint is named, the newest first
+    assert_one_line_error(code, err, "no usable checkpoint", "checkpoints/2 is", "checkpoints/1 is")
+    assert err.index("checkpoints/2") < err.index("checkpoints/1")
     records = read_records(run_dir)
     code, _, err = main(["train", "--resume", "--out", str(run_dir), "--quiet"], capsys)
-    assert_one_line_error(code, err, "checkpoints/2", "corrupt")
+    assert_one_line_error(code, err, "checkpoints/2 is", "checkpoints/1 is", "corrupt")
     assert read_records(run_dir) == records
 
 
