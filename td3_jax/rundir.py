@@ -348,6 +348,9 @@ def _write_json(path: Path, value: Any) -> None:
 
 def _read_config(out_dir: Path) -> dict:
     path = Path(out_dir) / CONFIG_FILE
+    if not Path(out_dir).is_dir():
+        what = "is a file, not a run directory" if Path(out_dir).exists() else "does not exist"
+        raise ConfigError(f"{out_dir} {what} (give the directory td3-jax train wrote to)")
     if not path.exists():
         try:
             check_not_in_use(Path(out_dir))

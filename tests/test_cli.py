@@ -270,7 +270,10 @@ def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
     code, _, err = main(["eval", "--run", str(tmp_path)], capsys)
     assert_one_line_error(code, err, "not a td3-jax run directory")
     code, _, err = main(["eval", "--run", str(tmp_path / "missing")], capsys)
-    assert_one_line_error(code, err, "not a td3-jax run directory")
+    assert_one_line_error(code, err, f"{tmp_path / 'missing'} does not exist")
+    assert "config.json" not in err
+    code, _, err = main(["eval", "--run", str(tmp_path / "notes.txt")], capsys)
+    assert_one_line_error(code, err, f"{tmp_path / 'notes.txt'} is a file, not a run directory")
 
 
 def test_unknown_subcommand_exits_2(capsys):
