@@ -286,7 +286,8 @@ def config_changes(saved: TrainConfig, cfg: TrainConfig) -> dict[str, list]:
         if old == new or _effective(saved, field.name) == _effective(cfg, field.name):
             continue
         if field.name not in SAFE_ON_RESUME:
-            raise ConfigError(_mismatch(field.name, old, new))
+            raise ConfigError(_mismatch(field.name, _shown(saved, field.name),
+                                        _shown(cfg, field.name)))  # fmt: skip
         changes[field.name] = [old, new]
     return changes
 
@@ -301,6 +302,15 @@ def _effective(cfg: TrainConfig, name: str) -> Any:
     return getattr(cfg, name)
 
 
+def _shown(cfg: TrainConfig, name: str) -> str:
+    """A setting as the flag it took effect with: ``--actor-lr 0.001`` for a TD3 run whose
+    --actor-lr was left to the algorithm (``None``); ``no --max-grad-norm`` for one left off."""
+    value = _effective(cfg, name)
+    if value is None and name in ("actor_hidden_sizes", "critic_hidden_sizes"):
+        value = _effective(cfg, "hidden_sizes")
+    return f"no {flag(name)}" if value is None else as_flag(name, value)
+
+
 # Why a setting cannot change on --resume, where a general reason would not say enough.
 _REASONS = {
     "eval_every": "the checkpoints count chunks of --eval-every env steps",
@@ -311,7 +321,7 @@ _REASONS = {
 }
 
 
-def _mismatch(name: str, saved: Any, given: Any) -> str:
+def _mismatch(name: str, saved: str, given: str) -> str:
     if name in FLOAT_SETTINGS:
         why = (
             "learning rates, tau, noise scales and the discount cannot change on --resume yet "
@@ -321,7 +331,7 @@ def _mismatch(name: str, saved: Any, given: Any) -> str:
         why = _REASONS.get(name, "it fixes the run's state layout, key schedule or meaning")
     safe = ", ".join(flag(n) for n in SAFE_ON_RESUME)
     return (
-        f"{as_flag(name, given)} given but the run was started with {as_flag(name, saved)}: "
+        f"{given} given but the run was started with {saved}: "
         f"{why}; leave it out to resume (only {safe} may change) or start a new --out"
     )
 

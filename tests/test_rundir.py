@@ -253,7 +253,13 @@ def test_safe_settings_may_change_on_resume():
         (dict(batch_size=8), ["--batch-size 8 given", "--batch-size 16"]),
         (dict(hidden_sizes=(8, 8)), ["--hidden-sizes 8 8 given", "--hidden-sizes 256 256"]),
         (dict(normalize_obs=False), ["--no-normalize-obs given", "with --normalize-obs"]),
-        (dict(actor_lr=3e-4), ["--actor-lr 0.0003 given", "not be reproducible"]),
+        # left to the algorithm (None): the value the run used, TD3's 1e-3
+        (dict(actor_lr=3e-4), ["--actor-lr 0.0003 given", "started with --actor-lr 0.001",
+                               "not be reproducible"]),
+        (dict(tau=0.01), ["--tau 0.01 given", "started with --tau 0.005"]),
+        (dict(actor_hidden_sizes=(8,)), ["--actor-hidden-sizes 8 given",
+                                         "started with --actor-hidden-sizes 256 256"]),
+        (dict(max_grad_norm=1.0), ["--max-grad-norm 1.0 given", "started with no --max-grad-norm"]),
         (dict(discount=0.9), ["--discount 0.9 given", "--discount 0.99", "reproducible"]),
         (dict(env="brax/ant"), ["--env brax/ant given", "--env gymnax/Pendulum-v1"]),
     ],
@@ -262,7 +268,7 @@ def test_structural_settings_cannot_change_on_resume(changes, needles):
     with pytest.raises(ConfigError) as err:
         rundir.config_changes(SMALL, dataclasses.replace(SMALL, **changes))
     message = str(err.value)
-    assert "\n" not in message
+    assert "\n" not in message and "None" not in message
     for needle in [*needles, "leave it out to resume", "--total-steps"]:
         assert needle in message, (needle, message)
 
