@@ -184,14 +184,15 @@ class Checkpointer:
         else:
             fixes += ["a smaller --buffer-size", "an --out on a larger disk"]
         raise CheckpointWriteError(
-            f"the disk holding {self.directory} has {_gb(free)} free, and this run's "
-            f"checkpoints need {_gb(need)} ({self._keep} kept and one being written{there}; "
-            f"{_gb(size)} each: the whole train state, replay buffer included); use "
+            f"the disk holding {self.directory} has {size_text(free)} free, and this run's "
+            f"checkpoints need {size_text(need)} ({self._keep} kept and one being written{there}; "
+            f"{size_text(size)} each: the whole train state, replay buffer included); use "
             + ", or ".join(fixes)
         )
 
     def restore(
-        self, abstract_state: Any, step: int | None = None, shardings: Any = None
+        self, abstract_state: Any, step: int | None = None, shardings: Any = None,
+        resize: Any = None,
     ) -> tuple[Any, dict, int]:
         """Restores ``(state, meta, step)`` from checkpoint ``step`` (default: the newest good one).
 
@@ -200,17 +201,23 @@ class Checkpointer:
         ``shardings`` (a matching pytree of ``jax.sharding.Sharding``) places the restored arrays
         directly, so a checkpoint written on one device count restores onto another.
 
+        ``resize(abstract_state, saved_layout) -> (abstract_as_saved, grow)`` restores a
+        checkpoint of other shapes that the run can still use: its arrays are restored as
+        ``abstract_as_saved``, checked, then ``grow(state)`` gives ``abstract_state``'s shapes
+        (``grow`` ``None``: restored as ``abstract_state``); e.g. a replay ring that an extended
+        run grows (:func:`td3_jax.training.ring_as_saved`).
+
         Without ``step``, a corrupt newest checkpoint is skipped for the next older one, with a
         one-line warning on stderr; the returned ``step`` says which was used. If all are
         corrupt, one :class:`CorruptCheckpointError` names each of them and why.
         """
         _quiet_closed_loop_callbacks()
         if step is not None:
-            return self._restore_step(abstract_state, step, shardings)
+            return self._restore_step(abstract_state, step, shardings, resize)
         skipped: list[CorruptCheckpointError] = []
         for candidate in reversed(self.steps()):
             try:
-                result = self._restore_step(abstract_state, candidate, shardings)
+                result = self._restore_step(abstract_state, candidate, shardings, resize)
             except CorruptCheckpointError as err:
                 skipped.append(err)
                 continue
@@ -252,18 +259,24 @@ class Checkpointer:
         return self._manager
 
     def _restore_step(
-        self, abstract_state: Any, step: int, shardings: Any
+        self, abstract_state: Any, step: int, shardings: Any, resize: Any = None
     ) -> tuple[Any, dict, int]:
-        """Restores checkpoint ``step``, checking its layout and checksums."""
+        """Restores checkpoint ``step``, checking its layout and checksums (see :meth:`restore`
+        for ``resize``)."""
         path = self.directory / str(step)
         if step not in self.steps():
             raise CheckpointError(f"no checkpoint {path} (steps found: {self.steps()})")
         meta = self._read(step, meta=ocp.args.JsonRestore())["meta"]
-        _check_layout(meta, abstract_state, path)
-        target = _stored_leaves(_restore_target(abstract_state, shardings))
+        saved, grow = abstract_state, None
+        if resize is not None and isinstance(meta, dict):
+            saved, grow = resize(abstract_state, meta.get("layout"))
+        _check_layout(meta, saved, path)
+        target = _stored_leaves(_restore_target(saved, shardings))
         stored = self._read(step, state=ocp.args.StandardRestore(target))["state"]
-        state = _rebuild(abstract_state, stored)
+        state = _rebuild(saved, stored)
         _verify(state, meta.get("checksums"), path)
+        if grow is not None:
+            state = jax.jit(grow, out_shardings=shardings)(state)
         return state, {k: v for k, v in meta.items() if k not in _META_KEYS}, step
 
     def _read(self, step: int, **items: Any) -> Any:
@@ -305,7 +318,8 @@ def state_bytes(state: Any) -> int:
     return sum(nbytes(x) for x in jax.tree.leaves(state))
 
 
-def _gb(size: int) -> str:
+def size_text(size: int) -> str:
+    """``size`` bytes as text: in GB from 0.1 GB up, else in MB."""
     return f"{size / 1e9:.1f} GB" if size >= 1e8 else f"{size / 1e6:.1f} MB"
 
 

@@ -57,7 +57,12 @@ PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
 
 class Interrupted(Exception):
-    """Ctrl-C during a run; the message says what the run directory holds."""
+    """Ctrl-C or SIGTERM during a run; the message says what the run directory holds and
+    ``code`` is the exit status (130 for Ctrl-C, 143 for SIGTERM, as shells report them)."""
+
+    def __init__(self, message: str, code: int = 130):
+        super().__init__(message)
+        self.code = code
 
 
 @dataclasses.dataclass(frozen=True)
@@ -418,8 +423,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         cfg = _scale_to_device(cfg, args)
     if jax.process_index() == 0:
         _announce(validate(cfg), preset_name, source)
+    received: list[int] = []
     try:
-        with _ctrl_c_handler():
+        with _stop_signals(received):
             records = train(
                 cfg,
                 command.out,
@@ -433,6 +439,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
                 program_dir=program_dir,
             )
     except KeyboardInterrupt:
+        if signal.SIGTERM in received:
+            raise Interrupted(interrupted_message(command.out, "terminated (SIGTERM)"),
+                              128 + signal.SIGTERM) from None  # fmt: skip
         raise Interrupted(interrupted_message(command.out)) from None
     if not records:
         print(f"nothing to do: the run in {command.out} is complete")
@@ -615,22 +624,32 @@ _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 
 @contextlib.contextmanager
-def _ctrl_c_handler() -> Iterator[None]:
+def _stop_signals(received: list[int]) -> Iterator[None]:
     """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
     :data:`td3_jax.run.STOP` (so the run stops at its next chunk boundary even where Python
-    discards that exception); a second one ends the process at once."""
+    discards that exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a
+    kill) sets STOP alone, so the chunk in flight finishes and is checkpointed before the run
+    stops. A second signal of either kind ends the process at once. The signals received are
+    appended to ``received``."""
     import jax
 
     from td3_jax import run as run_module
 
     say = jax.process_index() == 0  # several processes: one speaks
 
-    def on_ctrl_c(signum: int, frame: Any) -> None:
+    def on_signal(signum: int, frame: Any) -> None:
         if run_module.STOP.is_set():
             if say:
-                print("td3-jax: interrupted again: stopping now", file=sys.stderr, flush=True)
-            os._exit(130)
+                again = "terminated" if signum == signal.SIGTERM else "interrupted"
+                print(f"td3-jax: {again} again: stopping now", file=sys.stderr, flush=True)
+            os._exit(128 + signum)
+        received.append(signum)
         run_module.STOP.set()
+        if signum == signal.SIGTERM:
+            if say:
+                print("td3-jax: terminated (SIGTERM): stopping once the chunk in flight is "
+                      "checkpointed (SIGTERM again to stop at once)", file=sys.stderr, flush=True)
+            return
         if say:
             print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
         raise KeyboardInterrupt
@@ -642,28 +661,29 @@ def _ctrl_c_handler() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous, previous_hook = signal.signal(signal.SIGINT, on_ctrl_c), sys.unraisablehook
-    sys.unraisablehook = unraisable
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
     finally:
         try:
-            signal.signal(signal.SIGINT, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
             sys.unraisablehook = previous_hook
         finally:
             run_module.STOP.clear()
 
 
-def _exit_interrupted(message: str) -> None:
-    """Prints ``message`` and exits with 130 at once: an XLA compile still running on a
+def _exit_interrupted(message: str, code: int = 130) -> None:
+    """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
     background thread (it cannot be interrupted) is abandoned rather than waited for."""
     print(message, file=sys.stderr)
     population = sys.modules.get("td3_jax.population")  # not imported: nothing compiles
     if population is not None and population.background_work_running():
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
-    sys.exit(130)
+        os._exit(code)
+    sys.exit(code)
 
 
 def _run_reporting_errors(command, args: list[str]) -> None:
@@ -688,7 +708,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
         print(f"td3-jax: error: {err} (unset it or use egl, osmesa or glfw)", file=sys.stderr)
         sys.exit(2)
     except Interrupted as err:
-        _exit_interrupted(f"td3-jax: {err}")
+        _exit_interrupted(f"td3-jax: {err}", err.code)
     except OSError as err:  # a full disk, a quota, a read-only file system, no permission
         if err.errno not in _DISK_ERRNOS:
             raise

@@ -45,8 +45,9 @@ class TrainConfig:
     batch_size: int = 256
     """Transitions per gradient update."""
     buffer_size: int = 100_000
-    """Replay capacity in transitions (a ring: the oldest are overwritten once it is full). It
-    does not depend on --total-steps, so a finished run can be extended with --resume."""
+    """Replay capacity in transitions (a ring: the oldest are overwritten once it is full),
+    capped at the run's own length (a ring never holds more rows than the run collects); a
+    --resume that extends the run grows the ring to fit, with the numbers of a straight run."""
     replay_shards: int = 1
     """Split the replay ring into this many slices, each filled by its own group of environments
     and giving batch_size/replay_shards rows of every batch (stratified uniform sampling). With a
@@ -186,9 +187,10 @@ class TrainConfig:
 
     @property
     def replay_capacity(self) -> int:
-        """Transitions the replay ring holds: ``buffer_size``, whatever the run's length (so a
-        resumed run with a larger ``total_steps`` keeps the checkpoint's buffer shape)."""
-        return self.buffer_size
+        """Transitions the replay ring holds: ``buffer_size``, or the run's own length where
+        that is smaller (the ring then never wraps, so a resume that extends the run grows it
+        exactly: :func:`td3_jax.training.grow_ring`)."""
+        return min(self.buffer_size, self.run_steps)
 
     @property
     def run_steps(self) -> int:
@@ -382,14 +384,14 @@ def _check_replay(cfg: TrainConfig) -> None:
     if cfg.env_steps_per_iter > capacity:
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
                           f"replay buffer holds only {capacity}")  # fmt: skip
-    if cfg.batch_size > capacity:
-        raise ConfigError(f"--batch-size {cfg.batch_size} is larger than the replay buffer "
-                          f"({capacity} transitions)")  # fmt: skip
     if cfg.batch_size > cfg.run_steps:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
             f"run collects (--total-steps {cfg.total_steps}): it would never update"
         )
+    if cfg.batch_size > capacity:
+        raise ConfigError(f"--batch-size {cfg.batch_size} is larger than the replay buffer "
+                          f"({capacity} transitions)")  # fmt: skip
     for name, value in (("--num-envs", cfg.num_envs), ("--batch-size", cfg.batch_size),
                         ("the replay capacity", capacity)):  # fmt: skip
         if value % cfg.replay_shards:

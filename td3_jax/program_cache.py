@@ -118,7 +118,10 @@ def fingerprint(cfg: TrainConfig, overrides: list[tuple[str, ...]], mesh: Mesh) 
         settings.pop(name)
     for name in SWEEPABLE:  # traced: only whether one is set can shape a program
         settings[name] = None if name in DEFAULTED else settings[name] is None
-    if cfg.lr_schedule == "constant":  # a schedule's length is part of the program
+    # The run's length shapes a program only through a schedule's length and the replay ring
+    # (capped at the run's steps): the key holds the ring's rows instead where that is all.
+    settings["replay_capacity"] = cfg.replay_capacity
+    if cfg.lr_schedule == "constant":
         settings.pop("total_steps")
     device = mesh.devices.flat[0]
     described = {

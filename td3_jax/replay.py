@@ -203,3 +203,22 @@ def sample_slices(
     sample_one = lambda b, k: sample_n_step(b, k, batch_size // shards, steps, stride, discount)
     rows = jax.vmap(sample_one)(buffer, keys)
     return jax.tree.map(lambda x: x.reshape(batch_size, *x.shape[2:]), rows)
+
+
+def slice_rows(buffer: ReplayBuffer) -> int:
+    """Rows of each slice of a buffer made by :func:`init_slices`, also under leading member
+    axes (leaves ``[..., shards, rows, ...]``) and for its shapes (``ShapeDtypeStruct``s)."""
+    return jax.tree.leaves(buffer.data)[0].shape[jnp.ndim(buffer.position)]
+
+
+def grow_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
+    """Every slice of a ring that never wrapped, grown to ``rows`` rows: the same rows, zeros
+    after them, the next write after the last filled row (``position = size``). The result is
+    the buffer a ring of ``rows`` rows would be after the same adds (leading member axes kept).
+    """
+    axis = jnp.ndim(buffer.position)
+    added = rows - slice_rows(buffer)
+    if added < 0:
+        raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to {rows}")
+    pad = lambda x: jnp.pad(x, [(0, added if i == axis else 0) for i in range(x.ndim)])
+    return buffer.replace(data=jax.tree.map(pad, buffer.data), position=buffer.size)

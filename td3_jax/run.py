@@ -37,12 +37,14 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
 )
 from td3_jax.sharding import (
     check_divisible,
+    check_memory,
     host_value,
     make_mesh,
     replay_layout_warning,
     state_shardings,
 )
 from td3_jax.stats import population_stats, return_stats
+from td3_jax.training import ring_as_saved
 
 __all__ = [
     "CONFIG_FILE",
@@ -129,14 +131,20 @@ def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> 
     it where they come with the stored programs."""
     known = state if state is not None else None if source.entry else source.program.abstract_state
     if known is not None:
-        run.checkpointer.check_space(known)
+        _check_room(run, source, known)
     population_module.stop_if_asked()  # a Ctrl-C Python discarded while tracing
     compiled = program_cache.compile_programs(source)
+    if known is None:
+        _check_room(run, source, program_cache.abstract_state(source))
     if state is None:
         state = compiled.init()
-    if known is None:
-        run.checkpointer.check_space(state)
     return compiled, state
+
+
+def _check_room(run: _Run, source: program_cache.Source, state: Any) -> None:
+    """The state (arrays or shapes) fits in a device's memory and its checkpoints on the disk."""
+    check_memory(state, source.mesh)
+    run.checkpointer.check_space(state)
 
 
 def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
@@ -223,8 +231,10 @@ def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, 
     if not resume:
         return None, 0
     abstract = program_cache.abstract_state(source)
+    check_memory(abstract, source.mesh)
     shardings = state_shardings(abstract, source.mesh)
-    state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings)
+    state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings,
+                                                        resize=ring_as_saved)  # fmt: skip
     run.wall_offset = float(meta["wall_time_s"])
     run.diverged = set(meta.get("diverged_members", []))
     return state, start_chunk

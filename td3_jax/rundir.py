@@ -31,6 +31,7 @@ from td3_jax.config import ConfigError, TrainConfig, as_flag, flag
 from td3_jax.logger import write_atomically
 from td3_jax.population import SWEEPABLE, Member, Population, make_population, members
 from td3_jax.sharding import make_mesh, state_shardings
+from td3_jax.training import ring_as_saved
 
 CONFIG_FILE = "config.json"
 MEMBERS_FILE = "members.json"
@@ -259,16 +260,16 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
     return lock
 
 
-def interrupted_message(out_dir: Path) -> str:
-    """What an interrupted run leaves behind, in one line."""
+def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
+    """What a run stopped by ``cause`` (a Ctrl-C, a SIGTERM) leaves behind, in one line."""
     steps = checkpoint_steps(out_dir)
     if steps:
         return (
-            f"interrupted; the newest checkpoint is {Path(out_dir) / CHECKPOINTS / str(steps[-1])}"
+            f"{cause}; the newest checkpoint is {Path(out_dir) / CHECKPOINTS / str(steps[-1])}"
             f" (continue with: td3-jax train --out {out_dir} --resume)"
         )
     return (
-        f"interrupted before the first checkpoint: {out_dir} holds none to resume "
+        f"{cause} before the first checkpoint: {out_dir} holds none to resume "
         "(remove it or choose another --out to start again)"
     )
 
@@ -431,7 +432,8 @@ def restore_state(population: Population, out_dir: Path, keep: int = 3, sharding
     the population's state layout (nothing is created in ``out_dir``)."""
     checkpointer = Checkpointer(Path(out_dir) / CHECKPOINTS, keep, create=False)
     try:
-        return checkpointer.restore(population.abstract_state, shardings=shardings)
+        return checkpointer.restore(population.abstract_state, shardings=shardings,
+                                    resize=ring_as_saved)  # fmt: skip
     finally:
         checkpointer.close()
 

@@ -53,6 +53,48 @@ def check_divisible(cfg: TrainConfig, num_devices: int) -> None:
             )
 
 
+def memory_of(device: Any) -> tuple[int, str] | None:
+    """``(bytes, what)``: the memory ``device`` can hold arrays in (an accelerator's own, the
+    host's for a CPU), or ``None`` where it cannot be told."""
+    stats = None
+    try:
+        stats = device.memory_stats()
+    except Exception:  # not every backend reports statistics
+        stats = None
+    if stats and stats.get("bytes_limit"):
+        return int(stats["bytes_limit"]), f"each {device.device_kind} holds"
+    if device.platform == "cpu" and hasattr(os, "sysconf"):
+        try:
+            total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError):
+            return None
+        return int(total), "this machine's memory is"
+    return None
+
+
+def check_memory(abstract_state: Any, mesh: Mesh) -> None:
+    """Raises :class:`ConfigError` before anything is allocated when the train state (arrays
+    or their shapes) cannot fit in a device's memory: one line with both sizes and the flags
+    that shrink it (the replay ring is nearly all of a large state)."""
+    from td3_jax.checkpoint import size_text, state_bytes
+
+    device = mesh.devices.flat[0]
+    memory = memory_of(device)
+    if memory is None:
+        return
+    limit, what = memory
+    share = 1 if device.platform == "cpu" else mesh.size  # CPU "devices" share the host's
+    need = state_bytes(abstract_state) // share
+    if need <= limit:
+        return
+    ring = state_bytes(abstract_state.buffer) // share
+    raise ConfigError(
+        f"the train state needs {size_text(need)} per device (the replay ring "
+        f"{size_text(ring)}) but {what} {size_text(limit)}; use a smaller --buffer-size "
+        "(or fewer --num-envs, --seeds or sweep values)"
+    )
+
+
 def replay_layout_warning(cfg: TrainConfig, num_devices: int) -> str | None:
     """A warning when the replay ring's slices do not fall on whole devices (``None`` when they
     do, or on one device).

@@ -227,6 +227,33 @@ def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
     )
 
 
+def ring_as_saved(abstract_state: Any, layout: list) -> tuple[Any, Callable[[Any], Any] | None]:
+    """How to restore a checkpoint whose replay ring is shorter than ``abstract_state``'s (a
+    run extended by ``--resume``: the ring is capped at the run's length and never wrapped).
+
+    ``layout``: the checkpoint's ``[path, shape, dtype]`` rows, in leaf order. Returns the
+    abstract state with the saved ring's rows and the function that grows a state restored with
+    it to ``abstract_state``'s shapes (:func:`td3_jax.replay.grow_slices`); unchanged and
+    ``None`` where the ring is not shorter (any other difference is the layout check's).
+    """
+    paths = [jax.tree_util.keystr(p) for p, _ in
+             jax.tree_util.tree_leaves_with_path(abstract_state)]  # fmt: skip
+    first = next((i for i, p in enumerate(paths) if p.startswith(".buffer.data")), None)
+    if first is None or not isinstance(layout, list) or len(layout) != len(paths):
+        return abstract_state, None
+    buffer = abstract_state.buffer
+    axis, rows = jnp.ndim(buffer.position), replay.slice_rows(buffer)
+    saved_shape = list(layout[first][1])
+    if len(saved_shape) <= axis or saved_shape[axis] >= rows:
+        return abstract_state, None
+    saved_rows = saved_shape[axis]
+    shorter = lambda x: jax.ShapeDtypeStruct((*x.shape[:axis], saved_rows, *x.shape[axis + 1:]),
+                                             x.dtype)  # fmt: skip
+    saved = buffer.replace(data=jax.tree.map(shorter, buffer.data))
+    grow = lambda state: state.replace(buffer=replay.grow_slices(state.buffer, rows))
+    return abstract_state.replace(buffer=saved), grow
+
+
 def normalize(spec: TrainSpec, stats: normalization.RunningStats, obs: jax.Array) -> jax.Array:
     """``obs`` normalised by the running statistics when the spec asks for it."""
     return normalization.normalize(stats, obs) if spec.normalize_obs else obs

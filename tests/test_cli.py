@@ -779,3 +779,34 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     assert (code, exits) == (130, [130])
     assert "td3-jax: interrupted again: stopping now" in err
     run_module.STOP.clear()
+
+
+def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys, monkeypatch):
+    """What a batch scheduler sends before killing: the CLI says it is stopping, the chunk
+    during which SIGTERM arrived finishes and is checkpointed, the last line names that
+    checkpoint and how to resume, the exit status is 143 (128 + SIGTERM), and the resumed run
+    ends where an uninterrupted one does."""
+    import signal
+
+    real_chunk = run_module._chunk_and_record
+
+    def chunk_then_sigterm(*args, **kwargs):
+        result = real_chunk(*args, **kwargs)
+        signal.raise_signal(signal.SIGTERM)  # arrives "during" the first chunk
+        return result
+
+    monkeypatch.setattr(run_module, "_chunk_and_record", chunk_then_sigterm)
+    out = tmp_path / "run"
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 143, err
+    lines = err.strip().splitlines()
+    assert lines[0].startswith("td3-jax: terminated (SIGTERM): stopping once the chunk in flight")
+    kept = out / "checkpoints" / "1"
+    assert lines[-1] == (f"td3-jax: terminated (SIGTERM); the newest checkpoint is {kept} "
+                         f"(continue with: td3-jax train --out {out} --resume)")  # fmt: skip
+    assert [r["env_steps"] for r in read_records(out)] == [64] and kept.is_dir()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL and not run_module.STOP.is_set()
+    monkeypatch.setattr(run_module, "_chunk_and_record", real_chunk)
+    code, _, err = main(["train", "--out", str(out), "--resume", "--quiet"], capsys)
+    assert code == 0, err
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128]

@@ -124,8 +124,9 @@ def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
     "cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity",
     [
         # defaults: 16 envs x 1 step = 16 per iteration; 4000 // 16 = 250 iterations per chunk
-        # (4000 steps); 20000 / 4000 = 5 chunks; capacity = buffer_size, whatever the length.
-        (TrainConfig(), 16, 250, 5, 100_000),
+        # (4000 steps); 20000 / 4000 = 5 chunks; capacity: the run's 20000 steps, below
+        # buffer_size.
+        (TrainConfig(), 16, 250, 5, 20_000),
         (TrainConfig(total_steps=1_000_000), 16, 250, 250, 100_000),
         # 3 envs x 2 steps = 6; 100 // 6 = 16 iterations (96 steps) per chunk;
         # ceil(1000 / 96) = 11 chunks (1056 steps); capacity 500.
@@ -139,18 +140,18 @@ def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
             500,
         ),
         # eval_every below one iteration: still one iteration (64 steps) per chunk;
-        # ceil(100 / 64) = 2 chunks (128 steps); capacity 1000.
+        # ceil(100 / 64) = 2 chunks (128 steps); capacity 128, the run's length.
         (
             TrainConfig(num_envs=64, eval_every=10, total_steps=100, buffer_size=1000),
             64,
             1,
             2,
-            1000,
+            128,
         ),
         # one step still runs one chunk: 8 envs, 40 // 8 = 5 iterations, 40 steps.
-        (TrainConfig(num_envs=8, eval_every=40, total_steps=1), 8, 5, 1, 100_000),
+        (TrainConfig(num_envs=8, eval_every=40, total_steps=1), 8, 5, 1, 40),
         # total_steps an exact multiple of a chunk: 1 env, 2000 per chunk, 10 chunks.
-        (TrainConfig(**PRESETS["seed-ddpg-pendulum"]), 1, 2_000, 10, 50_000),
+        (TrainConfig(**PRESETS["seed-ddpg-pendulum"]), 1, 2_000, 10, 20_000),
     ],
 )
 def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity):
@@ -162,10 +163,12 @@ def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks
     assert cfg.run_steps == num_chunks * iters_per_chunk * env_steps_per_iter >= cfg.total_steps
 
 
-def test_replay_capacity_does_not_depend_on_total_steps():
-    """A finished run extended with --resume --total-steps keeps its buffer's shape."""
+def test_replay_capacity_follows_the_run_up_to_buffer_size():
+    """A ring never has more rows than the run collects: a run extended with --resume
+    --total-steps grows it (test_rundir checks that the numbers equal a straight run's)."""
     short, long = TrainConfig(total_steps=4_000), TrainConfig(total_steps=8_000)
-    assert short.replay_capacity == long.replay_capacity == short.buffer_size
+    assert (short.replay_capacity, long.replay_capacity) == (4_000, 8_000)
+    assert TrainConfig(total_steps=10**6).replay_capacity == TrainConfig().buffer_size
     # a buffer larger than the run is fine (the ring is sampled over its filled part)
     assert validate(dataclasses.replace(SMALL, buffer_size=10 * SMALL.total_steps))
 
@@ -283,3 +286,17 @@ def test_device_defaults_scale_with_the_device():
 def test_non_finite_float_settings_are_refused(name, value):
     with pytest.raises(ConfigError, match=rf"--{name.replace('_', '-')} must be a finite number"):
         validate(TrainConfig(**{name: value}))
+
+
+def test_the_replay_ring_never_has_more_rows_than_the_run_collects():
+    """A tiny run of a robot preset (8.4M-row ring) used to allocate the whole ring: 26 GB."""
+    from td3_jax.config import preset
+
+    full = preset("t1")
+    t1 = dataclasses.replace(full, num_envs=8, total_steps=2048, eval_every=1024,
+                             warmup_steps=0, batch_size=64, replay_shards=1)  # fmt: skip
+    assert t1.run_steps == 2048 and t1.replay_capacity == 2048
+    assert full.replay_capacity == min(full.buffer_size, full.run_steps)
+    rounded = dataclasses.replace(t1, total_steps=2049)  # rounded up to whole chunks: 3072
+    assert rounded.replay_capacity == 3072
+    assert dataclasses.replace(t1, buffer_size=1000).replay_capacity == 1000

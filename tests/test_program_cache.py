@@ -48,7 +48,7 @@ def test_the_key_covers_what_shapes_the_programs_and_nothing_else():
         {"seed": 7},
         {"actor_lr": 3e-4, "critic_lr": 2e-4, "tau": 0.01, "discount": 0.9},
         {"expl_noise": 0.3, "policy_noise": 0.1, "noise_clip": 0.2},
-        {"total_steps": 10 * 32},  # a constant learning rate: the length is the host's
+        {"total_steps": 2 * 32 + 1},  # a constant learning rate: the length is the host's
         {"keep_checkpoints": 1, "checkpoint_every": 2, "early_evaluation": False},
     ]
     for change in same:
@@ -67,6 +67,7 @@ def test_the_key_covers_what_shapes_the_programs_and_nothing_else():
         {"actor_obs_key": "privileged_state"},
         {"pushes": "off"},
         {"domain_randomization": True},
+        {"total_steps": 10 * 32},  # the ring (capped at the run's 96 steps) grows to 256 rows
     ]
     keys = {_key(dataclasses.replace(TINY, **change)) for change in different}
     assert base not in keys and len(keys) == len(different)
@@ -162,3 +163,19 @@ def test_a_program_export_refuses_is_compiled_as_usual(tmp_path, monkeypatch, ca
     assert "cannot be kept (custom call not exportable)" in capsys.readouterr().err
     assert len(records) == 3
     assert not (tmp_path / "programs").exists() or not os.listdir(tmp_path / "programs")
+
+
+def test_the_readme_install_can_serialise_the_stored_programs():
+    """The programs are stored with ``jax.export``, whose serialisation needs ``flatbuffers``:
+    it must be a dependency of the plain install (not only of an extra), and serialising and
+    reading back an exported program must work in this environment."""
+    from importlib import metadata
+
+    from jax import export
+
+    plain = [r for r in metadata.requires("td3-jax") or [] if "extra ==" not in r]
+    assert any(r.replace("_", "-").lower().startswith("flatbuffers") for r in plain), plain
+    shape = jax.ShapeDtypeStruct((3,), "float32")
+    exported = export.export(jax.jit(lambda x: 2.0 * x + 1.0))(shape)
+    restored = export.deserialize(bytearray(exported.serialize()))
+    assert restored.call(jax.numpy.arange(3.0)).tolist() == [1.0, 3.0, 5.0]

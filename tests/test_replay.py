@@ -305,3 +305,26 @@ def test_add_of_rows_shaped_unlike_the_buffer_names_the_field():
         replay.add(buf, unbatched)
     with pytest.raises(ValueError, match="structure"):
         replay.add(buf, {"obs": np.zeros((4, 3))})
+
+
+@settings(max_examples=20, deadline=None)
+@given(shards=st.sampled_from([1, 2]), adds=st.integers(0, 4), members=st.sampled_from([0, 3]))
+def test_a_ring_grown_after_its_adds_equals_the_larger_ring_after_them(shards, adds, members):
+    """A ring of ``short`` rows per slice that never wrapped, grown to ``long`` rows, is the
+    ring of ``long`` rows that received the same adds: same rows, position and size, also
+    under a leading member axis; sampling from both then gives the same batches."""
+    short, long, per_add = 8, 20, 2 * shards
+    example = {"x": jnp.zeros((3,)), "flag": jnp.zeros((), bool)}
+    stack = (lambda b: jax.tree.map(lambda x: jnp.stack([x] * members), b)) if members else None
+    small, large = (replay.init_slices(rows * shards, shards, example) for rows in (short, long))
+    for i in range(adds):
+        rows = {"x": jnp.full((per_add, 3), float(i + 1)), "flag": jnp.arange(per_add) % 2 == 0}
+        small, large = replay.add_slices(small, rows), replay.add_slices(large, rows)
+    if stack:
+        small, large = stack(small), stack(large)
+    grown = replay.grow_slices(small, long)
+    assert replay.slice_rows(grown) == long
+    for a, b in zip(jax.tree.leaves(grown), jax.tree.leaves(large), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="shrink"):
+        replay.grow_slices(large, short)

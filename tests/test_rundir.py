@@ -486,3 +486,27 @@ def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path,
     checkpointer.close()
     monkeypatch.undo()
     assert len(run_module.train(cfg, out, resume=True, progress=False)) == 2  # 128, 192
+
+
+def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, monkeypatch,
+                                                                       capsys):  # fmt: skip
+    """One line with both sizes and the flag to change, exit 2, and nothing allocated or
+    compiled: the run directory holds no checkpoint."""
+    from td3_jax import sharding
+    from td3_jax.checkpoint import size_text, state_bytes
+
+    host = sharding.memory_of(jax.devices()[0])
+    assert host is not None and host[0] > 1e9 and "memory" in host[1]  # the host's, on a CPU
+    cfg = TrainConfig(num_envs=4, total_steps=128, eval_every=64, warmup_steps=32, batch_size=16,
+                      updates_per_iter=1, hidden_sizes=(16, 16), eval_envs=2, episode_length=16,
+                      seed=7, buffer_size=256)  # TINY_FLAGS'  # fmt: skip
+    state = make_population(cfg, members(cfg)).abstract_state
+    need, ring = state_bytes(state), state_bytes(state.buffer)
+    monkeypatch.setattr(sharding, "memory_of", lambda device: (need - 1, "the test's memory is"))
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(tmp_path / "run")], capsys)
+    line = err.strip().splitlines()[-1]
+    assert code == 2 and "--buffer-size" in line, err
+    assert f"{size_text(need)} per device" in line and f"ring {size_text(ring)})" in line
+    assert not list((tmp_path / "run").glob("checkpoints/*"))
+    monkeypatch.setattr(sharding, "memory_of", lambda device: (need, "the test's memory is"))
+    sharding.check_memory(state, sharding.make_mesh(1))  # exactly enough: accepted
