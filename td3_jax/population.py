@@ -15,6 +15,7 @@ import dataclasses
 import functools
 import itertools
 import math
+import re
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
@@ -95,12 +96,24 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     names = sorted(sweep)
     combos = list(itertools.product(*(sweep[n] for n in names))) or [()]
     for combo in combos:
-        validate(dataclasses.replace(cfg, **dict(zip(names, combo, strict=True))))
+        try:
+            validate(dataclasses.replace(cfg, **dict(zip(names, combo, strict=True))))
+        except ConfigError as err:  # a swept value: named by the flag that gave it
+            raise ConfigError(_sweep_flags(str(err), names)) from None
     return [
         Member(seed=cfg.seed + k, overrides=tuple(zip(names, map(float, combo), strict=True)))
         for combo in combos
         for k in range(cfg.seeds)
     ]
+
+
+def _sweep_flags(message: str, names: Sequence[str]) -> str:
+    """``message`` with each swept setting's flag (``--actor-lr``) as its sweep flag
+    (``--sweep-actor-lr``)."""
+    for name in names:
+        flag = f"--{name.replace('_', '-')}"
+        message = re.sub(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", "--sweep-" + flag[2:], message)
+    return message
 
 
 class Population(NamedTuple):

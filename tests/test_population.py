@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import jax
 import numpy as np
@@ -156,6 +157,19 @@ def test_population_keeps_reset_and_warmup_branches():
 def test_a_non_finite_swept_value_is_refused_before_anything_compiles(value):
     with pytest.raises(ConfigError, match=r"finite.*--sweep-critic-lr"):
         members(TINY, {"critic_lr": [1e-3, float(value)]})
+
+
+def test_an_impossible_swept_value_names_its_sweep_flag():
+    with pytest.raises(ConfigError) as err:
+        members(TINY, {"actor_lr": [1e-3, -1.0], "tau": [0.005]})
+    message = str(err.value)
+    assert message.startswith("--sweep-actor-lr must ") and message.endswith(", got -1.0")
+    assert re.search(r"(^|\s)--actor-lr", message) is None
+    with pytest.raises(ConfigError, match=r"^--sweep-tau must be in \(0, 1\], got 2.0$"):
+        members(TINY, {"actor_lr": [1e-3], "tau": [2.0]})
+    # a setting that is not swept keeps its own flag
+    with pytest.raises(ConfigError, match=r"^--v-min \(5.0\) must be below --sweep-v-max"):
+        members(dataclasses.replace(TINY, critic="distributional", v_min=5.0), {"v_max": [1.0]})
 
 
 def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
