@@ -19,6 +19,7 @@ multiplier after ``step`` updates (:func:`learning_rate`).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 from collections.abc import Sequence
@@ -425,17 +426,18 @@ def delayed_actor_step(
 
 
 def check_batch(spec: AgentSpec, batch: Transition) -> None:
-    """Raises ``ValueError`` naming the field when ``batch`` is not ``[batch, ...]``-shaped."""
+    """Raises ``ValueError`` naming the field when ``batch`` is not ``[batch, ...]``-shaped, or
+    the field whose batch size differs from the other fields'."""
     o, a = spec.observation_size, spec.action_size
     expected = {"obs": (o,), "action": (a,), "reward": (), "next_obs": (o,), "done": ()}
     if spec.critic_observation_size is not None or batch.critic_obs is not None:
         c = critic_input_size(spec)
         expected.update(critic_obs=(c,), next_critic_obs=(c,))
-    rows = jnp.shape(batch.reward)[:1]
+    shapes = {}
     for name, tail in expected.items():
         field = getattr(batch, name)
-        shape = None if field is None else tuple(jnp.shape(field))
-        if len(rows) != 1 or shape != rows + tail:
+        shape = shapes[name] = None if field is None else tuple(jnp.shape(field))
+        if shape is None or len(shape) != len(tail) + 1 or shape[1:] != tail:
             want = f"[batch{''.join(f', {t}' for t in tail)}]"
             has = "is missing" if shape is None else f"has shape {list(shape)}"
             raise ValueError(
@@ -443,6 +445,15 @@ def check_batch(spec: AgentSpec, batch: Transition) -> None:
                 f"{o}, critic observation size {critic_input_size(spec)} and action_size {a} "
                 "(a batch, rows first)"
             )
+    rows = collections.Counter(shape[0] for shape in shapes.values()).most_common(1)[0][0]
+    odd = next((name for name, shape in shapes.items() if shape[0] != rows), None)
+    if odd is not None:
+        others = [name for name, shape in shapes.items() if shape[0] == rows]
+        raise ValueError(
+            f"Transition.{odd} has a batch of {shapes[odd][0]} rows (shape "
+            f"{list(shapes[odd])}) while {', '.join(others)} have {rows}; every field needs the "
+            "same batch size (rows first)"
+        )
 
 
 def update(
@@ -473,7 +484,7 @@ def actor_critic(
     spec: AgentSpec, hp: AgentHyperparams, config: Any = None, axis_name: str | None = None
 ) -> Agent:
     """The :class:`~td3_jax.types.Agent` bundle of ``spec`` with ``hp`` bound."""
-    act = functools.partial(_apply, spec.actor)
+    act = functools.partial(_act, spec)
     return Agent(
         init=functools.partial(init, spec),
         update=functools.partial(_bound_update, spec, hp, axis_name),
@@ -486,8 +497,17 @@ def actor_critic(
     )
 
 
-def _apply(module: nn.Module, params: Params, *inputs: jax.Array) -> jax.Array:
-    return module.apply(params, *inputs)
+def _act(spec: AgentSpec, params: Params, obs: jax.Array) -> jax.Array:
+    """The actor on ``obs [..., observation_size]``; a ``ValueError`` with both sizes for
+    observations of another width (flax would raise its internal ``ScopeParamShapeError``)."""
+    shape = tuple(jnp.shape(obs))
+    if not shape or shape[-1] != spec.observation_size:
+        given = f"of size {shape[-1]}" if shape else "that are a scalar"
+        raise ValueError(
+            f"act got observations {given} (shape {list(shape)}); this agent's actor takes "
+            f"observation_size {spec.observation_size} ([..., {spec.observation_size}])"
+        )
+    return spec.actor.apply(params, obs)
 
 
 def _bound_update(spec, hp, axis_name, state, batch, key):

@@ -73,7 +73,8 @@ class Agent(NamedTuple):
       init: ``init(key) -> AgentState``.
       update: ``update(state, batch: Transition, key) -> (state, metrics)``; one gradient step
         on a batch ``[batch_size, ...]``. Pure: jit, vmap and scan it.
-      act: ``act(actor_params, obs[..., obs_size]) -> action[..., action_size]``, deterministic.
+      act: ``act(actor_params, obs[..., obs_size]) -> action[..., action_size]``, deterministic;
+        observations of another size raise ``ValueError``.
       actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
       critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``
         (a distributional critic head's Q-value is its distribution's mean).

@@ -900,3 +900,24 @@ def test_update_with_a_wrongly_shaped_batch_names_the_field():
         agent.update(state, batch._replace(obs=np.zeros((BATCH, 5), np.float32)), jax.random.key(0))
     with pytest.raises(ValueError, match=r"Transition\.reward has shape \[8, 1\]"):
         agent.update(state, batch._replace(reward=batch.reward[:, None]), jax.random.key(0))
+    # a batch size that differs: the field that differs is named, not obs
+    for name in ("reward", "done", "next_obs", "obs"):
+        short = batch._replace(**{name: getattr(batch, name)[:7]})
+        expected = rf"^Transition\.{name} has a batch of 7 rows \(shape \[7[],]"
+        with pytest.raises(ValueError, match=expected) as err:
+            agent.update(state, short, jax.random.key(0))
+        assert "have 8; every field needs the same batch size" in str(err.value)
+
+
+def test_act_on_observations_of_another_width_says_both_sizes():
+    agent = build("td3", make_config("td3"))
+    state = init_state("td3", 0)
+    expected = (r"^act got observations of size 5 \(shape \[4, 5\]\); this agent's actor "
+                r"takes observation_size 3 ")
+    with pytest.raises(ValueError, match=expected):
+        agent.act(state.actor_params, np.zeros((4, 5), np.float32))
+    with pytest.raises(ValueError, match=expected):  # also where it is traced
+        jax.jit(agent.act)(state.actor_params, np.zeros((4, 5), np.float32))
+    with pytest.raises(ValueError, match="observations that are a scalar"):
+        agent.act(state.actor_params, np.float32(0))
+    assert agent.act(state.actor_params, np.zeros((OBS,), np.float32)).shape == (ACT,)
