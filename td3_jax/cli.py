@@ -460,6 +460,15 @@ def sweep_main(args: list[str]) -> None:
     train_main(args, sweeping=True)
 
 
+def output_console() -> Any:
+    """A rich console for stdout: a terminal's width, else (a log file, a pipe) as wide as
+    the output needs (rich would cut tables to 80 columns)."""
+    from rich.console import Console
+
+    console = Console()
+    return console if console.is_terminal else Console(width=100_000)
+
+
 def print_sweep_ranking(record: dict) -> None:
     """Final returns per swept setting (mean over its seeds), best first, with 95% CIs.
 
@@ -467,7 +476,6 @@ def print_sweep_ranking(record: dict) -> None:
     the ``diverged`` column; a setting whose every seed diverged ranks last.
     """
     import numpy as np
-    from rich.console import Console
     from rich.table import Table
 
     from td3_jax import stats
@@ -493,7 +501,7 @@ def print_sweep_ranking(record: dict) -> None:
             interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
             cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
         table.add_row(str(rank), label, str(n), str(diverged), *cells)
-    Console().print(table)
+    output_console().print(table)
 
 
 def eval_main(args: list[str]) -> None:

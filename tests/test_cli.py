@@ -693,6 +693,28 @@ def test_progress_into_a_log_file_is_one_line_per_evaluation(tmp_path, capsys):
     assert "━" not in stdout  # no bar drawn
 
 
+def test_the_sweep_table_into_a_log_file_is_not_cut_to_80_columns(capsys):
+    """Long settings: every row keeps its whole setting and its numbers on one line."""
+    settings = {"actor_lr": 0.000312, "critic_lr": 0.000741, "expl_noise_max": 0.123456,
+                "expl_noise_min": 0.0123, "tau": 0.00525}  # fmt: skip
+    members = [{"settings": {**settings, "tau": tau}, "eval_return_mean": -100.0 * k - tau}
+               for k in range(2) for tau in (0.005, 0.01, 0.02)]  # fmt: skip
+    capsys.readouterr()
+    cli.print_sweep_ranking({"env_steps": 4096, "per_member": members})
+    out = capsys.readouterr().out
+    assert "…" not in out and "final evaluation return after 4096 env steps" in out
+    header = next(line for line in out.splitlines() if "rank" in line)
+    assert [c.strip() for c in re.split(r"[│┃|]", header) if c.strip()] == [
+        "rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"]  # fmt: skip
+    for tau in (0.005, 0.01, 0.02):
+        label = ("actor_lr=0.000312 critic_lr=0.000741 expl_noise_max=0.123456 "
+                 f"expl_noise_min=0.0123 tau={tau:g}")  # fmt: skip
+        (row,) = [line for line in out.splitlines() if label in line]
+        mean = -(0 + 100 + 2 * tau) / 2
+        assert re.search(rf"{label}\W+2\W+0\W+{mean:.1f}\W", row), row
+    assert max(map(len, out.splitlines())) > 80
+
+
 def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
     capsys, monkeypatch, tmp_path
 ):
