@@ -518,29 +518,34 @@ def eval_main(args: list[str]) -> None:
     )
     diverged = set(meta.get("diverged_members", []))
     rows = [((m.label() or f"seed={m.seed}") + (" (diverged)" if i in diverged else ""),
-             returns[i]) for i, m in enumerate(population)]  # fmt: skip
+             None if i in diverged else returns[i])
+            for i, m in enumerate(population)]  # fmt: skip
     alive = [i for i in range(len(population)) if i not in diverged]
     several = len(alive) > 1
     print_returns_table(title, rows, population_stats(returns[alive]) if several else None)
 
 
 def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
-    """Per-member mean/std/min/max of episode returns, then the statistics over members."""
+    """Per-member mean/std/min/max of episode returns (``-`` for a member whose returns are
+    ``None``: diverged in training, as the sweep table shows it), then the statistics over the
+    other members."""
     import numpy as np
-    from rich.console import Console
     from rich.table import Table
 
     table = Table(title=title)
     for column in ("member", "mean", "std", "min", "max"):
         table.add_column(column, justify="right")
     for label, returns in rows:
-        r = np.asarray(returns)
-        table.add_row(label, *(f"{v:.1f}" for v in (r.mean(), r.std(), r.min(), r.max())))
-    console = Console()
+        r = None if returns is None else np.asarray(returns)
+        values = ["-"] * 4 if r is None else [f"{v:.1f}" for v in (r.mean(), r.std(), r.min(),
+                                                                    r.max())]  # fmt: skip
+        table.add_row(label, *values)
+    console = output_console()
     console.print(table)
     if aggregate:
+        alive = sum(returns is not None for _, returns in rows)
         console.print(
-            f"over {len(rows)} members: mean {aggregate['eval_return_mean']:.1f} "
+            f"over {alive} members: mean {aggregate['eval_return_mean']:.1f} "
             f"[95% CI {aggregate['eval_return_ci95_low']:.1f}, "
             f"{aggregate['eval_return_ci95_high']:.1f}], median "
             f"{aggregate['eval_return_median']:.1f}, IQM {aggregate['eval_return_iqm']:.1f}"

@@ -194,4 +194,14 @@ def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
     assert last["eval_return_mean"] == pytest.approx(fine["eval_return_mean"])  # the live ones
     table = captured.out[captured.out.index("rank") :]
     assert table.index("critic_lr=0.001") < table.index("critic_lr=1e+30")  # diverged: last
+    # td3-jax eval shows the diverged member as the sweep table does: no returns
+    cli_main(["eval", "--run", str(out), "--episodes", "2"])
+    lines = capsys.readouterr().out.splitlines()
+    cells = lambda line: [c.strip() for c in re.split(r"[│┃|]", line) if c.strip()]
+    (exploded,) = [cells(line) for line in lines if "critic_lr=1e+30 seed=0" in line]
+    assert exploded == ["critic_lr=1e+30 seed=0 (diverged)", "-", "-", "-", "-"]
+    (fine,) = [cells(line) for line in lines if "critic_lr=0.001 seed=0" in line]
+    assert fine[0] == "critic_lr=0.001 seed=0" and all(re.fullmatch(r"-?\d+\.\d", c)
+                                                        for c in fine[1:])  # fmt: skip
+    assert not any(line.startswith("over ") for line in lines)  # one live member: no aggregate
 
