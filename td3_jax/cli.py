@@ -211,9 +211,7 @@ class PlotCommand:
 
 def _parse(command_type: type, args: list[str], prog: str, default=None):
     """``tyro.cli`` whose parse errors become one ``ConfigError`` line (tyro draws a box)."""
-    import contextlib
     import io
-    import re
 
     captured = io.StringIO()
     try:
@@ -222,10 +220,73 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
     except SystemExit as exit_:
         if exit_.code in (0, None):
             raise
-        text = re.sub(r"[\u2500-\u257f]+", " ", captured.getvalue())  # box-drawing characters
-        lines = [" ".join(line.split()) for line in text.splitlines()]
-        lines = [line for line in lines if line and not line.startswith(("usage:", "For full"))]
-        raise ConfigError("; ".join(lines) or f"could not parse {' '.join(args)}") from None
+        message = _parse_error(captured.getvalue(), command_type, args, prog)
+        raise ConfigError(message) from None
+
+
+def _parse_error(text: str, command_type: type, args: list[str], prog: str) -> str:
+    """tyro's error box as one line: the options not known (with the closest known one), the
+    required ones missing, else the box's first part (what went wrong, without help text)."""
+    title, sections = _tyro_box(text)
+    if title == "Unrecognized options":
+        return _unrecognized(command_type, args, prog, sections[0])
+    if title == "Required options":  # "Missing from PROG:", each flag 4 deeper, its help 8
+        flag = " " * (len(sections[0][0]) - len(sections[0][0].lstrip()) + 4) + "-"
+        missing = [line.split()[0] for line in sections[0] if line.startswith(flag)]
+        if missing:
+            return f"{prog} needs {', '.join(missing)} (see {prog} --help)"
+    first = " ".join(line.strip() for line in sections[0]) or title
+    return first or f"could not parse {' '.join(args)} (see {prog} --help)"
+
+
+def _tyro_box(text: str) -> tuple[str, list[list[str]]]:
+    """``(title, sections)`` of tyro's error box (drawn with box characters, or in ASCII where
+    the output cannot take them): the title line, then the parts between its rules, each part
+    its lines with their indentation (an empty list where there is none)."""
+    lines = [line.rstrip().removesuffix("│").rstrip() for line in text.splitlines()]
+    lines = [line.replace("│ ", "", 1) if line.startswith("│") else line for line in lines]
+    lines = [line for line in lines if line.strip() and not line.startswith("usage:")]
+    if not lines:
+        return "", [[]]
+    sections: list[list[str]] = [[]]
+    for line in lines[1:]:
+        if len(line.strip()) > 2 and set(line.strip()) <= set("─-╰╯"):
+            sections.append([])
+        else:
+            sections[-1].append(line)
+    return lines[0].strip("╭─╮ "), [part for part in sections if part] or [[]]
+
+
+def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[str]) -> str:
+    """``unrecognized option --totl-steps (did you mean --total-steps?)``, for each option in
+    ``args`` that ``command_type`` does not have; else tyro's list of leftover arguments."""
+    import difflib
+
+    known = {"--help", "-h"}
+    for field in dataclasses.fields(command_type):
+        known.add(f"--{field.name.replace('_', '-')}")
+        if field.type in (bool, "bool"):
+            known.add(f"--no-{field.name.replace('_', '-')}")
+    unknown = [name for name in (arg.split("=", 1)[0] for arg in args)
+               if name.startswith("-") and name not in known and not _is_number(name)]  # fmt: skip
+    if not unknown:
+        leftover = " ".join(listed).split(":", 1)[-1].strip() or " ".join(args)
+        return f"unexpected argument {leftover} (see {prog} --help)"
+    names = {name.lstrip("-"): name for name in known}
+    said = []
+    for name in dict.fromkeys(unknown):
+        close = difflib.get_close_matches(name.lstrip("-"), names, n=1, cutoff=0.7)
+        said.append(f"{name} (did you mean {names[close[0]]}?)" if close else name)
+    hint = "" if len(said) == sum("did you mean" in s for s in said) else f" (see {prog} --help)"
+    return f"unrecognized option{'s' if len(said) > 1 else ''} {', '.join(said)}{hint}"
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _flag_value(args: list[str], flag: str) -> str | None:

@@ -276,6 +276,38 @@ def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
     assert_one_line_error(code, err, f"{tmp_path / 'notes.txt'} is a file, not a run directory")
 
 
+def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    code, _, err = main(["train", "--totl-steps", "5", "--out", out], capsys)
+    assert_one_line_error(code, err)
+    assert err.strip() == (
+        "td3-jax: error: unrecognized option --totl-steps (did you mean --total-steps?)"
+    )
+    cases = {
+        ("sweep", "--sweep-taus", "0.1", "--out", out):
+            "unrecognized option --sweep-taus (did you mean --sweep-tau?)",
+        ("train", "--no-normalise-obs", "--frobnicate=3", "--out", out):
+            "unrecognized options --no-normalise-obs (did you mean --no-normalize-obs?), "
+            "--frobnicate (see td3-jax train --help)",
+        ("eval", "--run", out, "--episode", "3"):
+            "unrecognized option --episode (did you mean --episodes?)",
+        ("eval", "--run", out, "extra"): "unexpected argument extra (see td3-jax eval --help)",
+        ("eval",): "td3-jax eval needs --run (see td3-jax eval --help)",
+        ("train", "--num-envs", "many", "--out", out):
+            "Error parsing --num-envs: invalid literal for int() with base 10: 'many'",
+    }  # fmt: skip
+    for args, message in cases.items():
+        code, _, err = main(list(args), capsys)
+        assert_one_line_error(code, err)
+        assert err.strip() == f"td3-jax: error: {message}", args
+    assert not (tmp_path / "run").exists()
+    # a real process, whose stderr takes tyro's box characters
+    proc = td3_jax("train", "--totl-steps", "5", "--out", out)
+    assert proc.returncode == 2 and proc.stderr.strip() == (
+        "td3-jax: error: unrecognized option --totl-steps (did you mean --total-steps?)"
+    ), proc.stderr
+
+
 def test_unknown_subcommand_exits_2(capsys):
     code, _, err = main(["fly"], capsys)
     assert code == 2
