@@ -75,9 +75,11 @@ def _seconds(fn, *args) -> tuple[float, object]:
     return time.perf_counter() - start, out
 
 
-def raw_rate(task: str, num_envs: int, steps: int, root: str | None) -> dict:
-    """The task's own vmapped step in a scan: env steps/s (third call) and compile seconds."""
-    env, _ = locomotion.load(task, options=EnvOptions(menagerie=root))
+def raw_rate(task: str, num_envs: int, steps: int, root: str | None, impl: str) -> dict:
+    """The task's own vmapped step in a scan: env steps/s (third call) and compile seconds
+    (with Warp: XLA's and Warp's kernels' together)."""
+    options = EnvOptions(menagerie=root, impl=impl, worlds=num_envs)
+    env, _ = locomotion.load(task, impl=impl, options=options)
     keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
     state = jax.jit(jax.vmap(env.reset))(keys)
     zeros = jnp.zeros((num_envs, env.action_size))
@@ -94,7 +96,8 @@ def raw_rate(task: str, num_envs: int, steps: int, root: str | None) -> dict:
             "raw_compile_s": max(0.0, first + second - 2 * third)}  # fmt: skip
 
 
-def loop_config(task: str, num_envs: int, iters: int, root: str | None, batch: int | None):
+def loop_config(task: str, num_envs: int, iters: int, root: str | None, batch: int | None,
+                impl: str = "jax"):
     """The task's preset (or its kind's) at ``num_envs`` environments, one chunk of ``iters``
     (``batch``: another batch size, for a smoke test on a CPU)."""
     name = ENV_PRESETS.get(f"playground/{task}") or robot_preset(f"playground/{task}")
@@ -103,13 +106,13 @@ def loop_config(task: str, num_envs: int, iters: int, root: str | None, batch: i
     return dataclasses.replace(
         cfg, env=f"playground/{task}", num_envs=num_envs, eval_every=num_envs * iters,
         buffer_size=max(num_envs * iters * 2, cfg.batch_size), warmup_steps=0,
-        total_steps=num_envs * iters, menagerie=root,
+        total_steps=num_envs * iters, menagerie=root, impl=impl,
     ), name  # fmt: skip
 
 
 def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
     """td3-jax's training chunk: env steps/s of the second call, compile seconds of the first."""
-    cfg, name = loop_config(task, num_envs, args.iters, root, args.batch)
+    cfg, name = loop_config(task, num_envs, args.iters, root, args.batch, args.impl_now)
     start = time.perf_counter()
     trainer = training.make_trainer(cfg)
     make_s = time.perf_counter() - start
@@ -124,6 +127,7 @@ def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
         "loop_compile_s": max(0.0, first - second), "chunk_s": second,
         "updates_per_chunk": float(metrics["chunk_updates"]),
         "critic_loss": float(metrics["critic_loss"]),
+        "physics_overflow": float(metrics["physics_overflow"]),
         "actor_obs": env.observation_size, "critic_obs": env.critic_observation_size,
         "row": env.row_size, "actions": env.action_size,
     }  # fmt: skip
@@ -131,8 +135,9 @@ def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
 
 def measure(task: str, num_envs: int, args, root: str | None) -> dict:
     """One row of results (an ``error`` entry instead of a crash: the next task still runs)."""
-    row = {"task": task, "num_envs": num_envs, "device": jax.devices()[0].device_kind}
-    for kind, fn in (("raw", lambda: raw_rate(task, num_envs, args.steps, root)),
+    row = {"task": task, "num_envs": num_envs, "impl": args.impl_now,
+           "device": jax.devices()[0].device_kind}  # fmt: skip
+    for kind, fn in (("raw", lambda: raw_rate(task, num_envs, args.steps, root, args.impl_now)),
                      ("loop", lambda: loop_rate(task, num_envs, args, root))):  # fmt: skip
         if kind in args.skip:
             continue
@@ -144,12 +149,14 @@ def measure(task: str, num_envs: int, args, root: str | None) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    head = f"{'task':38} {'envs':>5} {'raw/s':>10} {'raw comp':>9} {'loop/s':>10} {'loop comp':>9}"
+    head = (f"{'task':38} {'impl':4} {'envs':>5} {'raw/s':>10} {'raw comp':>9} {'loop/s':>10} "
+            f"{'loop comp':>9}")
     lines = [head]
     fmt = lambda v, spec: format(v, spec) if isinstance(v, float) else "-"
     for r in rows:
         lines.append(
-            f"{r['task']:38} {r['num_envs']:>5} {fmt(r.get('raw_env_steps_per_s'), '10.0f')} "
+            f"{r['task']:38} {r['impl']:4} {r['num_envs']:>5} "
+            f"{fmt(r.get('raw_env_steps_per_s'), '10.0f')} "
             f"{fmt(r.get('raw_compile_s'), '9.1f')} {fmt(r.get('loop_env_steps_per_s'), '10.0f')} "
             f"{fmt(r.get('loop_compile_s'), '9.1f')}"
             + ("  ERROR" if any(k.endswith("_error") for k in r) else "")
@@ -165,6 +172,8 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=64, help="loop: iterations per chunk")
     parser.add_argument("--batch", type=int, help="loop: batch size (default: the preset's)")
     parser.add_argument("--skip", nargs="*", default=[], choices=["raw", "loop"])
+    parser.add_argument("--impl", nargs="*", default=["jax"], choices=["jax", "warp"],
+                        help="physics to measure, each in turn")  # fmt: skip
     parser.add_argument("--menagerie", type=Path, help="robot folders or their .tar.xz")
     parser.add_argument("--pack", type=Path, help="write the tasks' robots as .tar.xz here")
     parser.add_argument("--budget-s", type=float, default=540.0,
@@ -178,15 +187,15 @@ def main() -> None:
     root = unpack(args.menagerie) if args.menagerie else None
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for task in args.tasks:
-        for n in args.envs:
-            if time.perf_counter() - start > args.budget_s:
-                print(f"budget spent: {task} at {n} envs not measured", flush=True)
-                continue
-            rows.append(measure(task, n, args, str(root) if root else None))
-            with (args.out / "robots.jsonl").open("a") as f:
-                f.write(json.dumps(rows[-1]) + "\n")
-            print(json.dumps(rows[-1]), flush=True)
+    for task, impl, n in [(t, i, n) for t in args.tasks for i in args.impl for n in args.envs]:
+        if time.perf_counter() - start > args.budget_s:
+            print(f"budget spent: {task} ({impl}) at {n} envs not measured", flush=True)
+            continue
+        args.impl_now = impl
+        rows.append(measure(task, n, args, str(root) if root else None))
+        with (args.out / "robots.jsonl").open("a") as f:
+            f.write(json.dumps(rows[-1]) + "\n")
+        print(json.dumps(rows[-1]), flush=True)
     print(table(rows))
 
 

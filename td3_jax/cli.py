@@ -401,6 +401,32 @@ def _announce(cfg: TrainConfig, preset_name: str | None, source: str) -> None:
             print(line, flush=True)
 
 
+def _choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig, int | None]:
+    """A Playground task's physics (``--impl``; default: MuJoCo Warp where it can run) and the
+    device count, said in one line; ``--impl warp`` where Warp cannot run is a ConfigError
+    naming what is missing. Warp runs on one device: by default a run then takes one GPU."""
+    if not cfg.env.startswith("playground/"):
+        return cfg, devices
+    import jax
+
+    from td3_jax.envs import physics
+
+    asked = cfg.impl or ("warp" if cfg.env_backend == "warp" else None)
+    try:
+        impl = physics.resolve(asked)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    note = ""
+    if impl == "warp" and devices is None and jax.device_count() > 1:
+        devices, note = 1, f" on one GPU (--impl jax spreads a run over all {jax.device_count()})"
+    elif impl == "jax" and asked is None:
+        note = f" (MuJoCo Warp: {physics.warp_missing()})"
+    if jax.process_index() == 0:
+        name = "MuJoCo Warp" if impl == "warp" else "MJX's JAX implementation"
+        print(f"physics: {name} (--impl {impl}){note}", flush=True)
+    return dataclasses.replace(cfg, impl=impl), devices
+
+
 def _warn_about_size(cfg: TrainConfig) -> None:
     """Once the run's environment and directory are good: a GPU-sized run on a CPU is said."""
     import jax
@@ -482,6 +508,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     if source == "device":
         cfg = _scale_to_device(cfg, args)
+    cfg, devices = _choose_physics(cfg, command.devices)
     if jax.process_index() == 0:
         _announce(validate(cfg), preset_name, source)
     received: list[int] = []
@@ -490,7 +517,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
             records = train(
                 cfg,
                 command.out,
-                devices=command.devices,
+                devices=devices,
                 resume=command.resume,
                 progress=not command.quiet,
                 sweep=sweep,
@@ -765,7 +792,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     3 non-finite training, 130 interrupted)."""
     from td3_jax.checkpoint import CheckpointError
     from td3_jax.envs import EnvironmentOptionError, MissingAssetsError, UnknownEnvironmentError
-    from td3_jax.run import NonFiniteError
+    from td3_jax.run import NonFiniteError, PhysicsOverflowError
 
     try:
         command(args)
@@ -773,7 +800,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
             EnvironmentOptionError) as err:  # fmt: skip
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(2)
-    except NonFiniteError as err:
+    except (NonFiniteError, PhysicsOverflowError) as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(3)
     except RuntimeError as err:

@@ -61,7 +61,18 @@ class TrainConfig:
     episode_length: int | None = None
     """Time limit in steps; default: the environment's own (1000 for Brax/Playground)."""
     env_backend: str = "mjx"
-    """Brax backend (mjx, generalized, positional, spring) or Playground impl (jax, warp)."""
+    """Brax's physics backend (mjx, generalized, positional, spring); Playground's is --impl."""
+    impl: Literal["warp", "jax"] | None = None
+    """Physics of Playground tasks: MuJoCo Warp (warp: an NVIDIA GPU and pip install
+    'td3-jax[warp]') or MJX's JAX implementation (jax); default: warp where it can run, else
+    jax (said in one line, recorded in config.json)."""
+    nconmax: int | None = None
+    """MuJoCo Warp: contacts kept per environment (its contact buffer holds this many for every
+    environment stepped together); default: the task's own. A run whose buffer fills stops and
+    names this flag."""
+    njmax: int | None = None
+    """MuJoCo Warp: constraints kept per environment; default: the task's own. A run whose
+    buffer fills stops and names this flag."""
     menagerie: str | None = None
     """MuJoCo Menagerie root holding the robot folders of Playground's locomotion tasks
     (DIR/booster_t1, ...); default: $MENAGERIE_ROOT, then the envpool asset packages, then
@@ -255,14 +266,19 @@ class TrainConfig:
                     v_min=self.v_min, v_max=self.v_max)  # fmt: skip
 
 
-    def env_options(self) -> EnvOptions:
-        """The environment options of these settings (Playground locomotion's)."""
+    def env_options(self, members: int = 1) -> EnvOptions:
+        """The environment options of these settings (Playground's), for ``members`` members
+        stepped together (all of their environments share MuJoCo Warp's contact buffer)."""
         return EnvOptions(
             menagerie=self.menagerie,
             domain_randomization=self.domain_randomization,
             pushes=None if self.pushes == "default" else self.pushes == "on",
             actor_obs_key=self.actor_obs_key,
             critic_obs_key=self.critic_obs_key,
+            impl=self.impl or ("warp" if self.env_backend == "warp" else None),
+            worlds=members * max(self.num_envs, self.eval_envs),
+            nconmax=self.nconmax,
+            njmax=self.njmax,
         )
 
     def ou_params(self) -> OUParams:
@@ -322,6 +338,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         sizes = getattr(cfg, name)
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
             raise ConfigError(f"{flag(name)} must be positive integers, got {sizes}")
+    if cfg.impl not in (None, "warp", "jax"):
+        raise ConfigError(f"unknown --impl {cfg.impl!r}; choose warp or jax")
+    for name in ("nconmax", "njmax"):
+        if getattr(cfg, name) is not None and getattr(cfg, name) <= 0:
+            raise ConfigError(f"{flag(name)} must be positive, got {getattr(cfg, name)}")
     if cfg.pushes not in ("default", "on", "off"):
         raise ConfigError(f"--pushes must be default, on or off, got {cfg.pushes!r}")
     for name in ("actor_obs_key", "critic_obs_key"):
@@ -449,7 +470,6 @@ _GPU_LOCOMOTION = dict(
 # changes below); the humanoids' presets change their size (_HUMANOID_JOYSTICK).
 _PLAYGROUND_LOCOMOTION = dict(
     algo="td3",
-    env_backend="jax",
     num_envs=1024,
     total_steps=102_400_000,
     updates_per_iter=2,
@@ -595,7 +615,7 @@ PRESETS: dict[str, dict] = {
         _GPU_LOCOMOTION, env="brax/humanoid", total_steps=30_000_000, hidden_sizes=(512, 256)
     ),
     # MuJoCo Playground's DM Control CheetahRun (pure-JAX MJX implementation), same settings.
-    "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun", env_backend="jax"),
+    "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun"),
     # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
     "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
     "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain"),

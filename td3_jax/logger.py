@@ -2,13 +2,24 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
 
 from td3_jax.config import ConfigError
+
+#: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
+WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+
+
+class OutputWriteError(RuntimeError):
+    """A run stopped because one of its outputs could not be written (a full disk); the
+    message names it, the last good checkpoint and how to go on."""
 
 
 class MetricsLogger:
@@ -35,15 +46,19 @@ class MetricsLogger:
         self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"), purge_step=purge)
 
     def write(self, record: dict[str, Any]) -> None:
+        """Appends ``record`` to metrics.jsonl (whole, or not at all) and to TensorBoard; a
+        failed write raises ``OSError`` naming the file (TensorBoard's: its folder)."""
         if not self.enabled:
             return
-        with self.path.open("a") as f:
-            f.write(json.dumps(_jsonable(record)) + "\n")
+        append_line(self.path, json.dumps(_jsonable(record)) + "\n")
         step = int(record["env_steps"])
-        for key, value in record.items():
-            if isinstance(value, int | float) and key != "env_steps" and math.isfinite(value):
-                self._tb.add_scalar(key, value, step)
-        self._tb.flush()
+        try:
+            for key, value in record.items():
+                if isinstance(value, int | float) and key != "env_steps" and math.isfinite(value):
+                    self._tb.add_scalar(key, value, step)
+            self._tb.flush()
+        except OSError as err:
+            raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
 
     def close(self) -> None:
         if self.enabled:
@@ -52,13 +67,40 @@ class MetricsLogger:
 
 def write_atomically(path: Path, text: str) -> None:
     """Writes ``text`` to a temporary file renamed to ``path``, so a reader sees the old file
-    or the new one; a failed write (a full disk) removes the temporary file and raises."""
+    or the new one; a failed write (a full disk) removes the temporary file and raises
+    ``OSError`` naming ``path``."""
     tmp = path.with_name(path.name + ".tmp")
     try:
         tmp.write_text(text)
         tmp.replace(path)
-    except OSError:
+    except OSError as err:
         tmp.unlink(missing_ok=True)
+        raise OSError(err.errno, err.strerror, str(path)) from err
+
+
+def append_line(path: Path, line: str) -> None:
+    """Appends ``line`` to ``path`` in one write; one that fails or stops short (a full disk)
+    is cut back off, so the file never ends in part of a line, and raises ``OSError`` naming
+    ``path``."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            _append(fd, line.encode())
+        finally:
+            os.close(fd)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror, str(path)) from err
+
+
+def _append(fd: int, data: bytes) -> None:
+    """Writes ``data`` at the end of ``fd`` in one write, cut back off if it fails."""
+    size = os.fstat(fd).st_size
+    try:
+        if os.write(fd, data) != len(data):  # the disk filled during the write
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    except OSError:
+        with contextlib.suppress(OSError):  # (else read_metrics leaves the cut line out)
+            os.ftruncate(fd, size)
         raise
 
 

@@ -213,7 +213,8 @@ def make_population(
     ``cfg``'s environment when already made (made here otherwise).
     """
     lone = len(population) == 1
-    spec = training.make_spec(cfg, env, axis_name=None if lone else MEMBERS, env_groups=devices)
+    spec = training.make_spec(cfg, env, axis_name=None if lone else MEMBERS, env_groups=devices,
+                              members=len(population))  # fmt: skip
     keys = member_keys(population)
     steps = [functools.partial(fn, spec) for fn in
              (training.init, training.evaluate, training.scheduled_evaluate)]  # fmt: skip

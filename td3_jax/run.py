@@ -20,7 +20,7 @@ import numpy as np
 from td3_jax import population as population_module
 from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
-from td3_jax.config import TrainConfig, validate
+from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import Member, members
 from td3_jax.rundir import (  # (re-exported: run.py was their home)
@@ -50,6 +50,7 @@ __all__ = [
     "CONFIG_FILE",
     "MEMBERS_FILE",
     "NonFiniteError",
+    "PhysicsOverflowError",
     "load_config",
     "load_members",
     "restore_state",
@@ -60,6 +61,11 @@ __all__ = [
 
 class NonFiniteError(RuntimeError):
     """A loss or parameter became NaN/inf; the run stopped and kept its last good checkpoint."""
+
+
+class PhysicsOverflowError(RuntimeError):
+    """MuJoCo Warp ran out of contact or constraint buffer (its physics was wrong); the run
+    stopped and kept its last good checkpoint (the CLI exits with code 3)."""
 
 
 def train(
@@ -161,6 +167,9 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     """Checks ``cfg`` and the directory, then finds the run's programs (stored ones, else the
     environment is made): ``(members, resume changes, program source)``. Nothing is written."""
     validate(cfg)
+    if cfg.impl == "warp" and mesh.size > 1:
+        raise ConfigError(f"--impl warp runs on one device, not {mesh.size}: use --devices 1, "
+                          "or --impl jax to spread the run over several")  # fmt: skip
     check_divisible(cfg, mesh.size)
     layout = replay_layout_warning(cfg, mesh.size)
     if layout and writer:
@@ -293,6 +302,7 @@ def _chunk_and_record(
     updates = int(metrics.pop("agent_steps")[0])
     metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
     _check_finite(run, metrics, env_steps)
+    _check_physics(run, metrics, env_steps)
     returns = host_value(compiled.evaluate(state)).astype(np.float64)
     returns[sorted(run.diverged)] = np.nan
     record = _record(run, updates, metrics, returns, env_steps)
@@ -366,6 +376,22 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> 
     described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
     raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
                          f"stopped, {kept}{failed}")  # fmt: skip
+
+
+def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
+    """Stops the run with :class:`PhysicsOverflowError` when the physics dropped contacts or
+    constraints in the chunk (MuJoCo Warp's fixed buffers), naming the flags that size them."""
+    overflows = int(np.sum(metrics["physics_overflow"]))
+    if not overflows:
+        return
+    last = run.checkpointer.latest_step()
+    kept = (f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is "
+            "kept" if last else "no checkpoint had been written yet")  # fmt: skip
+    raise PhysicsOverflowError(
+        f"MuJoCo Warp's contact or constraint buffer was full in {overflows} environment "
+        f"steps of the chunk ending at env step {env_steps} (contacts or constraints were "
+        f"dropped: wrong physics); stopped, {kept}; raise --nconmax or --njmax (contacts and "
+        "constraints per environment; default: the task's own) in a new run")
 
 
 class _Progress:

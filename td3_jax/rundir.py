@@ -19,6 +19,7 @@ import fcntl
 import json
 import os
 import socket
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -387,6 +388,8 @@ def load_config(out_dir: Path) -> TrainConfig:
     for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
         if raw.get(name) is not None:
             raw[name] = tuple(raw[name])
+    if "impl" not in raw and str(raw.get("env", "")).startswith("playground/"):
+        raw["impl"] = "jax"  # written before --impl: Playground ran on MJX's JAX physics
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     return TrainConfig(**{k: v for k, v in raw.items() if k in known})
 
@@ -442,8 +445,22 @@ def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member
     """``(config, members, program)`` of a run directory, the config with ``changes`` (e.g.
     ``eval_envs``) applied; nothing is compiled or restored yet."""
     cfg = dataclasses.replace(load_config(out_dir), **changes)
+    cfg = _physics_here(cfg)
     population = load_members(out_dir, cfg)
     return cfg, population, make_population(cfg, population)
+
+
+def _physics_here(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with MJX's JAX physics in place of MuJoCo Warp where Warp cannot run (a policy
+    trained on Warp is evaluated, rendered or exported elsewhere), said in one line."""
+    from td3_jax.envs import physics
+
+    missing = physics.warp_missing() if cfg.impl == "warp" else None
+    if not missing:
+        return cfg
+    print(f"td3-jax: note: the run trained on MuJoCo Warp; {missing}, so MJX's JAX physics "
+          "steps it here", file=sys.stderr)  # fmt: skip
+    return dataclasses.replace(cfg, impl="jax")
 
 
 def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict]:

@@ -136,10 +136,11 @@ def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
     )
 
 
-def make_env(cfg: TrainConfig) -> envs.Environment:
-    """The environment of ``cfg`` (with its locomotion options, :meth:`TrainConfig.env_options`)."""
+def make_env(cfg: TrainConfig, members: int = 1) -> envs.Environment:
+    """The environment of ``cfg`` (with its options, :meth:`TrainConfig.env_options`), for
+    ``members`` members stepped together (MuJoCo Warp sizes its shared contact buffer so)."""
     return envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length,
-                     options=cfg.env_options())  # fmt: skip
+                     options=cfg.env_options(members))  # fmt: skip
 
 
 def make_spec(
@@ -147,14 +148,16 @@ def make_spec(
     env: envs.Environment | None = None,
     axis_name: str | None = None,
     env_groups: int = 1,
+    members: int = 1,
 ) -> TrainSpec:
-    """The static spec of ``cfg`` (the environment is made if not given).
+    """The static spec of ``cfg`` (the environment is made for ``members`` members if not
+    given).
 
     ``env_groups``: environments are reset within groups of this many contiguous environments
     (with the batch split over D devices, D keeps every reset on its device); with replay
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     """
-    env = env or make_env(cfg)
+    env = env or make_env(cfg, members)
     shards = cfg.replay_shards
     return TrainSpec(
         env=env,
@@ -308,7 +311,7 @@ def safe_action(action: jax.Array) -> jax.Array:
 
 
 #: The environment metrics an iteration sums over its steps (see :func:`collect`).
-EPISODE_METRICS = ("episodes", "return_sum", "length_sum", "reward_mean")
+EPISODE_METRICS = ("episodes", "return_sum", "length_sum", "reward_mean", "physics_overflow")
 
 
 def _episode_metrics(result: envs.StepResult) -> Metrics:
@@ -318,6 +321,8 @@ def _episode_metrics(result: envs.StepResult) -> Metrics:
         "return_sum": jnp.sum(jnp.where(ended, result.finished_return, 0.0)),
         "length_sum": jnp.sum(jnp.where(ended, result.finished_length, 0)).astype(jnp.float32),
         "reward_mean": jnp.mean(result.reward),
+        # environment steps whose physics ran out of a fixed buffer (MuJoCo Warp's contacts)
+        "physics_overflow": jnp.sum(result.overflow).astype(jnp.float32),
     }
 
 
@@ -472,6 +477,7 @@ def summarize(totals: Metrics, iterations: jax.Array, state: TrainState) -> Metr
         "train_return_mean": per_episode("return_sum"),
         "train_length_mean": per_episode("length_sum"),
         "reward_mean": totals["reward_mean"] / jnp.maximum(iterations, 1).astype(jnp.float32),
+        "physics_overflow": totals["physics_overflow"],
         "params_finite": all_finite(state.agent).astype(jnp.float32),
         "env_steps": state.env_steps,
         "agent_steps": state.agent.step,

@@ -63,6 +63,9 @@ class Environment:
         for rendering only (:mod:`td3_jax.render`), training never reads it.
       qpos_fn: ``qpos_fn(inner) -> [nq]`` the positions a frame is drawn from (MuJoCo's
         ``qpos``; gymnax's Pendulum: its angle), or ``None`` (not renderable).
+      overflow_fn: ``overflow_fn(inner) -> bool``: the physics ran out of a fixed buffer in
+        the step that produced ``inner`` (MuJoCo Warp's contacts or constraints: dropped, so
+        the physics is wrong), or ``None`` (it cannot).
     """
 
     name: str
@@ -77,6 +80,7 @@ class Environment:
     critic_offset: int = 0
     mj_model: Any = dataclasses.field(default=None, repr=False)
     qpos_fn: Callable[[Any], jax.Array] | None = dataclasses.field(default=None, repr=False)
+    overflow_fn: Callable[[Any], jax.Array] | None = dataclasses.field(default=None, repr=False)
 
     @property
     def row_size(self) -> int:
@@ -108,6 +112,11 @@ class EnvOptions:
       pushes: the task's push perturbations on or off; ``None``: the task's default.
       actor_obs_key, critic_obs_key: the keys of a dict observation that the actor and the
         critics see (equal keys: a symmetric actor-critic). Flat observations ignore them.
+      impl: the physics of every Playground task, MJX's ``jax`` or MuJoCo ``warp``
+        (:mod:`td3_jax.envs.physics`); ``None``: Warp where it can run, else JAX.
+      worlds: the most environments stepped together (all members' together): Warp's
+        contact buffer is sized for them.
+      nconmax, njmax: Warp's contacts and constraints per environment (``None``: the task's).
     """
 
     menagerie: str | None = None
@@ -115,6 +124,10 @@ class EnvOptions:
     pushes: bool | None = None
     actor_obs_key: str = "state"
     critic_obs_key: str = "privileged_state"
+    impl: str | None = "jax"
+    worlds: int = 1
+    nconmax: int | None = None
+    njmax: int | None = None
 
     def locomotion_only(self) -> list[str]:
         """The options set away from their defaults that only locomotion tasks take."""
@@ -143,11 +156,13 @@ def from_mjx_style(
     *,
     mj_model: Any = None,
     qpos_fn: Callable[[Any], jax.Array] | None = None,
+    overflow_fn: Callable[[Any], jax.Array] | None = None,
 ) -> Environment:
     """Wraps an environment with Brax's API (``reset(key)``/``step(state, action)`` returning a
     state with ``obs``, ``reward`` and ``done``; actions in ``[-1, 1]``), as Brax and MuJoCo
     Playground environments have. Without their episode wrappers, ``done`` is a termination.
-    ``mj_model`` and ``qpos_fn`` (of the source's state) are kept for rendering only.
+    ``mj_model`` and ``qpos_fn`` (of the source's state) are kept for rendering only;
+    ``overflow_fn`` (of the source's state) is :attr:`Environment.overflow_fn`.
     """
 
     def reset_fn(key):
@@ -176,6 +191,7 @@ def from_mjx_style(
         step_fn=step_fn,
         mj_model=mj_model,
         qpos_fn=qpos_fn,
+        overflow_fn=overflow_fn,
     )
 
 
@@ -195,7 +211,8 @@ def critic_observation(env: Environment, row: jax.Array) -> jax.Array | None:
 
 @struct.dataclass
 class EnvState:
-    """State of a batch of environments (every leaf has a leading ``num_envs`` axis).
+    """State of a batch of environments (every leaf has a leading ``num_envs`` axis, except
+    what a physics keeps once for the whole batch: MuJoCo Warp's contact buffer and counters).
 
     Attributes:
       inner: the source's own state (physics data, ...).
@@ -220,6 +237,8 @@ class StepResult(NamedTuple):
     episode ended it is the true last observation, while the new state's ``obs`` is already the
     first one of the next episode.
     ``finished_return``/``finished_length`` are meaningful where ``terminated | truncated``.
+    ``overflow``: the environments whose physics ran out of a fixed buffer in this step
+    (:attr:`Environment.overflow_fn`; all false for a physics without one).
     """
 
     next_obs: jax.Array
@@ -228,6 +247,7 @@ class StepResult(NamedTuple):
     truncated: jax.Array
     finished_return: jax.Array
     finished_length: jax.Array
+    overflow: jax.Array | None = None
 
 
 def _strong(tree: Any) -> Any:
@@ -268,6 +288,12 @@ def _by_group(x: jax.Array, groups: int) -> jax.Array:
     return x.reshape(groups, x.shape[0] // groups, *x.shape[1:])
 
 
+def _batched(x: jax.Array, size: int) -> bool:
+    """Whether ``x`` has a leading batch axis of ``size`` (MuJoCo Warp keeps some of its data,
+    e.g. its contact buffer, once for all the environments stepped together: no batch axis)."""
+    return jnp.ndim(x) > 0 and jnp.shape(x)[0] == size
+
+
 def _ended_in_round(ended: jax.Array, first: jax.Array, slots: int) -> jax.Array:
     """``[size]`` indices of the ended environments ranked ``first .. first + slots - 1`` in
     ``ended [size]`` (in index order), padded with ``size`` (out of range: scatters drop it)."""
@@ -288,6 +314,8 @@ def _reset_round(env, ended, keys, groups, slots, round_index, carry):
     fresh_inner, fresh_obs = _reset_batch(env, picked.reshape(groups * slots, *picked.shape[2:]))
 
     def put(full, part):
+        if not _batched(full, num_envs) or not _batched(part, groups * slots):
+            return full  # kept once for every environment (MuJoCo Warp's contacts, counters)
         full = _by_group(full, groups)
         part = part.reshape(groups, slots, *part.shape[1:]).astype(full.dtype)
         scatter = lambda f, i, p: f.at[i].set(p, mode="drop")
@@ -371,5 +399,8 @@ def step(
     new_state = EnvState(inner=new_inner, obs=new_obs, key=next_key,
                          steps=jnp.where(ended, 0, steps),
                          episode_return=jnp.where(ended, 0.0, episode_return))  # fmt: skip
-    return new_state, StepResult(obs, reward, terminated, truncated, episode_return, steps)
+    overflow = (jnp.zeros_like(terminated) if env.overflow_fn is None
+                else jax.vmap(env.overflow_fn)(inner).astype(bool))  # fmt: skip
+    return new_state, StepResult(obs, reward, terminated, truncated, episode_return, steps,
+                                 overflow)  # fmt: skip
 

@@ -1,9 +1,10 @@
 """MuJoCo Playground's locomotion tasks (``playground/T1JoystickFlatTerrain``, ``.../Go1Getup``,
 ...): humanoids and quadrupeds with dict observations, for an asymmetric actor-critic.
 
-* Loaded with ``impl="jax"`` by default (Playground's ``"warp"`` needs warp-lang), from the
-  robot folder :func:`td3_jax.envs.menagerie.find_root` finds; Playground's ``git clone`` of
-  the Menagerie is never reached (its check is replaced by ours while the task is built).
+* Stepped by MuJoCo Warp where it can run, else by MJX's JAX physics (``options.impl``,
+  :mod:`td3_jax.envs.physics`); loaded from the robot folder
+  :func:`td3_jax.envs.menagerie.find_root` finds; Playground's ``git clone`` of the Menagerie
+  is never reached (its check is replaced by ours while the task is built).
 * Observations ``{'state', 'privileged_state'}``: the actor sees ``options.actor_obs_key``, the
   critics ``options.critic_obs_key``, stored as one row (:mod:`td3_jax.envs.base`); whether the
   actor's observation is a prefix of the critics' is read from the task's own program
@@ -31,7 +32,7 @@ import jax.extend.core as jex_core
 import jax.numpy as jnp
 import numpy as np
 
-from td3_jax.envs import menagerie
+from td3_jax.envs import menagerie, physics
 from td3_jax.envs.base import Environment, EnvironmentOptionError, EnvOptions
 
 
@@ -214,6 +215,26 @@ def push_overrides(task: str, config: Any, pushes: bool | None) -> dict[str, Any
                                  f"{'on' if pushes else 'off'}")  # fmt: skip
 
 
+def warp_overrides(config: Any, impl: str, options: EnvOptions) -> dict[str, Any]:
+    """Playground config overrides sizing MuJoCo Warp's buffers: the contact buffer (shared by
+    every environment stepped together) for ``options.worlds`` environments, the constraints
+    per environment (``options.njmax``, else the task's); none for the JAX physics."""
+    if impl != "warp" or "naconmax" not in config:
+        return {}
+    overrides = {"naconmax": physics.contact_capacity(int(config.naconmax), options.worlds,
+                                                      options.nconmax)}  # fmt: skip
+    if options.njmax is not None:
+        overrides["njmax"] = int(options.njmax)
+    return overrides
+
+
+def warp_overflow(state: Any) -> jax.Array:
+    """Whether MuJoCo Warp ran out of a fixed buffer (contacts, constraints, collision pairs)
+    in the step that produced the Playground ``state``: what it dropped makes the physics
+    wrong. Read from Warp's per-environment overflow flags (:data:`physics.WRONG_PHYSICS`)."""
+    return (state.data._impl.overflow & physics.WRONG_PHYSICS) != 0
+
+
 def _no_clone() -> None:
     """Stands in for Playground's ``ensure_menagerie_exists`` (which would ``git clone``)."""
 
@@ -238,9 +259,12 @@ def load(task: str, *, impl: str = "jax", options: EnvOptions = EnvOptions()) ->
     root = menagerie.find_root(task, options.menagerie)
     registry = _registry()
     config = registry.get_default_config(task)
-    overrides = {"impl": impl, **push_overrides(task, config, options.pushes)}
+    overrides = {"impl": impl, **push_overrides(task, config, options.pushes),
+                 **warp_overrides(config, impl, options)}  # fmt: skip
     with _menagerie_at(root):
         env = registry.load(task, config=config, config_overrides=overrides)
+    if impl == "warp":
+        physics.quiet_solver_limits(env.unwrapped)
     return env, config
 
 
@@ -332,19 +356,22 @@ def _qpos(rand: Randomization | None, inner: Any) -> jax.Array:
     return state.data.qpos
 
 
+def _overflow(rand: Randomization | None, inner: Any) -> jax.Array:
+    """:func:`warp_overflow` of the task's state (held beside the drawn model fields when
+    randomised)."""
+    return warp_overflow(inner if rand is None else inner[0])
+
+
 def make(
     task: str,
     *,
-    backend: str = "jax",
     episode_length: int | None = None,
     options: EnvOptions = EnvOptions(),
 ) -> Environment:
-    """A Playground locomotion task (see the module docstring).
-
-    ``backend``: Playground's ``impl`` (``jax`` or ``warp``); a Brax backend name means jax.
-    ``episode_length``: the time limit, default the task's own.
-    """
-    impl = backend if backend in ("jax", "warp") else "jax"
+    """A Playground locomotion task (see the module docstring) on the physics
+    ``options.impl`` (:func:`td3_jax.envs.physics.resolve`); ``episode_length``: the time
+    limit, default the task's own."""
+    impl = physics.resolve(options.impl)
     env, config = load(task, impl=impl, options=options)
     lay = layout(env, options)
     rand = randomization(task, env) if options.domain_randomization else None
@@ -363,4 +390,5 @@ def make(
         critic_offset=lay.actor_size if lay.critic_size and not lay.prefix else 0,
         mj_model=env.mj_model,
         qpos_fn=functools.partial(_qpos, rand),
+        overflow_fn=functools.partial(_overflow, rand) if impl == "warp" else None,
     )

@@ -1,8 +1,9 @@
 """MuJoCo Playground tasks (``playground/NAME``), optional extra: the DM Control Suite here,
 the locomotion tasks in :mod:`td3_jax.envs.locomotion`.
 
-Loaded with ``impl="jax"`` (MJX in pure JAX) by default; Playground's default ``"warp"`` needs
-warp-lang. Install with ``pip install 'td3-jax[playground]'`` (``[locomotion]`` adds the robots).
+Stepped by MuJoCo Warp where it can run (an NVIDIA GPU, ``pip install 'td3-jax[warp]'``), else
+by MJX's JAX implementation (:mod:`td3_jax.envs.physics`). Install with
+``pip install 'td3-jax[playground]'`` (``[locomotion]`` adds the robots).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from typing import Any
 
 import jax
 
-from td3_jax.envs import locomotion
+from td3_jax.envs import locomotion, physics
 from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style, refuse_locomotion_options
 
 
@@ -47,19 +48,21 @@ def make(
     options: EnvOptions = EnvOptions(),
 ) -> Environment:
     """A Playground task. DM Control Suite: a flat observation, ``done`` a termination (rare
-    in the suite); the locomotion tasks: :func:`td3_jax.envs.locomotion.make`.
-
-    ``backend``: Playground's ``impl`` (``jax`` or ``warp``); a Brax backend name means jax.
+    in the suite); the locomotion tasks: :func:`td3_jax.envs.locomotion.make`. The physics is
+    ``options.impl`` (:func:`td3_jax.envs.physics.resolve`); ``backend`` is not used.
     """
+    del backend  # Brax's backends; Playground's physics is options.impl
     if name in locomotion.names():
-        return locomotion.make(name, backend=backend, episode_length=episode_length,
-                               options=options)  # fmt: skip
+        return locomotion.make(name, episode_length=episode_length, options=options)
     refuse_locomotion_options(f"playground/{name}", options)
-    impl = backend if backend in ("jax", "warp") else "jax"
+    impl = physics.resolve(options.impl)
     suite = _suite()
     config = suite.get_default_config(name)
-    env = suite.load(name, config=config, config_overrides={"impl": impl})
+    overrides = {"impl": impl, **locomotion.warp_overrides(config, impl, options)}
+    env = suite.load(name, config=config, config_overrides=overrides)
+    if impl == "warp":
+        physics.quiet_solver_limits(env)
     length = int(episode_length or config.episode_length)
-
+    overflow = locomotion.warp_overflow if impl == "warp" else None
     return from_mjx_style(f"playground/{name}", env, length, mj_model=env.mj_model,
-                          qpos_fn=data_qpos)  # fmt: skip
+                          qpos_fn=data_qpos, overflow_fn=overflow)  # fmt: skip

@@ -1,0 +1,88 @@
+"""Which physics steps MuJoCo Playground's tasks: MJX's JAX implementation or MuJoCo Warp.
+
+MuJoCo Warp (MJX's ``impl="warp"``, Playground's default since 0.2.0) runs the robots several
+times faster than the JAX implementation on an NVIDIA GPU and compiles far less XLA. It needs
+the ``warp`` package (``pip install 'td3-jax[warp]'``) and an NVIDIA GPU (CUDA). Nothing here
+imports Warp: :func:`warp_missing` only looks for it.
+
+Warp keeps some of its data once for all the environments stepped together (contacts,
+counters): those leaves carry no batch axis (:func:`td3_jax.envs.base.reset_ended` leaves them
+alone), and its contact buffer is sized for all of them (:func:`contact_capacity`).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from typing import Any
+
+IMPLS = ("warp", "jax")
+#: Set to 1, MuJoCo Warp may run on its CPU kernels (slow; for the tests of the Warp path on
+#: machines without a GPU). Without it, Warp needs an NVIDIA GPU.
+WARP_ON_CPU = "TD3_JAX_WARP_ON_CPU"
+#: Playground's tasks size Warp's contact buffer for this many environments (``naconmax`` in
+#: their configs is per-environment contacts times 8192).
+PLAYGROUND_WORLDS = 8192
+
+
+#: MuJoCo Warp's overflow flags (its ``OverflowType``) that mean dropped contacts, constraints
+#: or collision pairs, i.e. wrong physics: all but the solver's and line search's iteration
+#: limits (bits 9 and 10), which Playground's tasks reach by design (few iterations).
+WRONG_PHYSICS = (1 << 9) - 1 | (1 << 11)
+_ITERATION_LIMITS = (1 << 9) | (1 << 10)
+
+
+def quiet_solver_limits(task: Any) -> None:
+    """Stops MuJoCo Warp from printing a warning at every step where the solver or the line
+    search reached its iteration limit (Playground's tasks use few iterations on purpose);
+    its warnings of real overflows stay. ``task``: a Playground task on Warp."""
+    model = task._mjx_model
+    option = model.opt._impl
+    quieter = option.replace(warn_overflow=int(option.warn_overflow) & ~_ITERATION_LIMITS)
+    task._mjx_model = model.replace(opt=model.opt.replace(_impl=quieter))
+    import warp
+
+    warp.config.log_level = warp.LOG_WARNING  # no line per kernel module loaded or compiled
+
+
+def warp_missing() -> str | None:
+    """Why MuJoCo Warp cannot run here (what to install, or the hardware it needs), or
+    ``None`` when it can."""
+    if importlib.util.find_spec("warp") is None:
+        return "MuJoCo Warp is not installed (pip install 'td3-jax[warp]')"
+    import jax
+
+    device = jax.devices()[0]
+    version = str(getattr(getattr(device, "client", None), "platform_version", "")).lower()
+    on_cpu = device.platform == "cpu" and os.environ.get(WARP_ON_CPU) == "1"
+    if not on_cpu and (device.platform != "gpu" or "cuda" not in version):
+        return f"MuJoCo Warp needs an NVIDIA GPU (JAX's default device here is {device.platform})"
+    return None
+
+
+def default_impl() -> str:
+    """``warp`` where it can run (:func:`warp_missing`), else ``jax``."""
+    return "jax" if warp_missing() else "warp"
+
+
+def resolve(impl: str | None) -> str:
+    """The physics for ``impl`` (``None``: :func:`default_impl`); ``ValueError`` naming what is
+    missing when ``warp`` is asked for where it cannot run, or for an unknown name."""
+    if impl is None:
+        return default_impl()
+    if impl not in IMPLS:
+        raise ValueError(f"unknown --impl {impl!r}; choose warp or jax")
+    missing = warp_missing() if impl == "warp" else None
+    if missing:
+        raise ValueError(f"--impl warp: {missing}; or use --impl jax")
+    return impl
+
+
+def contact_capacity(task_naconmax: int, worlds: int, per_world: int | None) -> int:
+    """Warp's contact buffer (shared by all the environments stepped together): ``per_world``
+    contacts for each of ``worlds`` environments; by default the task's own share (its
+    ``naconmax`` spread over Playground's 8192 environments) and never less than its
+    ``naconmax``."""
+    if per_world:
+        return per_world * max(worlds, 1)
+    return max(task_naconmax, max(1, task_naconmax // PLAYGROUND_WORLDS) * max(worlds, 1))
