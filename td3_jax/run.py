@@ -372,10 +372,12 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> 
         last, failed = run.checkpointer.latest_step(), f"; also, {err}"
     kept = (f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
             if last else "no checkpoint had been written yet")  # fmt: skip
+    again = "" if last else (f"; {run.out_dir} holds none to resume: remove it (or choose "
+                             "another --out) to start again, with other settings")  # fmt: skip
     who = lambda i: f" ({population[i].label()})" if len(population) > 1 else ""
     described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
     raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
-                         f"stopped, {kept}{failed}")  # fmt: skip
+                         f"stopped, {kept}{failed}{again}")  # fmt: skip
 
 
 def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:

@@ -508,6 +508,28 @@ def test_fresh_run_on_a_previous_runs_outputs_exits_2(finished_run, tmp_path, ca
     assert {p: (run_dir / p).read_bytes() for p in before} == before
 
 
+def test_divergence_before_the_first_checkpoint_says_how_to_start_again(
+    tmp_path, capsys, monkeypatch
+):
+    """Exit 3, and the last line says the directory holds nothing to resume and what to do;
+    doing that works."""
+    monkeypatch.setattr(run_module, "_nonfinite", lambda metrics, i: ["critic_loss"])
+    out = tmp_path / "run"
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
+    monkeypatch.undo()
+    assert code == 3 and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1] == (
+        "td3-jax: error: non-finite critic_loss in the chunk ending at env step 64; stopped, no "
+        f"checkpoint had been written yet; {out} holds none to resume: remove it (or choose "
+        "another --out) to start again, with other settings"
+    )
+    code, _, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
+    assert_one_line_error(code, err, "has no checkpoint")
+    shutil.rmtree(out)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
+    assert code == 0, err
+
+
 def _interrupt(monkeypatch, make_dir: bool = False) -> None:
     def interrupted_train(cfg, out_dir, **kwargs):
         if make_dir:
