@@ -24,6 +24,7 @@ from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.logger import MetricsLogger, plot_curve
 from td3_jax.population import Member, members
 from td3_jax.rundir import (  # (re-exported: run.py was their home)
+    CHECKPOINTS,
     CONFIG_FILE,
     MEMBERS_FILE,
     check_fresh,
@@ -116,6 +117,9 @@ def train(
         state, start_chunk = _start(run, source, resume)
         if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
             return run.records
+        if resume and writer:
+            print(f"resuming from checkpoint {out_dir / CHECKPOINTS / str(start_chunk)} "
+                  f"(env step {start_chunk * cfg.steps_per_chunk})", flush=True)  # fmt: skip
         compiled, state = _programs_and_state(run, source, state)
         _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
         run.display = _Progress(cfg, start_chunk, enabled=progress and writer)

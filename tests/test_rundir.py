@@ -315,10 +315,11 @@ def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
     short, long = tmp_path / "short", tmp_path / "long"
     code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(short)], capsys)
     assert code == 0, err
-    code, _, err = run_cli(
+    code, out, err = run_cli(
         ["train", "--resume", "--total-steps", "256", "--out", str(short), "--quiet"], capsys
     )
     assert code == 0, err
+    assert f"resuming from checkpoint {short / 'checkpoints' / '2'} (env step 128)\n" in out
     code, _, err = run_cli(
         ["train", *TINY_FLAGS, "--total-steps", "256", "--out", str(long)], capsys
     )
