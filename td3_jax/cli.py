@@ -792,12 +792,13 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     3 non-finite training, 130 interrupted)."""
     from td3_jax.checkpoint import CheckpointError
     from td3_jax.envs import EnvironmentOptionError, MissingAssetsError, UnknownEnvironmentError
+    from td3_jax.logger import OutputWriteError
     from td3_jax.run import NonFiniteError, PhysicsOverflowError
 
     try:
         command(args)
     except (ConfigError, UnknownEnvironmentError, CheckpointError, MissingAssetsError,
-            EnvironmentOptionError) as err:  # fmt: skip
+            EnvironmentOptionError, OutputWriteError) as err:  # fmt: skip
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(2)
     except (NonFiniteError, PhysicsOverflowError) as err:

@@ -7,7 +7,9 @@ seeds, or every combination of a sweep times the seeds, all in one compiled prog
 from __future__ import annotations
 
 import dataclasses
+import errno
 import math
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -21,7 +23,7 @@ from td3_jax import population as population_module
 from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import ConfigError, TrainConfig, validate
-from td3_jax.logger import MetricsLogger, plot_curve
+from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, OutputWriteError, plot_curve
 from td3_jax.population import Member, members
 from td3_jax.rundir import (  # (re-exported: run.py was their home)
     CHECKPOINTS,
@@ -29,9 +31,11 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     MEMBERS_FILE,
     check_fresh,
     check_resume,
+    checkpoint_steps,
     load_config,
     load_members,
     open_run_dir,
+    previous_outputs,
     restore_state,
     run_info,
     save_config,
@@ -87,6 +91,9 @@ def train(
 
     Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
     throughout (:mod:`td3_jax.rundir`); a busy one, or a used one without ``resume``, is refused.
+    An output that cannot be written (a full disk) stops the run with
+    :class:`~td3_jax.logger.OutputWriteError`, which names it, the last good checkpoint and how
+    to go on; ``metrics.jsonl`` never keeps part of a record.
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
@@ -121,17 +128,72 @@ def train(
             print(f"resuming from checkpoint {out_dir / CHECKPOINTS / str(start_chunk)} "
                   f"(env step {start_chunk * cfg.steps_per_chunk})", flush=True)  # fmt: skip
         compiled, state = _programs_and_state(run, source, state)
-        _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
-        run.display = _Progress(cfg, start_chunk, enabled=progress and writer)
-        run.logger = MetricsLogger(out_dir, start_chunk * cfg.steps_per_chunk, enabled=writer)
-        _loop(run, compiled, state, start_chunk)
+        _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
+                         preset=preset, changes=changes)  # fmt: skip
     finally:
-        try:
-            run.close()
-        finally:
-            STOP.clear()
-            run_lock.release()
+        _finish(run, run_lock)
     return run.records
+
+
+def _write_and_train(run: _Run, compiled: Any, state: Any, start_chunk: int, progress: bool, *,
+                     resume: bool, preset: str | None, changes: Any) -> None:  # fmt: skip
+    """config.json, the progress display, metrics.jsonl and TensorBoard, then the chunks; a
+    write the disk refuses (of those or of a checkpoint) is kept in ``run.failed_write``
+    for :func:`_finish` and re-raised."""
+    try:
+        _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
+        run.display = _Progress(run.cfg, start_chunk, enabled=progress and run.writer)
+        run.logger = MetricsLogger(run.out_dir, start_chunk * run.cfg.steps_per_chunk,
+                                   enabled=run.writer)  # fmt: skip
+        _loop(run, compiled, state, start_chunk)
+    except (OSError, CheckpointWriteError) as err:
+        if isinstance(err, OSError) and err.errno not in WRITE_ERRNOS:
+            raise
+        run.failed_write = err
+        raise
+
+
+def _finish(run: _Run, run_lock: Any) -> None:
+    """Closes the run's outputs and releases its directory; a run stopped by a failed write
+    then raises :class:`OutputWriteError` (once a checkpoint still being written has finished
+    or failed, so the last good one is known)."""
+    try:
+        run.close()
+    finally:
+        STOP.clear()
+        run_lock.release()
+    if run.failed_write is not None:
+        raise _write_failure(run, run.failed_write) from run.failed_write
+
+
+def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
+    """What ``err`` could not write, the run's last good checkpoint and how to go on, in one
+    line (a checkpoint's error names the last good one too: that part is said once)."""
+    out = run.out_dir
+    if isinstance(err, OSError):
+        what = f"could not write {err.filename or out}: {err.strerror or err}"
+    else:
+        what = re.split(r"; (?:the last good checkpoint is|there is no earlier checkpoint)",
+                        str(err))[0]  # fmt: skip
+    text, code = str(err).lower(), getattr(err, "errno", None)
+    if code in (errno.ENOSPC, errno.EDQUOT) or "no space" in text or "quota" in text:
+        fix = f"free space on the disk holding {out}"
+    elif code in (errno.EROFS, errno.EACCES) or "read-only" in text or "permission" in text:
+        fix = f"make {out} writable"
+    else:
+        fix = "fix that"
+    steps = checkpoint_steps(out)
+    if steps:
+        newest = steps[-1]
+        last = f"{out / CHECKPOINTS / str(newest)} (env step {newest * run.cfg.steps_per_chunk})"
+        return OutputWriteError(f"{what}; the last good checkpoint is {last}; {fix}, then "
+                                f"continue with: td3-jax train --out {out} --resume")  # fmt: skip
+    if previous_outputs(out):
+        return OutputWriteError(f"{what}; no checkpoint was written, so there is nothing to "
+                                f"resume: {fix}, then remove {out} (or choose another --out) "
+                                "and start the run again")  # fmt: skip
+    return OutputWriteError(f"{what}; no checkpoint was written (nor anything else to keep): "
+                            f"{fix}, then start the run again")  # fmt: skip
 
 
 def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> tuple[Any, Any]:
@@ -212,11 +274,12 @@ class _Run:
     diverged: set[int] = dataclasses.field(default_factory=set)
     clock_start: float = dataclasses.field(default_factory=time.perf_counter)
     wall_offset: float = 0.0
+    failed_write: Exception | None = None  # the write the disk refused, which stopped the run
 
     def close(self) -> None:
         """Closes the outputs (each on its own; a checkpoint still being written is finished)
-        and redraws the curve; a failure here is a warning, so it never hides the error that
-        ended the run."""
+        and redraws the curve (not after a failed write: the resumed run draws it); a failure
+        here is a warning, so it never hides the error that ended the run."""
         for part in (self.display, self.logger):
             if part is not None:
                 _warn_on_failure(part.close, "closing the run's outputs")
@@ -224,12 +287,13 @@ class _Run:
             if self.writer and self.checkpointer.pending is not None:
                 print(f"td3-jax: finishing checkpoint {self.checkpointer.pending}...",
                       file=sys.stderr)  # fmt: skip
-            _warn_on_failure(self.checkpointer.close, "", hint="")
-        if self.writer and self.logger is not None:
-            _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png")
+            _warn_on_failure(self.checkpointer.close, "")
+        if self.writer and self.logger is not None and self.failed_write is None:
+            _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png",
+                             hint="td3-jax plot redraws the curve")  # fmt: skip
 
 
-def _warn_on_failure(action: Any, what: str, hint: str = "td3-jax plot redraws the curve") -> None:
+def _warn_on_failure(action: Any, what: str, hint: str = "") -> None:
     """Runs ``action``; an error becomes a warning: ``what`` failed (the error); ``hint``."""
     try:
         action()

@@ -9,6 +9,7 @@ the uninterrupted run, bit for bit.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import os
 import signal
@@ -364,8 +365,8 @@ def test_a_background_checkpoint_that_fails_stops_the_run_with_its_records_kept(
     tmp_path, capsys, monkeypatch
 ):
     """Checkpoint 2 is written while chunk 3 runs; its failure (a full disk) stops the run at
-    the next save with one error line naming the last good checkpoint, and every chunk's record
-    stays in metrics.jsonl."""
+    the next save with one error line naming the last good checkpoint and how to go on, and
+    every chunk's record stays in metrics.jsonl."""
     import builtins
     import errno
 
@@ -386,7 +387,8 @@ def test_a_background_checkpoint_that_fails_stops_the_run_with_its_records_kept(
     assert error_line(err) == (
         f"td3-jax: error: could not write checkpoint {out / 'checkpoints' / '2'}: no space left "
         f"on the disk holding {out / 'checkpoints'}; the last good checkpoint is "
-        f"{out / 'checkpoints' / '1'}"
+        f"{out / 'checkpoints' / '1'} (env step 64); free space on the disk holding {out}, then "
+        f"continue with: td3-jax train --out {out} --resume"
     )
     assert [r["env_steps"] for r in records(out)][-1] == 192
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["1"]
@@ -435,6 +437,61 @@ def test_a_last_metrics_line_cut_short_is_left_out_and_the_run_resumes(tmp_path,
     assert code == 2 and "line 2 of" in error_line(err)
 
 
+def _fill_the_disk_at(monkeypatch, env_steps: int) -> None:
+    """The disk fills while metrics.jsonl gets the record of ``env_steps``: half of its line
+    is written, then the write stops short (as os.write does on a full disk)."""
+    from td3_jax import logger
+
+    real_write = os.write
+
+    def write(fd, data):
+        if data.startswith(b'{"env": ') and f'"env_steps": {env_steps},'.encode() in data:
+            return real_write(fd, data[: len(data) // 2])
+        return real_write(fd, data)
+
+    monkeypatch.setattr(logger.os, "write", write)
+
+
+def test_a_full_disk_while_logging_ends_on_one_line_that_says_how_to_go_on(
+    tmp_path, capsys, monkeypatch
+):
+    """The last line names the file, the last good checkpoint (one written in the background
+    while the failing chunk ran is finished first) and the resume command; metrics.jsonl keeps
+    whole records only; nothing suggests td3-jax plot; the resume, with room again, completes."""
+    out = tmp_path / "run"
+    _fill_the_disk_at(monkeypatch, 128)
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    monkeypatch.undo()
+    assert code == 2 and "Traceback" not in err and "td3-jax plot" not in err, err
+    assert err.strip().splitlines()[-1] == (
+        f"td3-jax: error: could not write {out / 'metrics.jsonl'}: {os.strerror(errno.ENOSPC)}; "
+        f"the last good checkpoint is {out / 'checkpoints' / '1'} (env step 64); free space on "
+        f"the disk holding {out}, then continue with: td3-jax train --out {out} --resume"
+    )
+    assert (out / "metrics.jsonl").read_text().endswith("}\n")  # no part of the failed record
+    assert [r["env_steps"] for r in records(out)] == [64]
+    code, stdout, err = run_cli(["train", "--resume", "--out", str(out)], capsys)
+    assert code == 0, err
+    assert f"resuming from checkpoint {out / 'checkpoints' / '1'} (env step 64)" in stdout
+    assert [r["env_steps"] for r in records(out)] == [64, 128]
+
+
+def test_a_full_disk_before_the_first_checkpoint_says_to_remove_the_directory(
+    tmp_path, capsys, monkeypatch
+):
+    out = tmp_path / "run"
+    _fill_the_disk_at(monkeypatch, 64)
+    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    monkeypatch.undo()
+    assert code == 2 and "td3-jax plot" not in err, err
+    assert err.strip().splitlines()[-1] == (
+        f"td3-jax: error: could not write {out / 'metrics.jsonl'}: {os.strerror(errno.ENOSPC)}; "
+        f"no checkpoint was written, so there is nothing to resume: free space on the disk "
+        f"holding {out}, then remove {out} (or choose another --out) and start the run again"
+    )
+    assert (out / "metrics.jsonl").read_text() == ""
+
+
 def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporary_file(
     tmp_path, capsys, monkeypatch
 ):
@@ -454,7 +511,9 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
     monkeypatch.undo()
     assert code == 2
     assert error_line(err) == (
-        f"td3-jax: error: {out / 'config.json.tmp'}: {os.strerror(errno.ENOSPC)}"
+        f"td3-jax: error: could not write {out / 'config.json'}: {os.strerror(errno.ENOSPC)}; "
+        f"no checkpoint was written (nor anything else to keep): free space on the disk "
+        f"holding {out}, then start the run again"
     )
     assert not (out / "config.json.tmp").exists()
     # Once there is room, the same --out starts (nothing half-written blocks it).
