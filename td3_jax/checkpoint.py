@@ -226,11 +226,8 @@ class Checkpointer:
                 reasons = "; ".join(str(err) for err in skipped)
                 print(f"td3-jax: warning: {reasons}; using checkpoint {used}", file=sys.stderr)
             return result
-        if len(skipped) == 1:
-            raise skipped[0]
         if skipped:
-            reasons = "; ".join(str(err) for err in skipped)
-            raise CorruptCheckpointError(f"no usable checkpoint in {self.directory}: {reasons}")
+            raise skipped[0] if len(skipped) == 1 else _all_corrupt(self.directory, skipped)
         raise CheckpointError(f"no checkpoint found in {self.directory}")
 
     def close(self) -> None:
@@ -438,6 +435,12 @@ def _verify(state: Any, checksums: Any, path: Path) -> None:
             raise CorruptCheckpointError(
                 f"checkpoint {path} is corrupt (array {name} fails its checksum)"
             )
+
+
+def _all_corrupt(directory: Path, errors: list[CorruptCheckpointError]) -> CorruptCheckpointError:
+    """One error naming every checkpoint of ``directory`` (newest first) and what is wrong."""
+    reasons = "; ".join(str(err) for err in errors)
+    return CorruptCheckpointError(f"no usable checkpoint in {directory}: {reasons}")
 
 
 def _unusable(path: Path, err: Exception) -> CorruptCheckpointError:

@@ -95,16 +95,22 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
         )
     names = sorted(sweep)
     combos = list(itertools.product(*(sweep[n] for n in names))) or [()]
-    for combo in combos:
-        try:
-            validate(dataclasses.replace(cfg, **dict(zip(names, combo, strict=True))))
-        except ConfigError as err:  # a swept value: named by the flag that gave it
-            raise ConfigError(_sweep_flags(str(err), names)) from None
+    _validate_combinations(cfg, names, combos)
     return [
         Member(seed=cfg.seed + k, overrides=tuple(zip(names, map(float, combo), strict=True)))
         for combo in combos
         for k in range(cfg.seeds)
     ]
+
+
+def _validate_combinations(cfg: TrainConfig, names: list[str], combos: list[tuple]) -> None:
+    """Validates ``cfg`` with each combination of swept values; an impossible one is named by
+    its ``--sweep-*`` flag."""
+    for combo in combos:
+        try:
+            validate(dataclasses.replace(cfg, **dict(zip(names, combo, strict=True))))
+        except ConfigError as err:
+            raise ConfigError(_sweep_flags(str(err), names)) from None
 
 
 def _sweep_flags(message: str, names: Sequence[str]) -> str:
