@@ -353,10 +353,13 @@ class Source:
 
 def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path | None,
             with_init: bool = True) -> Source:  # fmt: skip
-    """Looks the run's programs up in ``directory`` (``None``, or several processes: never)
-    and makes the population's program, environment included, only when none is stored."""
+    """Looks the run's programs up in ``directory`` (``None``, several processes or MuJoCo
+    Warp physics, whose FFI calls ``jax.export`` refuses: never) and makes the population's
+    program, environment included, only when none is stored."""
     names = NAMES if with_init else NAMES[:2]
     source = Source(cfg, population, mesh, names)
+    if cfg.impl == "warp":
+        directory = None  # XLA's persistent compilation cache still applies
     if directory is not None and jax.process_count() == 1:
         overrides = [tuple(name for name, _ in m.overrides) for m in population]
         source.key = fingerprint(cfg, overrides, mesh)

@@ -886,3 +886,21 @@ def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys
     code, _, err = main(["train", "--out", str(out), "--resume", "--quiet"], capsys)
     assert code == 0, err
     assert [r["env_steps"] for r in read_records(out)] == [64, 128]
+
+
+def test_impl_warp_where_warp_cannot_run_is_one_line_naming_what_is_missing(tmp_path, capsys,
+                                                                             monkeypatch):  # fmt: skip
+    """On this CPU machine: --impl warp names the NVIDIA GPU it needs and exits 2 before
+    anything is made; without --impl the run says it uses MJX's JAX physics, and why."""
+    from td3_jax.envs import physics
+
+    monkeypatch.delenv(physics.WARP_ON_CPU, raising=False)
+    out = tmp_path / "run"
+    code, _, err = main(["train", "--env", "playground/CheetahRun", "--impl", "warp",
+                         "--out", str(out)], capsys)  # fmt: skip
+    assert_one_line_error(code, err, "--impl warp", "needs an NVIDIA GPU", "--impl jax")
+    assert not out.exists()
+    chosen, _ = cli._choose_physics(cli.TrainConfig(env="playground/CheetahRun"), None)
+    assert chosen.impl == "jax"
+    said = capsys.readouterr().out
+    assert said.startswith("physics: MJX's JAX implementation (--impl jax) (MuJoCo Warp:")

@@ -8,6 +8,7 @@ inverted pendulum (MJX backend, slow on CPU: one shared rollout) against its ter
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 
@@ -606,3 +607,74 @@ def test_playground_cheetah_reset_and_step(cheetah):
     assert not result.terminated.any() and not result.truncated.any()
     np.testing.assert_array_equal(new_state.steps, 1)
     np.testing.assert_array_equal(new_state.obs, result.next_obs)
+
+
+# MuJoCo Warp's shape of state: leaves kept once for the whole batch ----------------------------
+
+
+def test_auto_reset_leaves_a_shared_leaf_alone_and_resets_the_rest():
+    """MuJoCo Warp keeps its contact buffer and counters once for all the environments stepped
+    together (no batch axis). The auto-reset must reset every per-environment leaf of the ended
+    environments exactly as without the shared leaf, and keep the shared one as stepped."""
+    plain = counter_env(episode_length=3)
+    shared_size = 7  # neither the batch (4) nor a reset round's size
+
+    def reset_fn(key):  # a reset makes its own (zero) buffer, as Warp's make_data does
+        inner, obs = plain.reset_fn(key)
+        return (inner, jnp.zeros((shared_size,))), obs
+
+    env = dataclasses.replace(plain, reset_fn=reset_fn)
+    batch = 4
+    state = envs.reset(plain, jax.random.PRNGKey(0), batch)
+    stepped, _ = envs.step(plain, state, const_action(batch, 0.5))
+    shared = jnp.arange(shared_size, dtype=jnp.float32)  # a leaf without the batch axis
+    keys = jax.random.split(jax.random.PRNGKey(1), batch)
+    ended = jnp.array([True, False, True, False])
+    inner, obs = envs.reset_ended(env, ended, keys, (stepped.inner, shared), stepped.obs)
+    expected_inner, expected_obs = envs.reset_ended(plain, ended, keys, stepped.inner,
+                                                    stepped.obs)  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(inner[1]), np.asarray(shared))
+    for a, b in zip(jax.tree.leaves(inner[0]), jax.tree.leaves(expected_inner), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(obs), np.asarray(expected_obs))
+    assert not np.array_equal(np.asarray(obs[0]), np.asarray(stepped.obs[0]))  # it did reset
+
+
+def test_a_physics_overflow_is_reported_per_environment_and_step():
+    """Environment.overflow_fn marks the environments whose physics ran out of a buffer; the
+    step's result carries it (all false without one)."""
+    plain = counter_env(episode_length=10)
+    env = dataclasses.replace(plain, overflow_fn=lambda inner: inner["position"] > 0.0)
+    state = envs.reset(env, jax.random.PRNGKey(3), 4)
+    stepped, result = envs.step(env, state, const_action(4, 0.25))
+    np.testing.assert_array_equal(np.asarray(result.overflow),
+                                  np.asarray(stepped.inner["position"] > 0.0))  # fmt: skip
+    _, quiet = envs.step(plain, state, const_action(4, 0.25))
+    assert not np.asarray(quiet.overflow).any()
+
+
+def test_the_physics_choice_and_its_errors(monkeypatch):
+    """Warp where it can run (warp importable and an NVIDIA GPU), else JAX; an explicit
+    --impl warp where it cannot is one message naming what is missing."""
+    from td3_jax.envs import physics
+
+    monkeypatch.delenv(physics.WARP_ON_CPU, raising=False)
+    assert jax.default_backend() == "cpu"
+    assert "NVIDIA GPU" in physics.warp_missing()
+    assert physics.resolve(None) == "jax" and physics.resolve("jax") == "jax"
+    with pytest.raises(ValueError, match="--impl warp: MuJoCo Warp needs an NVIDIA GPU"):
+        physics.resolve("warp")
+    with pytest.raises(ValueError, match="unknown --impl 'mjx'"):
+        physics.resolve("mjx")
+    real_find = physics.importlib.util.find_spec
+    monkeypatch.setattr(physics.importlib.util, "find_spec",
+                        lambda name: None if name == "warp" else real_find(name))  # fmt: skip
+    assert "pip install 'td3-jax[warp]'" in physics.warp_missing()
+    # Warp's contact buffer: Playground's tasks size it for 8192 environments (8 each for T1
+    # and G1: 65536); td3-jax sizes it for the environments stepped together.
+    assert physics.contact_capacity(65536, 4096, None) == 65536
+    assert physics.contact_capacity(65536, 3 * 8192, None) == 8 * 3 * 8192
+    assert physics.contact_capacity(65536, 1000, 20) == 20_000
+    # The overflow flags that mean wrong physics: all but the iteration limits (bits 9, 10).
+    assert physics.WRONG_PHYSICS & (1 << 0) and physics.WRONG_PHYSICS & (1 << 3)
+    assert not physics.WRONG_PHYSICS & ((1 << 9) | (1 << 10))
