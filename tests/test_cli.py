@@ -888,8 +888,8 @@ def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys
     assert [r["env_steps"] for r in read_records(out)] == [64, 128]
 
 
-def test_impl_warp_where_warp_cannot_run_is_one_line_naming_what_is_missing(tmp_path, capsys,
-                                                                             monkeypatch):  # fmt: skip
+def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(tmp_path, capsys,
+                                                                           monkeypatch):
     """On this CPU machine: --impl warp names the NVIDIA GPU it needs and exits 2 before
     anything is made; without --impl the run says it uses MJX's JAX physics, and why."""
     from td3_jax.envs import physics
