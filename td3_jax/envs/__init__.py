@@ -7,6 +7,7 @@ tasks).
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 
 from td3_jax.envs import brax as _brax
@@ -81,8 +82,8 @@ def make(
     Args:
       name: e.g. ``brax/ant``, ``playground/CheetahRun``, ``playground/T1JoystickFlatTerrain``,
         ``gymnax/Pendulum-v1``.
-      backend: Brax physics backend (``mjx``, ``generalized``, ``positional``, ``spring``), or
-        Playground's ``impl`` (``jax`` or ``warp``). Ignored by gymnax.
+      backend: Brax physics backend (``mjx``, ``generalized``, ``positional``, ``spring``);
+        ``warp`` for a Playground task means ``options.impl="warp"``. Ignored by gymnax.
       episode_length: time limit; default: the source's (1000 for Brax and Playground).
       options: the locomotion tasks' options (:class:`EnvOptions`: Menagerie root, domain
         randomisation, pushes, observation keys); other sources refuse non-default
@@ -96,6 +97,8 @@ def make(
         raise UnknownEnvironmentError(_unknown_message(name, source))
     options = options or EnvOptions()
     if source == "playground":
+        if backend == "warp":  # Playground's physics is options.impl
+            options = dataclasses.replace(options, impl="warp")
         return module.make(task, backend=backend, episode_length=episode_length, options=options)
     refuse_locomotion_options(name, options)
     return module.make(task, backend=backend, episode_length=episode_length)
