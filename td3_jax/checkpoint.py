@@ -273,7 +273,8 @@ class Checkpointer:
         state = _rebuild(saved, stored)
         _verify(state, meta.get("checksums"), path)
         if grow is not None:
-            state = jax.jit(grow, out_shardings=shardings)(state)
+            state = jax.jit(grow)(state) if shardings is None else jax.jit(
+                grow, out_shardings=shardings)(state)
         return state, {k: v for k, v in meta.items() if k not in _META_KEYS}, step
 
     def _read(self, step: int, **items: Any) -> Any:

@@ -276,7 +276,7 @@ class TrainConfig:
             actor_obs_key=self.actor_obs_key,
             critic_obs_key=self.critic_obs_key,
             impl=self.impl or ("warp" if self.env_backend == "warp" else None),
-            worlds=members * max(self.num_envs, self.eval_envs),
+            worlds=members * self.num_envs,  # not eval_envs: it may change on resume
             nconmax=self.nconmax,
             njmax=self.njmax,
         )
@@ -340,6 +340,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             raise ConfigError(f"{flag(name)} must be positive integers, got {sizes}")
     if cfg.impl not in (None, "warp", "jax"):
         raise ConfigError(f"unknown --impl {cfg.impl!r}; choose warp or jax")
+    physics_flags = [flag(n) for n in ("impl", "nconmax", "njmax") if getattr(cfg, n) is not None]
+    if physics_flags and not cfg.env.startswith("playground/"):
+        raise ConfigError(f"{', '.join(physics_flags)} apply to Playground tasks, not {cfg.env}")
     for name in ("nconmax", "njmax"):
         if getattr(cfg, name) is not None and getattr(cfg, name) <= 0:
             raise ConfigError(f"{flag(name)} must be positive, got {getattr(cfg, name)}")

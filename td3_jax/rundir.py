@@ -19,7 +19,6 @@ import fcntl
 import json
 import os
 import socket
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -389,7 +388,8 @@ def load_config(out_dir: Path) -> TrainConfig:
         if raw.get(name) is not None:
             raw[name] = tuple(raw[name])
     if "impl" not in raw and str(raw.get("env", "")).startswith("playground/"):
-        raw["impl"] = "jax"  # written before --impl: Playground ran on MJX's JAX physics
+        # written before --impl: Playground ran on Warp with --env-backend warp, else on JAX
+        raw["impl"] = "warp" if raw.get("env_backend") == "warp" else "jax"
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     return TrainConfig(**{k: v for k, v in raw.items() if k in known})
 
@@ -451,16 +451,15 @@ def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member
 
 
 def _physics_here(cfg: TrainConfig) -> TrainConfig:
-    """``cfg`` with MJX's JAX physics in place of MuJoCo Warp where Warp cannot run (a policy
-    trained on Warp is evaluated, rendered or exported elsewhere), said in one line."""
+    """``cfg``, checked: a run trained on MuJoCo Warp holds Warp's data in its checkpoints, so
+    it is read back only where Warp runs (a :class:`ConfigError` naming what is missing)."""
     from td3_jax.envs import physics
 
     missing = physics.warp_missing() if cfg.impl == "warp" else None
-    if not missing:
-        return cfg
-    print(f"td3-jax: note: the run trained on MuJoCo Warp; {missing}, so MJX's JAX physics "
-          "steps it here", file=sys.stderr)  # fmt: skip
-    return dataclasses.replace(cfg, impl="jax")
+    if missing:
+        raise ConfigError(f"the run trained on MuJoCo Warp, whose data its checkpoints hold, "
+                          f"and {missing}; read it where Warp runs")  # fmt: skip
+    return cfg
 
 
 def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict]:
