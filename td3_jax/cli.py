@@ -479,6 +479,19 @@ def enable_compile_cache(directory: str) -> Path | None:
     return path / PROGRAMS_FOLDER
 
 
+def _sweep_values(command: Any) -> dict[str, list[float]]:
+    """The ``--sweep-*`` lists of a sweep command (``{"actor_lr": [...], ...}``); none is an
+    error unless the sweep is resumed."""
+    sweep = {
+        f.name.removeprefix("sweep_"): list(getattr(command, f.name))
+        for f in dataclasses.fields(SweepCommand)
+        if f.name.startswith("sweep_") and getattr(command, f.name)
+    }
+    if not sweep and not command.resume:
+        raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
+    return sweep
+
+
 def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.run import train
     from td3_jax.rundir import interrupted_message
@@ -491,15 +504,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     )
     command = _parse(command_type, args, prog, default=default)
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
-    sweep = None
-    if sweeping:
-        sweep = {
-            f.name.removeprefix("sweep_"): list(getattr(command, f.name))
-            for f in dataclasses.fields(SweepCommand)
-            if f.name.startswith("sweep_") and getattr(command, f.name)
-        }
-        if not sweep and not command.resume:
-            raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
+    sweep = _sweep_values(command) if sweeping else None
     import jax
 
     from td3_jax.sharding import initialize_distributed
