@@ -371,10 +371,13 @@ def _chunk_and_record(
     metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
     _check_finite(run, metrics, env_steps)
     _check_physics(run, metrics, env_steps)
+    eval_start = time.perf_counter()
     returns = host_value(compiled.evaluate(state)).astype(np.float64)
+    eval_seconds = time.perf_counter() - eval_start
     returns[sorted(run.diverged)] = np.nan
     record = _record(run, updates, metrics, returns, env_steps)
     record["wall_time_s"] = run.wall_offset + time.perf_counter() - run.clock_start
+    record["chunk_s"], record["eval_s"] = chunk_seconds, eval_seconds
     steps = iterations * run.cfg.env_steps_per_iter
     record["env_steps_per_s"] = len(run.population) * steps / chunk_seconds
     record["devices"] = run.devices

@@ -544,15 +544,29 @@ def _evaluation_step(
 def _evaluation(
     spec: TrainSpec, state: TrainState, key: PRNGKey, record: int
 ) -> tuple[jax.Array, Recording | None]:
-    """``(returns [eval_envs], recording)``: one episode per evaluation environment."""
+    """``(returns [eval_envs], recording)``: one episode per evaluation environment. Without a
+    recording, stepping stops once every episode has ended (the returns are the same: ended
+    episodes add nothing), so evaluating a policy that falls early is cheap."""
     carry = (
         envs.reset(spec.env, key, spec.eval_envs),
         jnp.zeros((spec.eval_envs,), jnp.float32),
         jnp.ones((spec.eval_envs,), bool),
     )
     step = functools.partial(_evaluation_step, spec, state, record)
-    (_, returns, _), recording = jax.lax.scan(step, carry, None, length=spec.env.episode_length)
-    return returns, recording
+    if record:
+        (_, returns, _), recording = jax.lax.scan(step, carry, None, spec.env.episode_length)
+        return returns, recording
+
+    def running(counted: tuple) -> jax.Array:
+        t, (_, _, alive) = counted
+        return (t < spec.env.episode_length) & jnp.any(alive)
+
+    def advance(counted: tuple) -> tuple:
+        t, inner = counted
+        return t + 1, step(inner, None)[0]
+
+    _, (_, returns, _) = jax.lax.while_loop(running, advance, (jnp.int32(0), carry))
+    return returns, None
 
 
 def evaluate(spec: TrainSpec, state: TrainState, key: PRNGKey) -> jax.Array:

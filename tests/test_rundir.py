@@ -36,7 +36,7 @@ TINY_FLAGS = [
     "--updates-per-iter", "1", "--hidden-sizes", "16", "16", "--eval-envs", "2",
     "--episode-length", "16", "--seed", "7", "--buffer-size", "256", "--quiet",
 ]  # fmt: skip
-VOLATILE = {"wall_time_s", "env_steps_per_s"}
+VOLATILE = {"wall_time_s", "env_steps_per_s", "chunk_s", "eval_s"}
 SMALL = TrainConfig(num_envs=4, total_steps=128, eval_every=64, batch_size=16, buffer_size=256)
 
 

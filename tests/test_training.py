@@ -471,7 +471,7 @@ RESUME = TrainConfig(
     warmup_steps=64,
     seed=3,
 )
-VOLATILE = {"wall_time_s", "env_steps_per_s"}
+VOLATILE = {"wall_time_s", "env_steps_per_s", "chunk_s", "eval_s"}
 
 
 def _comparable(records):

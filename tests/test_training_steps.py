@@ -125,6 +125,40 @@ def test_evaluate_runs_one_deterministic_episode_per_environment(spec, fresh):
     np.testing.assert_allclose(returns, expected, rtol=1e-3, atol=1e-3)
 
 
+def lifetime_env(episode_length: int) -> envs.Environment:
+    """Each episode lives a random 1..12 steps (drawn at reset, observed), paying 1 per step."""
+
+    def reset_fn(key):
+        life = jax.random.randint(key, (), 1, 13).astype(jnp.float32)
+        return {"life": life, "age": jnp.float32(0)}, jnp.stack([life, jnp.float32(0)])
+
+    def step_fn(inner, action, key):
+        del action, key
+        age = inner["age"] + 1
+        obs = jnp.stack([inner["life"], age])
+        return {**inner, "age": age}, obs, jnp.float32(1), age >= inner["life"]
+
+    one = np.ones(1, np.float32)
+    return envs.Environment("test/lifetime", 2, 1, episode_length, -one, one, reset_fn, step_fn)
+
+
+@pytest.mark.parametrize("limit", [8, 30])
+def test_evaluation_returns_each_first_episode_whether_or_not_it_stops_early(limit):
+    """The evaluation stops stepping once all episodes ended; the returns equal the lifetimes
+    (cut at the time limit) and the recorded evaluation's, which steps to the limit."""
+    env = lifetime_env(limit)
+    spec = training.make_spec(dataclasses.replace(TINY, eval_envs=16), env)
+    state = jax.jit(training.init, static_argnums=0)(spec, jax.random.PRNGKey(0))
+    key = jax.random.PRNGKey(5)
+    returns = np.asarray(jax.jit(training.evaluate, static_argnums=0)(spec, state, key))
+    lives = np.asarray(envs.reset(spec.env, key, 16).obs)[:, 0]
+    np.testing.assert_array_equal(returns, np.minimum(lives, limit))
+    recorded = jax.jit(training.evaluate_recorded, static_argnums=(0, 3))
+    env_with_qpos = dataclasses.replace(env, qpos_fn=lambda inner: inner["age"][None])
+    spec_q = dataclasses.replace(spec, env=env_with_qpos)
+    np.testing.assert_array_equal(recorded(spec_q, state, key, 2)[0], returns)
+
+
 def test_the_command_and_make_train_give_the_same_evaluations(tmp_path):
     """One driver, one key schedule: ``td3-jax train --seed s`` = ``make_train(cfg)(key(s))``."""
     cfg = dataclasses.replace(TINY, warmup_steps=12, total_steps=36, seed=4)
