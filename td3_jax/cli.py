@@ -11,6 +11,7 @@ import dataclasses
 import errno
 import functools
 import importlib.util
+import io
 import os
 import signal
 import sys
@@ -371,8 +372,8 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
 
     device = "CPU" if jax.default_backend() == "cpu" else "accelerator"
     return (
-        f"no preset for {cfg.env}: using the {device} defaults ({cfg.num_envs} environments, "
-        f"{cfg.total_steps} steps; pass --preset or flags to change them)"
+        f"no preset for {cfg.env}: the {device} defaults apply where no flag is given (this "
+        f"run: {cfg.num_envs} environments, {cfg.total_steps} steps; --preset NAME picks one)"
     )
 
 
@@ -695,6 +696,8 @@ def envs_main(args: list[str]) -> None:
     from td3_jax.envs import physics
 
     command = _parse(EnvsCommand, args, "td3-jax envs")
+    if command.menagerie is not None and not command.menagerie.expanduser().is_dir():
+        raise ConfigError(f"--menagerie {command.menagerie} is not a directory")
     rows = envs.catalog(command.menagerie)
     width = max(len(name) for name, _ in rows)
     for name, needs in rows:
@@ -735,7 +738,11 @@ def main(argv: list[str] | None = None) -> None:
         return
     command = COMMANDS.get(argv[0])
     if command is None:
-        print(f"td3-jax: error: unknown subcommand {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
+        import difflib
+
+        guess = difflib.get_close_matches(argv[0], list(COMMANDS), n=1)
+        hint = f"; did you mean {guess[0]!r}?" if guess else ""
+        print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n\n{USAGE}", file=sys.stderr)
         sys.exit(2)
     try:
         _run_reporting_errors(command, argv[1:])
@@ -814,18 +821,34 @@ def _exit_interrupted(message: str, code: int = 130) -> None:
     sys.exit(code)
 
 
+@contextlib.contextmanager
+def _without_warp_import_notes() -> Iterator[None]:
+    """Drops MJX's ``Failed to import warp`` / ``mujoco_warp`` lines (printed when MuJoCo Warp
+    is not installed: JAX physics is used then, nothing failed); other output passes."""
+    caught = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(caught):
+            yield
+    finally:
+        notes = ("Failed to import warp:", "Failed to import mujoco_warp:")
+        kept = [line for line in caught.getvalue().splitlines(True) if not line.startswith(notes)]
+        sys.stdout.write("".join(kept))
+
+
 def _run_reporting_errors(command, args: list[str]) -> None:
     """Runs a subcommand; a known failure becomes one message and an exit code (2 bad input,
     3 non-finite training, 130 interrupted)."""
     from td3_jax.checkpoint import CheckpointError
-    from td3_jax.envs import EnvironmentOptionError, MissingAssetsError, UnknownEnvironmentError
+
+    with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
+        from td3_jax import envs
     from td3_jax.logger import OutputWriteError
     from td3_jax.run import NonFiniteError, PhysicsOverflowError
 
     try:
         command(args)
-    except (ConfigError, UnknownEnvironmentError, CheckpointError, MissingAssetsError,
-            EnvironmentOptionError, OutputWriteError) as err:  # fmt: skip
+    except (ConfigError, envs.UnknownEnvironmentError, CheckpointError, envs.MissingAssetsError,
+            envs.EnvironmentOptionError, OutputWriteError) as err:  # fmt: skip
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(2)
     except (NonFiniteError, PhysicsOverflowError) as err:

@@ -588,8 +588,9 @@ PRESETS: dict[str, dict] = {
     # Small MJX task that learns on a CPU in minutes, with the environment's own 1000-step
     # episodes (returns up to 1000; `td3-jax train --env brax/inverted_pendulum` uses it).
     # Measured on 2 CPU cores, seeds 0-2, 20k steps: 16 envs with 32 updates per iteration
-    # reached 1000 on every seed from 12k steps on (per seed at 4k, 8k: 197/63/1000,
-    # 1000/126/78; then 1000 x 3 three times). With 16 updates per iteration one seed of three
+    # reached 1000 on every seed from 16k steps on (2026-11-24, with the ring sized to the run:
+    # per seed at 4k, 8k, 12k: 177/1000/51, 112/93/150, 455/47/549; earlier, with a 1M-row
+    # ring, from 12k on). With 16 updates per iteration one seed of three
     # ended at 105 of 200 (200-step episodes), with 3-step targets one at 58; the former
     # 128-env setting (200-step episodes, 102k steps) reached 109 of 1000 after 20k steps.
     "inverted-pendulum": dict(
@@ -621,7 +622,9 @@ PRESETS: dict[str, dict] = {
     "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun"),
     # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
     "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
-    "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain"),
+    # G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
+    # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59).
+    "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain", njmax=128),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
     # [0.2, 0.8], smoothing noise 0.2, 50k steps per environment; its kicks keep the task's
     # default (off).

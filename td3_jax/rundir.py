@@ -43,7 +43,11 @@ OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png
 # or what the checkpoint means.
 # (``menagerie``: where the robot meshes lie may differ from one machine to the next.)
 SAFE_ON_RESUME = (
-    "total_steps", "keep_checkpoints", "checkpoint_every", "eval_envs", "early_evaluation",
+    "total_steps",
+    "keep_checkpoints",
+    "checkpoint_every",
+    "eval_envs",
+    "early_evaluation",
     "menagerie",
 )
 # Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
@@ -264,14 +268,22 @@ def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
     """What a run stopped by ``cause`` (a Ctrl-C, a SIGTERM) leaves behind, in one line."""
     steps = checkpoint_steps(out_dir)
     if steps:
-        return (
-            f"{cause}; the newest checkpoint is {Path(out_dir) / CHECKPOINTS / str(steps[-1])}"
-            f" (continue with: td3-jax train --out {out_dir} --resume)"
-        )
-    return (
-        f"{cause} before the first checkpoint: {out_dir} holds none to resume "
-        "(remove it or choose another --out to start again)"
-    )
+        newest = Path(out_dir) / CHECKPOINTS / str(steps[-1])
+        if _complete(out_dir, steps[-1]):
+            return f"{cause} after the run's last chunk: the run is complete ({newest})"
+        return f"{cause}; the newest checkpoint is {newest} (continue with: td3-jax train " \
+               f"--out {out_dir} --resume)"  # fmt: skip
+    again = ("remove it or choose another --out to start again" if previous_outputs(out_dir)
+             else "run the same command again to start over")  # fmt: skip
+    return f"{cause} before the first checkpoint: {out_dir} holds none to resume ({again})"
+
+
+def _complete(out_dir: Path, chunks_done: int) -> bool:
+    """Whether ``chunks_done`` chunks finish the run recorded in ``out_dir``'s config.json."""
+    try:
+        return chunks_done >= load_config(out_dir).num_chunks
+    except (ConfigError, OSError, ValueError, TypeError):
+        return False
 
 
 # --------------------------------------------------------------------------------------------

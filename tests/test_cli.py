@@ -312,6 +312,17 @@ def test_unknown_subcommand_exits_2(capsys):
     code, _, err = main(["fly"], capsys)
     assert code == 2
     assert "unknown subcommand 'fly'" in err and "Traceback" not in err
+    assert "unknown subcommand 'trian'; did you mean 'train'?" in main(["trian"], capsys)[2]
+
+
+def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
+    with cli._without_warp_import_notes():
+        print("Failed to import warp: No module named 'warp'")
+        print("kept")
+        print("Failed to import mujoco_warp: No module named 'warp'")
+    assert capsys.readouterr().out == "kept\n"
+    code, _, err = main(["envs", "--menagerie", "/no/such/dir"], capsys)
+    assert code == 2 and "--menagerie /no/such/dir is not a directory" in err
 
 
 # --------------------------------------------------------------------------------------------
@@ -575,7 +586,8 @@ def test_ctrl_c_says_what_the_run_directory_holds(finished_run, tmp_path, capsys
     run_dir = _copy_run(finished_run, tmp_path)
     code, _, err = main(["train", "--resume", "--out", str(run_dir)], capsys)
     assert code == 130
-    assert f"the newest checkpoint is {run_dir / 'checkpoints' / '2'}" in err
+    # the copied run had finished: nothing is left to resume
+    assert f"the run is complete ({run_dir / 'checkpoints' / '2'})" in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
@@ -674,14 +686,17 @@ def test_environment_without_a_preset_gets_device_defaults(tmp_path, capsys, mon
     assert code == 0, err
     cfg, _, kwargs = calls[-1]
     assert cfg == TrainConfig(env="brax/hopper", eval_envs=8) and kwargs["preset"] is None
-    assert "no preset for brax/hopper: using the CPU defaults (16 environments" in out
+    note = "no preset for brax/hopper: the CPU defaults apply where no flag is given"
+    assert note + " (this run: 16 environments" in out
     # on a GPU: thousands of environments (the flags given still win)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     code, out, err = main([*args[:-1], str(tmp_path / "b")], capsys)
     assert code == 0, err
     gpu = dataclasses.replace(device_defaults("brax/hopper", accelerator=True), eval_envs=8)
     assert calls[-1][0] == gpu and gpu.num_envs == 4096
-    assert "using the accelerator defaults (4096 environments" in out
+    assert (
+        "the accelerator defaults apply where no flag is given (this run: 4096 environments" in out
+    )
 
 
 def test_resume_uses_the_saved_config(finished_run, tmp_path, capsys, monkeypatch):
@@ -840,6 +855,7 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     import signal
 
     exits = []
+    handler_before = signal.getsignal(signal.SIGINT)  # SIG_IGN in a shell's background job
 
     def fake_exit(code):
         exits.append(code)
@@ -863,7 +879,7 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     assert "interrupted before the first checkpoint" in err
     assert not (out / "metrics.jsonl").exists() or read_records(out) == []  # no chunk ran
     assert not run_module.STOP.is_set()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is handler_before
 
     def train_with_two_ctrl_c(*args, **kwargs):
         try:

@@ -255,11 +255,15 @@ def test_safe_settings_may_change_on_resume():
         (dict(hidden_sizes=(8, 8)), ["--hidden-sizes 8 8 given", "--hidden-sizes 256 256"]),
         (dict(normalize_obs=False), ["--no-normalize-obs given", "with --normalize-obs"]),
         # left to the algorithm (None): the value the run used, TD3's 1e-3
-        (dict(actor_lr=3e-4), ["--actor-lr 0.0003 given", "started with --actor-lr 0.001",
-                               "not be reproducible"]),
+        (
+            dict(actor_lr=3e-4),
+            ["--actor-lr 0.0003 given", "started with --actor-lr 0.001", "not be reproducible"],
+        ),
         (dict(tau=0.01), ["--tau 0.01 given", "started with --tau 0.005"]),
-        (dict(actor_hidden_sizes=(8,)), ["--actor-hidden-sizes 8 given",
-                                         "started with --actor-hidden-sizes 256 256"]),
+        (
+            dict(actor_hidden_sizes=(8,)),
+            ["--actor-hidden-sizes 8 given", "started with --actor-hidden-sizes 256 256"],
+        ),
         (dict(max_grad_norm=1.0), ["--max-grad-norm 1.0 given", "started with no --max-grad-norm"]),
         (dict(discount=0.9), ["--discount 0.9 given", "--discount 0.99", "reproducible"]),
         (dict(env="brax/ant"), ["--env brax/ant given", "--env gymnax/Pendulum-v1"]),
@@ -301,10 +305,20 @@ def test_run_module_still_exports_the_config_helpers():
 
 def test_interrupted_message_says_what_is_kept(tmp_path):
     message = rundir.interrupted_message(tmp_path)
-    assert "before the first checkpoint" in message and "holds none" in message
+    assert "before the first checkpoint" in message and "run the same command again" in message
+    (tmp_path / "metrics.jsonl").write_text('{"env_steps": 8}\n')  # records, no checkpoint
+    message = rundir.interrupted_message(tmp_path)
+    assert "holds none to resume (remove it or choose another --out" in message
     (tmp_path / "checkpoints" / "2").mkdir(parents=True)
     message = rundir.interrupted_message(tmp_path)
     assert str(tmp_path / "checkpoints" / "2") in message and "--resume" in message
+    # 2 chunks of 8 steps were the whole run: nothing to resume
+    cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=2, total_steps=16, eval_every=8)
+    assert cfg.num_chunks == 2
+    rundir.save_config(cfg, [Member(seed=0)], tmp_path)
+    message = rundir.interrupted_message(tmp_path, "terminated (SIGTERM)")
+    assert message == ("terminated (SIGTERM) after the run's last chunk: the run is complete "
+                       f"({tmp_path / 'checkpoints' / '2'})")  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
