@@ -593,7 +593,8 @@ def print_sweep_ranking(record: dict) -> None:
         rows.append((setting, len(returns), len(returns) - finite.size, summary))
     rows.sort(key=lambda row: -np.inf if row[3] is None else row[3]["mean"], reverse=True)
     labels = [" ".join(f"{k}={v:g}" for k, v in row[0]) for row in rows]
-    table = Table(title=f"final evaluation return after {record['env_steps']} env steps")
+    title = f"final evaluation return after {record['env_steps']} env steps"
+    table = Table(title=title, min_width=len(title))
     for column in ("rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"):
         width = max(map(len, labels)) if column == "setting" else None
         table.add_column(column, justify="right", min_width=width, no_wrap=column == "setting")
@@ -634,7 +635,7 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
     import numpy as np
     from rich.table import Table
 
-    table = Table(title=title)
+    table = Table(title=title, min_width=len(title))  # the title on one line
     for column in ("member", "mean", "std", "min", "max"):
         table.add_column(column, justify="right")
     for label, returns in rows:
@@ -736,6 +737,11 @@ def main(argv: list[str] | None = None) -> None:
 
         print(f"td3-jax {__version__}")
         return
+    import warnings
+
+    # Brax's notice that its own physics pipelines are unmaintained (td3-jax steps Brax's
+    # tasks on MJX by default): said at every environment made, it is noise on the command line.
+    warnings.filterwarnings("ignore", message="Brax System, piplines and environments")
     command = COMMANDS.get(argv[0])
     if command is None:
         import difflib
