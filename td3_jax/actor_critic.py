@@ -512,3 +512,20 @@ def _act(spec: AgentSpec, params: Params, obs: jax.Array) -> jax.Array:
 
 def _bound_update(spec, hp, axis_name, state, batch, key):
     return update(spec, hp, state, batch, key, axis_name)
+
+
+__all__ = [
+    "LR_SCHEDULES",
+    "METRIC_NAMES",
+    "PRECISIONS",
+    "AgentHyperparams",
+    "AgentOptions",
+    "AgentSpec",
+    "actor_critic",
+    "actor_step",
+    "critic_step",
+    "hyperparams",
+    "init",
+    "make_spec",
+    "update",
+]

@@ -24,3 +24,9 @@ def max_member(value: jax.Array, axis_name: str | None) -> jax.Array:
     if axis_name is None:
         return value
     return jax.lax.pmax(value, axis_name)
+
+
+__all__ = [
+    "any_member",
+    "max_member",
+]

@@ -68,3 +68,12 @@ def lower_mean_head(probs: jax.Array, z: jax.Array) -> jax.Array:
 def cross_entropy(target: jax.Array, logits: jax.Array) -> jax.Array:
     """``[...]``: ``-sum_i target_i log softmax(logits)_i`` over the last axis (atoms)."""
     return -jnp.sum(target * jax.nn.log_softmax(logits, axis=-1), axis=-1)
+
+
+__all__ = [
+    "cross_entropy",
+    "lower_mean_head",
+    "mean_value",
+    "project",
+    "support",
+]

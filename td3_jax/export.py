@@ -442,3 +442,15 @@ def export_run(
         return (save_onnx if fmt == "onnx" else save_npz)(policy, out), policy
     except OSError as err:
         raise ExportError(f"--out {out}: cannot write it ({err.strerror or err})") from err
+
+
+__all__ = [
+    "FORMATS",
+    "ExportError",
+    "PolicyArrays",
+    "export_run",
+    "extract_policy",
+    "load_run_policy",
+    "save_npz",
+    "save_onnx",
+]

@@ -160,3 +160,16 @@ def actor_loss(
     action = spec.actor.apply(actor_params, batch.obs)
     q = q_values(spec, hp, critic_params, critic_obs, action)
     return -jnp.mean(reduce_heads(q, spec.options.actor_q))
+
+
+__all__ = [
+    "actor_loss",
+    "categorical_loss",
+    "categorical_target",
+    "critic_loss",
+    "next_critic_output",
+    "q_values",
+    "reduce_heads",
+    "target_action",
+    "td_target",
+]

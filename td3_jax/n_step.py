@@ -47,3 +47,8 @@ def fold(run: Transition, ended: jax.Array, discount: float | jax.Array) -> Tran
         next_obs=pick(run.next_obs, last),
         done=1.0 - bootstrap,
     )
+
+
+__all__ = [
+    "fold",
+]

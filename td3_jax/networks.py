@@ -115,3 +115,12 @@ class CriticEnsemble(nn.Module):
             )
         heads = _ensemble(Critic, self.num_critics)
         return heads(self.hidden_sizes, self.layer_norm, self.dtype)(obs, action)
+
+
+__all__ = [
+    "MLP",
+    "Actor",
+    "Critic",
+    "CriticEnsemble",
+    "DistributionalCritic",
+]

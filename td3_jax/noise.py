@@ -88,3 +88,15 @@ def ou_action(
     """The seed's ``get_action``: ``clip(action + ou_step(), -max_action, max_action)``."""
     state, x = ou_step(key, state, params)
     return state, jnp.clip(action + x, -max_action, max_action)
+
+
+__all__ = [
+    "OUParams",
+    "OUState",
+    "gaussian",
+    "ou_action",
+    "ou_init",
+    "ou_reset",
+    "ou_sigma",
+    "ou_step",
+]

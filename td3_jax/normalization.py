@@ -45,3 +45,11 @@ def normalize(stats: RunningStats, obs: jax.Array, clip: float = CLIP) -> jax.Ar
     normalized = (obs - stats.mean) / jnp.sqrt(stats.var + EPSILON)
     normalized = jnp.clip(normalized, -clip, clip)
     return jnp.where(stats.count > 0, normalized, obs)
+
+
+__all__ = [
+    "RunningStats",
+    "init",
+    "normalize",
+    "update",
+]

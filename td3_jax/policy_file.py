@@ -118,3 +118,12 @@ def load(path: str | Path) -> Callable[[np.ndarray], np.ndarray]:
     policy.env = str(arrays["env"])
     policy.arrays = arrays
     return policy
+
+
+__all__ = [
+    "FORMAT_VERSION",
+    "PolicyFileError",
+    "forward",
+    "load",
+    "read",
+]

@@ -502,3 +502,14 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     write_video(out, np.concatenate(frames), fps)
     return Rendered(Path(out), result.member, [len(f) for f in frames],
                     [float(r) for r in result.returns], result.env_steps)  # fmt: skip
+
+
+__all__ = [
+    "VIDEO_SUFFIXES",
+    "GLUnavailableError",
+    "NotRenderableError",
+    "RenderError",
+    "render_run",
+    "rollout",
+    "write_video",
+]

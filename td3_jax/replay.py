@@ -222,3 +222,18 @@ def grow_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
         raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to {rows}")
     pad = lambda x: jnp.pad(x, [(0, added if i == axis else 0) for i in range(x.ndim)])
     return buffer.replace(data=jax.tree.map(pad, buffer.data), position=buffer.size)
+
+
+__all__ = [
+    "ReplayBuffer",
+    "add",
+    "add_slices",
+    "grow_slices",
+    "init",
+    "init_slices",
+    "sample",
+    "sample_n_step",
+    "sample_runs",
+    "sample_slices",
+    "slice_rows",
+]

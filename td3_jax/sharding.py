@@ -197,3 +197,15 @@ def initialize_distributed(
 
     place_on_local_devices()  # MJX would put every process's models on process 0's device
     return True
+
+
+__all__ = [
+    "AXIS",
+    "check_memory",
+    "host_value",
+    "initialize_distributed",
+    "make_mesh",
+    "memory_of",
+    "replicate",
+    "state_shardings",
+]

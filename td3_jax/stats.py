@@ -79,3 +79,12 @@ def population_stats(returns: np.ndarray) -> dict[str, float]:
         "eval_return_min": float(np.min(returns)),
         "eval_return_max": float(np.max(returns)),
     }
+
+
+__all__ = [
+    "bootstrap_ci",
+    "iqm",
+    "population_stats",
+    "return_stats",
+    "summary",
+]

@@ -93,3 +93,11 @@ def ddpg(
                      target_smoothing=False, policy_freq=1, max_action=config.max_action,
                      critic_observation_size=critic_obs_size)  # fmt: skip
     return actor_critic(spec, hyperparams(config), config)
+
+
+__all__ = [
+    "DDPGConfig",
+    "TD3Config",
+    "ddpg",
+    "td3",
+]

@@ -678,3 +678,27 @@ def make_trainer(
         evaluate=functools.partial(evaluate, spec),
         sample=functools.partial(sample_batch, spec, hp),
     )
+
+
+__all__ = [
+    "EPISODE_METRICS",
+    "Hyperparams",
+    "Recording",
+    "TrainSpec",
+    "TrainState",
+    "Trainer",
+    "chunk",
+    "chunk_and_evaluate",
+    "collect",
+    "collect_step",
+    "evaluate",
+    "evaluate_recorded",
+    "hyperparams",
+    "init",
+    "key_for_seed",
+    "learn",
+    "make_spec",
+    "make_train",
+    "make_trainer",
+    "scheduled_evaluate",
+]

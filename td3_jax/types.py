@@ -92,3 +92,14 @@ class Agent(NamedTuple):
     config: Any
     spec: Any = None
     hyperparams: Any = None
+
+
+__all__ = [
+    "Agent",
+    "AgentState",
+    "Metrics",
+    "PRNGKey",
+    "Params",
+    "Transition",
+    "critic_observations",
+]

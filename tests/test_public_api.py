@@ -1,0 +1,51 @@
+"""The library's public surface: every module's ``__all__`` names what it defines, and every
+``td3_jax`` name the README's library section uses is public."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import re
+from pathlib import Path
+
+import pytest
+
+import td3_jax
+
+README = Path(__file__).parents[1] / "README.md"
+MODULES = sorted(
+    m.name
+    for m in pkgutil.walk_packages(td3_jax.__path__, "td3_jax.")
+    if m.name != "td3_jax.__main__"  # runs the CLI when imported
+)
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_every_name_in_all_exists(name):
+    module = importlib.import_module(name)
+    exported = getattr(module, "__all__", [])
+    assert len(set(exported)) == len(exported), f"{name}.__all__ repeats a name"
+    missing = [n for n in exported if not hasattr(module, n)]
+    assert not missing, f"{name}.__all__ names what it does not define: {missing}"
+
+
+def library_section() -> str:
+    text = README.read_text()
+    return text[text.index("## The library") : text.index("### Details that matter")]
+
+
+def test_the_readme_library_section_uses_public_names_only():
+    """``tj.X``, ``tj.M.X`` and ``training.X`` in the section are in their module's __all__."""
+    code = "\n".join(re.findall(r"```python\n(.*?)```", library_section(), re.S))
+    used = set(re.findall(r"\b(tj|training)\.([A-Za-z_]\w*)(?:\.([A-Za-z_]\w*))?", code))
+    assert len(used) > 10  # the section's two examples were read
+    for prefix, first, second in used:
+        module = td3_jax if prefix == "tj" else importlib.import_module("td3_jax.training")
+        assert first in module.__all__, f"{prefix}.{first} is not public"
+        inner = getattr(module, first)
+        if second and inspect_is_module(inner):
+            assert second in inner.__all__, f"{prefix}.{first}.{second} is not public"
+
+
+def inspect_is_module(value) -> bool:
+    return type(value).__name__ == "module"
