@@ -11,16 +11,16 @@ the caller may reuse (donate) them, and the disk write overlaps the caller's nex
 Failures are clean: a restored array whose bytes differ from those saved (bit rot, a garbled
 file) makes the checkpoint corrupt, and restoring the newest checkpoint then falls back to the
 next older one with a one-line warning; a failed write (a full disk) removes what it left and
-raises :class:`CheckpointWriteError` naming the last good checkpoint.
+raises :class:`CheckpointWriteError` naming the last good checkpoint. Orbax's own log records,
+and the errors its callbacks still raise after a failed read, are left to the program: the
+CLI drops them (:func:`td3_jax.runtime.quiet_library_logs`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
-import logging
 import math
-import os
 import shutil
 import sys
 import time
@@ -52,20 +52,6 @@ _WRITE_CAUSES = [
 ]
 
 
-class _OrbaxLogFilter(logging.Filter):
-    """Drops orbax's own log records: every failure they report surfaces as a CheckpointError."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return f"{os.sep}orbax{os.sep}" not in record.pathname
-
-
-logging.getLogger("absl").setLevel(logging.ERROR)
-logging.getLogger("absl").addFilter(_OrbaxLogFilter())
-# After a failed read of a corrupt checkpoint, tensorstore callbacks still in flight can hit the
-# closed event loop; asyncio would log each as a traceback. The CheckpointError says it all.
-logging.getLogger("asyncio").setLevel(logging.CRITICAL)
-
-
 class CheckpointError(RuntimeError):
     """A checkpoint that is missing, corrupt or does not match the run's configuration."""
 
@@ -90,7 +76,6 @@ class Checkpointer:
         self._keep = keep
         self._manager: ocp.CheckpointManager | None = None
         self._pending: int | None = None  # the step of a background write not yet waited for
-        _quiet_closed_loop_callbacks()
         if create:
             self._manager = self._new_manager()
 
@@ -119,7 +104,6 @@ class Checkpointer:
         waited for).
         """
         self.wait()
-        _quiet_closed_loop_callbacks()
         leaves = _leaves_with_paths(state)
         record = {
             **meta,
@@ -211,7 +195,6 @@ class Checkpointer:
         one-line warning on stderr; the returned ``step`` says which was used. If all are
         corrupt, one :class:`CorruptCheckpointError` names each of them and why.
         """
-        _quiet_closed_loop_callbacks()
         if step is not None:
             return self._restore_step(abstract_state, step, shardings, resize)
         skipped: list[CorruptCheckpointError] = []
@@ -491,38 +474,3 @@ def _remove_partial(
         left = [*directory.glob(f"{step}{_TMP_MARK}*"), *directory.glob(str(step))]
         if not left or time.monotonic() > deadline:
             return
-
-
-def _closed_loop_callback(args: Any) -> bool:
-    """Whether an unraisable error is tensorstore completing a future of a closed event loop.
-
-    Orbax runs each read or write in a fresh asyncio loop and closes it as soon as one operation
-    fails; those still in flight finish later on tensorstore's threads, whose callbacks then find
-    the loop closed. Nothing waits for them any more, so the error says nothing new.
-    """
-    tb = args.exc_traceback
-    return (
-        args.object is None
-        and isinstance(args.exc_value, RuntimeError)
-        and str(args.exc_value) == "Event loop is closed"
-        and tb is not None
-        and tb.tb_frame.f_code.co_name == "call_soon_threadsafe"
-    )
-
-
-def _quiet_closed_loop_callbacks() -> None:
-    """Installs (once) an unraisable-exception hook that drops only those harmless errors.
-
-    They can arrive after the failed restore has returned, so the hook stays installed; any
-    other unraisable exception goes to the hook that was there before.
-    """
-    previous = sys.unraisablehook
-    if getattr(previous, "td3_jax_quiet", False):
-        return
-
-    def hook(args: Any) -> None:
-        if not _closed_loop_callback(args):
-            previous(args)
-
-    hook.td3_jax_quiet = True  # type: ignore[attr-defined]
-    sys.unraisablehook = hook

@@ -10,18 +10,17 @@ import contextlib
 import dataclasses
 import errno
 import functools
-import importlib.util
 import io
 import os
 import signal
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import tyro
 
+from td3_jax import runtime
 from td3_jax.config import (
     PRESETS,
     ConfigError,
@@ -445,47 +444,13 @@ def _warn_about_size(cfg: TrainConfig) -> None:
         print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
-#: The persistent compilation cache's size cap (least recently used entries are evicted).
-CACHE_MAX_BYTES = 4 * 1024**3
-#: The folder of the compilation cache that holds the traced programs (td3_jax.program_cache).
-PROGRAMS_FOLDER = "programs"
-
-
 def stamp_cache_entries(path: Path) -> None:
     """Gives every entry of the compilation cache at ``path`` the access-time file that JAX's
-    size-capped cache reads when it evicts (entries written without a cap, e.g. by an earlier
-    td3-jax, have none, and JAX would then fail to write any new entry)."""
-    import time
+    size-capped cache reads when it evicts (:func:`td3_jax.upstream.stamp_jax_cache_entries`:
+    JAX's file layout is private)."""
+    from td3_jax import upstream
 
-    stamp = time.time_ns().to_bytes(8, "little")
-    for entry in path.glob("*-cache"):
-        atime = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
-        if not atime.exists():
-            try:
-                atime.write_bytes(stamp)
-            except OSError:  # a read-only cache: JAX reports its own write errors
-                return
-
-
-def enable_compile_cache(directory: str) -> Path | None:
-    """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off) and
-    returns where the traced programs are kept (``directory/programs``; ``None`` when off)."""
-    if directory.strip().lower() in ("off", "none", ""):
-        return None
-    import jax
-
-    path = Path(directory).expanduser()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ConfigError(f"--compile-cache {directory}: cannot create it ({err})") from err
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    # Everything the run compiles, however quick: a second identical run then compiles nothing.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    if importlib.util.find_spec("filelock") is not None:  # JAX's cache eviction needs it
-        stamp_cache_entries(path)
-        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
-    return path / PROGRAMS_FOLDER
+    upstream.stamp_jax_cache_entries(path)
 
 
 def _sweep_values(command: Any) -> dict[str, list[float]]:
@@ -518,7 +483,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     from td3_jax.sharding import initialize_distributed
 
-    program_dir = enable_compile_cache(command.compile_cache)
+    program_dir = runtime.enable_compile_cache(command.compile_cache)
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     if source == "device":
         cfg = _scale_to_device(cfg, args)
@@ -526,8 +491,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if jax.process_index() == 0:
         _announce(validate(cfg), preset_name, source)
     received: list[int] = []
+    stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
     try:
-        with _stop_signals(received):
+        with runtime.stop_signals(stop, received, say=jax.process_index() == 0):
             records = train(
                 cfg,
                 command.out,
@@ -539,6 +505,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
                 preset=preset_name,
                 on_prepared=functools.partial(_warn_about_size, cfg),
                 program_dir=program_dir,
+                stop=stop,
             )
     except KeyboardInterrupt:
         if signal.SIGTERM in received:
@@ -737,11 +704,6 @@ def main(argv: list[str] | None = None) -> None:
 
         print(f"td3-jax {__version__}")
         return
-    import warnings
-
-    # Brax's notice that its own physics pipelines are unmaintained (td3-jax steps Brax's
-    # tasks on MJX by default): said at every environment made, it is noise on the command line.
-    warnings.filterwarnings("ignore", message="Brax System, piplines and environments")
     command = COMMANDS.get(argv[0])
     if command is None:
         import difflib
@@ -760,67 +722,11 @@ def main(argv: list[str] | None = None) -> None:
 _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 
-@contextlib.contextmanager
-def _stop_signals(received: list[int]) -> Iterator[None]:
-    """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
-    :data:`td3_jax.run.STOP` (so the run stops at its next chunk boundary even where Python
-    discards that exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a
-    kill) sets STOP alone, so the chunk in flight finishes and is checkpointed before the run
-    stops. A second signal of either kind ends the process at once. The signals received are
-    appended to ``received``."""
-    import jax
-
-    from td3_jax import run as run_module
-
-    say = jax.process_index() == 0  # several processes: one speaks
-
-    def on_signal(signum: int, frame: Any) -> None:
-        if run_module.STOP.is_set():
-            if say:
-                again = "terminated" if signum == signal.SIGTERM else "interrupted"
-                print(f"td3-jax: {again} again: stopping now", file=sys.stderr, flush=True)
-            os._exit(128 + signum)
-        received.append(signum)
-        run_module.STOP.set()
-        if signum == signal.SIGTERM:
-            if say:
-                print(
-                    "td3-jax: terminated (SIGTERM): stopping once the chunk in flight is "
-                    "checkpointed (SIGTERM again to stop at once)",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            return
-        if say:
-            print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
-        raise KeyboardInterrupt
-
-    def unraisable(args: Any) -> None:  # a discarded Ctrl-C: the run stops through STOP
-        if not isinstance(args.exc_value, KeyboardInterrupt):
-            previous_hook(args)
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
-    try:
-        yield
-    finally:
-        try:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-            sys.unraisablehook = previous_hook
-        finally:
-            run_module.STOP.clear()
-
-
 def _exit_interrupted(message: str, code: int = 130) -> None:
     """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
     background thread (it cannot be interrupted) is abandoned rather than waited for."""
     print(message, file=sys.stderr)
-    population = sys.modules.get("td3_jax.population")  # not imported: nothing compiles
-    if population is not None and population.background_work_running():
+    if runtime.background_work_running():
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
@@ -846,6 +752,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     3 non-finite training, 130 interrupted)."""
     from td3_jax.checkpoint import CheckpointError
 
+    runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
         from td3_jax import envs
     from td3_jax.logger import OutputWriteError

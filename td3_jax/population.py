@@ -16,9 +16,7 @@ import functools
 import itertools
 import math
 import re
-import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
 from typing import Any, NamedTuple
 
 import jax
@@ -27,6 +25,7 @@ import numpy as np
 
 from td3_jax import envs, training
 from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.runtime import StopToken, in_background, result
 from td3_jax.sharding import replicate, state_shardings
 from td3_jax.training import TrainState
 
@@ -287,15 +286,18 @@ def chunk_argument_specs(program: Population, shardings: Any) -> tuple[Any, Any,
     return hp_spec, _with_sharding(program.abstract_state, shardings), iterations
 
 
-def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True) -> Compiled:
+def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True,
+                  stop: StopToken | None = None) -> Compiled:  # fmt: skip
     """``compiled`` with its functions compiled now, side by side, instead of at their first call.
 
     Each program is traced (Python, one at a time) and handed to a thread that compiles it
     while the next is traced: the chunk first, as it takes longest. (Compiling the evaluation
     during the first chunk instead gained nothing on G1: its autotuning waits for the GPU,
     which the chunk holds.) The returned functions are the compiled executables: calling them
-    with other shapes or shardings raises instead of recompiling.
+    with other shapes or shardings raises instead of recompiling. Once ``stop`` is set, the
+    compiles are no longer waited for (KeyboardInterrupt).
     """
+    stop = stop if stop is not None else StopToken()
     hp_spec, state_spec, iterations = chunk_argument_specs(program, compiled.shardings)
     programs = {
         "chunk": lambda: compiled.chunk.lower(hp_spec, state_spec, iterations),
@@ -306,57 +308,5 @@ def compile_ahead(compiled: Compiled, program: Population, with_init: bool = Tru
     futures = {}
     for name, lower in programs.items():
         futures[name] = in_background(lower().compile)
-        stop_if_asked()
-    return compiled._replace(**{name: result(f) for name, f in futures.items()})
-
-
-_BACKGROUND: set[threading.Thread] = set()
-
-#: Set to stop a run (as a Ctrl-C would): compiles are no longer waited for, and a run stops at
-#: its next chunk boundary after checkpointing it (:func:`td3_jax.run.train`). The CLI's
-#: Ctrl-C handler sets it as well as raising KeyboardInterrupt, which Python discards where it
-#: lands in a garbage-collection callback or a finaliser.
-STOP = threading.Event()
-
-
-def stop_if_asked() -> None:
-    """Raises KeyboardInterrupt when :data:`STOP` is set."""
-    if STOP.is_set():
-        raise KeyboardInterrupt
-
-
-def result(future: Future) -> Any:
-    """``future.result()``, given up with KeyboardInterrupt once :data:`STOP` is set."""
-    while True:
-        try:
-            return future.result(timeout=0.2)
-        except TimeoutError:
-            stop_if_asked()
-
-
-def in_background(function: Callable[..., Any], *args: Any) -> Future:
-    """``function(*args)`` on a thread of its own, as a future.
-
-    The thread is not a daemon (a daemon thread still compiling when the interpreter exits
-    aborts the process); the CLI ends a stopped run with ``os._exit`` instead of waiting for
-    it (see :func:`background_work_running`).
-    """
-    future: Future = Future()
-
-    def work() -> None:
-        try:
-            future.set_result(function(*args))
-        except BaseException as err:  # handed to whoever waits for the result
-            future.set_exception(err)
-        finally:
-            _BACKGROUND.discard(threading.current_thread())
-
-    thread = threading.Thread(target=work, name="td3-jax compile")
-    _BACKGROUND.add(thread)
-    thread.start()
-    return future
-
-
-def background_work_running() -> bool:
-    """Whether a thread of :func:`in_background` is still working (e.g. compiling)."""
-    return any(thread.is_alive() for thread in list(_BACKGROUND))
+        stop.raise_if_set()
+    return compiled._replace(**{name: result(f, stop) for name, f in futures.items()})

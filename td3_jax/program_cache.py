@@ -2,7 +2,7 @@
 and tracing its programs.
 
 MJX programs are large: tracing a run's three programs (init, chunk, evaluation) takes seconds
-to a minute, and JAX's persistent compilation cache (:func:`td3_jax.cli.enable_compile_cache`)
+to a minute, and JAX's persistent compilation cache (:func:`td3_jax.runtime.enable_compile_cache`)
 only helps after it, since its key is the traced program. This module keeps the traced
 programs themselves: each is exported with :mod:`jax.export` as a function of its flat list of
 array leaves and stored under ``DIR/<key>/``, where the key (:func:`fingerprint`) covers what
@@ -54,13 +54,11 @@ from td3_jax.population import (
     chunk_argument_specs,
     compile_ahead,
     compile_for_mesh,
-    in_background,
     make_population,
     member_hyperparams,
     member_keys,
-    result,
-    stop_if_asked,
 )
+from td3_jax.runtime import StopToken, in_background, result
 from td3_jax.sharding import replicate, state_shardings
 
 #: Bump when what an entry holds changes.
@@ -389,54 +387,56 @@ def _give_up_entry(source: Source, err: BaseException) -> None:
     source.program = make_population(source.cfg, source.population, devices=source.mesh.size)
 
 
-def compile_programs(source: Source) -> Compiled:
+def compile_programs(source: Source, stop: StopToken | None = None) -> Compiled:
     """The run's programs compiled side by side: stored ones read back, otherwise each is
     traced, handed to a thread to compile while the next is traced, then stored.
 
     Without a directory (or when exporting fails) they are compiled as jitted functions
     (:func:`td3_jax.population.compile_ahead`), the same programs, stored nowhere. A stored
-    entry that fails to compile is given up and the programs traced instead.
+    entry that fails to compile is given up and the programs traced instead. Once ``stop`` is
+    set, nothing more is traced or waited for (KeyboardInterrupt).
     """
+    stop = stop if stop is not None else StopToken()
     if source.directory is None:
-        return _compile_plain(source)
+        return _compile_plain(source, stop)
     if source.entry is not None:
         try:
-            return _compile_stored(source)
+            return _compile_stored(source, stop)
         except Exception as err:  # e.g. a program that reads back but does not compile
             _give_up_entry(source, err)
     try:
-        return _compile_traced(source)
+        return _compile_traced(source, stop)
     except _ExportFailed as err:
         _warn(f"the traced programs cannot be kept ({err.__cause__}); compiling them as usual")
-        return _compile_plain(source)
+        return _compile_plain(source, stop)
 
 
 class _ExportFailed(RuntimeError):
     """jax.export refused a program (the run compiles it the usual way instead)."""
 
 
-def _compile_plain(source: Source) -> Compiled:
+def _compile_plain(source: Source, stop: StopToken) -> Compiled:
     compiled = compile_for_mesh(source.program, source.mesh)
-    return compile_ahead(compiled, source.program, with_init="init" in source.names)
+    return compile_ahead(compiled, source.program, with_init="init" in source.names, stop=stop)
 
 
-def _compile_stored(source: Source) -> Compiled:
+def _compile_stored(source: Source, stop: StopToken) -> Compiled:
     """The stored programs compiled side by side (read back from the compilation cache)."""
     futures = {name: in_background(compile_flat, source.entry.programs[name], source.mesh)
                for name in source.names}  # fmt: skip
     inputs = _placed_inputs(source)  # while the programs are read back
-    trees = result(source.entry.trees)
-    executables = {name: result(future) for name, future in futures.items()}
+    trees = result(source.entry.trees, stop)
+    executables = {name: result(future, stop) for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
-def _compile_traced(source: Source) -> Compiled:
+def _compile_traced(source: Source, stop: StopToken) -> Compiled:
     """The programs traced and exported (all of them, so the stored entry is complete), the
     run's compiled side by side, then stored."""
-    futures, programs, trees = _export_each(source)
+    futures, programs, trees = _export_each(source, stop)
     save(source.directory, source.key, programs, trees)
     inputs = _placed_inputs(source)
-    executables = {name: result(future) for name, future in futures.items()}
+    executables = {name: result(future, stop) for name, future in futures.items()}
     return _compiled(source, executables, trees, *inputs)
 
 
@@ -447,7 +447,7 @@ def _placed_inputs(source: Source) -> tuple[Any, Any]:
     return jax.tree.map(place, hp), place(member_keys(source.population))
 
 
-def _export_each(source: Source) -> tuple[dict, dict, dict]:
+def _export_each(source: Source, stop: StopToken) -> tuple[dict, dict, dict]:
     """Traces and exports each program, submitting the compile of each the run needs before
     tracing the next."""
     program, mesh = source.program, source.mesh
@@ -464,7 +464,7 @@ def _export_each(source: Source) -> tuple[dict, dict, dict]:
     }  # fmt: skip
     executables, programs, trees = {}, {}, {"state": program.abstract_state}
     for name in NAMES:
-        stop_if_asked()
+        stop.raise_if_set()
         try:
             programs[name], trees[name] = export_flat(*plans[name])
         except Exception as err:  # e.g. a custom call jax.export does not take

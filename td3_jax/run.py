@@ -19,7 +19,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from td3_jax import population as population_module
 from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import ConfigError, TrainConfig, validate
@@ -40,6 +39,7 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     run_info,
     save_config,
 )
+from td3_jax.runtime import StopToken
 from td3_jax.sharding import (
     check_divisible,
     check_memory,
@@ -86,6 +86,7 @@ def train(
     preset: str | None = None,
     on_prepared: Callable[[], None] | None = None,
     program_dir: Path | None = None,
+    stop: StopToken | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
@@ -110,13 +111,16 @@ def train(
       preset: the name of the preset ``cfg`` came from, recorded in config.json.
       on_prepared: called once settings, directory and environment are checked (not compiled).
       program_dir: where traced programs are stored and found (:mod:`td3_jax.program_cache`).
+      stop: a :class:`~td3_jax.runtime.StopToken` that, once set (another thread, a signal
+        handler), stops the run as a Ctrl-C would; default: a fresh one that nothing sets.
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0  # several processes: one writes the logs
     prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir)
     population, changes, source = prepared
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
-    run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s)
+    run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
+               stop if stop is not None else StopToken())  # fmt: skip
     try:
         if on_prepared is not None:
             on_prepared()
@@ -160,7 +164,6 @@ def _finish(run: _Run, run_lock: Any) -> None:
     try:
         run.close()
     finally:
-        STOP.clear()
         run_lock.release()
     if run.failed_write is not None:
         raise _write_failure(run, run.failed_write) from run.failed_write
@@ -204,8 +207,8 @@ def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> 
     known = state if state is not None else None if source.entry else source.program.abstract_state
     if known is not None:
         _check_room(run, source, known)
-    population_module.stop_if_asked()  # a Ctrl-C Python discarded while tracing
-    compiled = program_cache.compile_programs(source)
+    run.stop.raise_if_set()  # a Ctrl-C Python discarded while tracing
+    compiled = program_cache.compile_programs(source, run.stop)
     if known is None:
         _check_room(run, source, program_cache.abstract_state(source))
     if state is None:
@@ -251,11 +254,6 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     return population, changes, source
 
 
-#: Set to stop a run (:data:`td3_jax.population.STOP`): at its next chunk boundary, after
-#: checkpointing that chunk, :func:`train` raises KeyboardInterrupt; it clears it on return.
-STOP = population_module.STOP
-
-
 @dataclasses.dataclass
 class _Run:
     """The host side of one training call: its outputs and what it has done so far."""
@@ -267,6 +265,7 @@ class _Run:
     writer: bool
     stop_after_chunks: int | None
     time_budget_s: float | None
+    stop: StopToken = dataclasses.field(default_factory=StopToken)
     checkpointer: Checkpointer | None = None
     logger: MetricsLogger | None = None
     display: _Progress | None = None
@@ -323,7 +322,7 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
     A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
     rest) with an evaluation after each; checkpoints are taken after whole chunks only, written
     in the background while the next chunk runs (the last one is waited for). Stopped by
-    :data:`STOP`, it raises KeyboardInterrupt once that chunk is checkpointed.
+    ``run.stop``, it raises KeyboardInterrupt once that chunk is checkpointed.
     """
     cfg = run.cfg
     early = cfg.early_iterations if start_chunk == 0 else 0
@@ -343,13 +342,13 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged)}  # fmt: skip
             run.checkpointer.save(index + 1, state, meta, background=not last)
-    population_module.stop_if_asked()  # stopped by STOP: as interrupted, once checkpointed
+    run.stop.raise_if_set()  # stopped by its token: as interrupted, once checkpointed
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:
-    """Whether this call stops before its next chunk (chunk limit, wall-clock budget or
-    :data:`STOP`)."""
-    if STOP.is_set():
+    """Whether this call stops before its next chunk (chunk limit, wall-clock budget or its
+    stop token)."""
+    if run.stop.is_set():
         return True
     if run.stop_after_chunks is not None and chunks_done >= run.stop_after_chunks:
         return True

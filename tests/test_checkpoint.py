@@ -28,6 +28,7 @@ from td3_jax.checkpoint import (
     CorruptCheckpointError,
 )
 from td3_jax.config import TrainConfig
+from td3_jax.runtime import quiet_library_logs
 from td3_jax.training import TrainState, make_trainer
 
 CFG = TrainConfig(
@@ -68,6 +69,13 @@ def assert_bit_exact(restored, original):
         assert got.dtype == want.dtype, name
         assert got.shape == want.shape, name
         assert got.tobytes() == want.tobytes(), name
+
+
+@pytest.fixture(autouse=True, scope="module")
+def quiet_libraries():
+    """What the CLI silences: orbax's log records, and the errors of tensorstore's callbacks
+    after a failed read (:func:`td3_jax.runtime.quiet_library_logs`, for the whole process)."""
+    quiet_library_logs()
 
 
 @pytest.fixture(scope="module")
@@ -213,7 +221,7 @@ def _is_array_data(path: Path) -> bool:
 
 
 # After a failed read, tensorstore's callbacks for orbax's closed event loop fail on background
-# threads; Checkpointer keeps those (and only those) from reaching sys.unraisablehook.
+# threads; quiet_library_logs keeps those (and only those) from reaching the hook before it.
 @pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
 @pytest.mark.parametrize(
     "pick, damage",

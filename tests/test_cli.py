@@ -812,14 +812,14 @@ def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
     process at once (os._exit) instead of joining it; with nothing running, a normal exit."""
     import threading
 
-    from td3_jax import population
+    from td3_jax import runtime
 
     compiling = threading.Event()
     done = threading.Event()
     exits = []
 
     def interrupted_train(cfg, out_dir, **kwargs):
-        population.in_background(lambda: (compiling.set(), done.wait(60)))
+        runtime.in_background(lambda: (compiling.set(), done.wait(60)))
         compiling.wait(10)
         raise KeyboardInterrupt
 
@@ -831,12 +831,12 @@ def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
     monkeypatch.setattr(cli.os, "_exit", fake_exit)
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "a")], capsys)
     assert (code, exits) == (130, [130]) and "interrupted" in err
-    assert population.background_work_running()
+    assert runtime.background_work_running()
     done.set()
-    for thread in list(population._BACKGROUND):
+    for thread in list(runtime._BACKGROUND):
         assert not thread.daemon  # a daemon still compiling at exit would abort the process
         thread.join(10)
-    assert not population.background_work_running()
+    assert not runtime.background_work_running()
 
     def plain_interrupt(cfg, out_dir, **kwargs):
         raise KeyboardInterrupt
@@ -849,9 +849,10 @@ def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
 def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     tmp_path, capsys, monkeypatch
 ):
-    """The CLI's Ctrl-C handler raises KeyboardInterrupt and sets run.STOP; a run whose
-    interrupt was swallowed (as in a garbage-collection callback) stops at its next chunk
-    boundary; a second Ctrl-C ends the process at once; the handler is removed afterwards."""
+    """The CLI's Ctrl-C handler raises KeyboardInterrupt and sets the stop token the CLI passes
+    to train; a run whose interrupt was swallowed (as in a garbage-collection callback) stops
+    at its next chunk boundary; a second Ctrl-C ends the process at once; the handler is
+    removed afterwards."""
     import signal
 
     exits = []
@@ -878,7 +879,6 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     assert err.splitlines()[0] == "td3-jax: stopping (Ctrl-C again to stop at once)"
     assert "interrupted before the first checkpoint" in err
     assert not (out / "metrics.jsonl").exists() or read_records(out) == []  # no chunk ran
-    assert not run_module.STOP.is_set()
     assert signal.getsignal(signal.SIGINT) is handler_before
 
     def train_with_two_ctrl_c(*args, **kwargs):
@@ -892,7 +892,6 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "again")], capsys)
     assert (code, exits) == (130, [130])
     assert "td3-jax: interrupted again: stopping now" in err
-    run_module.STOP.clear()
 
 
 def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys, monkeypatch):
@@ -919,7 +918,7 @@ def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys
     assert lines[-1] == (f"td3-jax: terminated (SIGTERM); the newest checkpoint is {kept} "
                          f"(continue with: td3-jax train --out {out} --resume)")  # fmt: skip
     assert [r["env_steps"] for r in read_records(out)] == [64] and kept.is_dir()
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL and not run_module.STOP.is_set()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     monkeypatch.setattr(run_module, "_chunk_and_record", real_chunk)
     code, _, err = main(["train", "--out", str(out), "--resume", "--quiet"], capsys)
     assert code == 0, err

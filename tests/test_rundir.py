@@ -536,24 +536,25 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
 
 
 def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path, monkeypatch):
-    """run.STOP (set by the CLI's Ctrl-C handler, also when Python discards the interrupt)
-    stops a run at the next chunk boundary: that chunk is logged and checkpointed, then the run
-    raises KeyboardInterrupt and clears STOP, so the next run is not stopped by it."""
+    """The stop token given to train (set by the CLI's Ctrl-C handler, also when Python
+    discards the interrupt) stops a run at the next chunk boundary: that chunk is logged and
+    checkpointed, then the run raises KeyboardInterrupt."""
     from td3_jax.checkpoint import Checkpointer
+    from td3_jax.runtime import StopToken
 
     real = run_module._chunk_and_record
+    stop = StopToken()
 
     def chunk_then_stop(*args, **kwargs):
         out = real(*args, **kwargs)
-        run_module.STOP.set()
+        stop.set()
         return out
 
     monkeypatch.setattr(run_module, "_chunk_and_record", chunk_then_stop)
     cfg = dataclasses.replace(SMALL, total_steps=192, warmup_steps=16, hidden_sizes=(8,))
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        run_module.train(cfg, out, progress=False)
-    assert not run_module.STOP.is_set()
+        run_module.train(cfg, out, progress=False, stop=stop)
     assert [r["env_steps"] for r in records(out)] == [64]
     checkpointer = Checkpointer(out / "checkpoints", create=False)
     assert checkpointer.steps() == [1]

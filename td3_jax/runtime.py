@@ -1,0 +1,269 @@
+"""The host process around a run: stopping it, its compile threads, JAX's compilation cache,
+the signals that stop it, and the log noise of the libraries it uses.
+
+Importing this module (or any other ``td3_jax`` module) changes no process-wide state: log
+levels and filters, hooks, signal handlers and ``sys.modules`` are changed only by the
+functions here that say so, which the command line (:mod:`td3_jax.cli`) calls. A library user
+stops a run with a :class:`StopToken` passed to :func:`td3_jax.run.train`; nothing global is
+shared between runs. This module imports only the standard library.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import logging
+import os
+import signal
+import sys
+import threading
+import warnings
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "CACHE_MAX_BYTES",
+    "PROGRAMS_FOLDER",
+    "StopToken",
+    "background_work_running",
+    "enable_compile_cache",
+    "in_background",
+    "quiet_library_logs",
+    "result",
+    "stop_signals",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# stopping a run
+# --------------------------------------------------------------------------------------------
+
+
+class StopToken:
+    """Asks a run to stop, as a Ctrl-C would: set it (from any thread, or a signal handler) and
+    :func:`td3_jax.run.train` stops waiting for compiles and stops at its next chunk boundary,
+    once that chunk is checkpointed, raising KeyboardInterrupt. It stays set until cleared."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+
+    def set(self) -> None:
+        """Asks the run to stop."""
+        self._event.set()
+
+    def is_set(self) -> bool:
+        """Whether the run was asked to stop."""
+        return self._event.is_set()
+
+    def clear(self) -> None:
+        """Takes the request back (a run already stopped stays stopped)."""
+        self._event.clear()
+
+    def raise_if_set(self) -> None:
+        """Raises KeyboardInterrupt when the run was asked to stop."""
+        if self._event.is_set():
+            raise KeyboardInterrupt
+
+
+# --------------------------------------------------------------------------------------------
+# compile threads
+# --------------------------------------------------------------------------------------------
+
+_BACKGROUND: set[threading.Thread] = set()
+
+
+def result(future: Future, stop: StopToken | None = None) -> Any:
+    """``future.result()``, given up with KeyboardInterrupt once ``stop`` is set."""
+    while True:
+        try:
+            return future.result(timeout=0.2)
+        except TimeoutError:
+            if stop is not None:
+                stop.raise_if_set()
+
+
+def in_background(function: Callable[..., Any], *args: Any) -> Future:
+    """``function(*args)`` on a thread of its own, as a future.
+
+    The thread is not a daemon (a daemon thread still compiling when the interpreter exits
+    aborts the process); the CLI ends a stopped run with ``os._exit`` instead of waiting for
+    it (see :func:`background_work_running`).
+    """
+    future: Future = Future()
+
+    def work() -> None:
+        try:
+            future.set_result(function(*args))
+        except BaseException as err:  # handed to whoever waits for the result
+            future.set_exception(err)
+        finally:
+            _BACKGROUND.discard(threading.current_thread())
+
+    thread = threading.Thread(target=work, name="td3-jax compile")
+    _BACKGROUND.add(thread)
+    thread.start()
+    return future
+
+
+def background_work_running() -> bool:
+    """Whether a thread of :func:`in_background` is still working (e.g. compiling)."""
+    return any(thread.is_alive() for thread in list(_BACKGROUND))
+
+
+# --------------------------------------------------------------------------------------------
+# JAX's persistent compilation cache
+# --------------------------------------------------------------------------------------------
+
+#: The persistent compilation cache's size cap (least recently used entries are evicted).
+CACHE_MAX_BYTES = 4 * 1024**3
+#: The folder of the compilation cache that holds the traced programs (td3_jax.program_cache).
+PROGRAMS_FOLDER = "programs"
+
+
+def enable_compile_cache(directory: str) -> Path | None:
+    """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off) and
+    returns where the traced programs are kept (``directory/programs``; ``None`` when off).
+    JAX's settings are process-wide: the CLI calls this once, before compiling."""
+    if directory.strip().lower() in ("off", "none", ""):
+        return None
+    import jax
+
+    from td3_jax.cli import stamp_cache_entries
+    from td3_jax.config import ConfigError
+
+    path = Path(directory).expanduser()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--compile-cache {directory}: cannot create it ({err})") from err
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    # Everything the run compiles, however quick: a second identical run then compiles nothing.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    if importlib.util.find_spec("filelock") is not None:  # JAX's cache eviction needs it
+        stamp_cache_entries(path)
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    return path / PROGRAMS_FOLDER
+
+
+# --------------------------------------------------------------------------------------------
+# signals
+# --------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iterator[None]:
+    """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
+    ``stop`` (so the run stops at its next chunk boundary even where Python discards that
+    exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a kill) sets
+    ``stop`` alone, so the chunk in flight finishes and is checkpointed before the run stops.
+    A second signal of either kind ends the process at once. The signals received are appended
+    to ``received``; ``say``: whether this process prints (several processes: one speaks).
+
+    The handlers, and an unraisable-exception hook that drops a Ctrl-C Python discarded, are
+    installed only on the main thread, and the previous ones are put back on exit.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    on_signal = _signal_handler(stop, received, say)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous_hook = sys.unraisablehook
+
+    def unraisable(args: Any) -> None:  # a discarded Ctrl-C: the run stops through ``stop``
+        if not isinstance(args.exc_value, KeyboardInterrupt):
+            previous_hook(args)
+
+    sys.unraisablehook = unraisable
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        sys.unraisablehook = previous_hook
+
+
+def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable[..., None]:
+    """The SIGINT/SIGTERM handler of :func:`stop_signals`."""
+
+    def on_signal(signum: int, frame: Any) -> None:
+        if stop.is_set():
+            if say:
+                again = "terminated" if signum == signal.SIGTERM else "interrupted"
+                print(f"td3-jax: {again} again: stopping now", file=sys.stderr, flush=True)
+            os._exit(128 + signum)
+        received.append(signum)
+        stop.set()
+        if signum == signal.SIGTERM:
+            if say:
+                print(
+                    "td3-jax: terminated (SIGTERM): stopping once the chunk in flight is "
+                    "checkpointed (SIGTERM again to stop at once)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            return
+        if say:
+            print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+        raise KeyboardInterrupt
+
+    return on_signal
+
+
+# --------------------------------------------------------------------------------------------
+# the libraries' log noise
+# --------------------------------------------------------------------------------------------
+
+
+class _OrbaxLogFilter(logging.Filter):
+    """Drops orbax's own log records: every failure they report surfaces as a CheckpointError."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return f"{os.sep}orbax{os.sep}" not in record.pathname
+
+
+def _closed_loop_callback(args: Any) -> bool:
+    """Whether an unraisable error is tensorstore completing a future of a closed event loop.
+
+    Orbax runs each read or write in a fresh asyncio loop and closes it as soon as one operation
+    fails; those still in flight finish later on tensorstore's threads, whose callbacks then find
+    the loop closed. Nothing waits for them any more, so the error says nothing new.
+    """
+    tb = args.exc_traceback
+    return (
+        args.object is None
+        and isinstance(args.exc_value, RuntimeError)
+        and str(args.exc_value) == "Event loop is closed"
+        and tb is not None
+        and tb.tb_frame.f_code.co_name == "call_soon_threadsafe"
+    )
+
+
+def quiet_library_logs() -> None:
+    """Silences what the libraries say that td3-jax says better, for the whole process (the CLI
+    calls it; a library user may): absl's logger at ERROR without orbax's records, asyncio's
+    at CRITICAL (after a failed read of a corrupt checkpoint, tensorstore callbacks still in
+    flight hit orbax's closed event loop; the CheckpointError says it all), an
+    unraisable-exception hook that drops those callbacks' errors (they can arrive after the
+    failed restore has returned, so it stays), and Brax's notice that its own physics pipelines
+    are unmaintained (td3-jax steps Brax's tasks on MJX by default). Calling it again adds
+    nothing."""
+    import absl.logging  # noqa: F401  (absl's own logger class, not a plain one made here)
+
+    absl_logger = logging.getLogger("absl")
+    absl_logger.setLevel(logging.ERROR)
+    if not any(isinstance(f, _OrbaxLogFilter) for f in absl_logger.filters):
+        absl_logger.addFilter(_OrbaxLogFilter())
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    warnings.filterwarnings("ignore", message="Brax System, piplines and environments")
+    previous = sys.unraisablehook
+    if getattr(previous, "td3_jax_quiet", False):
+        return
+
+    def hook(args: Any) -> None:
+        if not _closed_loop_callback(args):
+            previous(args)
+
+    hook.td3_jax_quiet = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
