@@ -23,7 +23,7 @@ import pytest
 pytest.importorskip("mujoco_playground")
 
 from td3_jax import actor_critic as ac
-from td3_jax import cli, envs, normalization, training
+from td3_jax import cli, envs, normalization, training, upstream
 from td3_jax.config import PRESETS, TrainConfig, device_defaults, preset, validate
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
@@ -271,7 +271,7 @@ def test_go1_loads_resets_and_steps():
 
 
 def test_push_switch_per_task():
-    registry = locomotion._registry()
+    registry = upstream.playground_locomotion()
     t1_config, go1_config = registry.get_default_config(T1), registry.get_default_config(GO1)
     off = locomotion.push_overrides(T1, t1_config, False)
     assert off == {"push_config.enable": False, "push_config.magnitude_range": [0.0, 0.0]}
@@ -418,8 +418,3 @@ def test_cli_training_run_on_t1(tmp_path):
     assert all(np.isfinite(r["critic_loss"]) and np.isfinite(r["eval_return_mean"])
                for r in records)  # fmt: skip
     assert records[-1]["eval_return_mean"] >= 0.0  # T1's reward is clipped at 0 from below
-
-
-def test_playgrounds_own_menagerie_is_where_playground_reads_it():
-    mjx_env = pytest.importorskip("mujoco_playground._src.mjx_env")
-    assert str(menagerie.playground_root()) == str(mjx_env.MENAGERIE_PATH)

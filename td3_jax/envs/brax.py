@@ -6,14 +6,13 @@ from typing import Any
 
 import jax
 
+from td3_jax import upstream
 from td3_jax.envs.base import Environment, from_mjx_style
 
 
 def names() -> list[str]:
     """The Brax environment names this installation knows."""
-    from brax import envs
-
-    return sorted(envs._envs)  # brax has no public listing; _envs is its registry
+    return upstream.brax_env_names()
 
 
 def pipeline_qpos(state: Any) -> jax.Array:

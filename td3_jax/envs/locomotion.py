@@ -23,8 +23,7 @@ import contextlib
 import dataclasses
 import functools
 import io
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -32,20 +31,15 @@ import jax.extend.core as jex_core
 import jax.numpy as jnp
 import numpy as np
 
+from td3_jax import upstream
 from td3_jax.envs import menagerie, physics
 from td3_jax.envs.base import Environment, EnvironmentOptionError, EnvOptions
-
-
-def _registry():
-    from mujoco_playground._src import locomotion
-
-    return locomotion
 
 
 def names() -> list[str]:
     """Playground's locomotion task names, or an empty list without Playground."""
     try:
-        return sorted(_registry().ALL_ENVS)
+        return sorted(upstream.playground_locomotion().ALL_ENVS)
     except ImportError:
         return []
 
@@ -78,16 +72,9 @@ def row(layout: Layout, obs: Any) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------------------------
-# Is the actor's observation a prefix of the critics'? Read from the traced program.
+# Is the actor's observation a prefix of the critics'? Read from the traced program (the
+# primitives' names: td3_jax.upstream).
 # ---------------------------------------------------------------------------------------------
-
-
-def _inner(eqn: Any) -> Any:
-    """The jaxpr a ``jit``-like equation calls, or ``None``."""
-    if eqn.primitive.name not in ("pjit", "jit", "closed_call"):
-        return None
-    inner = eqn.params.get("jaxpr") or eqn.params.get("call_jaxpr")
-    return getattr(inner, "jaxpr", inner)
 
 
 def _outer(var: Any, eqn: Any, inner: Any) -> Any:
@@ -101,11 +88,11 @@ def _outer(var: Any, eqn: Any, inner: Any) -> Any:
 def _passes_through(eqn: Any) -> Any:
     """The input an equation returns unchanged (an identity ``jit``, a same-shape reshape or
     dtype-preserving convert), or ``None``."""
-    inner = _inner(eqn)
+    inner = upstream.called_jaxpr(eqn)
     if inner is not None:
         return _outer(inner.outvars[0], eqn, inner) if len(eqn.outvars) == 1 else None
     same = eqn.invars and eqn.invars[0].aval.shape == eqn.outvars[0].aval.shape
-    if eqn.primitive.name in ("reshape", "copy", "copy_p", "convert_element_type") and same:
+    if upstream.may_copy(eqn) and same:
         return eqn.invars[0] if eqn.invars[0].aval.dtype == eqn.outvars[0].aval.dtype else None
     return None
 
@@ -130,9 +117,10 @@ def _first_piece(var: Any, producers: dict) -> Any:
     eqn = producers.get(var) if isinstance(var, jex_core.Var) else None
     if eqn is None:
         return None
-    if eqn.primitive.name == "concatenate":
-        return eqn.invars[0] if eqn.params["dimension"] == 0 else None
-    inner = _inner(eqn)
+    axis = upstream.concatenation_axis(eqn)
+    if axis is not None:
+        return eqn.invars[0] if axis == 0 else None
+    inner = upstream.called_jaxpr(eqn)
     if inner is None:
         return None
     inside = _producers(inner)
@@ -232,36 +220,18 @@ def warp_overflow(state: Any) -> jax.Array:
     """Whether MuJoCo Warp ran out of a fixed buffer (contacts, constraints, collision pairs)
     in the step that produced the Playground ``state``: what it dropped makes the physics
     wrong. Read from Warp's per-environment overflow flags (:data:`physics.WRONG_PHYSICS`)."""
-    return (state.data._impl.overflow & physics.WRONG_PHYSICS) != 0
-
-
-def _no_clone() -> None:
-    """Stands in for Playground's ``ensure_menagerie_exists`` (which would ``git clone``)."""
-
-
-@contextlib.contextmanager
-def _menagerie_at(root: Path) -> Iterator[None]:
-    """Points Playground at ``root`` (and disables its clone) while a task is built."""
-    from etils import epath
-    from mujoco_playground._src import mjx_env
-
-    saved = mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists
-    mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists = epath.Path(root), _no_clone
-    try:
-        yield
-    finally:
-        mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists = saved
+    return (upstream.warp_overflow_flags(state.data) & physics.WRONG_PHYSICS) != 0
 
 
 def load(task: str, *, impl: str = "jax", options: EnvOptions = EnvOptions()) -> tuple[Any, Any]:
     """``(task object, its config)``: the Playground task built offline from the robot folder
     found for it (:class:`~td3_jax.envs.menagerie.MissingAssetsError` when there is none)."""
     root = menagerie.find_root(task, options.menagerie)
-    registry = _registry()
+    registry = upstream.playground_locomotion()
     config = registry.get_default_config(task)
     overrides = {"impl": impl, **push_overrides(task, config, options.pushes),
                  **warp_overrides(config, impl, options)}  # fmt: skip
-    with _menagerie_at(root):
+    with upstream.playground_menagerie_at(root):
         env = registry.load(task, config=config, config_overrides=overrides)
     if impl == "warp":
         physics.quiet_solver_limits(env.unwrapped)
@@ -286,7 +256,7 @@ class Randomization:
 def randomization(task: str, env: Any) -> Randomization:
     """The task's own randomiser (``EnvironmentOptionError`` for a task without one)."""
     with contextlib.redirect_stdout(io.StringIO()):  # (it prints when there is none)
-        randomizer = _registry().get_domain_randomizer(task)
+        randomizer = upstream.playground_locomotion().get_domain_randomizer(task)
     if randomizer is None:
         raise EnvironmentOptionError(f"playground/{task} has no domain randomiser")
     model = env.mjx_model
@@ -310,17 +280,6 @@ def randomized_model(rand: Randomization, fields: tuple[jax.Array, ...]) -> Any:
     return jax.tree.unflatten(treedef, leaves)
 
 
-@contextlib.contextmanager
-def _physics(env: Any, model: Any) -> Iterator[None]:
-    """``env`` simulating ``model`` while traced (as Playground's own randomisation wrapper)."""
-    saved = env.unwrapped._mjx_model
-    env.unwrapped._mjx_model = model
-    try:
-        yield
-    finally:
-        env.unwrapped._mjx_model = saved
-
-
 # ---------------------------------------------------------------------------------------------
 # The td3-jax environment
 # ---------------------------------------------------------------------------------------------
@@ -332,7 +291,7 @@ def _reset(env: Any, lay: Layout, rand: Randomization | None, key: jax.Array):
         return state, row(lay, state.obs)
     model_key, key = jax.random.split(key)
     fields = draw(rand, model_key)
-    with _physics(env, randomized_model(rand, fields)):
+    with upstream.simulating(env.unwrapped, randomized_model(rand, fields)):
         state = env.reset(key)
     return (state, fields), row(lay, state.obs)
 
@@ -343,7 +302,7 @@ def _step(env: Any, lay: Layout, rand: Randomization | None, inner: Any, action,
         state = inner = env.step(inner, action)
     else:
         state, fields = inner
-        with _physics(env, randomized_model(rand, fields)):
+        with upstream.simulating(env.unwrapped, randomized_model(rand, fields)):
             state = env.step(state, action)
         inner = (state, fields)
     return inner, row(lay, state.obs), state.reward, state.done > 0.5

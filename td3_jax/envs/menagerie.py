@@ -1,9 +1,9 @@
 """Where the MuJoCo Menagerie robot folders of Playground's locomotion tasks are found, offline.
 
-Playground reads each robot's meshes from ``mujoco_playground._src.mjx_env.MENAGERIE_PATH``
-and, when that folder is missing, runs ``git clone`` of the whole Menagerie. td3-jax never lets
-it: it looks for the robot's folder (e.g. ``booster_t1``) in this order and points Playground
-at the first root that holds it:
+Playground reads each robot's meshes from its ``MENAGERIE_PATH`` and, when that folder is
+missing, runs ``git clone`` of the whole Menagerie (both private: :mod:`td3_jax.upstream`).
+td3-jax never lets it: it looks for the robot's folder (e.g. ``booster_t1``) in this order and
+points Playground at the first root that holds it:
 
 1. ``--menagerie DIR`` (``TrainConfig.menagerie``), else the ``MENAGERIE_ROOT`` environment
    variable (the name the ``mujoco-menagerie`` package uses);
@@ -18,6 +18,8 @@ from __future__ import annotations
 import importlib.util
 import os
 from pathlib import Path
+
+from td3_jax import upstream
 
 #: The environment variable read when no ``--menagerie`` is given.
 ENV_VAR = "MENAGERIE_ROOT"
@@ -69,11 +71,7 @@ def package_root(package: str) -> Path | None:
 
 def playground_root() -> Path | None:
     """Playground's own Menagerie location (where its ``git clone`` would put it)."""
-    spec = importlib.util.find_spec("mujoco_playground")
-    if spec is None or spec.origin is None:
-        return None
-    # mujoco_playground/_src/mjx_env.py: MENAGERIE_PATH = <package>/external_deps/...
-    return Path(spec.origin).parent / "external_deps" / "mujoco_menagerie"
+    return upstream.playground_menagerie_path()
 
 
 def candidates(menagerie: str | os.PathLike | None = None) -> list[tuple[str, Path | None]]:

@@ -16,6 +16,8 @@ from typing import Any
 
 import jax
 
+from td3_jax import upstream
+
 _MARK = "_td3_jax_local_devices"
 
 
@@ -46,15 +48,12 @@ def with_local_default(resolve: Callable[..., tuple[Any, Any]]) -> Callable[...,
 
 def place_on_local_devices() -> bool:
     """Makes MJX's default device this process's own (idempotent). Returns whether MJX was
-    found and adjusted; call it after ``jax.distributed.initialize`` and before making
-    environments."""
-    try:
-        from mujoco.mjx._src import io
-    except ImportError:  # MJX not installed: gymnax environments only
-        return False
-    resolve = getattr(io, "_resolve_impl_and_device", None)
-    if resolve is None:  # another MJX layout: leave it alone
+    found and adjusted (``False``: MJX is not installed); call it after
+    ``jax.distributed.initialize`` and before making environments. An MJX without the function
+    wrapped raises :class:`td3_jax.upstream.UpstreamChanged` rather than leaving it alone."""
+    resolve = upstream.mjx_device_resolver()
+    if resolve is None:  # MJX not installed: gymnax environments only
         return False
     if not getattr(resolve, _MARK, False):
-        io._resolve_impl_and_device = with_local_default(resolve)
+        upstream.set_mjx_device_resolver(with_local_default(resolve))
     return True

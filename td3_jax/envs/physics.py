@@ -16,6 +16,8 @@ import importlib.util
 import os
 from typing import Any
 
+from td3_jax import upstream
+
 IMPLS = ("warp", "jax")
 #: Set to 1, MuJoCo Warp may run on its CPU kernels (slow; for the tests of the Warp path on
 #: machines without a GPU). Without it, Warp needs an NVIDIA GPU.
@@ -27,7 +29,8 @@ PLAYGROUND_WORLDS = 8192
 
 #: MuJoCo Warp's overflow flags (its ``OverflowType``) that mean dropped contacts, constraints
 #: or collision pairs, i.e. wrong physics: all but the solver's and line search's iteration
-#: limits (bits 9 and 10), which Playground's tasks reach by design (few iterations).
+#: limits (bits 9 and 10), which Playground's tasks reach by design (few iterations). Checked
+#: against Warp's own flags by ``tests/test_upstream.py``.
 WRONG_PHYSICS = (1 << 9) - 1 | (1 << 11)
 _ITERATION_LIMITS = (1 << 9) | (1 << 10)
 
@@ -36,10 +39,7 @@ def quiet_solver_limits(task: Any) -> None:
     """Stops MuJoCo Warp from printing a warning at every step where the solver or the line
     search reached its iteration limit (Playground's tasks use few iterations on purpose);
     its warnings of real overflows stay. ``task``: a Playground task on Warp."""
-    model = task._mjx_model
-    option = model.opt._impl
-    quieter = option.replace(warn_overflow=int(option.warn_overflow) & ~_ITERATION_LIMITS)
-    task._mjx_model = model.replace(opt=model.opt.replace(_impl=quieter))
+    upstream.quiet_warp_overflow_warnings(task, _ITERATION_LIMITS)
     import warp
 
     warp.config.log_level = warp.LOG_WARNING  # no line per kernel module loaded or compiled

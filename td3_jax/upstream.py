@@ -1,0 +1,279 @@
+"""Every place td3-jax relies on a private name (or a private layout) of the libraries below it.
+
+Each touch is one small function here, named for what it does; callers use these functions and
+never the private names themselves. ``tests/test_upstream.py`` holds one canary test per name:
+it fails, naming the upstream name, when an upstream release renames or removes it. At run time
+a missing name raises :class:`UpstreamChanged` instead of being skipped: nothing here is ever a
+silent no-op (an attribute swapped for domain randomisation is checked to exist first).
+
+Checked against (``checked`` in each docstring): JAX 0.10.2 and 0.11.2; MuJoCo (``mujoco`` and
+its ``mujoco.mjx``, with the MuJoCo Warp it vendors) 4.0.0; MuJoCo Playground
+(``playground`` on PyPI) 0.2.0; Brax 0.14.2.
+
+One module, not ``td3_jax.envs.upstream``: JAX's compilation-cache layout is the CLI's, not an
+environment's. Nothing heavy is imported here; each function imports what it touches.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import importlib.util
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+
+class UpstreamChanged(RuntimeError):
+    """An upstream library no longer has a private name td3-jax relies on (see the module
+    docstring for the versions checked)."""
+
+
+def _require(owner: Any, name: str, upstream: str) -> Any:
+    """``owner.name``, or :class:`UpstreamChanged` naming ``upstream`` when it is absent."""
+    try:
+        return getattr(owner, name)
+    except AttributeError as err:
+        raise UpstreamChanged(
+            f"{upstream} is gone from this version of its library; td3-jax relies on it "
+            "(see td3_jax/upstream.py for the versions checked)"
+        ) from err
+
+
+def _private_module(name: str) -> Any:
+    """The module ``name`` of an installed library; :class:`UpstreamChanged` when the library
+    is there but the module is not (``ImportError`` when the library itself is absent)."""
+    importlib.import_module(name.split(".")[0])
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as err:
+        if err.name is None or not (name == err.name or name.startswith(err.name + ".")):
+            raise  # a dependency of the module is missing, not the module
+        raise UpstreamChanged(
+            f"{name} is gone from this version of its library; td3-jax relies on it "
+            "(see td3_jax/upstream.py for the versions checked)"
+        ) from err
+
+
+# ---------------------------------------------------------------------------------------------
+# JAX: the persistent compilation cache's files
+# ---------------------------------------------------------------------------------------------
+
+#: JAX's persistent compilation cache keeps entry ``KEY`` in the file ``KEY-cache`` and, when its
+#: size is capped, the entry's last use in ``KEY-atime`` (``jax._src.lru_cache._CACHE_SUFFIX``
+#: and ``_ATIME_SUFFIX``; checked: JAX 0.10.2, 0.11.2).
+JAX_CACHE_SUFFIX = "-cache"
+JAX_ATIME_SUFFIX = "-atime"
+
+
+def jax_cache_entries(path: Path) -> list[Path]:
+    """The entry files of JAX's compilation cache at ``path`` (:data:`JAX_CACHE_SUFFIX`)."""
+    return sorted(path.glob(f"*{JAX_CACHE_SUFFIX}"))
+
+
+def jax_cache_atime(entry: Path) -> Path:
+    """The access-time file of a cache entry file (:data:`JAX_ATIME_SUFFIX`)."""
+    return entry.with_name(entry.name.removesuffix(JAX_CACHE_SUFFIX) + JAX_ATIME_SUFFIX)
+
+
+def jax_cache_timestamp() -> bytes:
+    """Now, as JAX's size-capped cache writes an access time: nanoseconds since the epoch in 8
+    little-endian bytes (``jax._src.lru_cache.LRUCache``; checked: JAX 0.10.2, 0.11.2)."""
+    import time
+
+    return time.time_ns().to_bytes(8, "little")
+
+
+def stamp_jax_cache_entries(path: Path) -> None:
+    """Gives every entry of the compilation cache at ``path`` the access-time file that JAX's
+    size-capped cache reads when it evicts (entries written without a cap, e.g. by an earlier
+    td3-jax, have none, and JAX would then fail to write any new entry)."""
+    stamp = jax_cache_timestamp()
+    for entry in jax_cache_entries(path):
+        atime = jax_cache_atime(entry)
+        if not atime.exists():
+            try:
+                atime.write_bytes(stamp)
+            except OSError:  # a read-only cache: JAX reports its own write errors
+                return
+
+
+# ---------------------------------------------------------------------------------------------
+# JAX: primitive names in a traced program (read to prove an observation prefix)
+# ---------------------------------------------------------------------------------------------
+
+#: Primitives that call an inner jaxpr: ``jax.jit``'s (``pjit`` before JAX 0.7, ``jit`` since;
+#: checked: 0.10.2, 0.11.2) and ``closed_call``.
+CALL_PRIMITIVES = ("pjit", "jit", "closed_call")
+#: Primitives that return their input unchanged when its shape and dtype are kept (``copy_p``:
+#: ``copy``'s name in older JAX).
+COPY_PRIMITIVES = ("reshape", "copy", "copy_p", "convert_element_type")
+#: ``lax.concatenate``'s primitive; its axis is the parameter ``dimension``.
+CONCATENATE = "concatenate"
+
+
+def called_jaxpr(eqn: Any) -> Any:
+    """The jaxpr a ``jit``-like equation calls (its ``jaxpr`` or ``call_jaxpr`` parameter,
+    unwrapped from a closed jaxpr), or ``None`` for any other equation."""
+    if eqn.primitive.name not in CALL_PRIMITIVES:
+        return None
+    inner = eqn.params.get("jaxpr") or eqn.params.get("call_jaxpr")
+    return getattr(inner, "jaxpr", inner)
+
+
+def may_copy(eqn: Any) -> bool:
+    """Whether ``eqn`` is a primitive that returns its input unchanged when the input's shape
+    and dtype are kept (:data:`COPY_PRIMITIVES`)."""
+    return eqn.primitive.name in COPY_PRIMITIVES
+
+
+def concatenation_axis(eqn: Any) -> int | None:
+    """The axis ``eqn`` concatenates along, or ``None`` when it is no concatenation."""
+    return eqn.params["dimension"] if eqn.primitive.name == CONCATENATE else None
+
+
+# ---------------------------------------------------------------------------------------------
+# Brax
+# ---------------------------------------------------------------------------------------------
+
+
+def brax_env_names() -> list[str]:
+    """Brax's environment names, from its registry ``brax.envs._envs`` (Brax has no public
+    listing; checked: Brax 0.14.2)."""
+    from brax import envs
+
+    return sorted(_require(envs, "_envs", "brax.envs._envs"))
+
+
+# ---------------------------------------------------------------------------------------------
+# MJX (mujoco.mjx) and the MuJoCo Warp it steps with
+# ---------------------------------------------------------------------------------------------
+
+#: MJX's module whose ``_resolve_impl_and_device(impl, device) -> (impl, device)`` picks the
+#: device of ``put_model``/``make_data``/``put_data`` (checked: MuJoCo 4.0.0).
+MJX_IO = "mujoco.mjx._src.io"
+MJX_RESOLVER = "_resolve_impl_and_device"
+
+
+def mjx_device_resolver() -> Callable[..., tuple[Any, Any]] | None:
+    """MJX's ``mujoco.mjx._src.io._resolve_impl_and_device`` (``None`` without MJX;
+    :class:`UpstreamChanged` when MJX is there without it)."""
+    try:
+        import mujoco.mjx  # noqa: F401
+    except ImportError:  # MJX not installed: gymnax environments only
+        return None
+    return _require(_private_module(MJX_IO), MJX_RESOLVER, f"{MJX_IO}.{MJX_RESOLVER}")
+
+
+def set_mjx_device_resolver(resolve: Callable[..., tuple[Any, Any]]) -> None:
+    """Makes ``resolve`` MJX's ``_resolve_impl_and_device`` (which must already exist)."""
+    module = _private_module(MJX_IO)
+    _require(module, MJX_RESOLVER, f"{MJX_IO}.{MJX_RESOLVER}")
+    setattr(module, MJX_RESOLVER, resolve)
+
+
+def warp_overflow_flags(data: Any) -> Any:
+    """MuJoCo Warp's per-environment overflow flags (its ``OverflowType`` bits) of an MJX
+    ``Data`` stepped by Warp: ``data._impl.overflow`` (``mujoco.mjx.Data._impl``, a
+    ``mujoco.mjx.warp.types.DataWarp``; checked: MuJoCo 4.0.0)."""
+    impl = _require(data, "_impl", "mujoco.mjx.Data._impl")
+    return _require(impl, "overflow", "mujoco.mjx.warp.types.DataWarp.overflow")
+
+
+def quiet_warp_overflow_warnings(task: Any, bits: int) -> None:
+    """Clears ``bits`` from MuJoCo Warp's ``warn_overflow`` option of the Playground ``task``'s
+    model: ``model.opt._impl.warn_overflow`` (``mujoco.mjx.Option._impl``, a
+    ``mujoco.mjx.warp.types.OptionWarp``; checked: MuJoCo 4.0.0)."""
+    model = task_mjx_model(task)
+    option = _require(model.opt, "_impl", "mujoco.mjx.Option._impl")
+    warn = _require(option, "warn_overflow", "mujoco.mjx.warp.types.OptionWarp.warn_overflow")
+    quieter = option.replace(warn_overflow=int(warn) & ~bits)
+    set_task_mjx_model(task, model.replace(opt=model.opt.replace(_impl=quieter)))
+
+
+# ---------------------------------------------------------------------------------------------
+# MuJoCo Playground
+# ---------------------------------------------------------------------------------------------
+
+#: Playground's module holding the locomotion registry (``ALL_ENVS``, ``get_default_config``,
+#: ``load``, ``get_domain_randomizer``) and the one holding ``MENAGERIE_PATH`` and
+#: ``ensure_menagerie_exists`` (checked: Playground 0.2.0).
+PLAYGROUND_LOCOMOTION = "mujoco_playground._src.locomotion"
+PLAYGROUND_MJX_ENV = "mujoco_playground._src.mjx_env"
+#: The attribute of a Playground task (``mjx_env.MjxEnv``) holding the MJX model its ``reset``
+#: and ``step`` simulate; Playground's own ``wrapper.BraxDomainRandomizationVmapWrapper`` swaps
+#: it the same way (checked: Playground 0.2.0).
+TASK_MODEL = "_mjx_model"
+
+
+def playground_locomotion() -> Any:
+    """Playground's locomotion registry module (``ImportError`` without Playground)."""
+    return _private_module(PLAYGROUND_LOCOMOTION)
+
+
+def playground_menagerie_path() -> Path | None:
+    """Where Playground reads the Menagerie by default, its ``mjx_env.MENAGERIE_PATH``
+    (``<package>/external_deps/mujoco_menagerie``), found without importing Playground
+    (``None`` without it; checked: Playground 0.2.0)."""
+    spec = importlib.util.find_spec("mujoco_playground")
+    if spec is None or spec.origin is None:
+        return None
+    return Path(spec.origin).parent / "external_deps" / "mujoco_menagerie"
+
+
+def _no_clone() -> None:
+    """Stands in for Playground's ``ensure_menagerie_exists`` (which would ``git clone``)."""
+
+
+@contextlib.contextmanager
+def playground_menagerie_at(root: Path) -> Iterator[None]:
+    """Points Playground at ``root`` (``mjx_env.MENAGERIE_PATH``) and disables its clone
+    (``mjx_env.ensure_menagerie_exists``) while a task is built."""
+    from etils import epath
+
+    mjx_env = _private_module(PLAYGROUND_MJX_ENV)
+    for name in ("MENAGERIE_PATH", "ensure_menagerie_exists"):
+        _require(mjx_env, name, f"{PLAYGROUND_MJX_ENV}.{name}")
+    saved = mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists
+    mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists = epath.Path(root), _no_clone
+    try:
+        yield
+    finally:
+        mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists = saved
+
+
+def _check_task(task: Any) -> None:
+    """:class:`UpstreamChanged` unless ``task`` itself holds :data:`TASK_MODEL` (an attribute
+    only found through a wrapper, or none at all, would be set without effect)."""
+    if TASK_MODEL not in getattr(task, "__dict__", {}):
+        raise UpstreamChanged(
+            f"the Playground task {type(task).__name__} holds no attribute {TASK_MODEL} "
+            f"(mujoco_playground's MjxEnv.{TASK_MODEL}): td3-jax swaps it to simulate a "
+            "randomised or adjusted model and will not set it where Playground does not read "
+            "it (see td3_jax/upstream.py for the versions checked)"
+        )
+
+
+def task_mjx_model(task: Any) -> Any:
+    """The MJX model a Playground task simulates (its :data:`TASK_MODEL`)."""
+    _check_task(task)
+    return getattr(task, TASK_MODEL)
+
+
+def set_task_mjx_model(task: Any, model: Any) -> None:
+    """Makes the Playground task simulate ``model`` (its :data:`TASK_MODEL`, which must
+    exist: never a new attribute)."""
+    _check_task(task)
+    setattr(task, TASK_MODEL, model)
+
+
+@contextlib.contextmanager
+def simulating(task: Any, model: Any) -> Iterator[None]:
+    """The Playground task simulating ``model`` meanwhile (its own model back after), as
+    Playground's own domain-randomisation wrapper does while tracing."""
+    saved = task_mjx_model(task)
+    set_task_mjx_model(task, model)
+    try:
+        yield
+    finally:
+        set_task_mjx_model(task, saved)
