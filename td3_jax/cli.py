@@ -444,15 +444,6 @@ def _warn_about_size(cfg: TrainConfig) -> None:
         print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
-def stamp_cache_entries(path: Path) -> None:
-    """Gives every entry of the compilation cache at ``path`` the access-time file that JAX's
-    size-capped cache reads when it evicts (:func:`td3_jax.upstream.stamp_jax_cache_entries`:
-    JAX's file layout is private)."""
-    from td3_jax import upstream
-
-    upstream.stamp_jax_cache_entries(path)
-
-
 def _sweep_values(command: Any) -> dict[str, list[float]]:
     """The ``--sweep-*`` lists of a sweep command (``{"actor_lr": [...], ...}``); none is an
     error unless the sweep is resumed."""

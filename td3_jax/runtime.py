@@ -130,8 +130,8 @@ def enable_compile_cache(directory: str) -> Path | None:
         return None
     import jax
 
-    from td3_jax.cli import stamp_cache_entries
     from td3_jax.config import ConfigError
+    from td3_jax.upstream import stamp_jax_cache_entries
 
     path = Path(directory).expanduser()
     try:
@@ -142,7 +142,7 @@ def enable_compile_cache(directory: str) -> Path | None:
     # Everything the run compiles, however quick: a second identical run then compiles nothing.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     if importlib.util.find_spec("filelock") is not None:  # JAX's cache eviction needs it
-        stamp_cache_entries(path)
+        stamp_jax_cache_entries(path)
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
     return path / PROGRAMS_FOLDER
 
