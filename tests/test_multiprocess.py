@@ -98,6 +98,7 @@ def test_gpu_processes_run_deterministic_ops_unless_told_otherwise(monkeypatch):
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.processes
 def test_two_processes_of_two_devices_give_the_four_device_numbers(tmp_path):
     """2 x 2 CPU devices through jax.distributed against 1 x 4: same records (up to the
     order of float sums in gloo's all-reduce)."""
@@ -118,6 +119,7 @@ def test_two_processes_of_two_devices_give_the_four_device_numbers(tmp_path):
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.processes
 def test_an_mjx_environment_trains_in_two_processes(tmp_path):
     """MJX puts models on jax.devices()[0], process 0's device; process 1 must get its own
     (td3_jax.envs.mjx_devices), or lowering its step fails. 2 x 1 against 1 x 2 CPU devices."""

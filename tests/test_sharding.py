@@ -114,6 +114,7 @@ def four_device_runs(tmp_path_factory):
     return out, result
 
 
+@pytest.mark.processes
 def test_state_is_split_along_envs_and_buffer(four_device_runs):
     _, info = four_device_runs
     assert info["devices"] == 4
@@ -128,6 +129,7 @@ def test_state_is_split_along_envs_and_buffer(four_device_runs):
     assert info["actor_spec"] == []  # parameters replicated
 
 
+@pytest.mark.processes
 def test_four_devices_give_the_one_device_numbers(four_device_runs):
     out, _ = four_device_runs
     d4, d1 = _records(out / "d4"), _records(out / "d1")
@@ -135,11 +137,13 @@ def test_four_devices_give_the_one_device_numbers(four_device_runs):
     _assert_same_numbers(d4, d1, rtol=1e-3)
 
 
+@pytest.mark.processes
 def test_replay_slices_on_four_devices_give_the_one_device_numbers(four_device_runs):
     out, _ = four_device_runs
     _assert_same_numbers(_records(out / "sliced_d4"), _records(out / "sliced_d1"), rtol=1e-3)
 
 
+@pytest.mark.processes
 def test_checkpoint_from_four_devices_resumes_on_one(four_device_runs):
     out, _ = four_device_runs
     resumed = _records(out / "resumed")
@@ -170,6 +174,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.processes
 def test_two_processes_through_the_distributed_runtime(tmp_path, four_device_runs):
     """2 processes x 2 CPU devices, gloo collectives: the 1-device run's numbers."""
     out, _ = four_device_runs
@@ -198,6 +203,7 @@ def test_two_processes_through_the_distributed_runtime(tmp_path, four_device_run
     assert sorted(p.name for p in (tmp_path / "mp" / "checkpoints").iterdir()) == ["1", "2"]
 
 
+@pytest.mark.processes
 def test_eval_of_a_four_device_run_on_one_device(four_device_runs):
     out, _ = four_device_runs
     proc = subprocess.run(

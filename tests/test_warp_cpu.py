@@ -12,9 +12,12 @@ from test_cli import main
 
 from td3_jax.envs import physics
 
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("warp") is None, reason="MuJoCo Warp (warp-lang) is not installed"
-)
+pytestmark = [
+    pytest.mark.robots,
+    pytest.mark.skipif(
+        importlib.util.find_spec("warp") is None, reason="MuJoCo Warp (warp-lang) is not installed"
+    ),
+]
 
 TINY_T1 = [
     "train", "--env", "playground/T1JoystickFlatTerrain", "--impl", "warp", "--num-envs", "4",
