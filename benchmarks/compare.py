@@ -245,13 +245,13 @@ TD3_PRESET_DEFAULT = "cheetah-run"
 def default_td3_preset(env: str) -> str:
     """The td3-jax preset an environment is compared with: its own (ant, t1, ...), a robot's
     family preset for other locomotion tasks, else cheetah-run's (DM Control Suite)."""
-    from td3_jax import config
+    from td3_jax import presets
 
     name = env_id(env)
     return (
         TD3_PRESET.get(env)
-        or config.env_preset(name)
-        or config.robot_preset(name)
+        or presets.env_preset(name)
+        or presets.robot_preset(name)
         or (TD3_PRESET_DEFAULT)
     )
 
@@ -496,6 +496,7 @@ def _playground_env(env_name: str, result: dict[str, Any]) -> Any:
 def td3_config(job: dict[str, Any]):
     """The td3-jax TrainConfig of a job (validated) and the settings changed from the preset."""
     from td3_jax import config as td3_config
+    from td3_jax import presets
 
     overrides: dict[str, Any] = {} if is_brax_env(job["env"]) else {"env_backend": "jax"}
     if job["smoke"]:
@@ -505,7 +506,7 @@ def td3_config(job: dict[str, Any]):
     overrides.update(td3_overrides(job["flags"]))
     try:
         cfg = dataclasses.replace(
-            td3_config.preset(job["td3_preset"]),
+            presets.preset(job["td3_preset"]),
             env=env_id(job["env"]),
             checkpoint_every=10**9,
             **overrides,
@@ -520,7 +521,7 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
 
     cfg, overrides = td3_config(job)
     result["settings"] = {"preset": job["td3_preset"], "used": dataclasses.asdict(cfg)}
-    result["source"] = f"td3_jax.config.PRESETS[{job['td3_preset']!r}] + flags"
+    result["source"] = f"td3_jax.presets.PRESETS[{job['td3_preset']!r}] + flags"
     _announce("td3", result["source"], {"env": cfg.env, **overrides})
     run_dir = Path(job["out"]) / f"td3_{job['env']}"
     if run_dir.exists():

@@ -38,9 +38,9 @@ import jax
 import jax.numpy as jnp
 
 from td3_jax import training
-from td3_jax.config import ENV_PRESETS, preset, robot_preset
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
+from td3_jax.presets import ENV_PRESETS, preset, robot_preset
 
 
 def pack(tasks: list[str], dest: Path) -> list[Path]:

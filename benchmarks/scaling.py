@@ -312,7 +312,8 @@ def main(argv: list[str] | None = None) -> None:
 
 def point_config(point: dict[str, Any]):
     """The point's TrainConfig: the env's preset at the point's sizes, warm-up off."""
-    from td3_jax.config import TrainConfig, env_preset, preset
+    from td3_jax.config import TrainConfig
+    from td3_jax.presets import env_preset, preset
 
     name = point["preset"] or env_preset(point["env"])
     base = preset(name) if name else TrainConfig(env=point["env"])

@@ -17,7 +17,7 @@ import time
 
 import jax
 
-from td3_jax.config import preset
+from td3_jax.presets import preset
 from td3_jax.run import train
 
 

@@ -41,8 +41,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from td3_jax import envs, program_cache, training  # noqa: E402
-from td3_jax.config import preset  # noqa: E402
 from td3_jax.population import compile_for_mesh, make_population, members  # noqa: E402
+from td3_jax.presets import preset  # noqa: E402
 from td3_jax.runtime import enable_compile_cache  # noqa: E402
 from td3_jax.sharding import make_mesh  # noqa: E402
 

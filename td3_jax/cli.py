@@ -21,16 +21,8 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from td3_jax import runtime
-from td3_jax.config import (
-    PRESETS,
-    ConfigError,
-    TrainConfig,
-    as_flag,
-    device_defaults,
-    env_preset,
-    preset,
-    validate,
-)
+from td3_jax.config import ConfigError, TrainConfig, as_flag, validate
+from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
 USAGE = """\
 usage: td3-jax {train,sweep,eval,export,render,plot,envs,presets} [FLAGS]

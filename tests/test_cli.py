@@ -21,7 +21,8 @@ import pytest
 
 from td3_jax import cli
 from td3_jax import run as run_module
-from td3_jax.config import PRESETS, TrainConfig, device_defaults, preset
+from td3_jax.config import TrainConfig
+from td3_jax.presets import PRESETS, device_defaults, preset
 
 DOCUMENTED_FLAGS = [
     "--env",

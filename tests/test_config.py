@@ -10,16 +10,8 @@ import dataclasses
 
 import pytest
 
-from td3_jax.config import (
-    ENV_PRESETS,
-    PRESETS,
-    ConfigError,
-    TrainConfig,
-    device_defaults,
-    env_preset,
-    preset,
-    validate,
-)
+from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.presets import ENV_PRESETS, PRESETS, device_defaults, env_preset, preset
 from td3_jax.td3 import DDPGConfig, TD3Config
 
 # A small valid configuration to derive broken ones from (only one field changed each time).
@@ -290,7 +282,6 @@ def test_non_finite_float_settings_are_refused(name, value):
 
 def test_the_replay_ring_never_has_more_rows_than_the_run_collects():
     """A tiny run of a robot preset (8.4M-row ring) used to allocate the whole ring: 26 GB."""
-    from td3_jax.config import preset
 
     full = preset("t1")
     t1 = dataclasses.replace(full, num_envs=8, total_steps=2048, eval_every=1024,

@@ -24,9 +24,10 @@ pytest.importorskip("mujoco_playground")
 
 from td3_jax import actor_critic as ac
 from td3_jax import cli, envs, normalization, training, upstream
-from td3_jax.config import PRESETS, TrainConfig, device_defaults, preset, validate
+from td3_jax.config import TrainConfig, validate
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
+from td3_jax.presets import PRESETS, device_defaults, preset
 from td3_jax.td3 import TD3Config, td3
 from td3_jax.types import Transition
 
