@@ -238,7 +238,8 @@ def make_spec(
         policy_freq=int(policy_freq),
         target_smoothing=target_smoothing,
         options=options,
-        critic_observation_size=None if critic_observation_size is None
+        critic_observation_size=None
+        if critic_observation_size is None
         else int(critic_observation_size),
     )
 

@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from td3_jax.errors import CheckpointError, CheckpointWriteError, CorruptCheckpointError
+
 # Orbax writes <step>.orbax-checkpoint-tmp (older versions: ...-tmp-<time>) and renames it.
 _TMP_MARK = ".orbax-checkpoint-tmp"
 _HASH = "mix32"
@@ -50,18 +52,6 @@ _WRITE_CAUSES = [
     (errno.EROFS, "Read-only file system", "{} is on a read-only file system"),
     (errno.EACCES, "Permission denied", "no permission to write in {}"),
 ]
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint that is missing, corrupt or does not match the run's configuration."""
-
-
-class CorruptCheckpointError(CheckpointError):
-    """A checkpoint that cannot be read, or whose arrays fail their checksums."""
-
-
-class CheckpointWriteError(CheckpointError):
-    """A checkpoint that could not be written (a full disk, no permission); none of it is left."""
 
 
 class Checkpointer:
@@ -175,7 +165,10 @@ class Checkpointer:
         )
 
     def restore(
-        self, abstract_state: Any, step: int | None = None, shardings: Any = None,
+        self,
+        abstract_state: Any,
+        step: int | None = None,
+        shardings: Any = None,
         resize: Any = None,
     ) -> tuple[Any, dict, int]:
         """Restores ``(state, meta, step)`` from checkpoint ``step`` (default: the newest good one).
@@ -256,8 +249,11 @@ class Checkpointer:
         state = _rebuild(saved, stored)
         _verify(state, meta.get("checksums"), path)
         if grow is not None:
-            state = jax.jit(grow)(state) if shardings is None else jax.jit(
-                grow, out_shardings=shardings)(state)
+            state = (
+                jax.jit(grow)(state)
+                if shardings is None
+                else jax.jit(grow, out_shardings=shardings)(state)
+            )
         return state, {k: v for k, v in meta.items() if k not in _META_KEYS}, step
 
     def _read(self, step: int, **items: Any) -> Any:
@@ -355,9 +351,7 @@ def _check_layout(meta: Any, abstract_state: Any, path: Path) -> None:
             f"{meta.get('format', 1)}, this version reads {FORMAT}; first difference: {diff}); "
             "resume it with the version that wrote it, or start a new run"
         )
-    raise CheckpointError(
-        f"checkpoint {path} does not match this run's configuration ({diff})"
-    )
+    raise CheckpointError(f"checkpoint {path} does not match this run's configuration ({diff})")
 
 
 def _words(x: jax.Array) -> jax.Array:

@@ -731,25 +731,18 @@ def _without_warp_import_notes() -> Iterator[None]:
 
 
 def _run_reporting_errors(command, args: list[str]) -> None:
-    """Runs a subcommand; a known failure becomes one message and an exit code (2 bad input,
-    3 non-finite training, 130 interrupted)."""
-    from td3_jax.checkpoint import CheckpointError
+    """Runs a subcommand; a known failure becomes one message and its exit code
+    (:mod:`td3_jax.errors`: 2 bad input, 3 a run stopped by what it computed; 130 interrupted)."""
+    from td3_jax.errors import Td3JaxError
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
-        from td3_jax import envs
-    from td3_jax.logger import OutputWriteError
-    from td3_jax.run import NonFiniteError, PhysicsOverflowError
-
+        from td3_jax import envs  # noqa: F401  (imported here for the notes only)
     try:
         command(args)
-    except (ConfigError, envs.UnknownEnvironmentError, CheckpointError, envs.MissingAssetsError,
-            envs.EnvironmentOptionError, OutputWriteError) as err:  # fmt: skip
+    except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)
-        sys.exit(2)
-    except (NonFiniteError, PhysicsOverflowError) as err:
-        print(f"td3-jax: error: {err}", file=sys.stderr)
-        sys.exit(3)
+        sys.exit(err.exit_code)
     except RuntimeError as err:
         if "MUJOCO_GL" not in str(err):  # mujoco's import refuses an unknown MUJOCO_GL value
             raise

@@ -8,12 +8,9 @@ from typing import Any, Literal
 
 from td3_jax.actor_critic import AgentOptions
 from td3_jax.envs.base import EnvOptions
+from td3_jax.errors import ConfigError
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
-
-
-class ConfigError(ValueError):
-    """A setting that cannot work; the CLI prints it as one line and exits with code 2."""
 
 
 @dataclasses.dataclass(frozen=True)

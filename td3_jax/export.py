@@ -33,17 +33,13 @@ from typing import Any
 import numpy as np
 
 from td3_jax import normalization
-from td3_jax.config import ConfigError
+from td3_jax.errors import ExportError
 from td3_jax.policy_file import FORMAT_VERSION
 
 #: The export formats (``td3-jax export --format``).
 FORMATS = ("onnx", "npz")
 #: The ONNX opset of exported models (LayerNormalization is in the default domain from 17).
 ONNX_OPSET = 17
-
-
-class ExportError(ConfigError):
-    """A run, member or output that cannot be exported (the CLI prints it, exit code 2)."""
 
 
 @dataclasses.dataclass(frozen=True)

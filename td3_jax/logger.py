@@ -12,14 +12,10 @@ from pathlib import Path
 from typing import Any
 
 from td3_jax.config import ConfigError
+from td3_jax.errors import OutputWriteError  # noqa: F401  (defined there)
 
 #: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
-
-
-class OutputWriteError(RuntimeError):
-    """A run stopped because one of its outputs could not be written (a full disk); the
-    message names it, the last good checkpoint and how to go on."""
 
 
 class MetricsLogger:

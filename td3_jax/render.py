@@ -44,7 +44,7 @@ import jax
 import numpy as np
 
 from td3_jax import envs, training
-from td3_jax.config import ConfigError
+from td3_jax.errors import GLUnavailableError, NotRenderableError, RenderError
 
 #: Headless OpenGL backends tried, in order, when ``MUJOCO_GL`` is not set.
 GL_BACKENDS = ("egl", "osmesa")
@@ -56,18 +56,6 @@ GL_HELP = (
     "install PyOpenGL), or set MUJOCO_GL to a backend that works here"
 )
 VIDEO_SUFFIXES = (".mp4", ".gif")
-
-
-class RenderError(ConfigError):
-    """A rollout that cannot be rendered (the CLI prints one line and exits with code 2)."""
-
-
-class GLUnavailableError(RenderError):
-    """No headless OpenGL context can be created."""
-
-
-class NotRenderableError(RenderError):
-    """An environment without a scene to draw."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -133,9 +121,7 @@ def gl_backend(environ: dict | None = None, probe: Any = probe_gl) -> str:
         if why is None:
             return backend
         failures.append(f"{backend}: {why}")
-    raise GLUnavailableError(
-        f"no headless OpenGL for rendering ({'; '.join(failures)}); {GL_HELP}"
-    )
+    raise GLUnavailableError(f"no headless OpenGL for rendering ({'; '.join(failures)}); {GL_HELP}")
 
 
 @functools.cache
@@ -331,8 +317,7 @@ def check_renderable(env: envs.Environment) -> None:
     """Raises :class:`NotRenderableError` for an environment without a scene to draw."""
     if env.qpos_fn is None:
         raise NotRenderableError(
-            f"{env.name} cannot be rendered (renderable: brax/*, playground/*, "
-            "gymnax/Pendulum-v1)"
+            f"{env.name} cannot be rendered (renderable: brax/*, playground/*, gymnax/Pendulum-v1)"
         )
 
 

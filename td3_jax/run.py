@@ -22,6 +22,7 @@ import numpy as np
 from td3_jax import program_cache
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.errors import NonFiniteError, PhysicsOverflowError
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, OutputWriteError, plot_curve
 from td3_jax.population import Member, members
 from td3_jax.rundir import (  # (re-exported: run.py was their home)
@@ -62,15 +63,6 @@ __all__ = [
     "save_config",
     "train",
 ]
-
-
-class NonFiniteError(RuntimeError):
-    """A loss or parameter became NaN/inf; the run stopped and kept its last good checkpoint."""
-
-
-class PhysicsOverflowError(RuntimeError):
-    """MuJoCo Warp ran out of contact or constraint buffer (its physics was wrong); the run
-    stopped and kept its last good checkpoint (the CLI exits with code 3)."""
 
 
 def train(
@@ -463,7 +455,8 @@ def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) ->
         f"MuJoCo Warp's contact or constraint buffer was full in {overflows} environment "
         f"steps of the chunk ending at env step {env_steps} (contacts or constraints were "
         f"dropped: wrong physics); stopped, {kept}; raise --nconmax or --njmax (contacts and "
-        "constraints per environment; default: the task's own) in a new run")
+        "constraints per environment; default: the task's own) in a new run"
+    )
 
 
 class _Progress:

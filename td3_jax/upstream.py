@@ -23,10 +23,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-
-class UpstreamChanged(RuntimeError):
-    """An upstream library no longer has a private name td3-jax relies on (see the module
-    docstring for the versions checked)."""
+from td3_jax.errors import UpstreamChanged
 
 
 def _require(owner: Any, name: str, upstream: str) -> Any:

@@ -472,4 +472,5 @@ def test_a_cosine_run_cannot_be_extended_on_resume(tmp_path, capsys):
         cli.main(["train", "--resume", "--total-steps", "16", *common])
     assert exit_info.value.code == 2
     assert "--total-steps cannot change on --resume with --lr-schedule cosine" in (
-        capsys.readouterr().err)
+        capsys.readouterr().err
+    )

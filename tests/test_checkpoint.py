@@ -350,8 +350,7 @@ def test_a_wrong_recorded_checksum_names_the_array(three_steps):
     with pytest.raises(CorruptCheckpointError) as err:
         Checkpointer(directory).restore(jax.eval_shape(lambda: trees[2]), step=2)
     assert str(err.value) == (
-        f"checkpoint {directory / '2'} is corrupt "
-        f"(array {paths[victim]} fails its checksum)"
+        f"checkpoint {directory / '2'} is corrupt (array {paths[victim]} fails its checksum)"
     )
 
 

@@ -410,8 +410,12 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
         assert stderr.startswith("td3-jax: error: ") and message in stderr, stderr
         assert len(stderr.strip().splitlines()) == 1
     # and in a real process: exit status 2, one line, no traceback
-    done = subprocess.run([sys.executable, "-m", "td3_jax", "export", "--run", str(tmp_path),
-                           "--format", "npz"], capture_output=True, text=True, timeout=240)
+    done = subprocess.run(
+        [sys.executable, "-m", "td3_jax", "export", "--run", str(tmp_path), "--format", "npz"],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert done.stderr.strip().splitlines() == [
         f"td3-jax: error: {tmp_path} holds no config.json: not a td3-jax run directory"

@@ -204,4 +204,3 @@ def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
     assert fine[0] == "critic_lr=0.001 seed=0" and all(re.fullmatch(r"-?\d+\.\d", c)
                                                         for c in fine[1:])  # fmt: skip
     assert not any(line.startswith("over ") for line in lines)  # one live member: no aggregate
-

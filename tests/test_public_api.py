@@ -49,3 +49,21 @@ def test_the_readme_library_section_uses_public_names_only():
 
 def inspect_is_module(value) -> bool:
     return type(value).__name__ == "module"
+
+
+def test_every_error_is_one_class_of_the_errors_module_with_its_exit_code():
+    """The modules that raise an error re-export errors' class (one class, not a copy); bad
+    input exits 2, a run stopped by what it computed exits 3."""
+    from td3_jax import checkpoint, config, envs, errors, export, logger, render, run, upstream
+
+    for module, name in [(config, "ConfigError"), (checkpoint, "CorruptCheckpointError"),
+                         (envs, "UnknownEnvironmentError"), (envs, "MissingAssetsError"),
+                         (envs, "EnvironmentOptionError"), (export, "ExportError"),
+                         (logger, "OutputWriteError"), (render, "GLUnavailableError"),
+                         (run, "NonFiniteError"), (run, "PhysicsOverflowError"),
+                         (upstream, "UpstreamChanged")]:  # fmt: skip
+        assert getattr(module, name) is getattr(errors, name), name
+        assert issubclass(getattr(errors, name), errors.Td3JaxError)
+    assert errors.ExportError("x").exit_code == errors.CheckpointWriteError("x").exit_code == 2
+    assert errors.NonFiniteError("x").exit_code == errors.PhysicsOverflowError("x").exit_code == 3
+    assert isinstance(errors.UnknownEnvironmentError("x"), ValueError)  # as before the move

@@ -82,7 +82,8 @@ def test_outputs_hold_every_row_and_the_failure(tmp_path):
     scaling.add_ratios(rows)
     scaling.write_outputs(tmp_path, meta, rows)
     assert json.loads((tmp_path / "scaling.json").read_text())["rows"][1]["error"].endswith(
-        "RESOURCE_EXHAUSTED")
+        "RESOURCE_EXHAUSTED"
+    )
     csv_lines = (tmp_path / "scaling.csv").read_text().splitlines()
     assert len(csv_lines) == 3 and csv_lines[0].startswith("env,mode,devices")
     table = (tmp_path / "scaling.md").read_text()

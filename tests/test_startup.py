@@ -73,7 +73,8 @@ def test_the_early_evaluation_does_not_change_the_run(tmp_path):
     # are the later chunks' metrics (the first chunk's second record averages its second part).
     split = run_module.train(SPLIT, tmp_path / "split", progress=False)
     whole = run_module.train(
-        TrainConfig(**{**SPLIT.__dict__, "early_evaluation": False}), tmp_path / "whole",
+        TrainConfig(**{**SPLIT.__dict__, "early_evaluation": False}),
+        tmp_path / "whole",
         progress=False,
     )
     assert [r["env_steps"] for r in whole] == [128, 256, 384]

@@ -912,8 +912,10 @@ def test_update_with_a_wrongly_shaped_batch_names_the_field():
 def test_act_on_observations_of_another_width_says_both_sizes():
     agent = build("td3", make_config("td3"))
     state = init_state("td3", 0)
-    expected = (r"^act got observations of size 5 \(shape \[4, 5\]\); this agent's actor "
-                r"takes observation_size 3 ")
+    expected = (
+        r"^act got observations of size 5 \(shape \[4, 5\]\); this agent's actor "
+        r"takes observation_size 3 "
+    )
     with pytest.raises(ValueError, match=expected):
         agent.act(state.actor_params, np.zeros((4, 5), np.float32))
     with pytest.raises(ValueError, match=expected):  # also where it is traced

@@ -28,16 +28,12 @@ from td3_jax.envs.base import (
     step,
 )
 from td3_jax.envs.menagerie import MissingAssetsError, candidates, holds, robot
+from td3_jax.errors import UnknownEnvironmentError
 
 #: Each source module has ``names() -> list[str]`` and
 #: ``make(task, *, backend, episode_length) -> Environment`` (Playground's also takes
 #: ``options``).
 _SOURCES = {"brax": _brax, "playground": _playground, "gymnax": _gymnax}
-
-
-class UnknownEnvironmentError(ValueError):
-    """An environment name that no source knows; the message names the closest known ones
-    (or lists them all when none is close)."""
 
 
 def closest_names(name: str, names: list[str], limit: int = 3) -> list[str]:

@@ -35,6 +35,7 @@ import numpy as np
 from flax import struct
 
 from td3_jax.axes import max_member
+from td3_jax.errors import EnvironmentOptionError
 
 ResetFn = Callable[[jax.Array], tuple[Any, jax.Array]]
 StepFn = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, jax.Array]]
@@ -94,10 +95,6 @@ class Environment:
         low = jnp.asarray(self.action_low, jnp.float32)
         high = jnp.asarray(self.action_high, jnp.float32)
         return low + (jnp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
-
-
-class EnvironmentOptionError(ValueError):
-    """An option a task cannot take (the CLI exits with code 2)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -403,4 +400,3 @@ def step(
                 else jax.vmap(env.overflow_fn)(inner).astype(bool))  # fmt: skip
     return new_state, StepResult(obs, reward, terminated, truncated, episode_return, steps,
                                  overflow)  # fmt: skip
-

@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 
 from td3_jax import upstream
+from td3_jax.errors import MissingAssetsError
 
 #: The environment variable read when no ``--menagerie`` is given.
 ENV_VAR = "MENAGERIE_ROOT"
@@ -45,10 +46,6 @@ ROBOTS = {
 
 #: The quadrupeds' folders (the others are humanoids).
 QUADRUPED_FOLDERS = ("unitree_go1", "boston_dynamics_spot", "google_barkour_vb")
-
-
-class MissingAssetsError(ValueError):
-    """No searched place holds a task's robot folder (the CLI exits with code 2)."""
 
 
 def robot(task: str) -> tuple[str, str]:

@@ -1,0 +1,109 @@
+"""Every error td3-jax raises on purpose, in one hierarchy.
+
+Each carries the exit code the command line ends with when it reaches it (``exit_code``): 2
+for bad input (a setting, a name, a file, a checkpoint, a full disk), 3 for a run stopped
+because training or its physics went wrong, 1 for an upstream library that changed under
+td3-jax. The message is one line saying what happened and what to do. The defining modules
+re-export their own (``td3_jax.config.ConfigError`` is ``td3_jax.errors.ConfigError``), except
+:class:`td3_jax.policy_file.PolicyFileError`, which stays in that NumPy-only file.
+"""
+
+from __future__ import annotations
+
+
+class Td3JaxError(Exception):
+    """The base of td3-jax's own errors."""
+
+    exit_code = 2
+
+
+class ConfigError(Td3JaxError, ValueError):
+    """A setting that cannot work."""
+
+
+class ExportError(ConfigError):
+    """A run, member or output that cannot be exported."""
+
+
+class RenderError(ConfigError):
+    """A rollout that cannot be rendered."""
+
+
+class GLUnavailableError(RenderError):
+    """No headless OpenGL context can be created."""
+
+
+class NotRenderableError(RenderError):
+    """An environment without a scene to draw."""
+
+
+class UnknownEnvironmentError(Td3JaxError, ValueError):
+    """An environment name that no source knows; the message names the closest known ones
+    (or lists them all when none is close)."""
+
+
+class EnvironmentOptionError(Td3JaxError, ValueError):
+    """An option a task cannot take."""
+
+
+class MissingAssetsError(Td3JaxError, ValueError):
+    """No searched place holds a task's robot folder."""
+
+
+class CheckpointError(Td3JaxError, RuntimeError):
+    """A checkpoint that is missing, corrupt or does not match the run's configuration."""
+
+
+class CorruptCheckpointError(CheckpointError):
+    """A checkpoint that cannot be read, or whose arrays fail their checksums."""
+
+
+class CheckpointWriteError(CheckpointError):
+    """A checkpoint that could not be written (a full disk, no permission); none of it is left."""
+
+
+class OutputWriteError(Td3JaxError, RuntimeError):
+    """A run stopped because one of its outputs could not be written (a full disk); the
+    message names it, the last good checkpoint and how to go on."""
+
+
+class TrainingStopped(Td3JaxError, RuntimeError):
+    """A run stopped because what it computed went wrong; its last good checkpoint is kept."""
+
+    exit_code = 3
+
+
+class NonFiniteError(TrainingStopped):
+    """A loss or parameter became NaN/inf."""
+
+
+class PhysicsOverflowError(TrainingStopped):
+    """MuJoCo Warp ran out of contact or constraint buffer (its physics was wrong)."""
+
+
+class UpstreamChanged(Td3JaxError, RuntimeError):
+    """An upstream library no longer has a private name td3-jax relies on
+    (:mod:`td3_jax.upstream`)."""
+
+    exit_code = 1
+
+
+__all__ = [
+    "CheckpointError",
+    "CheckpointWriteError",
+    "ConfigError",
+    "CorruptCheckpointError",
+    "EnvironmentOptionError",
+    "ExportError",
+    "GLUnavailableError",
+    "MissingAssetsError",
+    "NonFiniteError",
+    "NotRenderableError",
+    "OutputWriteError",
+    "PhysicsOverflowError",
+    "RenderError",
+    "Td3JaxError",
+    "TrainingStopped",
+    "UnknownEnvironmentError",
+    "UpstreamChanged",
+]
