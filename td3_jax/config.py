@@ -1,4 +1,5 @@
-"""The training configuration, its validation and the named presets."""
+"""The training configuration (:class:`TrainConfig`, every setting of a run) and its
+validation; the named presets are in :mod:`td3_jax.presets`."""
 
 from __future__ import annotations
 

@@ -84,9 +84,7 @@ def train(
 
     Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
     throughout (:mod:`td3_jax.rundir`); a busy one, or a used one without ``resume``, is refused.
-    An output that cannot be written (a full disk) stops the run with
-    :class:`~td3_jax.logger.OutputWriteError`, which names it, the last good checkpoint and how
-    to go on; ``metrics.jsonl`` never keeps part of a record.
+    A full disk stops it with :class:`~td3_jax.errors.OutputWriteError` (no half record kept).
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
@@ -95,16 +93,15 @@ def train(
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
         trains ``cfg.seeds`` seeds in one program. A member whose losses or parameters become
         non-finite is marked diverged (null returns); the run stops when all have diverged.
-      stop_after_chunks: stop (as if interrupted) after this many chunks of this call; for tests.
+      stop_after_chunks: stop (as if interrupted) after this many chunks of this call (tests).
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock (compile included; counted across resumes). The run stays resumable.
-      devices: data-parallel over this many devices (default: all; :mod:`td3_jax.sharding`);
-        num_envs and batch_size stay global, so the numbers do not depend on it.
-      preset: the name of the preset ``cfg`` came from, recorded in config.json.
+      devices: data-parallel over this many devices (default: all); the numbers do not change.
+      preset: the name of the preset ``cfg`` came from (recorded in config.json).
       on_prepared: called once settings, directory and environment are checked (not compiled).
-      program_dir: where traced programs are stored and found (:mod:`td3_jax.program_cache`).
-      stop: a :class:`~td3_jax.runtime.StopToken` that, once set (another thread, a signal
-        handler), stops the run as a Ctrl-C would; default: a fresh one that nothing sets.
+      program_dir: the traced programs' store (:mod:`td3_jax.program_cache`).
+      stop: a :class:`~td3_jax.runtime.StopToken`; once set (a thread, a signal handler), it
+        stops the run as a Ctrl-C would. Default: a fresh one.
     """
     out_dir = Path(out_dir)
     writer = jax.process_index() == 0  # several processes: one writes the logs
@@ -121,14 +118,19 @@ def train(
         if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
             return run.records
         if resume and writer:
-            print(f"resuming from checkpoint {out_dir / CHECKPOINTS / str(start_chunk)} "
-                  f"(env step {start_chunk * cfg.steps_per_chunk})", flush=True)  # fmt: skip
+            _say_resuming(run, start_chunk)
         compiled, state = _programs_and_state(run, source, state)
         _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
                          preset=preset, changes=changes)  # fmt: skip
     finally:
         _finish(run, run_lock)
     return run.records
+
+
+def _say_resuming(run: _Run, start_chunk: int) -> None:
+    path = run.out_dir / CHECKPOINTS / str(start_chunk)
+    steps = start_chunk * run.cfg.steps_per_chunk
+    print(f"resuming from checkpoint {path} (env step {steps})", flush=True)
 
 
 def _write_and_train(run: _Run, compiled: Any, state: Any, start_chunk: int, progress: bool, *,
@@ -318,6 +320,7 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
     """
     cfg = run.cfg
     early = cfg.early_iterations if start_chunk == 0 else 0
+    completed = start_chunk
     for index in range(start_chunk, cfg.num_chunks):
         if _stopping(run, index - start_chunk):
             break
@@ -334,7 +337,9 @@ def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged)}  # fmt: skip
             run.checkpointer.save(index + 1, state, meta, background=not last)
-    run.stop.raise_if_set()  # stopped by its token: as interrupted, once checkpointed
+        completed = index + 1
+    if completed < cfg.num_chunks:  # a stop that came with the last chunk: the run is done
+        run.stop.raise_if_set()  # stopped by its token: as interrupted, once checkpointed
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:

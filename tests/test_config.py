@@ -1,4 +1,5 @@
-"""Tests of the training configuration (``td3_jax.config``): validation, presets, derived sizes.
+"""Tests of the training configuration (``td3_jax.config``) and the presets (``td3_jax.presets``):
+validation, presets, derived sizes.
 
 The derived quantities are checked against values worked out by hand in the comments, and the
 agent defaults against the numbers of the TD3 paper and the seed DDPG tutorial.

@@ -563,6 +563,26 @@ def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path,
     assert len(run_module.train(cfg, out, resume=True, progress=False)) == 2  # 128, 192
 
 
+def test_a_stop_that_comes_with_the_last_chunk_lets_the_run_finish(tmp_path, monkeypatch):
+    """Set during the run's last chunk (a SIGTERM as the job ends), the token changes nothing:
+    the run is complete, so train returns its records instead of raising."""
+    from td3_jax.runtime import StopToken
+
+    real = run_module._chunk_and_record
+    stop = StopToken()
+
+    def stop_in_the_last_chunk(run, compiled, state, iterations):
+        out = real(run, compiled, state, iterations)
+        if out[1]["env_steps"] == 128:
+            stop.set()
+        return out
+
+    monkeypatch.setattr(run_module, "_chunk_and_record", stop_in_the_last_chunk)
+    cfg = dataclasses.replace(SMALL, total_steps=128, warmup_steps=16, hidden_sizes=(8,))
+    done = run_module.train(cfg, tmp_path / "run", progress=False, stop=stop)
+    assert [r["env_steps"] for r in done] == [64, 128] and stop.is_set()
+
+
 def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, monkeypatch,
                                                                        capsys):  # fmt: skip
     """One line with both sizes and the flag to change, exit 2, and nothing allocated or
