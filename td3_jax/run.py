@@ -437,14 +437,20 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> 
         last, failed = run.checkpointer.latest_step(), ""
     except CheckpointWriteError as err:  # the write before this chunk failed as well
         last, failed = run.checkpointer.latest_step(), f"; also, {err}"
-    kept = (f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
-            if last else "no checkpoint had been written yet")  # fmt: skip
+    kept = _kept_checkpoint(run, last)
     again = "" if last else (f"; {run.out_dir} holds none to resume: remove it (or choose "
                              "another --out) to start again, with other settings")  # fmt: skip
     who = lambda i: f" ({population[i].label()})" if len(population) > 1 else ""
     described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
     raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
                          f"stopped, {kept}{failed}{again}")  # fmt: skip
+
+
+def _kept_checkpoint(run: _Run, last: int | None) -> str:
+    """What a stopped run keeps: its newest checkpoint (after ``last`` chunks), if any."""
+    if not last:
+        return "no checkpoint had been written yet"
+    return f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
 
 
 def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
@@ -454,8 +460,7 @@ def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) ->
     if not overflows:
         return
     last = run.checkpointer.latest_step()
-    kept = (f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is "
-            "kept" if last else "no checkpoint had been written yet")  # fmt: skip
+    kept = _kept_checkpoint(run, last)
     raise PhysicsOverflowError(
         f"MuJoCo Warp's contact or constraint buffer was full in {overflows} environment "
         f"steps of the chunk ending at env step {env_steps} (contacts or constraints were "

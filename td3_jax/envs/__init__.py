@@ -27,7 +27,7 @@ from td3_jax.envs.base import (
     reset_ended,
     step,
 )
-from td3_jax.envs.menagerie import MissingAssetsError, candidates, holds, robot
+from td3_jax.envs.menagerie import MissingAssetsError, candidates, first_holding, robot
 from td3_jax.errors import UnknownEnvironmentError
 
 #: Each source module has ``names() -> list[str]`` and
@@ -74,7 +74,7 @@ def what_is_missing(name: str, menagerie: str | None = None) -> str:
     if source != "playground" or task not in _locomotion.names():
         return ""
     folder, package = robot(task)
-    if any(holds(root, folder) for _, root in candidates(menagerie)):
+    if first_holding(folder, candidates(menagerie)) is not None:
         return ""
     return f"robot '{folder}': pip install {package} (or 'td3-jax[locomotion]'), or --menagerie DIR"
 

@@ -103,10 +103,15 @@ def find_root(task: str, menagerie: str | os.PathLike | None = None) -> Path:
             f"use ${ENV_VAR}, the package {package} or Playground's own copy"
         )
     places = candidates(menagerie)
-    for _, root in places:
-        if holds(root, folder):
-            return root
-    raise MissingAssetsError(missing_message(task, folder, package, places))
+    root = first_holding(folder, places)
+    if root is None:
+        raise MissingAssetsError(missing_message(task, folder, package, places))
+    return root
+
+
+def first_holding(folder: str, places: list[tuple[str, Path | None]]) -> Path | None:
+    """The first root of ``places`` (:func:`candidates`) that holds the robot ``folder``."""
+    return next((root for _, root in places if holds(root, folder)), None)
 
 
 def missing_message(task: str, folder: str, package: str, places: list) -> str:
