@@ -3,9 +3,10 @@
 
 :func:`update` is a critic step on the TD target (:func:`td3_jax.losses.td_target`), then,
 every ``policy_freq`` updates, an actor step and Polyak averaging of both targets
-(:func:`delayed_actor_step`). :func:`actor_critic` binds a spec and hyperparameters into the
-:class:`~td3_jax.types.Agent` bundle; :func:`td3_jax.td3.td3` and :func:`td3_jax.td3.ddpg` are
-its aliases (the optax ``alias.py`` shape).
+(:func:`delayed_actor_step`; with ``target_update="every_update"`` the target critics are
+averaged after every critic step instead, as FastTD3 does). :func:`actor_critic` binds a spec
+and hyperparameters into the :class:`~td3_jax.types.Agent` bundle; :func:`td3_jax.td3.td3`
+and :func:`td3_jax.td3.ddpg` are its aliases (the optax ``alias.py`` shape).
 
 Adam's learning rate is applied from the hyperparameters at every step (the optimiser state
 holds only Adam's moments), so learning rates stay traced values: a sweep over them is a vmap.
@@ -50,6 +51,9 @@ ADAM = optax.scale_by_adam()
 PRECISIONS = {"float32": None, "bfloat16": jnp.bfloat16}
 ACTOR_Q = ("first", "min", "mean")
 LR_SCHEDULES = ("constant", "cosine")
+#: Choices of :attr:`AgentOptions.target_update` and :attr:`~AgentOptions.c51_target_head`.
+TARGET_UPDATES = ("with_actor", "every_update")
+C51_TARGET_HEADS = ("unprojected", "projected")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +78,13 @@ class AgentOptions:
       schedule_updates: the cosine schedule's length in updates (required with cosine).
       clip_grads: clip gradients to the global norm ``max_grad_norm`` of
         :class:`AgentHyperparams` before Adam.
+      target_update: when the target critics are Polyak-averaged: ``with_actor`` (in the
+        delayed actor step, every ``policy_freq`` updates, the TD3 paper) or ``every_update``
+        (after every critic step, FastTD3). A target actor always moves with the actor.
+      c51_target_head: how a C51 target picks the target head per sample: ``unprojected`` (the
+        lower mean of the next-state distributions, then projected) or ``projected`` (project
+        every head's moved distribution, take the one with the lower mean on the support,
+        FastTD3). They differ where ``r + discount * z`` leaves ``[v_min, v_max]``.
     """
 
     num_atoms: int = 0
@@ -86,6 +97,8 @@ class AgentOptions:
     lr_schedule: str = "constant"
     schedule_updates: int | None = None
     clip_grads: bool = False
+    target_update: str = "with_actor"
+    c51_target_head: str = "unprojected"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,7 +202,13 @@ def _check_options(options: AgentOptions) -> None:
     """``ValueError`` naming the first impossible option."""
     if options.num_atoms < 0 or options.num_atoms == 1:
         raise ValueError(f"num_atoms must be 0 (a plain critic) or >= 2, got {options.num_atoms}")
-    choices = {"precision": tuple(PRECISIONS), "actor_q": ACTOR_Q, "lr_schedule": LR_SCHEDULES}
+    choices = {
+        "precision": tuple(PRECISIONS),
+        "actor_q": ACTOR_Q,
+        "lr_schedule": LR_SCHEDULES,
+        "target_update": TARGET_UPDATES,
+        "c51_target_head": C51_TARGET_HEADS,
+    }
     for name, allowed in choices.items():
         if getattr(options, name) not in allowed:
             raise ValueError(f"unknown {name} {getattr(options, name)!r}; choose one of "
@@ -360,15 +379,22 @@ def critic_step(
     lr = learning_rate(spec, hp.critic_lr, state.step)
     params, opt_state = descend(spec, hp, state.critic_params, grads, state.critic_opt_state, lr)
     state = state.replace(critic_params=params, critic_opt_state=opt_state, step=state.step + 1)
+    if spec.options.target_update == "every_update":
+        state = state.replace(target_critic_params=_averaged_critics(hp, state))
     return state, {"critic_loss": loss, **_value_metrics(spec, hp, out, target)}
+
+
+def _averaged_critics(hp: AgentHyperparams, state: AgentState) -> Params:
+    """The target critics moved ``tau`` of the way to the online ones (Polyak averaging)."""
+    return optax.incremental_update(state.critic_params, state.target_critic_params, hp.tau)
 
 
 def actor_step(
     spec: AgentSpec, hp: AgentHyperparams, state: AgentState, batch: Transition
 ) -> tuple[AgentState, jax.Array]:
-    """One actor step on the current critic, then Polyak averaging of both targets (of the
-    critics' only, without a target actor). Its learning rate is that of the critic step just
-    taken (the schedule at ``state.step - 1``)."""
+    """One actor step on the current critic, then Polyak averaging of the target actor (when
+    there is one) and, with ``target_update="with_actor"``, of the target critics. Its learning
+    rate is that of the critic step just taken (the schedule at ``state.step - 1``)."""
     loss, grads = jax.value_and_grad(losses.actor_loss)(
         state.actor_params, state.critic_params, spec, hp, batch
     )
@@ -377,13 +403,14 @@ def actor_step(
     target_actor = state.target_actor_params
     if spec.options.target_actor:
         target_actor = optax.incremental_update(params, target_actor, hp.tau)
+    target_critic = state.target_critic_params
+    if spec.options.target_update == "with_actor":
+        target_critic = _averaged_critics(hp, state)
     state = state.replace(
         actor_params=params,
         actor_opt_state=opt_state,
         target_actor_params=target_actor,
-        target_critic_params=optax.incremental_update(
-            state.critic_params, state.target_critic_params, hp.tau
-        ),
+        target_critic_params=target_critic,
     )
     return state, loss
 
@@ -516,9 +543,11 @@ def _bound_update(spec, hp, axis_name, state, batch, key):
 
 
 __all__ = [
+    "C51_TARGET_HEADS",
     "LR_SCHEDULES",
     "METRIC_NAMES",
     "PRECISIONS",
+    "TARGET_UPDATES",
     "AgentHyperparams",
     "AgentOptions",
     "AgentSpec",

@@ -133,6 +133,14 @@ class TrainConfig:
     target_actor: bool = True
     """Keep a Polyak-averaged target actor for the target action; --no-target-actor uses the
     online actor plus smoothing noise, as FastTD3 does."""
+    target_update: Literal["with_actor", "every_update"] = "with_actor"
+    """When the target critics are Polyak-averaged (by tau): with_actor, in the delayed actor
+    step every policy_freq updates (the TD3 paper); every_update, after every critic update
+    (FastTD3)."""
+    c51_target_head: Literal["unprojected", "projected"] = "unprojected"
+    """Distributional critic: which target head a sample bootstraps from. unprojected: the
+    lower mean of the next-state distributions, then projected; projected: every head's target
+    projected onto the support, then the lower projected mean (FastTD3)."""
     weight_decay: float = 0.0
     """Decoupled (AdamW) weight decay of actor and critics, as in optax.adamw (FastTD3: 0.1)."""
     max_grad_norm: float | None = None
@@ -251,6 +259,8 @@ class TrainConfig:
             layer_norm=self.layer_norm,
             precision=self.precision,
             target_actor=self.target_actor,
+            target_update=self.target_update,
+            c51_target_head=self.c51_target_head,
             actor_q=auto_q if self.actor_q == "auto" else self.actor_q,
             lr_schedule=self.lr_schedule,
             schedule_updates=self.total_updates if self.lr_schedule == "cosine" else None,
@@ -301,6 +311,8 @@ _CHOICES = {
     "actor_q": ("auto", "first", "min", "mean"),
     "precision": ("float32", "bfloat16"),
     "lr_schedule": ("constant", "cosine"),
+    "target_update": ("with_actor", "every_update"),
+    "c51_target_head": ("unprojected", "projected"),
 }
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 

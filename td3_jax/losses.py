@@ -97,15 +97,21 @@ def categorical_target(
 
     The next-state distribution of the target head with the lower mean (per sample), its atoms
     moved to ``r + discount * (1 - done) * z``, clamped to ``[v_min, v_max]`` and projected
-    onto the support (:func:`td3_jax.distributional.project`). With an n-step batch ``reward``
-    is the discounted sum and ``discount * (1 - done) = discount ** k`` (or 0), as in
-    :func:`td_target`.
+    onto the support (:func:`td3_jax.distributional.project`). Which head: the lower mean of
+    the unprojected distributions (``c51_target_head="unprojected"``), or every head projected
+    first and the lower mean of the projected ones (``"projected"``, FastTD3). With an n-step
+    batch ``reward`` is the discounted sum and ``discount * (1 - done) = discount ** k`` (or
+    0), as in :func:`td_target`.
     """
     logits = next_critic_output(spec, hp, target_actor_params, target_critic_params, batch, key)
     z = distributional.support(logits.shape[-1], hp.v_min, hp.v_max)
-    chosen = distributional.lower_mean_head(jax.nn.softmax(logits, axis=-1), z)
+    probs = jax.nn.softmax(logits, axis=-1)  # [heads, batch, atoms]
     bootstrap = hp.discount * (1.0 - batch.done)
     target_z = batch.reward[:, None] + bootstrap[:, None] * z
+    if spec.options.c51_target_head == "projected":
+        projected = distributional.project(probs, target_z, hp.v_min, hp.v_max)
+        return jax.lax.stop_gradient(distributional.lower_mean_head(projected, z))
+    chosen = distributional.lower_mean_head(probs, z)
     return jax.lax.stop_gradient(distributional.project(chosen, target_z, hp.v_min, hp.v_max))
 
 

@@ -76,6 +76,10 @@ _PLAYGROUND_LOCOMOTION = dict(
     v_max=10.0,
     weight_decay=0.1,
     target_actor=False,
+    # FastTD3's rules: target critics averaged after every critic update, and the C51 target
+    # head chosen by the lower mean of the projected distributions.
+    target_update="every_update",
+    c51_target_head="projected",
     precision="bfloat16",
     pushes="off",
     domain_randomization=False,

@@ -20,6 +20,7 @@ import pytest
 from td3_jax import actor_critic as ac
 from td3_jax import cli, losses
 from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.presets import preset
 from td3_jax.types import Transition
 
 OBS, ACT, BATCH, HIDDEN = 3, 2, 8, (8, 8)
@@ -312,6 +313,29 @@ def test_float_options_are_vmappable_like_the_other_hyperparameters():
         assert_trees_close(jax.tree.map(lambda x, j=j: x[j], swept), single)
 
 
+@pytest.mark.parametrize("rule", ["with_actor", "every_update"])
+def test_target_critics_follow_their_update_rule(rule):
+    """Four updates with ``policy_freq=2``: the target critics, recomputed in NumPy from the
+    online critics after each update, move on every update (FastTD3) or only on updates 2 and
+    4 (the TD3 paper), by ``tau`` each time; a target actor moves on 2 and 4 either way."""
+    spec = ac.make_spec(HIDDEN, OBS, ACT, num_critics=2, target_smoothing=True, policy_freq=2,
+                        options=ac.AgentOptions(target_update=rule))  # fmt: skip
+    hp, tau = hparams(), 0.3
+    state = init(spec)
+    target = jax.tree.map(np.asarray, state.target_critic_params)
+    target_actor = jax.tree.map(np.asarray, state.target_actor_params)
+    update = jax.jit(ac.update, static_argnums=0)
+    for k in (1, 2, 3, 4):
+        state, _ = update(spec, hp, state, make_batch(k), jax.random.key(k))
+        polyak = lambda t, p: (1 - tau) * t + tau * np.asarray(p)
+        if rule == "every_update" or k % 2 == 0:
+            target = jax.tree.map(polyak, target, state.critic_params)
+        if k % 2 == 0:
+            target_actor = jax.tree.map(polyak, target_actor, state.actor_params)
+        assert_trees_close(state.target_critic_params, target)
+        assert_trees_close(state.target_actor_params, target_actor)
+
+
 @pytest.mark.parametrize(
     "options, message",
     [
@@ -319,6 +343,8 @@ def test_float_options_are_vmappable_like_the_other_hyperparameters():
         (dict(precision="float16"), "precision"),
         (dict(actor_q="max"), "actor_q"),
         (dict(lr_schedule="linear"), "lr_schedule"),
+        (dict(target_update="sometimes"), "target_update"),
+        (dict(c51_target_head="best"), "c51_target_head"),
         (dict(actor_hidden_sizes=(0,)), "hidden_sizes"),
     ],
 )
@@ -377,6 +403,17 @@ def test_config_maps_to_agent_options():
     assert cfg.total_updates == (1250 - 125 + 1) * 8
     assert dataclasses.replace(cfg, actor_q="mean").agent_options().actor_q == "mean"
     assert TrainConfig(actor_q="auto").agent_options().actor_q == "first"
+    fasttd3 = TrainConfig(target_update="every_update", c51_target_head="projected")
+    assert fasttd3.agent_options().target_update == "every_update"
+    assert fasttd3.agent_options().c51_target_head == "projected"
+
+
+@pytest.mark.parametrize("name", ["t1", "g1", "go1"])
+def test_presets_that_follow_fasttd3_use_its_target_rules(name):
+    options = preset(name).agent_options()
+    assert (options.target_update, options.c51_target_head) == ("every_update", "projected")
+    paper = preset("td3-classic").agent_options()
+    assert (paper.target_update, paper.c51_target_head) == ("with_actor", "unprojected")
 
 
 @pytest.mark.parametrize(

@@ -137,9 +137,13 @@ def _apply_fns(spec):
     return jax.jit(spec.actor.apply), jax.jit(spec.critic.apply)
 
 
-def reference_target(spec, hp, actor_params, critic_params, batch, key, bootstrap):
+def reference_target(
+    spec, hp, actor_params, critic_params, batch, key, bootstrap, head="unprojected"
+):
     """Target probabilities ``[batch, atoms]``; ``bootstrap [batch]`` = ``discount**k (1-term)``
-    computed by the caller from k and the termination, not from the folded ``done``."""
+    computed by the caller from k and the termination, not from the folded ``done``. ``head``:
+    pick the lower-mean head before projecting (``unprojected``) or after (``projected``,
+    FastTD3: both heads projected, their means on the support compared)."""
     actor, critic = _apply_fns(spec)
     pi = np.asarray(actor(actor_params, batch.next_obs), np.float64)
     eps = np.asarray(jax.random.normal(key, pi.shape), np.float64)
@@ -152,10 +156,46 @@ def reference_target(spec, hp, actor_params, critic_params, batch, key, bootstra
     n = logits.shape[-1]
     z = np.linspace(float(hp.v_min), float(hp.v_max), n)
     probs = np_softmax(logits)  # [2, batch, atoms]
+    target_z = np.asarray(batch.reward, np.float64)[:, None] + bootstrap[:, None] * z
+    if head == "projected":
+        probs = np.stack([np_project(p, target_z, float(hp.v_min), float(hp.v_max)) for p in probs])
     means = probs @ z
     chosen = np.where((means[0] <= means[1])[:, None], probs[0], probs[1])
-    target_z = np.asarray(batch.reward, np.float64)[:, None] + bootstrap[:, None] * z
+    if head == "projected":
+        return chosen
     return np_project(chosen, target_z, float(hp.v_min), float(hp.v_max))
+
+
+def wide_and_narrow_heads(critic_params):
+    """Critic params whose head 0 puts its mass on the support's ends, slightly low, and head 1
+    on its middle: with the atoms moved down (a negative reward), clamping at ``v_min`` lifts
+    head 0's lower end, so the head with the lower mean changes once projected."""
+    out = jax.tree.map(lambda w: 0.01 * w, critic_params)
+    last = out["params"]["VmapDistributionalCritic_0"]["MLP_0"]["Dense_2"]
+    last["bias"] = jnp.array([[4.1, 0.0, 0.0, 0.0, 4.0], [0.0, 0.0, 4.0, 0.0, 0.0]])
+    return out
+
+
+def test_the_two_target_head_rules_match_their_references_and_differ():
+    """Rewards far outside ``[v_min, v_max]`` clamp the moved atoms: the head with the lower
+    unprojected mean is then not always the one with the lower projected mean. Each rule
+    matches its NumPy reference, and the two differ on some rows (else this test could not
+    tell them apart)."""
+    hp = hparams(discount=0.9)
+    batch = make_batch(5, done=np.zeros(BATCH, np.float32), reward_scale=2.0)
+    key = jax.random.key(4)
+    targets = {}
+    for head in ("unprojected", "projected"):
+        spec = spec_of(c51_target_head=head)
+        state = jax.jit(functools.partial(ac.init, spec))(jax.random.key(2))
+        state = state.replace(critic_params=wide_and_narrow_heads(state.critic_params))
+        targets[head] = np.asarray(jax.jit(losses.categorical_target, static_argnums=0)(
+            spec, hp, state.actor_params, state.critic_params, batch, key))  # fmt: skip
+        expected = reference_target(spec, hp, state.actor_params, state.critic_params, batch,
+                                    key, np.full(BATCH, 0.9), head=head)  # fmt: skip
+        np.testing.assert_allclose(targets[head], expected, atol=2e-6)
+    differ = np.abs(targets["unprojected"] - targets["projected"]).max(axis=-1) > 1e-4
+    assert 0 < differ.sum() < BATCH
 
 
 def test_target_with_done_and_n_step_discounts_matches_reference():
