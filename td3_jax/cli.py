@@ -66,8 +66,9 @@ class TrainCommand(TrainConfig):
     resume: bool = False
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
     --total-steps (to extend or shorten the run; not with --lr-schedule cosine),
-    --keep-checkpoints, --checkpoint-every, --eval-envs, --early-evaluation and --menagerie may
-    differ from the run's config.json; other flags must match."""
+    --keep-checkpoints, --checkpoint-every, --eval-envs, --early-evaluation, --menagerie and
+    the --wandb* flags may differ from the run's config.json; other flags must match. A run
+    logged to W&B continues its W&B run."""
     preset: PresetName | None = None  # type: ignore[valid-type]
     """Named settings to start from (see `td3-jax presets`); other flags override them.
     Default: the --env's own preset where one exists (said in one line), else settings for the

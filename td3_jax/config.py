@@ -173,6 +173,18 @@ class TrainConfig:
     """In a fresh run, evaluate once more after the first eighth of the first chunk when that
     has 64 iterations or more (the same compiled program runs both parts), so a first return
     shows soon after compiling."""
+    wandb: bool = False
+    """Mirror the run to Weights & Biases (pip install 'td3-jax[wandb]'): every metrics.jsonl
+    record against env steps, config.json as its config, curve.png at the end."""
+    wandb_project: str = "td3-jax"
+    """W&B project."""
+    wandb_entity: str | None = None
+    """W&B entity (user or team); default: your W&B default entity."""
+    wandb_name: str | None = None
+    """W&B run name; default: the name of the run directory (--out)."""
+    wandb_mode: Literal["online", "offline"] | None = None
+    """online (needs `wandb login` or WANDB_API_KEY) or offline (no network: written to
+    OUT/wandb/, uploaded later with `wandb sync`); default: $WANDB_MODE, else online."""
 
     # Derived quantities --------------------------------------------------------------------
     @property
@@ -315,6 +327,9 @@ _CHOICES = {
     "c51_target_head": ("unprojected", "projected"),
 }
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
+#: The settings of Weights & Biases (``--wandb``, ...): where the records are mirrored, never
+#: what the run computes.
+WANDB_SETTINGS = ("wandb", "wandb_project", "wandb_entity", "wandb_name", "wandb_mode")
 
 
 def flag(name: str) -> str:
@@ -337,6 +352,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _check_floats(cfg)
     _check_replay(cfg)
     _check_options(cfg)
+    _check_wandb(cfg)
     if cfg.algo not in ("td3", "ddpg"):
         raise ConfigError(f"unknown algorithm {cfg.algo!r}; choose td3 or ddpg")
     if cfg.env_backend not in _BACKENDS:
@@ -360,6 +376,15 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         if not getattr(cfg, name):
             raise ConfigError(f"{flag(name)} must name an observation key")
     return cfg
+
+
+def _check_wandb(cfg: TrainConfig) -> None:
+    """The W&B settings: a project to log to and a known mode (whether W&B can run here is
+    :func:`td3_jax.tracking.check_ready`'s question)."""
+    if cfg.wandb_mode not in (None, "online", "offline"):
+        raise ConfigError(f"unknown --wandb-mode {cfg.wandb_mode!r}; choose online or offline")
+    if cfg.wandb and not cfg.wandb_project:
+        raise ConfigError("--wandb-project must name a W&B project")
 
 
 def _check_options(cfg: TrainConfig) -> None:

@@ -67,6 +67,11 @@ class OutputWriteError(Td3JaxError, RuntimeError):
     message names it, the last good checkpoint and how to go on."""
 
 
+class WandbError(Td3JaxError, RuntimeError):
+    """Weights & Biases cannot be used for a run (``--wandb``): the package is missing, online
+    mode has no login, or its run cannot start; said before anything compiles."""
+
+
 class TrainingStopped(Td3JaxError, RuntimeError):
     """A run stopped because what it computed went wrong; its last good checkpoint is kept."""
 
@@ -106,4 +111,5 @@ __all__ = [
     "TrainingStopped",
     "UnknownEnvironmentError",
     "UpstreamChanged",
+    "WandbError",
 ]

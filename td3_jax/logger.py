@@ -19,14 +19,17 @@ WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 
 class MetricsLogger:
-    """Appends one JSON object per evaluation to ``metrics.jsonl`` and mirrors it to TensorBoard.
+    """Appends one JSON object per evaluation to ``metrics.jsonl`` and mirrors it to TensorBoard
+    (and to ``mirror``, e.g. a :class:`td3_jax.tracking.Tracker`: an object whose ``log`` takes
+    each record once the file holds it, and never raises).
 
     On resume, records beyond the restored checkpoint (written after it, then lost with the
     stop) are dropped first, so the file never holds an evaluation twice.
     """
 
-    def __init__(self, out_dir: Path, resume_env_steps: int | None = None, enabled: bool = True):
-        self.enabled = enabled
+    def __init__(self, out_dir: Path, resume_env_steps: int | None = None, enabled: bool = True,
+                 mirror: Any = None):  # fmt: skip
+        self.enabled, self.mirror = enabled, mirror
         self.path = Path(out_dir) / "metrics.jsonl"
         if not enabled:  # another process writes the logs
             return
@@ -55,6 +58,8 @@ class MetricsLogger:
             self._tb.flush()
         except OSError as err:
             raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
+        if self.mirror is not None:
+            self.mirror.log(record)
 
     def close(self) -> None:
         if self.enabled:

@@ -45,7 +45,7 @@ import jax
 from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax.config import TrainConfig
+from td3_jax.config import WANDB_SETTINGS, TrainConfig
 from td3_jax.population import (
     SWEEPABLE,
     Compiled,
@@ -67,7 +67,8 @@ FORMAT = 1
 MAX_ENTRIES = 24
 #: Settings that never shape a program (host-side only; ``menagerie``: the asset digest
 #: stands for it).
-HOST_ONLY = ("seed", "keep_checkpoints", "checkpoint_every", "early_evaluation", "menagerie")
+HOST_ONLY = ("seed", "keep_checkpoints", "checkpoint_every", "early_evaluation", "menagerie",
+             *WANDB_SETTINGS)  # fmt: skip
 #: Traced floats whose ``None`` means the algorithm's default value (not another program).
 DEFAULTED = ("actor_lr", "critic_lr", "tau")
 #: Packages whose code is traced into the programs.

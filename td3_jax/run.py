@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import json
 import math
 import re
 import sys
@@ -19,7 +20,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from td3_jax import program_cache
+from td3_jax import program_cache, tracking
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.errors import NonFiniteError, PhysicsOverflowError
@@ -119,6 +120,7 @@ def train(
             return run.records
         if resume and writer:
             _say_resuming(run, start_chunk)
+        run.tracker = tracking.start(cfg, out_dir, resume=resume, enabled=writer)
         compiled, state = _programs_and_state(run, source, state)
         _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
                          preset=preset, changes=changes)  # fmt: skip
@@ -135,14 +137,14 @@ def _say_resuming(run: _Run, start_chunk: int) -> None:
 
 def _write_and_train(run: _Run, compiled: Any, state: Any, start_chunk: int, progress: bool, *,
                      resume: bool, preset: str | None, changes: Any) -> None:  # fmt: skip
-    """config.json, the progress display, metrics.jsonl and TensorBoard, then the chunks; a
-    write the disk refuses (of those or of a checkpoint) is kept in ``run.failed_write``
+    """config.json, the progress display, metrics.jsonl, TensorBoard and W&B, then the chunks;
+    a write the disk refuses (of those or of a checkpoint) is kept in ``run.failed_write``
     for :func:`_finish` and re-raised."""
     try:
         _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
         run.display = _Progress(run.cfg, start_chunk, enabled=progress and run.writer)
         run.logger = MetricsLogger(run.out_dir, start_chunk * run.cfg.steps_per_chunk,
-                                   enabled=run.writer)  # fmt: skip
+                                   enabled=run.writer, mirror=run.tracker)  # fmt: skip
         _loop(run, compiled, state, start_chunk)
     except (OSError, CheckpointWriteError) as err:
         if isinstance(err, OSError) and err.errno not in WRITE_ERRNOS:
@@ -223,6 +225,8 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
         info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
                         at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
         save_config(run.cfg, run.population, run.out_dir, info)
+        if run.tracker is not None:
+            run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
@@ -230,6 +234,8 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     """Checks ``cfg`` and the directory, then finds the run's programs (stored ones, else the
     environment is made): ``(members, resume changes, program source)``. Nothing is written."""
     validate(cfg)
+    if writer:  # (before anything is traced or compiled)
+        tracking.check_ready(cfg)
     if cfg.impl == "warp" and mesh.size > 1:
         raise ConfigError(f"--impl warp runs on one device, not {mesh.size}: use --devices 1, "
                           "or --impl jax to spread the run over several")  # fmt: skip
@@ -262,6 +268,7 @@ class _Run:
     stop: StopToken = dataclasses.field(default_factory=StopToken)
     checkpointer: Checkpointer | None = None
     logger: MetricsLogger | None = None
+    tracker: tracking.Tracker | None = None
     display: _Progress | None = None
     records: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     diverged: set[int] = dataclasses.field(default_factory=set)
@@ -270,9 +277,10 @@ class _Run:
     failed_write: Exception | None = None  # the write the disk refused, which stopped the run
 
     def close(self) -> None:
-        """Closes the outputs (each on its own; a checkpoint still being written is finished)
-        and redraws the curve (not after a failed write: the resumed run draws it); a failure
-        here is a warning, so it never hides the error that ended the run."""
+        """Closes the outputs (each on its own; a checkpoint still being written is finished),
+        redraws the curve (not after a failed write: the resumed run draws it) and ends the W&B
+        run with it; a failure here is a warning, so it never hides the error that ended the
+        run."""
         for part in (self.display, self.logger):
             if part is not None:
                 _warn_on_failure(part.close, "closing the run's outputs")
@@ -281,18 +289,23 @@ class _Run:
                 print(f"td3-jax: finishing checkpoint {self.checkpointer.pending}...",
                       file=sys.stderr)  # fmt: skip
             _warn_on_failure(self.checkpointer.close, "")
+        curve = None
         if self.writer and self.logger is not None and self.failed_write is None:
-            _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png",
-                             hint="td3-jax plot redraws the curve")  # fmt: skip
+            curve = _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png",
+                                     hint="td3-jax plot redraws the curve")  # fmt: skip
+        if self.tracker is not None:
+            self.tracker.finish(curve)
 
 
-def _warn_on_failure(action: Any, what: str, hint: str = "") -> None:
-    """Runs ``action``; an error becomes a warning: ``what`` failed (the error); ``hint``."""
+def _warn_on_failure(action: Any, what: str, hint: str = "") -> Any:
+    """Runs ``action`` and returns what it returns; an error becomes a warning (and ``None``):
+    ``what`` failed (the error); ``hint``."""
     try:
-        action()
+        return action()
     except Exception as err:  # e.g. a full disk: the records are kept, the curve is not
         text = f"{what} failed ({type(err).__name__}: {err})" if what else str(err)
         print(f"td3-jax: warning: {text}" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return None
 
 
 def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, int]:

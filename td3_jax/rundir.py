@@ -27,10 +27,11 @@ import jax
 import numpy as np
 
 from td3_jax.checkpoint import Checkpointer
-from td3_jax.config import ConfigError, TrainConfig, as_flag, flag
+from td3_jax.config import WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
 from td3_jax.logger import write_atomically
 from td3_jax.population import SWEEPABLE, Member, Population, make_population, members
 from td3_jax.sharding import make_mesh, state_shardings
+from td3_jax.tracking import WANDB_DIR
 from td3_jax.training import ring_as_saved
 
 CONFIG_FILE = "config.json"
@@ -41,7 +42,8 @@ CHECKPOINTS = "checkpoints"
 OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png", CHECKPOINTS)
 # Settings a resumed run may change; every other one fixes the state layout, the key schedule
 # or what the checkpoint means.
-# (``menagerie``: where the robot meshes lie may differ from one machine to the next.)
+# (``menagerie``: where the robot meshes lie may differ from one machine to the next; the W&B
+# settings say only where the records are mirrored.)
 SAFE_ON_RESUME = (
     "total_steps",
     "keep_checkpoints",
@@ -49,6 +51,7 @@ SAFE_ON_RESUME = (
     "eval_envs",
     "early_evaluation",
     "menagerie",
+    *WANDB_SETTINGS,
 )
 # Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
 FLOAT_SETTINGS = (*SWEEPABLE, "ou_min_sigma")
@@ -198,8 +201,11 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
 
 
 def foreign_entries(out_dir: Path) -> list[str]:
-    """Names in ``out_dir`` that no run writes (sorted), e.g. for ``--out ~`` or ``--out /``."""
-    ours = {*OUTPUTS, LOCK_FILE}
+    """Names in ``out_dir`` that no run writes (sorted), e.g. for ``--out ~`` or ``--out /``.
+
+    W&B's folder is a run's too, though not an output that makes a directory used: a run
+    stopped before it wrote anything else (while compiling) can start again in its directory."""
+    ours = {*OUTPUTS, LOCK_FILE, WANDB_DIR}
     return sorted(p.name for p in Path(out_dir).iterdir() if p.name not in ours)
 
 

@@ -1,0 +1,201 @@
+"""Weights & Biases for a run (``--wandb``): a mirror of what the run directory records.
+
+Each evaluation record of ``metrics.jsonl`` is logged with the same keys and numbers (nested
+ones, a population's ``per_member``, under ``per_member/0/eval_return_mean``, ...; text and
+null are left out, as TensorBoard leaves them), plotted against ``env_steps``; ``config.json``
+is the W&B run's config and ``curve.png`` is logged as an image when the run ends. W&B's files
+go to ``OUT/wandb/``, which also holds the W&B run's id, so ``--resume`` continues the same
+W&B run. ``wandb`` is imported only when a run asks for it: importing this module changes no
+process-wide state.
+
+metrics.jsonl is written before W&B is told: a W&B failure during a run is one warning, after
+which the run goes on without W&B and loses no record.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import secrets
+import string
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from td3_jax.config import TrainConfig
+from td3_jax.errors import WandbError
+from td3_jax.logger import write_atomically
+
+__all__ = [
+    "ID_FILE",
+    "WANDB_DIR",
+    "Tracker",
+    "WandbError",
+    "check_ready",
+    "import_wandb",
+    "init_arguments",
+    "mode",
+    "numbers",
+    "start",
+]
+
+#: The folder of the run directory that holds W&B's files (W&B's own name for it).
+WANDB_DIR = "wandb"
+#: The file, in :data:`WANDB_DIR`, holding the id of the run directory's W&B run.
+ID_FILE = "td3-jax-run-id"
+_MISSING = "--wandb needs the wandb package: pip install 'td3-jax[wandb]'"
+_NO_LOGIN = (
+    "--wandb: not logged in to Weights & Biases (no API key); run `wandb login` (or set "
+    "WANDB_API_KEY), or use --wandb-mode offline and upload the run later with `wandb sync`"
+)
+
+
+def import_wandb() -> ModuleType:
+    """The ``wandb`` module; :class:`WandbError` naming the extra to install where it is not."""
+    try:
+        import wandb
+    except ImportError:
+        raise WandbError(_MISSING) from None
+    return wandb
+
+
+def mode(cfg: TrainConfig) -> str:
+    """The W&B mode of a run: ``--wandb-mode``, else ``$WANDB_MODE``, else online (with W&B's
+    own aliases: ``dryrun`` is offline, ``run`` online)."""
+    chosen = cfg.wandb_mode or os.environ.get("WANDB_MODE") or "online"
+    return {"dryrun": "offline", "run": "online"}.get(chosen, chosen)
+
+
+def check_ready(cfg: TrainConfig) -> None:
+    """Raises :class:`WandbError` when ``--wandb`` cannot work here (no ``wandb`` package, or
+    online mode without a login); does nothing without ``--wandb``. Reads no network."""
+    if not cfg.wandb:
+        return
+    wandb = import_wandb()
+    if mode(cfg) not in ("offline", "disabled") and not _logged_in(wandb):
+        raise WandbError(_NO_LOGIN)
+
+
+def _logged_in(wandb: ModuleType) -> bool:
+    """Whether W&B finds credentials (an API key, an identity token), without prompting."""
+    try:
+        return bool(wandb.login(prompt=False, verify=False))
+    except TypeError:  # a wandb without login(prompt=...): ask its API object instead
+        return wandb.api.api_key is not None
+
+
+def numbers(record: dict[str, Any] | list[Any], prefix: str = "") -> dict[str, int | float]:
+    """The finite numbers of a metrics.jsonl record, keyed as in the record; those nested in
+    dicts and lists under slash-joined keys (``per_member/0/eval_return_mean``). Text, booleans,
+    null and non-finite values are left out."""
+    found: dict[str, int | float] = {}
+    items = record.items() if isinstance(record, dict) else enumerate(record)
+    for key, value in items:
+        name = f"{prefix}{key}"
+        if isinstance(value, dict | list):
+            found.update(numbers(value, name + "/"))
+        elif isinstance(value, int | float) and not isinstance(value, bool):
+            if math.isfinite(value):
+                found[name] = value
+    return found
+
+
+def init_arguments(cfg: TrainConfig, out_dir: Path, run_id: str) -> dict[str, Any]:
+    """The keyword arguments of ``wandb.init`` for the run in ``out_dir`` (W&B's files inside
+    it; the run named after it unless ``--wandb-name`` is given; resumed where ``run_id``
+    exists already)."""
+    out_dir = Path(out_dir)
+    arguments = dict(
+        project=cfg.wandb_project,
+        entity=cfg.wandb_entity,
+        name=cfg.wandb_name or out_dir.resolve().name,
+        id=run_id,
+        resume="allow",
+        dir=str(out_dir),
+    )
+    if cfg.wandb_mode is not None:  # else W&B reads $WANDB_MODE itself
+        arguments["mode"] = cfg.wandb_mode
+    return arguments
+
+
+def _run_id(out_dir: Path, resume: bool) -> str:
+    """The W&B run id of ``out_dir``: on resume the stored one (where there is one), else a new
+    one, stored in ``OUT/wandb/td3-jax-run-id``."""
+    path = Path(out_dir) / WANDB_DIR / ID_FILE
+    if resume and path.is_file() and path.read_text().strip():
+        return path.read_text().strip()
+    alphabet = string.ascii_lowercase + string.digits
+    run_id = "".join(secrets.choice(alphabet) for _ in range(8))
+    path.parent.mkdir(exist_ok=True)
+    write_atomically(path, run_id + "\n")
+    return run_id
+
+
+@dataclasses.dataclass
+class Tracker:
+    """A W&B run that mirrors one training call's records, config and curve.
+
+    Its methods never raise: a W&B failure becomes one warning and W&B is left alone for the
+    rest of the run (the records are in metrics.jsonl already).
+    """
+
+    run: Any
+    """The ``wandb`` run."""
+    image: Callable[[str], Any]
+    """``wandb.Image``."""
+    env_steps: int | None = None
+    """The env steps of the last record logged."""
+    failed: bool = False
+    """Whether a W&B call failed (nothing more is sent)."""
+
+    def log(self, record: dict[str, Any]) -> None:
+        """Logs a metrics.jsonl record's numbers (:func:`numbers`)."""
+        self._guard(lambda: self.run.log(numbers(record)))
+        self.env_steps = int(record["env_steps"])
+
+    def set_config(self, config: dict[str, Any]) -> None:
+        """Makes ``config`` (config.json's contents) the W&B run's config."""
+        self._guard(lambda: self.run.config.update(config, allow_val_change=True))
+
+    def finish(self, curve: Path | None = None) -> None:
+        """Logs ``curve`` (curve.png, where drawn) as an image, then ends the W&B run."""
+        if curve is not None:
+            at = {} if self.env_steps is None else {"env_steps": self.env_steps}
+            self._guard(lambda: self.run.log({"curve": self.image(str(curve)), **at}))
+        self._guard(self.run.finish)
+
+    def _guard(self, action: Callable[[], Any]) -> None:
+        """Runs ``action`` unless an earlier one failed; a failure is one warning."""
+        if self.failed:
+            return
+        try:
+            action()
+        except Exception as err:  # the network, W&B's service process, ...
+            self.failed = True
+            print(f"td3-jax: warning: Weights & Biases failed ({type(err).__name__}: {err}); "
+                  "the run goes on without it (metrics.jsonl keeps every record)",
+                  file=sys.stderr)  # fmt: skip
+
+
+def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True) -> Tracker | None:
+    """Starts the W&B run of ``out_dir`` (on ``resume``, continues the one stored there);
+    ``None`` without ``--wandb`` or where ``enabled`` is false (a process that writes no logs).
+    A W&B run that cannot start (no network, a refused login) is a :class:`WandbError`."""
+    if not (cfg.wandb and enabled):
+        return None
+    wandb = import_wandb()
+    arguments = init_arguments(cfg, out_dir, _run_id(out_dir, resume))
+    try:  # W&B gets the numbers, not the console (the run's own output stays as it is)
+        run = wandb.init(**arguments, settings=wandb.Settings(console="off"))
+        run.define_metric("env_steps")
+        run.define_metric("*", step_metric="env_steps")
+    except Exception as err:  # wandb.errors.CommError, AuthenticationError, UsageError, ...
+        text = " ".join(str(err).split()) or type(err).__name__
+        raise WandbError(
+            f"--wandb: Weights & Biases could not start the run ({text}); check `wandb login` "
+            "and the network, or use --wandb-mode offline"
+        ) from None
+    return Tracker(run, wandb.Image)
