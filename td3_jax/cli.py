@@ -358,7 +358,7 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
         return None
     from td3_jax import envs
 
-    if cfg.env not in envs.known_names():
+    if cfg.env not in envs.known_names() and not envs.is_custom(cfg.env):
         return None  # (train() reports the unknown name)
     import jax
 
@@ -642,21 +642,34 @@ def plot_main(args: list[str]) -> None:
 
 
 def envs_main(args: list[str]) -> None:
-    """One line per environment: its name, then what it still needs here (blank: ready), then
-    which physics Playground's tasks get here."""
+    """One line per environment: its name, the td3-jax extra it needs, whether it runs here
+    (else what it still needs); then which physics Playground's tasks get here, and how to
+    train an environment of your own."""
     from td3_jax import envs
     from td3_jax.envs import physics
+    from td3_jax.envs.custom import KINDS
 
     command = _parse(EnvsCommand, args, "td3-jax envs")
     if command.menagerie is not None and not command.menagerie.expanduser().is_dir():
         raise ConfigError(f"--menagerie {command.menagerie} is not a directory")
-    rows = envs.catalog(command.menagerie)
-    width = max(len(name) for name, _ in rows)
-    for name, needs in rows:
-        print(f"{name:<{width}}  {needs}".rstrip())
+    for line in envs_table(envs.catalog(command.menagerie)):
+        print(line)
     missing = physics.warp_missing()
     engine = f"MJX's JAX implementation; {missing}" if missing else "MuJoCo Warp"
     print(f"\nPlayground physics here by default: {engine}. --impl jax|warp chooses.")
+    print(f"Your own environment: --env module.path:function, a function returning "
+          f"{KINDS} (README: Your own environment).")  # fmt: skip
+
+
+def envs_table(rows: list[tuple[str, str, str]]) -> list[str]:
+    """The lines of ``td3-jax envs``' table of ``(name, extra, what it still needs)`` rows:
+    a header, then each environment, its extra (``-``: none) and ``yes`` where it runs here,
+    else ``no:`` and what it needs."""
+    cells = [("environment", "extra", "runs here")]
+    cells += [(name, extra or "-", f"no: {need}" if need else "yes") for name, extra, need in rows]
+    name_width = max(len(c[0]) for c in cells)
+    extra_width = max(len(c[1]) for c in cells)
+    return [f"{n:<{name_width}}  {e:<{extra_width}}  {h}" for n, e, h in cells]
 
 
 def presets_main(args: list[str]) -> None:

@@ -50,6 +50,12 @@ class MissingAssetsError(Td3JaxError, ValueError):
     """No searched place holds a task's robot folder."""
 
 
+class CustomEnvironmentError(Td3JaxError, ValueError):
+    """An environment of your own (an object, or ``--env module.path:factory``) that td3-jax
+    cannot use: a factory that cannot be found or fails, an object of an unknown kind, or an
+    environment whose reset or step does not meet :mod:`td3_jax.envs.custom`'s contract."""
+
+
 class CheckpointError(Td3JaxError, RuntimeError):
     """A checkpoint that is missing, corrupt or does not match the run's configuration."""
 
@@ -98,6 +104,7 @@ __all__ = [
     "CheckpointWriteError",
     "ConfigError",
     "CorruptCheckpointError",
+    "CustomEnvironmentError",
     "EnvironmentOptionError",
     "ExportError",
     "GLUnavailableError",

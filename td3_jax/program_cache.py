@@ -46,6 +46,7 @@ from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from td3_jax.config import WANDB_SETTINGS, TrainConfig
+from td3_jax.envs import is_custom
 from td3_jax.population import (
     SWEEPABLE,
     Compiled,
@@ -351,13 +352,14 @@ class Source:
 
 
 def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path | None,
-            with_init: bool = True) -> Source:  # fmt: skip
-    """Looks the run's programs up in ``directory`` (``None``, several processes or MuJoCo
-    Warp physics, whose FFI calls ``jax.export`` refuses: never) and makes the population's
-    program, environment included, only when none is stored."""
+            with_init: bool = True, env: Any = None) -> Source:  # fmt: skip
+    """Looks the run's programs up in ``directory`` (``None``, several processes, MuJoCo Warp
+    physics, whose FFI calls ``jax.export`` refuses, or an environment of your own, whose code
+    the key cannot see: never) and makes the population's program, environment included
+    (``env`` when given: :func:`td3_jax.training.make_env`), only when none is stored."""
     names = NAMES if with_init else NAMES[:2]
     source = Source(cfg, population, mesh, names)
-    if cfg.impl == "warp":
+    if cfg.impl == "warp" or env is not None or is_custom(cfg.env):
         directory = None  # XLA's persistent compilation cache still applies
     if directory is not None and jax.process_count() == 1:
         overrides = [tuple(name for name, _ in m.overrides) for m in population]
@@ -365,7 +367,7 @@ def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: P
         source.directory = Path(directory)
         source.entry = load(source.directory, source.key, names)
     if source.entry is None:
-        source.program = make_population(cfg, population, devices=mesh.size)
+        source.program = make_population(cfg, population, devices=mesh.size, env=env)
     return source
 
 

@@ -317,7 +317,8 @@ def check_renderable(env: envs.Environment) -> None:
     """Raises :class:`NotRenderableError` for an environment without a scene to draw."""
     if env.qpos_fn is None:
         raise NotRenderableError(
-            f"{env.name} cannot be rendered (renderable: brax/*, playground/*, gymnax/Pendulum-v1)"
+            f"{env.name} cannot be rendered (renderable: brax/*, playground/*, gymnax/Pendulum-v1, "
+            "and your own environments with a MuJoCo model: a FunctionalEnv's mj_model and qpos)"
         )
 
 

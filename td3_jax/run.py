@@ -51,7 +51,7 @@ from td3_jax.sharding import (
     state_shardings,
 )
 from td3_jax.stats import population_stats, return_stats
-from td3_jax.training import ring_as_saved
+from td3_jax.training import bind_environment, ring_as_saved
 
 __all__ = [
     "CONFIG_FILE",
@@ -80,6 +80,7 @@ def train(
     on_prepared: Callable[[], None] | None = None,
     program_dir: Path | None = None,
     stop: StopToken | None = None,
+    env: Any = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
@@ -103,23 +104,21 @@ def train(
       program_dir: the traced programs' store (:mod:`td3_jax.program_cache`).
       stop: a :class:`~td3_jax.runtime.StopToken`; once set (a thread, a signal handler), it
         stops the run as a Ctrl-C would. Default: a fresh one.
+      env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
-    out_dir = Path(out_dir)
-    writer = jax.process_index() == 0  # several processes: one writes the logs
-    prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir)
-    population, changes, source = prepared
+    out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
+    prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir, env)
+    cfg, population, changes, source = prepared
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
                stop if stop is not None else StopToken())  # fmt: skip
     try:
         if on_prepared is not None:
             on_prepared()
-        run.checkpointer = Checkpointer(out_dir / "checkpoints", cfg.keep_checkpoints)
         state, start_chunk = _start(run, source, resume)
         if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
             return run.records
-        if resume and writer:
-            _say_resuming(run, start_chunk)
+        _say_resuming(run, start_chunk)
         run.tracker = tracking.start(cfg, out_dir, resume=resume, enabled=writer)
         compiled, state = _programs_and_state(run, source, state)
         _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
@@ -130,6 +129,9 @@ def train(
 
 
 def _say_resuming(run: _Run, start_chunk: int) -> None:
+    """The line a resumed run starts with (by the writing process; nothing for a fresh run)."""
+    if not (run.writer and start_chunk):
+        return
     path = run.out_dir / CHECKPOINTS / str(start_chunk)
     steps = start_chunk * run.cfg.steps_per_chunk
     print(f"resuming from checkpoint {path} (env step {steps})", flush=True)
@@ -230,9 +232,12 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
-             program_dir: Path | None):  # fmt: skip
+             program_dir: Path | None, env: Any = None):  # fmt: skip
     """Checks ``cfg`` and the directory, then finds the run's programs (stored ones, else the
-    environment is made): ``(members, resume changes, program source)``. Nothing is written."""
+    environment is made): ``(config, members, resume changes, program source)``, the config
+    naming the environment ``env`` when one is given (:func:`~td3_jax.training.bind_environment`).
+    Nothing is written."""
+    cfg, env = bind_environment(cfg, env)
     validate(cfg)
     if writer:  # (before anything is traced or compiled)
         tracking.check_ready(cfg)
@@ -248,10 +253,11 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     else:
         check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}
-    source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume)
+    source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume,
+                                   env=env)  # fmt: skip
     if source.entry is not None and writer:
         print(f"using the traced programs stored in {source.directory / source.key}")
-    return population, changes, source
+    return cfg, population, changes, source
 
 
 @dataclasses.dataclass
@@ -309,7 +315,9 @@ def _warn_on_failure(action: Any, what: str, hint: str = "") -> Any:
 
 
 def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, int]:
-    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run."""
+    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run; the run's
+    checkpointer is opened here."""
+    run.checkpointer = Checkpointer(run.out_dir / CHECKPOINTS, run.cfg.keep_checkpoints)
     run.clock_start = time.perf_counter()
     if not resume:
         return None, 0

@@ -136,28 +136,49 @@ def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
     )
 
 
-def make_env(cfg: TrainConfig, members: int = 1) -> envs.Environment:
+def make_env(cfg: TrainConfig, members: int = 1, env: Any = None) -> envs.Environment:
     """The environment of ``cfg`` (with its options, :meth:`TrainConfig.env_options`), for
-    ``members`` members stepped together (MuJoCo Warp sizes its shared contact buffer so)."""
-    return envs.make(cfg.env, backend=cfg.env_backend, episode_length=cfg.episode_length,
+    ``members`` members stepped together (MuJoCo Warp sizes its shared contact buffer so).
+
+    ``env``: the environment to use instead of ``cfg.env``'s: an
+    :class:`~td3_jax.envs.Environment` (used as it is), an object of your own or a factory
+    ``module.path:function`` (:func:`td3_jax.envs.make`, with ``cfg``'s episode length).
+    """
+    if isinstance(env, envs.Environment):
+        return env
+    return envs.make(cfg.env if env is None else env, backend=cfg.env_backend,
+                     episode_length=cfg.episode_length,
                      options=cfg.env_options(members))  # fmt: skip
+
+
+def bind_environment(cfg: TrainConfig, env: Any) -> tuple[TrainConfig, envs.Environment | None]:
+    """``(cfg, environment)`` of a run handed ``env`` beside ``cfg``. ``None``: ``cfg``'s own
+    (made later); a name or factory string becomes ``cfg.env`` (made later); an object is made
+    and checked now, and ``cfg.env`` becomes what config.json records for it,
+    ``object/<name>`` (:func:`td3_jax.envs.object_label`)."""
+    if env is None:
+        return cfg, None
+    if isinstance(env, str):
+        return dataclasses.replace(cfg, env=env), None
+    made = make_env(cfg, env=env)
+    return dataclasses.replace(cfg, env=envs.object_label(made)), made
 
 
 def make_spec(
     cfg: TrainConfig,
-    env: envs.Environment | None = None,
+    env: Any = None,
     axis_name: str | None = None,
     env_groups: int = 1,
     members: int = 1,
 ) -> TrainSpec:
     """The static spec of ``cfg`` (the environment is made for ``members`` members if not
-    given).
+    given; ``env`` may also be an object of your own or a factory string: :func:`make_env`).
 
     ``env_groups``: environments are reset within groups of this many contiguous environments
     (with the batch split over D devices, D keeps every reset on its device); with replay
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     """
-    env = env or make_env(cfg, members)
+    env = make_env(cfg, members, env)
     shards = cfg.replay_shards
     return TrainSpec(
         env=env,
@@ -610,7 +631,7 @@ def chunk_and_evaluate(
 
 
 def make_train(
-    cfg: TrainConfig, env: envs.Environment | None = None, axis_name: str | None = None
+    cfg: TrainConfig, env: Any = None, axis_name: str | None = None
 ) -> Callable[[PRNGKey], tuple[TrainState, Metrics]]:
     """The whole run as one pure function ``train(key) -> (final_state, metrics)``.
 
@@ -624,7 +645,8 @@ def make_train(
     ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
     ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
     resumed. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
-    keeps the reset and warm-up branches as real branches.
+    keeps the reset and warm-up branches as real branches. ``env``: the environment instead
+    of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`).
     """
     return functools.partial(_train, make_spec(cfg, env, axis_name), hyperparams(cfg),
                              cfg.num_chunks)  # fmt: skip
@@ -660,7 +682,7 @@ class Trainer(NamedTuple):
 
 def make_trainer(
     cfg: TrainConfig,
-    env: envs.Environment | None = None,
+    env: Any = None,
     axis_name: str | None = None,
     env_groups: int = 1,
 ) -> Trainer:

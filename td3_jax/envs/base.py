@@ -146,6 +146,12 @@ def refuse_locomotion_options(name: str, options: EnvOptions) -> None:
         )
 
 
+def action_bound(value: Any, size: int) -> np.ndarray:
+    """``[size]`` float32 action bound from one number or ``size`` numbers (a ``ValueError``
+    for another shape)."""
+    return np.broadcast_to(np.asarray(value, np.float32), (size,)).copy()
+
+
 def from_mjx_style(
     name: str,
     env: Any,

@@ -21,18 +21,25 @@ def pipeline_qpos(state: Any) -> jax.Array:
     return state.pipeline_state.q
 
 
+def from_env(env: Any, name: str, episode_length: int | None = None) -> Environment:
+    """An already-made Brax ``env`` (without Brax's episode/auto-reset wrappers: td3-jax adds
+    its own) as the environment ``name``; ``episode_length`` defaults to Brax's 1000.
+
+    Brax's ``done`` of an unwrapped environment is a true termination (e.g. the ant fell);
+    Brax actions are already in ``[-1, 1]``. A pipeline environment (one with a ``sys``) keeps
+    its ``MjModel`` and joint positions for rendering.
+    """
+    sys = getattr(env, "sys", None)
+    mj_model = getattr(sys, "mj_model", None)
+    return from_mjx_style(name, env, episode_length or 1000, mj_model=mj_model,
+                          qpos_fn=pipeline_qpos if sys is not None else None)  # fmt: skip
+
+
 def make(
     name: str, *, backend: str = "mjx", episode_length: int | None = None, **kwargs
 ) -> Environment:
-    """A Brax environment without Brax's own episode/auto-reset wrappers (we add our own);
-    ``episode_length`` defaults to Brax's 1000.
-
-    Brax's ``done`` of an unwrapped environment is a true termination (e.g. the ant fell);
-    Brax actions are already in ``[-1, 1]``.
-    """
+    """The Brax environment ``name`` on ``backend`` (:func:`from_env`)."""
     from brax import envs
 
     env = envs.get_environment(name, backend=backend, **kwargs)
-
-    return from_mjx_style(f"brax/{name}", env, episode_length or 1000,
-                          mj_model=env.sys.mj_model, qpos_fn=pipeline_qpos)  # fmt: skip
+    return from_env(env, f"brax/{name}", episode_length)

@@ -332,13 +332,30 @@ def make(
     limit, default the task's own."""
     impl = physics.resolve(options.impl)
     env, config = load(task, impl=impl, options=options)
-    lay = layout(env, options)
     rand = randomization(task, env) if options.domain_randomization else None
+    return from_task(env, f"playground/{task}", int(episode_length or config.episode_length),
+                     options, rand=rand, warp=impl == "warp")  # fmt: skip
+
+
+def from_task(
+    env: Any,
+    name: str,
+    episode_length: int,
+    options: EnvOptions = EnvOptions(),
+    *,
+    rand: Randomization | None = None,
+    warp: bool = False,
+) -> Environment:
+    """An already-made Playground task ``env`` (a ``MjxEnv``) as the environment ``name``: its
+    observation (flat, or a dict whose ``options`` keys the actor and the critics see) stored
+    as rows (:func:`layout`), its model drawn by ``rand`` at every reset (``None``: fixed),
+    MuJoCo Warp's buffer overflows reported when ``warp``."""
+    lay = layout(env, options)
     return Environment(
-        name=f"playground/{task}",
+        name=name,
         observation_size=lay.actor_size,
         action_size=int(env.action_size),
-        episode_length=int(episode_length or config.episode_length),
+        episode_length=int(episode_length),
         action_low=-np.ones(env.action_size, np.float32),
         action_high=np.ones(env.action_size, np.float32),
         # Jitted (as base.from_mjx_style does): the physics is traced once per input shape and
@@ -349,5 +366,5 @@ def make(
         critic_offset=lay.actor_size if lay.critic_size and not lay.prefix else 0,
         mj_model=env.mj_model,
         qpos_fn=functools.partial(_qpos, rand),
-        overflow_fn=functools.partial(_overflow, rand) if impl == "warp" else None,
+        overflow_fn=functools.partial(_overflow, rand) if warp else None,
     )

@@ -66,3 +66,17 @@ def make(
     overflow = locomotion.warp_overflow if impl == "warp" else None
     return from_mjx_style(f"playground/{name}", env, length, mj_model=env.mj_model,
                           qpos_fn=data_qpos, overflow_fn=overflow)  # fmt: skip
+
+
+def from_env(
+    env: Any, name: str, episode_length: int | None = None, options: EnvOptions = EnvOptions()
+) -> Environment:
+    """An already-made Playground ``env`` (an ``MjxEnv`` subclass of your own) as the
+    environment ``name`` (:func:`td3_jax.envs.locomotion.from_task`): a flat observation, or a
+    dict whose ``options.actor_obs_key`` the actor sees and ``options.critic_obs_key`` the
+    critics (an asymmetric actor-critic). ``episode_length`` defaults to the config's
+    ``episode_length``, else 1000; the physics is what ``env`` was built with."""
+    config = getattr(env, "_config", None)
+    length = episode_length or getattr(config, "episode_length", None) or 1000
+    warp = getattr(config, "impl", "jax") == "warp"
+    return locomotion.from_task(env, name, int(length), options, warp=warp)
