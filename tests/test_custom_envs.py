@@ -250,7 +250,8 @@ NOT_CALLABLE = 3
         ("my-factories:make", "neither a factory"),
         ("no_such_package.envs:make", "no module 'no_such_package' in"),
         ("my_factories:mak", "my_factories has no 'mak'; did you mean 'make'?"),
-        ("my_factories:NOT_CALLABLE", "is a int, not a function"),
+        ("my_factories:NOT_CALLABLE", "is not callable (int)"),
+        ("my_factories_broken:make", "importing my_factories_broken raised ModuleNotFoundError"),
         ("my_factories:broken", "calling it raised RuntimeError: no robot here"),
         ("my_factories:not_an_env", "a builtins.int is not an environment"),
     ],
@@ -259,9 +260,11 @@ def test_a_factory_is_found_from_the_current_directory_or_said_in_one_line(
     spec, needle, tmp_path, monkeypatch
 ):
     (tmp_path / "my_factories.py").write_text(FACTORIES)
+    (tmp_path / "my_factories_broken.py").write_text("import a_package_it_needs\n")
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", os.getcwd())])
-    monkeypatch.delitem(sys.modules, "my_factories", raising=False)
+    for name in ("my_factories", "my_factories_broken"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
     if spec == "my_factories:make":
         made = envs.make(spec)
         assert made.name == spec and made.observation_size == 2 and str(tmp_path) in sys.path

@@ -141,7 +141,7 @@ def load_factory(spec: str) -> Any:
         )
     factory = _attribute(_import(module_name, spec), attribute, spec)
     if not callable(factory):
-        raise CustomEnvironmentError(f"{spec} is a {type(factory).__name__}, not a function: "
+        raise CustomEnvironmentError(f"{spec} is not callable ({type(factory).__name__}): "
                                      "td3-jax calls it with no arguments")  # fmt: skip
     try:
         return factory()
@@ -155,16 +155,14 @@ def _import(module_name: str, spec: str) -> Any:
         sys.path.insert(0, os.getcwd())
     try:
         return importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        if err.name and (module_name + ".").startswith(err.name + "."):
+    except Exception as err:  # not found; a SyntaxError or an error of the module's own code
+        name = getattr(err, "name", None) if isinstance(err, ModuleNotFoundError) else None
+        if name and (module_name + ".").startswith(name + "."):
             raise CustomEnvironmentError(
-                f"{spec}: no module {err.name!r} in {os.getcwd()} or on the Python path (run "
-                "from the folder holding it, set PYTHONPATH or install its package; a run made "
-                "from it needs it importable again for --resume, eval, render and export)"
+                f"{spec}: no module {name!r} in {os.getcwd()} or on the Python path (run from "
+                "the folder holding it, set PYTHONPATH or install its package; a run made from "
+                "it needs it importable again for --resume, eval, render and export)"
             ) from err
-        raise CustomEnvironmentError(f"{spec}: importing {module_name} raised "
-                                     f"{_one_line(err)}") from err  # fmt: skip
-    except Exception as err:  # a SyntaxError, an error the module's own code raised
         raise CustomEnvironmentError(f"{spec}: importing {module_name} raised "
                                      f"{_one_line(err)}") from err  # fmt: skip
 
