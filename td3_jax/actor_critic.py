@@ -78,6 +78,12 @@ class AgentOptions:
       schedule_updates: the cosine schedule's length in updates (required with cosine).
       clip_grads: clip gradients to the global norm ``max_grad_norm`` of
         :class:`AgentHyperparams` before Adam.
+      bound_weights: after every optimiser step, scale each unit's incoming weights (a column
+        of every Dense kernel, actor and critics) down to the norm ``max_weight_norm`` of
+        :class:`AgentHyperparams` where they exceed it (:func:`bound_weight_norms`).
+      critic_feature_norm: the critics' hidden features projected onto the sphere of radius
+        ``sqrt(width)`` after every ReLU (:func:`td3_jax.networks.sphere_features`); the actor,
+        which export writes out, is unchanged.
       target_update: when the target critics are Polyak-averaged: ``with_actor`` (in the
         delayed actor step, every ``policy_freq`` updates, the TD3 paper) or ``every_update``
         (after every critic step, FastTD3). A target actor always moves with the actor.
@@ -97,6 +103,8 @@ class AgentOptions:
     lr_schedule: str = "constant"
     schedule_updates: int | None = None
     clip_grads: bool = False
+    bound_weights: bool = False
+    critic_feature_norm: bool = False
     target_update: str = "with_actor"
     c51_target_head: str = "unprojected"
 
@@ -143,8 +151,9 @@ class AgentHyperparams:
     """The agent's float settings, scalars that may be traced (vmapped in sweeps).
 
     ``weight_decay``: decoupled (AdamW) weight decay, 0 for none. ``max_grad_norm``: the global
-    gradient norm bound (used when :attr:`AgentOptions.clip_grads`). ``v_min``, ``v_max``: the
-    C51 support (used by distributional critics).
+    gradient norm bound (used when :attr:`AgentOptions.clip_grads`). ``max_weight_norm``: the
+    bound on each unit's incoming weight norm (used when :attr:`AgentOptions.bound_weights`).
+    ``v_min``, ``v_max``: the C51 support (used by distributional critics).
     """
 
     discount: jax.Array
@@ -155,6 +164,7 @@ class AgentHyperparams:
     noise_clip: jax.Array
     weight_decay: jax.Array = 0.0
     max_grad_norm: jax.Array = float("inf")
+    max_weight_norm: jax.Array = float("inf")
     v_min: jax.Array = -10.0
     v_max: jax.Array = 10.0
 
@@ -179,6 +189,7 @@ def _check_hyperparams(hp: AgentHyperparams) -> None:
         "noise_clip": (0.0, np.inf, True),
         "weight_decay": (0.0, np.inf, True),
         "max_grad_norm": (0.0, np.inf, False),  # inf allowed: no bound
+        "max_weight_norm": (0.0, np.inf, False),
         "v_min": (-np.inf, np.inf, False),
         "v_max": (-np.inf, np.inf, False),
     }
@@ -188,7 +199,8 @@ def _check_hyperparams(hp: AgentHyperparams) -> None:
             continue
         v = np.asarray(value)
         below = v < low if low_ok else v <= low
-        finite = np.all(np.isfinite(v)) or (name == "max_grad_norm" and not np.any(np.isnan(v)))
+        unbounded = name in ("max_grad_norm", "max_weight_norm") and not np.any(np.isnan(v))
+        finite = np.all(np.isfinite(v)) or unbounded
         if not finite or np.any(v > high) or np.any(below):
             bound = "[" if low_ok else "("
             raise ValueError(f"{name} must be finite and in {bound}{low}, {high}], got {value}")
@@ -250,7 +262,12 @@ def make_spec(
     return AgentSpec(
         actor=Actor(_ints(actor_hidden), int(action_size), max_action, options.layer_norm, dtype),
         critic=CriticEnsemble(
-            _ints(critic_hidden), num_critics, options.layer_norm, dtype, int(options.num_atoms)
+            _ints(critic_hidden),
+            num_critics,
+            options.layer_norm,
+            dtype,
+            int(options.num_atoms),
+            options.critic_feature_norm,
         ),
         observation_size=int(observation_size),
         action_size=int(action_size),
@@ -275,8 +292,9 @@ def _ints(sizes: Sequence[int]) -> tuple[int, ...]:
 def hyperparams(config: Any, **settings: Any) -> AgentHyperparams:
     """The float settings of a config as :class:`AgentHyperparams` (DDPG: no smoothing noise).
 
-    ``settings`` give or override fields (``weight_decay``, ``max_grad_norm`` (``None``: no
-    bound), ``v_min``, ``v_max``, ...); fields neither gives take their defaults.
+    ``settings`` give or override fields (``weight_decay``, ``max_grad_norm`` and
+    ``max_weight_norm`` (``None``: no bound), ``v_min``, ``v_max``, ...); fields neither gives
+    take their defaults.
     """
     values = {
         "discount": config.discount,
@@ -287,8 +305,9 @@ def hyperparams(config: Any, **settings: Any) -> AgentHyperparams:
         "noise_clip": getattr(config, "noise_clip", 0.0),
         **settings,
     }
-    if values.get("max_grad_norm", 0.0) is None:
-        values["max_grad_norm"] = float("inf")
+    for bound in ("max_grad_norm", "max_weight_norm"):
+        if bound in values and values[bound] is None:
+            values[bound] = float("inf")
     hp = AgentHyperparams(**{k: jnp.asarray(v, jnp.float32) for k, v in values.items()})
     hp = hp.replace(**{f.name: jnp.asarray(getattr(hp, f.name), jnp.float32)
                        for f in dataclasses.fields(hp) if f.name not in values})  # fmt: skip
@@ -335,7 +354,8 @@ def descend(
 
     Gradients are clipped to the global norm ``hp.max_grad_norm`` first when
     ``spec.options.clip_grads``; the weight decay is decoupled from Adam's moments, as in
-    ``optax.adamw`` (0: plain Adam).
+    ``optax.adamw`` (0: plain Adam). With ``spec.options.bound_weights`` the new weights are
+    then bounded (:func:`bound_weight_norms`).
     """
     if spec.options.clip_grads:
         grads, _ = optax.clip_by_global_norm(hp.max_grad_norm).update(grads, optax.EmptyState())
@@ -343,7 +363,24 @@ def descend(
     decay = optax.add_decayed_weights(hp.weight_decay)
     direction, _ = decay.update(direction, optax.EmptyState(), params)
     updates = jax.tree.map(lambda d: (-lr).astype(d.dtype) * d, direction)
-    return optax.apply_updates(params, updates), opt_state
+    params = optax.apply_updates(params, updates)
+    if spec.options.bound_weights:
+        params = bound_weight_norms(params, hp.max_weight_norm)
+    return params, opt_state
+
+
+def bound_weight_norms(params: Params, max_norm: jax.Array) -> Params:
+    """``params`` with every Dense ``kernel [..., in, out]``'s columns (one unit's incoming
+    weights) scaled to norm ``max_norm`` where they exceed it; biases and LayerNorm scales
+    unchanged."""
+
+    def bound(path: tuple, leaf: jax.Array) -> jax.Array:
+        if getattr(path[-1], "key", None) != "kernel":
+            return leaf
+        norms = jnp.linalg.norm(leaf, axis=-2, keepdims=True)
+        return leaf * jnp.minimum(1.0, max_norm / jnp.maximum(norms, 1e-12))
+
+    return jax.tree_util.tree_map_with_path(bound, params)
 
 
 def target_policy_params(spec: AgentSpec, state: AgentState) -> Params:
@@ -553,6 +590,7 @@ __all__ = [
     "AgentSpec",
     "actor_critic",
     "actor_step",
+    "bound_weight_norms",
     "critic_step",
     "hyperparams",
     "init",

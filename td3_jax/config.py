@@ -145,6 +145,12 @@ class TrainConfig:
     """Decoupled (AdamW) weight decay of actor and critics, as in optax.adamw (FastTD3: 0.1)."""
     max_grad_norm: float | None = None
     """Clip gradients to this global norm before Adam; default: no clipping."""
+    max_weight_norm: float | None = None
+    """After every optimiser step, scale each unit's incoming weights (a column of every Dense
+    kernel, actor and critics) down to this norm where they exceed it; default: unbounded."""
+    critic_feature_norm: bool = False
+    """Project the critics' hidden features onto the sphere of radius sqrt(width) after every
+    ReLU (bounded features, as SimbaV2/FlashSAC); the actor is unchanged."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to 0 over the run's
     gradient updates (so --total-steps cannot change on --resume)."""
@@ -277,12 +283,15 @@ class TrainConfig:
             lr_schedule=self.lr_schedule,
             schedule_updates=self.total_updates if self.lr_schedule == "cosine" else None,
             clip_grads=self.max_grad_norm is not None,
+            bound_weights=self.max_weight_norm is not None,
+            critic_feature_norm=self.critic_feature_norm,
         )
 
     def agent_settings(self) -> dict[str, float | None]:
         """The agent's float options, beside :meth:`agent_config`'s (traced, sweepable)."""
         return dict(weight_decay=self.weight_decay, max_grad_norm=self.max_grad_norm,
-                    v_min=self.v_min, v_max=self.v_max)  # fmt: skip
+                    max_weight_norm=self.max_weight_norm, v_min=self.v_min,
+                    v_max=self.v_max)  # fmt: skip
 
     def env_options(self, members: int = 1) -> EnvOptions:
         """The environment options of these settings (Playground's), for ``members`` members
@@ -316,7 +325,7 @@ _POSITIVE = (
 _NON_NEGATIVE = ("warmup_steps", "updates_per_iter")
 _FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise", "noise_clip",
            "ou_theta", "ou_sigma", "ou_min_sigma", "expl_noise_min", "expl_noise_max",
-           "weight_decay", "max_grad_norm")  # fmt: skip
+           "weight_decay", "max_grad_norm", "max_weight_norm")  # fmt: skip
 _SIGNED_FLOATS = ("v_min", "v_max")
 _CHOICES = {
     "critic": ("plain", "distributional"),
@@ -397,8 +406,9 @@ def _check_options(cfg: TrainConfig) -> None:
         raise ConfigError(f"--num-atoms must be at least 2, got {cfg.num_atoms}")
     if not cfg.v_min < cfg.v_max:
         raise ConfigError(f"--v-min ({cfg.v_min}) must be below --v-max ({cfg.v_max})")
-    if cfg.max_grad_norm is not None and cfg.max_grad_norm <= 0:
-        raise ConfigError(f"--max-grad-norm must be positive, got {cfg.max_grad_norm}")
+    for bound in ("max_grad_norm", "max_weight_norm"):
+        if getattr(cfg, bound) is not None and getattr(cfg, bound) <= 0:
+            raise ConfigError(f"{flag(bound)} must be positive, got {getattr(cfg, bound)}")
     low, high = cfg.expl_noise_min, cfg.expl_noise_max
     if (low is None) != (high is None):
         raise ConfigError("--expl-noise-min and --expl-noise-max go together: give both or neither")

@@ -1,9 +1,12 @@
 """Actor and critic-ensemble networks (flax.linen).
 
 Every network takes ``layer_norm`` (LayerNorm after each hidden Dense, before the ReLU, as
-FastTD3 does) and ``dtype`` (the computation dtype of the matmuls: ``None`` computes in the
-inputs' dtype, float32 here; ``jnp.bfloat16`` runs them in bf16). Parameters are always float32
-and every network's output is float32, so losses and optimiser states stay in float32.
+FastTD3 does), the critics also ``feature_norm`` (each hidden layer's output, after the ReLU,
+projected onto the sphere of radius ``sqrt(width)``, as SimbaV2/FlashSAC bound their features;
+:func:`sphere_features`), and ``dtype`` (the computation dtype of the matmuls: ``None``
+computes in the inputs' dtype, float32 here; ``jnp.bfloat16`` runs them in bf16). Parameters
+are always float32 and every network's output is float32, so losses and optimiser states stay
+in float32.
 """
 
 from __future__ import annotations
@@ -16,6 +19,14 @@ import jax
 import jax.numpy as jnp
 
 
+def sphere_features(x: jax.Array, eps: float = 1e-6) -> jax.Array:
+    """``[..., width]`` features scaled to Euclidean norm ``sqrt(width)`` (root mean square 1);
+    an all-zero row stays zero. Computed in float32 whatever ``x``'s dtype, returned in it."""
+    x32 = x.astype(jnp.float32)
+    rms = jnp.sqrt(jnp.mean(jnp.square(x32), axis=-1, keepdims=True))
+    return (x32 / (rms + eps)).astype(x.dtype)
+
+
 class MLP(nn.Module):
     """ReLU multilayer perceptron: ``[..., in] -> [..., out_size]`` (no output activation)."""
 
@@ -23,6 +34,7 @@ class MLP(nn.Module):
     out_size: int
     layer_norm: bool = False
     dtype: Any = None
+    feature_norm: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -31,6 +43,8 @@ class MLP(nn.Module):
             if self.layer_norm:
                 x = nn.LayerNorm(dtype=self.dtype, param_dtype=jnp.float32)(x)
             x = nn.relu(x)
+            if self.feature_norm:
+                x = sphere_features(x)
         out = nn.Dense(self.out_size, dtype=self.dtype, param_dtype=jnp.float32)(x)
         return out.astype(jnp.float32)
 
@@ -61,11 +75,13 @@ class Critic(nn.Module):
     hidden_sizes: Sequence[int]
     layer_norm: bool = False
     dtype: Any = None
+    feature_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        return MLP(self.hidden_sizes, 1, self.layer_norm, self.dtype)(x)[..., 0]
+        mlp = MLP(self.hidden_sizes, 1, self.layer_norm, self.dtype, self.feature_norm)
+        return mlp(x)[..., 0]
 
 
 class DistributionalCritic(nn.Module):
@@ -76,11 +92,13 @@ class DistributionalCritic(nn.Module):
     num_atoms: int
     layer_norm: bool = False
     dtype: Any = None
+    feature_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        return MLP(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype)(x)
+        mlp = MLP(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype, self.feature_norm)
+        return mlp(x)
 
 
 def _ensemble(head: type[nn.Module], num_critics: int) -> type[nn.Module]:
@@ -105,16 +123,15 @@ class CriticEnsemble(nn.Module):
     layer_norm: bool = False
     dtype: Any = None
     num_atoms: int = 0
+    feature_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        norms = dict(layer_norm=self.layer_norm, dtype=self.dtype, feature_norm=self.feature_norm)
         if self.num_atoms:
             heads = _ensemble(DistributionalCritic, self.num_critics)
-            return heads(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype)(
-                obs, action
-            )
-        heads = _ensemble(Critic, self.num_critics)
-        return heads(self.hidden_sizes, self.layer_norm, self.dtype)(obs, action)
+            return heads(self.hidden_sizes, self.num_atoms, **norms)(obs, action)
+        return _ensemble(Critic, self.num_critics)(self.hidden_sizes, **norms)(obs, action)
 
 
 __all__ = [
@@ -123,4 +140,5 @@ __all__ = [
     "Critic",
     "CriticEnsemble",
     "DistributionalCritic",
+    "sphere_features",
 ]

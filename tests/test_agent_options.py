@@ -147,6 +147,66 @@ def test_the_gradient_bound_is_ignored_unless_clipping_is_on():
     assert_trees_close(a, b, atol=0, rtol=0)
 
 
+def np_bound_columns(kernel, max_norm):
+    """Each column (a unit's incoming weights, axis -2) scaled down to ``max_norm``, float64."""
+    k = np.asarray(kernel, np.float64)
+    norms = np.sqrt((k**2).sum(axis=-2, keepdims=True))
+    return k * np.where(norms > max_norm, max_norm / norms, 1.0)
+
+
+def test_bounded_weights_match_numpy_after_each_step():
+    """Adam steps on large gradients, then every kernel column (actor ``[in, out]`` and the
+    critics' stacked ``[heads, in, out]``) above the bound is scaled down to it; biases are
+    not bounded; the plain step is the same without the bound."""
+    spec, lr, bound = spec_of(bound_weights=True), jnp.float32(0.5), 0.8
+    state = init(spec)
+    for params in (state.actor_params, state.critic_params):
+        grads = random_grads(params, 2, 3.0)
+        plain = descend_steps(
+            spec_of(), hparams(), params, jax.tree.map(lambda g: g[None], grads), lr
+        )
+        ours = descend_steps(spec, hparams(max_weight_norm=bound), params,
+                             jax.tree.map(lambda g: g[None], grads), lr)  # fmt: skip
+        for (path, got), want in zip(jax.tree_util.tree_leaves_with_path(ours),
+                                     jax.tree.leaves(plain), strict=True):  # fmt: skip
+            if jax.tree_util.keystr(path).endswith("['kernel']"):
+                want = np_bound_columns(want, bound)
+                assert np.sqrt((np.asarray(got) ** 2).sum(-2)).max() <= bound + 1e-5
+            np.testing.assert_allclose(np.asarray(got), want, atol=1e-6, rtol=1e-5)
+        assert any(
+            not np.allclose(a, b)
+            for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(plain), strict=True)
+        )
+    # The bound unset (inf) leaves every weight alone.
+    loose = descend_steps(spec, hparams(), params, jax.tree.map(lambda g: g[None], grads), lr)
+    assert_trees_close(loose, plain, atol=0, rtol=0)
+
+
+def test_critic_feature_norm_against_numpy():
+    """Two critics whose hidden features (after each ReLU) are scaled to norm sqrt(width),
+    recomputed in NumPy from their parameters; the actor's parameters and outputs are those of
+    the plain spec."""
+    spec = spec_of(critic_feature_norm=True)
+    state = init(spec)
+    batch = make_batch(3)
+    got = np.asarray(spec.critic.apply(state.critic_params, batch.obs, batch.action))
+    layers = state.critic_params["params"]["VmapCritic_0"]["MLP_0"]
+    x0 = np.concatenate([batch.obs, batch.action], axis=-1).astype(np.float64)
+    for head in range(2):
+        x = x0
+        for i in range(len(HIDDEN)):
+            h = x @ np.asarray(layers[f"Dense_{i}"]["kernel"][head], np.float64)
+            h = np.maximum(h + np.asarray(layers[f"Dense_{i}"]["bias"][head]), 0.0)
+            x = h * np.sqrt(h.shape[-1]) / np.linalg.norm(h, axis=-1, keepdims=True)
+        last = layers[f"Dense_{len(HIDDEN)}"]
+        want = x @ np.asarray(last["kernel"][head], np.float64) + np.asarray(last["bias"][head])
+        np.testing.assert_allclose(got[head], want[:, 0], atol=1e-5)
+    plain = init(spec_of())
+    assert_trees_close(state.actor_params, plain.actor_params, atol=0, rtol=0)
+    plain_q = spec_of().critic.apply(state.critic_params, batch.obs, batch.action)
+    assert not np.allclose(np.asarray(plain_q), got)
+
+
 def test_cosine_learning_rate_by_hand():
     spec = spec_of(lr_schedule="cosine", schedule_updates=10)
     for step, expected in (
@@ -403,6 +463,10 @@ def test_config_maps_to_agent_options():
     assert cfg.total_updates == (1250 - 125 + 1) * 8
     assert dataclasses.replace(cfg, actor_q="mean").agent_options().actor_q == "mean"
     assert TrainConfig(actor_q="auto").agent_options().actor_q == "first"
+    bounded = TrainConfig(max_weight_norm=2.0, critic_feature_norm=True)
+    assert bounded.agent_options().bound_weights and bounded.agent_options().critic_feature_norm
+    assert bounded.agent_settings()["max_weight_norm"] == 2.0
+    assert not TrainConfig().agent_options().bound_weights
     fasttd3 = TrainConfig(target_update="every_update", c51_target_head="projected")
     assert fasttd3.agent_options().target_update == "every_update"
     assert fasttd3.agent_options().c51_target_head == "projected"
@@ -425,6 +489,8 @@ def test_presets_that_follow_fasttd3_use_its_target_rules(name):
         (dict(v_min=3.0, v_max=3.0), "--v-min"),
         (dict(num_atoms=1), "--num-atoms"),
         (dict(max_grad_norm=0.0), "--max-grad-norm"),
+        (dict(max_weight_norm=0.0), "--max-weight-norm"),
+        (dict(max_weight_norm=float("nan")), "--max-weight-norm"),
         (dict(weight_decay=-1.0), "--weight-decay"),
         (dict(critic_hidden_sizes=()), "--critic-hidden-sizes"),
         (dict(v_max=float("inf")), "--v-max"),
