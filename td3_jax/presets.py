@@ -206,6 +206,13 @@ PRESETS: dict[str, dict] = {
     # G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
     # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59).
     "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain", njmax=128),
+    # Rough terrain (Playground's heightfield scenes, feet-only contacts): the flat presets
+    # unchanged, with 128 constraints per environment as a margin on Warp. One seed each on an
+    # H100 (BENCHMARKS.md, 2026-11-24 third session): T1 29.6 at 16.4M steps (522 s from
+    # launch, Warp kernels cold), G1 18.3 at 12.3M (495 s); FastTD3's final 30.4 and 27.7,
+    # FlashSAC's 34.6 and 34.1 at 50M. Not tuned for rough terrain.
+    "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
+    "g1-rough": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickRoughTerrain", njmax=128),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
     # [0.2, 0.8], smoothing noise 0.2, 50k steps per environment; its kicks keep the task's
     # default (off).
@@ -233,6 +240,8 @@ ENV_PRESETS: dict[str, str] = {
     "playground/CheetahRun": "cheetah-run",
     "playground/T1JoystickFlatTerrain": "t1",
     "playground/G1JoystickFlatTerrain": "g1",
+    "playground/T1JoystickRoughTerrain": "t1-rough",
+    "playground/G1JoystickRoughTerrain": "g1-rough",
     "playground/Go1JoystickFlatTerrain": "go1",
 }
 

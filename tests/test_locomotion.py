@@ -23,7 +23,7 @@ import pytest
 pytest.importorskip("mujoco_playground")
 
 from td3_jax import actor_critic as ac
-from td3_jax import cli, envs, normalization, training, upstream
+from td3_jax import build, cli, envs, normalization, training, upstream
 from td3_jax.config import TrainConfig, validate
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
@@ -202,7 +202,7 @@ def test_td3_with_a_critic_observation():
 
 
 def test_training_sizes_the_agent_from_the_environment(t1):
-    spec = training.make_agent_spec(TrainConfig(env=f"playground/{T1}", hidden_sizes=(8,)), t1)
+    spec = build.agent_spec(TrainConfig(env=f"playground/{T1}", hidden_sizes=(8,)), t1)
     state = ac.init(spec, jax.random.PRNGKey(0))
     assert (85, 8) in [x.shape for x in jax.tree.leaves(state.actor_params)]
     assert (2, 180 + 23, 8) in [x.shape for x in jax.tree.leaves(state.critic_params)]
@@ -395,6 +395,12 @@ def test_presets_follow_fasttd3():
     assert preset("t1").pushes == "off"
     assert (preset("go1").num_envs, preset("go1").updates_per_iter) == (1024, 8)
     assert set(PRESETS) >= {"t1", "g1", "go1"}
+    # Rough terrain: the flat humanoid settings with a constraint margin on Warp.
+    for flat, rough in (("t1", "t1-rough"), ("g1", "g1-rough")):
+        assert preset(rough).env == preset(flat).env.replace("Flat", "Rough")
+        assert preset(rough).njmax == 128
+        assert dataclasses.replace(preset(rough), env=preset(flat).env, njmax=None) == \
+            dataclasses.replace(preset(flat), njmax=None)  # fmt: skip
     # Robots without a preset of their own start from their kind's on an accelerator.
     assert device_defaults("playground/SpotGetup", accelerator=True).updates_per_iter == 8
     h1 = "playground/H1JoystickGaitTracking"
