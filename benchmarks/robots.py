@@ -37,7 +37,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from td3_jax import training
+from td3_jax import build
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
 from td3_jax.presets import ENV_PRESETS, preset, robot_preset
@@ -114,7 +114,7 @@ def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
     """td3-jax's training chunk: env steps/s of the second call, compile seconds of the first."""
     cfg, name = loop_config(task, num_envs, args.iters, root, args.batch, args.impl_now)
     start = time.perf_counter()
-    trainer = training.make_trainer(cfg)
+    trainer = build.make_trainer(cfg)
     make_s = time.perf_counter() - start
     init_s, state = _seconds(jax.jit(trainer.init), jax.random.PRNGKey(0))
     chunk = jax.jit(trainer.chunk, donate_argnums=0)

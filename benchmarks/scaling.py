@@ -349,14 +349,14 @@ def abstract_inputs(compiled, program) -> tuple[Any, Any]:
 def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     """``(chunk executable, init executable, hyperparams, seconds)``: built, traced and
     compiled ahead, before any state exists."""
+    from td3_jax.build import make_population, members
     from td3_jax.config import validate
-    from td3_jax.population import compile_for_mesh, make_population, members
-    from td3_jax.sharding import check_divisible, make_mesh
+    from td3_jax.population import compile_for_mesh
+    from td3_jax.sharding import make_mesh
 
     seconds, clock = {}, time.perf_counter()
-    validate(cfg)
     mesh = make_mesh(devices)
-    check_divisible(cfg, mesh.size)
+    validate(cfg, devices=mesh.size)
     program = make_population(cfg, members(cfg), devices=mesh.size)
     compiled = compile_for_mesh(program, mesh)
     seconds["make_s"], clock = time.perf_counter() - clock, time.perf_counter()

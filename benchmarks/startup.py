@@ -40,8 +40,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from td3_jax import envs, program_cache, training  # noqa: E402
-from td3_jax.population import compile_for_mesh, make_population, members  # noqa: E402
+from td3_jax import build, envs, program_cache  # noqa: E402
+from td3_jax.build import make_population, members  # noqa: E402
+from td3_jax.population import compile_for_mesh  # noqa: E402
 from td3_jax.presets import preset  # noqa: E402
 from td3_jax.runtime import enable_compile_cache  # noqa: E402
 from td3_jax.sharding import make_mesh  # noqa: E402
@@ -77,7 +78,7 @@ def parse() -> argparse.Namespace:
 
 def floor(cfg, clock: Clock) -> dict[str, float]:
     """Trace and compile time, and raw env steps/s, of ``jit(scan(vmap(env.step)))``."""
-    env = training.make_env(cfg)
+    env = build.make_env(cfg)
     clock.lap("make_env")
     reset = jax.jit(lambda key: envs.reset(env, key, cfg.num_envs)).lower(jax.random.PRNGKey(0))
     clock.lap("reset_trace")
@@ -108,7 +109,7 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
     population = members(cfg)
     mesh = make_mesh(None)
     if sequential:
-        env = training.make_env(cfg)
+        env = build.make_env(cfg)
         clock.lap("make_env")
         program = make_population(cfg, population, devices=mesh.size, env=env)
         compiled = _compile_in_turn(compile_for_mesh(program, mesh), program, clock)

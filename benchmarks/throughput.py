@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 
 from td3_jax import envs
+from td3_jax.build import make_trainer
 from td3_jax.presets import preset
-from td3_jax.training import make_trainer
 from td3_jax.types import Transition
 
 

@@ -1,5 +1,7 @@
 """The training configuration (:class:`TrainConfig`, every setting of a run) and its
-validation; the named presets are in :mod:`td3_jax.presets`."""
+validation (:func:`validate`, for the devices the run spans); the named presets are in
+:mod:`td3_jax.presets`, and what the program makes of a config (its environment, spec and
+traced floats) in :mod:`td3_jax.build`."""
 
 from __future__ import annotations
 
@@ -7,11 +9,7 @@ import dataclasses
 import math
 from typing import Any, Literal
 
-from td3_jax.actor_critic import AgentOptions
-from td3_jax.envs.base import EnvOptions
 from td3_jax.errors import ConfigError
-from td3_jax.noise import OUParams
-from td3_jax.td3 import DDPGConfig, TD3Config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,28 +229,6 @@ class TrainConfig:
         """Environment steps the run takes: ``total_steps`` rounded up to whole chunks."""
         return self.num_chunks * self.iters_per_chunk * self.env_steps_per_iter
 
-    def agent_config(self) -> TD3Config | DDPGConfig:
-        """The agent's config: these settings where given, the algorithm's defaults otherwise."""
-        given = {
-            k: v
-            for k, v in dict(
-                hidden_sizes=self.hidden_sizes,
-                actor_lr=self.actor_lr,
-                critic_lr=self.critic_lr,
-                tau=self.tau,
-                discount=self.discount,
-            ).items()
-            if v is not None
-        }
-        if self.algo == "ddpg":
-            return DDPGConfig(**given)
-        return TD3Config(
-            policy_noise=self.policy_noise,
-            noise_clip=self.noise_clip,
-            policy_freq=self.policy_freq,
-            **given,
-        )
-
     @property
     def total_updates(self) -> int:
         """Gradient updates the run takes: ``updates_per_iter`` in every iteration from the
@@ -265,56 +241,6 @@ class TrainConfig:
     def per_env_noise(self) -> bool:
         """Whether exploration stds are drawn per environment (expl_noise_min/max given)."""
         return self.expl_noise_min is not None
-
-    def agent_options(self) -> AgentOptions:
-        """The agent's static options (:class:`~td3_jax.actor_critic.AgentOptions`)."""
-        distributional = self.critic == "distributional"
-        auto_q = "min" if distributional else "first"
-        return AgentOptions(
-            num_atoms=self.num_atoms if distributional else 0,
-            actor_hidden_sizes=self.actor_hidden_sizes,
-            critic_hidden_sizes=self.critic_hidden_sizes,
-            layer_norm=self.layer_norm,
-            precision=self.precision,
-            target_actor=self.target_actor,
-            target_update=self.target_update,
-            c51_target_head=self.c51_target_head,
-            actor_q=auto_q if self.actor_q == "auto" else self.actor_q,
-            lr_schedule=self.lr_schedule,
-            schedule_updates=self.total_updates if self.lr_schedule == "cosine" else None,
-            clip_grads=self.max_grad_norm is not None,
-            bound_weights=self.max_weight_norm is not None,
-            critic_feature_norm=self.critic_feature_norm,
-        )
-
-    def agent_settings(self) -> dict[str, float | None]:
-        """The agent's float options, beside :meth:`agent_config`'s (traced, sweepable)."""
-        return dict(weight_decay=self.weight_decay, max_grad_norm=self.max_grad_norm,
-                    max_weight_norm=self.max_weight_norm, v_min=self.v_min,
-                    v_max=self.v_max)  # fmt: skip
-
-    def env_options(self, members: int = 1) -> EnvOptions:
-        """The environment options of these settings (Playground's), for ``members`` members
-        stepped together (all of their environments share MuJoCo Warp's contact buffer)."""
-        return EnvOptions(
-            menagerie=self.menagerie,
-            domain_randomization=self.domain_randomization,
-            pushes=None if self.pushes == "default" else self.pushes == "on",
-            actor_obs_key=self.actor_obs_key,
-            critic_obs_key=self.critic_obs_key,
-            impl=self.impl or ("warp" if self.env_backend == "warp" else None),
-            worlds=members * self.num_envs,  # not eval_envs: it may change on resume
-            nconmax=self.nconmax,
-            njmax=self.njmax,
-        )
-
-    def ou_params(self) -> OUParams:
-        return OUParams(
-            theta=self.ou_theta,
-            max_sigma=self.ou_sigma,
-            min_sigma=self.ou_sigma if self.ou_min_sigma is None else self.ou_min_sigma,
-            decay_period=float(self.ou_decay_period),
-        )
 
 
 _POSITIVE = (
@@ -339,6 +265,11 @@ _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 #: The settings of Weights & Biases (``--wandb``, ...): where the records are mirrored, never
 #: what the run computes.
 WANDB_SETTINGS = ("wandb", "wandb_project", "wandb_entity", "wandb_name", "wandb_mode")
+#: Float settings a sweep may vary (traced values: each member of a population gets its own
+#: inside one compiled program, :func:`td3_jax.build.members`).
+SWEEPABLE = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise",
+             "noise_clip", "ou_sigma", "ou_theta", "expl_noise_min", "expl_noise_max",
+             "weight_decay", "max_grad_norm", "v_min", "v_max")  # fmt: skip
 
 
 def flag(name: str) -> str:
@@ -355,22 +286,32 @@ def as_flag(name: str, value: Any) -> str:
     return f"{flag(name)} {value}"
 
 
-def validate(cfg: TrainConfig) -> TrainConfig:
-    """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work."""
+def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
+    """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work, on
+    its own or on ``devices`` devices (the run's mesh: its global sizes split over them);
+    returns ``cfg``."""
     _check_counts(cfg)
     _check_floats(cfg)
     _check_replay(cfg)
     _check_options(cfg)
     _check_wandb(cfg)
+    _check_devices(cfg, devices)
     if cfg.algo not in ("td3", "ddpg"):
         raise ConfigError(f"unknown algorithm {cfg.algo!r}; choose td3 or ddpg")
-    if cfg.env_backend not in _BACKENDS:
-        raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; "
-                          f"choose one of {', '.join(_BACKENDS)}")  # fmt: skip
     for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
         sizes = getattr(cfg, name)
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
             raise ConfigError(f"{flag(name)} must be positive integers, got {sizes}")
+    _check_environment(cfg)
+    return cfg
+
+
+def _check_environment(cfg: TrainConfig) -> None:
+    """The environment's settings: a known backend and physics, Playground's flags only for
+    Playground tasks, observation keys."""
+    if cfg.env_backend not in _BACKENDS:
+        raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; "
+                          f"choose one of {', '.join(_BACKENDS)}")  # fmt: skip
     if cfg.impl not in (None, "warp", "jax"):
         raise ConfigError(f"unknown --impl {cfg.impl!r}; choose warp or jax")
     physics_flags = [flag(n) for n in ("impl", "nconmax", "njmax") if getattr(cfg, n) is not None]
@@ -384,7 +325,22 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     for name in ("actor_obs_key", "critic_obs_key"):
         if not getattr(cfg, name):
             raise ConfigError(f"{flag(name)} must name an observation key")
-    return cfg
+
+
+def _check_devices(cfg: TrainConfig, devices: int) -> None:
+    """Global sizes split evenly over ``devices``; MuJoCo Warp physics on one device."""
+    if cfg.impl == "warp" and devices > 1:
+        raise ConfigError(f"--impl warp runs on one device, not {devices}: use --devices 1, "
+                          "or --impl jax to spread the run over several")  # fmt: skip
+    checks = [("--num-envs", cfg.num_envs)]
+    if cfg.replay_shards % devices:
+        slice_rows = cfg.replay_capacity // cfg.replay_shards
+        checks.append(("each replay slice (capacity / --replay-shards)", slice_rows))
+    for name, value in checks:
+        if value % devices:
+            raise ConfigError(
+                f"{name} ({value}) must be divisible by the number of devices ({devices})"
+            )
 
 
 def _check_wandb(cfg: TrainConfig) -> None:

@@ -11,8 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from td3_jax.config import ConfigError
-from td3_jax.errors import OutputWriteError  # noqa: F401  (defined there)
+from td3_jax.errors import ConfigError, OutputWriteError  # noqa: F401  (OutputWriteError: defined there)
 
 #: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)

@@ -13,10 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import itertools
-import math
-import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -24,101 +21,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from td3_jax import envs, training
-from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.runtime import StopToken, in_background, result
 from td3_jax.sharding import replicate, state_shardings
 from td3_jax.training import TrainState
 
 MEMBERS = "members"  # the vmap axis name of the population
 
-#: Float settings a sweep may vary (each member gets its own value, traced inside one program).
-SWEEPABLE = (
-    "actor_lr",
-    "critic_lr",
-    "tau",
-    "discount",
-    "expl_noise",
-    "policy_noise",
-    "noise_clip",
-    "ou_sigma",
-    "ou_theta",
-    "expl_noise_min",
-    "expl_noise_max",
-    "weight_decay",
-    "max_grad_norm",
-    "v_min",
-    "v_max",
-)
-
 
 @dataclasses.dataclass(frozen=True)
 class Member:
+    """One member of a population: its seed and the float settings it overrides (sorted
+    ``(name, value)`` pairs; made from a config by :func:`td3_jax.build.members`)."""
+
     seed: int
     overrides: tuple[tuple[str, float], ...] = ()
 
     def label(self) -> str:
         settings = " ".join(f"{k}={v:g}" for k, v in self.overrides)
         return f"{settings} seed={self.seed}".strip()
-
-
-def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -> list[Member]:
-    """Every combination of the swept values, times ``cfg.seeds`` seeds from ``cfg.seed``."""
-    sweep = {k: list(v) for k, v in (sweep or {}).items() if v}
-    unknown = sorted(set(sweep) - set(SWEEPABLE))
-    if unknown:
-        raise ConfigError(f"cannot sweep {unknown}; sweepable: {', '.join(SWEEPABLE)}")
-    unused = {
-        "policy_noise": cfg.algo == "ddpg",
-        "noise_clip": cfg.algo == "ddpg",
-        "expl_noise": cfg.exploration != "gaussian" or cfg.per_env_noise,
-        "expl_noise_min": not cfg.per_env_noise,
-        "expl_noise_max": not cfg.per_env_noise,
-        "max_grad_norm": cfg.max_grad_norm is None,
-        "v_min": cfg.critic != "distributional",
-        "v_max": cfg.critic != "distributional",
-        "ou_sigma": cfg.exploration != "ou",
-        "ou_theta": cfg.exploration != "ou",
-    }
-    idle = sorted(name for name in sweep if unused.get(name, False))
-    if idle:
-        raise ConfigError(
-            f"sweeping {', '.join(idle)} changes nothing with these settings (--algo "
-            f"{cfg.algo}, --exploration {cfg.exploration}, --critic {cfg.critic}; per-environment "
-            "exploration needs --expl-noise-min/--expl-noise-max, clipping --max-grad-norm)"
-        )
-    bad = {n: v for n, values in sweep.items() for v in values if not math.isfinite(float(v))}
-    if bad:
-        raise ConfigError(
-            "swept values must be finite numbers: "
-            + ", ".join(f"--sweep-{n.replace('_', '-')} {v}" for n, v in bad.items())
-        )
-    names = sorted(sweep)
-    combos = list(itertools.product(*(sweep[n] for n in names))) or [()]
-    _validate_combinations(cfg, names, combos)
-    return [
-        Member(seed=cfg.seed + k, overrides=tuple(zip(names, map(float, combo), strict=True)))
-        for combo in combos
-        for k in range(cfg.seeds)
-    ]
-
-
-def _validate_combinations(cfg: TrainConfig, names: list[str], combos: list[tuple]) -> None:
-    """Validates ``cfg`` with each combination of swept values; an impossible one is named by
-    its ``--sweep-*`` flag."""
-    for combo in combos:
-        try:
-            validate(dataclasses.replace(cfg, **dict(zip(names, combo, strict=True))))
-        except ConfigError as err:
-            raise ConfigError(_sweep_flags(str(err), names)) from None
-
-
-def _sweep_flags(message: str, names: Sequence[str]) -> str:
-    """``message`` with each swept setting's flag (``--actor-lr``) as its sweep flag
-    (``--sweep-actor-lr``)."""
-    for name in names:
-        flag = f"--{name.replace('_', '-')}"
-        message = re.sub(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", "--sweep-" + flag[2:], message)
-    return message
 
 
 class Population(NamedTuple):
@@ -154,14 +74,6 @@ class Population(NamedTuple):
     @property
     def env(self) -> envs.Environment:
         return self.spec.env
-
-
-def member_hyperparams(cfg: TrainConfig, population: list[Member]) -> training.Hyperparams:
-    """Every member's :func:`~td3_jax.training.hyperparams`, stacked (numpy leaves
-    ``[members]``, computed on the host: no accelerator compiles before the run's programs)."""
-    each = lambda: [training.hyperparams(dataclasses.replace(cfg, **dict(m.overrides)))
-                    for m in population]  # fmt: skip
-    return on_host(lambda: jax.tree.map(lambda *xs: jnp.stack(xs), *each()))
 
 
 def member_keys(population: list[Member]) -> np.ndarray:
@@ -206,20 +118,14 @@ def _members_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: An
 
 
 def make_population(
-    cfg: TrainConfig,
-    population: list[Member],
-    devices: int = 1,
-    env: envs.Environment | None = None,
+    spec: training.TrainSpec, hyperparams: training.Hyperparams, population: list[Member]
 ) -> Population:
-    """The batched training functions of ``population`` (all sharing ``cfg``'s shapes).
-
-    ``devices``: how many devices the environments will be split over; resets then gather and
-    scatter within each device's environments (the numbers do not depend on it). ``env``:
-    ``cfg``'s environment when already made (made here otherwise).
-    """
+    """The batched training functions of ``population`` over one shared ``spec`` (its
+    ``axis_name`` becomes :data:`MEMBERS` for several members, ``None`` for one) and
+    ``hyperparams``, every member's float settings stacked (leaves ``[num_members]``, in the
+    members' order). From a config: :func:`td3_jax.build.make_population`."""
     lone = len(population) == 1
-    spec = training.make_spec(cfg, env, axis_name=None if lone else MEMBERS, env_groups=devices,
-                              members=len(population))  # fmt: skip
+    spec = dataclasses.replace(spec, axis_name=None if lone else MEMBERS)
     keys = member_keys(population)
     steps = [functools.partial(fn, spec) for fn in
              (training.init, training.evaluate, training.scheduled_evaluate)]  # fmt: skip
@@ -228,9 +134,8 @@ def make_population(
     init_from_keys, evaluate, scheduled = map(batch, steps)
     chunk = _lone_chunk if lone else _members_chunk
     init = functools.partial(init_from_keys, keys)
-    return Population(population, spec, member_hyperparams(cfg, population), init,
-                      functools.partial(chunk, spec), evaluate, scheduled,
-                      abstract_state=jax.eval_shape(init), keys=keys,
+    return Population(population, spec, hyperparams, init, functools.partial(chunk, spec),
+                      evaluate, scheduled, abstract_state=jax.eval_shape(init), keys=keys,
                       init_from_keys=init_from_keys)  # fmt: skip
 
 

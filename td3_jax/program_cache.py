@@ -7,7 +7,7 @@ only helps after it, since its key is the traced program. This module keeps the 
 programs themselves: each is exported with :mod:`jax.export` as a function of its flat list of
 array leaves and stored under ``DIR/<key>/``, where the key (:func:`fingerprint`) covers what
 shapes the programs: the settings other than the seed and the traced floats
-(:data:`td3_jax.population.SWEEPABLE`), the number of members, the devices, JAX's settings,
+(:data:`td3_jax.config.SWEEPABLE`), the number of members, the devices, JAX's settings,
 td3-jax's own source, the versions of JAX and of the environment packages, and the robot's
 asset files. It does not see code changed under an unchanged version (an editable install of
 Brax or Playground being edited): use ``--compile-cache off`` or another directory then.
@@ -45,18 +45,16 @@ import jax
 from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax.config import WANDB_SETTINGS, TrainConfig
+from td3_jax.build import make_population, member_hyperparams
+from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, TrainConfig
 from td3_jax.envs import is_custom
 from td3_jax.population import (
-    SWEEPABLE,
     Compiled,
     Member,
     Population,
     chunk_argument_specs,
     compile_ahead,
     compile_for_mesh,
-    make_population,
-    member_hyperparams,
     member_keys,
 )
 from td3_jax.runtime import StopToken, in_background, result
@@ -356,7 +354,7 @@ def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: P
     """Looks the run's programs up in ``directory`` (``None``, several processes, MuJoCo Warp
     physics, whose FFI calls ``jax.export`` refuses, or an environment of your own, whose code
     the key cannot see: never) and makes the population's program, environment included
-    (``env`` when given: :func:`td3_jax.training.make_env`), only when none is stored."""
+    (``env`` when given: :func:`td3_jax.build.make_env`), only when none is stored."""
     names = NAMES if with_init else NAMES[:2]
     source = Source(cfg, population, mesh, names)
     if cfg.impl == "warp" or env is not None or is_custom(cfg.env):

@@ -21,11 +21,12 @@ import jax
 import numpy as np
 
 from td3_jax import program_cache, tracking
+from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
-from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.config import TrainConfig, validate
 from td3_jax.errors import NonFiniteError, PhysicsOverflowError
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, OutputWriteError, plot_curve
-from td3_jax.population import Member, members
+from td3_jax.population import Member
 from td3_jax.rundir import (  # (re-exported: run.py was their home)
     CHECKPOINTS,
     CONFIG_FILE,
@@ -43,7 +44,6 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
 )
 from td3_jax.runtime import StopToken
 from td3_jax.sharding import (
-    check_divisible,
     check_memory,
     host_value,
     make_mesh,
@@ -51,7 +51,7 @@ from td3_jax.sharding import (
     state_shardings,
 )
 from td3_jax.stats import population_stats, return_stats
-from td3_jax.training import bind_environment, ring_as_saved
+from td3_jax.training import ring_as_saved
 
 __all__ = [
     "CONFIG_FILE",
@@ -235,17 +235,13 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
              program_dir: Path | None, env: Any = None):  # fmt: skip
     """Checks ``cfg`` and the directory, then finds the run's programs (stored ones, else the
     environment is made): ``(config, members, resume changes, program source)``, the config
-    naming the environment ``env`` when one is given (:func:`~td3_jax.training.bind_environment`).
+    naming the environment ``env`` when one is given (:func:`~td3_jax.build.bind_environment`).
     Nothing is written."""
     cfg, env = bind_environment(cfg, env)
-    validate(cfg)
+    validate(cfg, devices=mesh.size)
     if writer:  # (before anything is traced or compiled)
         tracking.check_ready(cfg)
-    if cfg.impl == "warp" and mesh.size > 1:
-        raise ConfigError(f"--impl warp runs on one device, not {mesh.size}: use --devices 1, "
-                          "or --impl jax to spread the run over several")  # fmt: skip
-    check_divisible(cfg, mesh.size)
-    layout = replay_layout_warning(cfg, mesh.size)
+    layout = replay_layout_warning(cfg.replay_shards, mesh.size)
     if layout and writer:
         print(f"td3-jax: warning: {layout}", file=sys.stderr)
     if resume:

@@ -26,10 +26,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from td3_jax.build import agent_config, make_population, members, ou_params
 from td3_jax.checkpoint import Checkpointer
-from td3_jax.config import WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
+from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
 from td3_jax.logger import write_atomically
-from td3_jax.population import SWEEPABLE, Member, Population, make_population, members
+from td3_jax.population import Member, Population
 from td3_jax.sharding import make_mesh, state_shardings
 from td3_jax.tracking import WANDB_DIR
 from td3_jax.training import ring_as_saved
@@ -314,10 +315,10 @@ def config_changes(saved: TrainConfig, cfg: TrainConfig) -> dict[str, list]:
 def _effective(cfg: TrainConfig, name: str) -> Any:
     """The value a setting takes effect with (``None`` stands for the algorithm's default)."""
     if name in ("hidden_sizes", "actor_lr", "critic_lr", "tau"):
-        value = getattr(cfg.agent_config(), name)
+        value = getattr(agent_config(cfg), name)
         return tuple(value) if name == "hidden_sizes" else value
     if name == "ou_min_sigma":
-        return cfg.ou_params().min_sigma
+        return ou_params(cfg).min_sigma
     return getattr(cfg, name)
 
 

@@ -24,7 +24,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.errors import ConfigError
 
 AXIS = "data"
 _SPLIT = (".env_state", ".ou_state", ".expl_draw", ".buffer.data")
@@ -38,19 +38,6 @@ def make_mesh(num_devices: int | None = None) -> Mesh:
             raise ConfigError(f"--devices {num_devices} asked, {len(devices)} available")
         devices = devices[:num_devices]
     return Mesh(np.array(devices), (AXIS,))
-
-
-def check_divisible(cfg: TrainConfig, num_devices: int) -> None:
-    """Global sizes must split evenly over the devices; one clear error otherwise."""
-    slice_rows = cfg.replay_capacity // cfg.replay_shards
-    checks = [("--num-envs", cfg.num_envs)]
-    if cfg.replay_shards % num_devices:
-        checks.append(("each replay slice (capacity / --replay-shards)", slice_rows))
-    for name, value in checks:
-        if value % num_devices:
-            raise ConfigError(
-                f"{name} ({value}) must be divisible by the number of devices ({num_devices})"
-            )
 
 
 def memory_of(device: Any) -> tuple[int, str] | None:
@@ -95,9 +82,9 @@ def check_memory(abstract_state: Any, mesh: Mesh) -> None:
     )
 
 
-def replay_layout_warning(cfg: TrainConfig, num_devices: int) -> str | None:
-    """A warning when the replay ring's slices do not fall on whole devices (``None`` when they
-    do, or on one device).
+def replay_layout_warning(replay_shards: int, num_devices: int) -> str | None:
+    """A warning when the replay ring's ``replay_shards`` slices do not fall on whole devices
+    (``None`` when they do, or on one device).
 
     With ``--replay-shards`` not a multiple of the device count, each slice's rows are split over
     the devices: every gradient update then gathers its whole batch onto every device (one
@@ -105,10 +92,10 @@ def replay_layout_warning(cfg: TrainConfig, num_devices: int) -> str | None:
     step's transitions are all-gathered before they are written. The numbers are right, but
     the learner is not data-parallel.
     """
-    if num_devices <= 1 or cfg.replay_shards % num_devices == 0:
+    if num_devices <= 1 or replay_shards % num_devices == 0:
         return None
     return (
-        f"--replay-shards {cfg.replay_shards} is not a multiple of the {num_devices} devices: "
+        f"--replay-shards {replay_shards} is not a multiple of the {num_devices} devices: "
         "each update gathers its whole batch onto every device and computes it there in full; "
         f"--replay-shards {num_devices} (or a multiple) keeps replay and updates on each device "
         "(stratified sampling, so the numbers differ from --replay-shards 1)"

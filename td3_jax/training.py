@@ -2,9 +2,9 @@
 
 * :class:`TrainSpec` (static: environment, agent structure, sizes, replay slices, n-step,
   iterations per chunk, the vmapped member axis) and :class:`Hyperparams` (traced floats:
-  the agent's learning rates, tau, discount and smoothing noise, and the exploration scales)
-  are built once from a :class:`~td3_jax.config.TrainConfig` by :func:`make_spec` and
-  :func:`hyperparams`.
+  the agent's learning rates, tau, discount and smoothing noise, and the exploration scales):
+  all the program knows of a run's settings. A config becomes them in one place,
+  :mod:`td3_jax.build` (``build.make_spec(cfg)``, ``build.hyperparams(cfg)``).
 * The steps of the loop: :func:`init`, :func:`explore`, :func:`collect` (act in every
   environment, step them, write the ring), :func:`learn` (``updates_per_iter`` gradient
   steps), :func:`iteration`, :func:`chunk` (a loop of iterations, summarised by
@@ -12,7 +12,7 @@
 * One driver and one key schedule: :func:`chunk_and_evaluate` is what both the CLI's host
   loop (:mod:`td3_jax.run`) and :func:`make_train` run; the evaluation key after a chunk is
   :func:`evaluation_key` of the state, so ``td3-jax train --seed s`` and
-  ``make_train(cfg)(key_for_seed(s))`` evaluate alike.
+  ``build.make_train(cfg)(key_for_seed(s))`` evaluate alike.
 
 Seeds and sweeps are ``jax.vmap(chunk, in_axes=(None, 0, 0))`` over ``(hp, state)`` with the
 spec's ``axis_name`` set (:mod:`td3_jax.population`); nothing is rebuilt per member.
@@ -32,8 +32,7 @@ from flax import struct
 from td3_jax import actor_critic as ac
 from td3_jax import envs, noise, normalization, replay
 from td3_jax.axes import any_member
-from td3_jax.config import TrainConfig
-from td3_jax.types import Agent, AgentState, Metrics, PRNGKey, Transition
+from td3_jax.types import AgentState, Metrics, PRNGKey, Transition
 
 #: Folded into a run's key to make its evaluation key (independent of the training draws).
 EVAL_KEY_SALT = 1_000_003
@@ -118,100 +117,6 @@ class Hyperparams:
     ou: noise.OUParams
     expl_noise_min: jax.Array = 0.0
     expl_noise_max: jax.Array = 0.0
-
-
-def make_agent_spec(cfg: TrainConfig, env: envs.Environment) -> ac.AgentSpec:
-    """The agent structure of ``cfg.algo`` (TD3: two smoothed critics; DDPG: one, no delay)."""
-    agent_cfg = cfg.agent_config()
-    is_td3 = cfg.algo == "td3"
-    return ac.make_spec(
-        agent_cfg.hidden_sizes,
-        env.observation_size,
-        env.action_size,
-        num_critics=2 if is_td3 else 1,
-        target_smoothing=is_td3,
-        policy_freq=cfg.policy_freq if is_td3 else 1,
-        options=cfg.agent_options(),
-        critic_observation_size=env.critic_observation_size,
-    )
-
-
-def make_env(cfg: TrainConfig, members: int = 1, env: Any = None) -> envs.Environment:
-    """The environment of ``cfg`` (with its options, :meth:`TrainConfig.env_options`), for
-    ``members`` members stepped together (MuJoCo Warp sizes its shared contact buffer so).
-
-    ``env``: the environment to use instead of ``cfg.env``'s: an
-    :class:`~td3_jax.envs.Environment` (used as it is), an object of your own or a factory
-    ``module.path:function`` (:func:`td3_jax.envs.make`, with ``cfg``'s episode length).
-    """
-    if isinstance(env, envs.Environment):
-        return env
-    return envs.make(cfg.env if env is None else env, backend=cfg.env_backend,
-                     episode_length=cfg.episode_length,
-                     options=cfg.env_options(members))  # fmt: skip
-
-
-def bind_environment(cfg: TrainConfig, env: Any) -> tuple[TrainConfig, envs.Environment | None]:
-    """``(cfg, environment)`` of a run handed ``env`` beside ``cfg``. ``None``: ``cfg``'s own
-    (made later); a name or factory string becomes ``cfg.env`` (made later); an object is made
-    and checked now, and ``cfg.env`` becomes what config.json records for it,
-    ``object/<name>`` (:func:`td3_jax.envs.object_label`)."""
-    if env is None:
-        return cfg, None
-    if isinstance(env, str):
-        return dataclasses.replace(cfg, env=env), None
-    made = make_env(cfg, env=env)
-    return dataclasses.replace(cfg, env=envs.object_label(made)), made
-
-
-def make_spec(
-    cfg: TrainConfig,
-    env: Any = None,
-    axis_name: str | None = None,
-    env_groups: int = 1,
-    members: int = 1,
-) -> TrainSpec:
-    """The static spec of ``cfg`` (the environment is made for ``members`` members if not
-    given; ``env`` may also be an object of your own or a factory string: :func:`make_env`).
-
-    ``env_groups``: environments are reset within groups of this many contiguous environments
-    (with the batch split over D devices, D keeps every reset on its device); with replay
-    slices that the groups divide, the slices are the groups. Results do not depend on it.
-    """
-    env = make_env(cfg, members, env)
-    shards = cfg.replay_shards
-    return TrainSpec(
-        env=env,
-        agent=make_agent_spec(cfg, env),
-        num_envs=cfg.num_envs,
-        batch_size=cfg.batch_size,
-        replay_capacity=cfg.replay_capacity,
-        replay_shards=shards,
-        n_step=cfg.n_step,
-        steps_per_iter=cfg.steps_per_iter,
-        updates_per_iter=cfg.updates_per_iter,
-        iters_per_chunk=cfg.iters_per_chunk,
-        warmup_steps=cfg.warmup_steps,
-        eval_envs=cfg.eval_envs,
-        normalize_obs=cfg.normalize_obs,
-        exploration=cfg.exploration,
-        per_env_noise=cfg.per_env_noise,
-        reset_groups=shards if shards % env_groups == 0 else env_groups,
-        axis_name=axis_name,
-    )
-
-
-def hyperparams(cfg: TrainConfig) -> Hyperparams:
-    """The traced float settings of ``cfg`` (float32 scalars)."""
-    ou = cfg.ou_params()
-    f32 = lambda x: jnp.asarray(x, jnp.float32)
-    return Hyperparams(
-        agent=ac.hyperparams(cfg.agent_config(), **cfg.agent_settings()),
-        expl_noise=f32(cfg.expl_noise),
-        ou=jax.tree.map(f32, ou),
-        expl_noise_min=f32(cfg.expl_noise_min or 0.0),
-        expl_noise_max=f32(cfg.expl_noise_max or 0.0),
-    )
 
 
 def key_for_seed(seed: int) -> PRNGKey:
@@ -631,75 +536,23 @@ def chunk_and_evaluate(
 
 
 def make_train(
-    cfg: TrainConfig, env: Any = None, axis_name: str | None = None
+    spec: TrainSpec, hp: Hyperparams, num_chunks: int
 ) -> Callable[[PRNGKey], tuple[TrainState, Metrics]]:
-    """The whole run as one pure function ``train(key) -> (final_state, metrics)``.
+    """The whole run as one pure function ``train(key) -> (final_state, metrics)``:
+    :func:`init`, then ``num_chunks`` times :func:`chunk_and_evaluate`.
 
-    ``metrics`` has a leading axis of ``cfg.num_chunks`` (one entry per evaluation) and holds
-    the chunk metrics plus ``eval_returns [num_chunks, eval_envs]``. ``jax.vmap(train)(keys)``
-    trains one independent agent per key in one program (the purejaxrl shape)::
-
-        train = jax.jit(jax.vmap(make_train(TrainConfig(...))))
-        states, metrics = train(jax.random.split(jax.random.PRNGKey(0), 8))
-
-    ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
-    ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
-    resumed. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
-    keeps the reset and warm-up branches as real branches. ``env``: the environment instead
-    of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`).
+    ``metrics`` has a leading axis of ``num_chunks`` (one entry per evaluation) and holds the
+    chunk metrics plus ``eval_returns [num_chunks, eval_envs]``; ``jax.vmap(train)(keys)``
+    trains one independent agent per key in one program (with ``spec.axis_name`` the vmap's
+    axis name, the reset and warm-up branches stay real branches). From a config:
+    :func:`td3_jax.build.make_train`.
     """
-    return functools.partial(_train, make_spec(cfg, env, axis_name), hyperparams(cfg),
-                             cfg.num_chunks)  # fmt: skip
+    return functools.partial(_train, spec, hp, num_chunks)
 
 
 def _train(spec: TrainSpec, hp: Hyperparams, num_chunks: int, key: PRNGKey):
     step = lambda s, _: chunk_and_evaluate(spec, hp, s)
     return jax.lax.scan(step, init(spec, key), None, length=num_chunks)
-
-
-class Trainer(NamedTuple):
-    """The steps of one configuration with its spec and hyperparameters bound (an adapter for
-    library users and tests; the functions above are the program).
-
-    Attributes:
-      init: ``init(key) -> TrainState``.
-      chunk: ``chunk(state) -> (state, metrics)``: ``config.iters_per_chunk`` iterations.
-      evaluate: ``evaluate(state, key) -> returns[eval_envs]``.
-      sample: ``sample(buffer, key) -> Transition [batch_size, ...]``: one training batch as
-        the updates draw it (n-step folded; observations not yet normalised).
-    """
-
-    config: TrainConfig
-    spec: TrainSpec
-    hyperparams: Hyperparams
-    env: envs.Environment
-    agent: Agent
-    init: Callable[[PRNGKey], TrainState]
-    chunk: Callable[[TrainState], tuple[TrainState, Metrics]]
-    evaluate: Callable[[TrainState, PRNGKey], jax.Array]
-    sample: Callable[[replay.ReplayBuffer, PRNGKey], Transition]
-
-
-def make_trainer(
-    cfg: TrainConfig,
-    env: Any = None,
-    axis_name: str | None = None,
-    env_groups: int = 1,
-) -> Trainer:
-    """:class:`Trainer` of ``cfg``: the module's functions with ``spec`` and ``hp`` bound."""
-    spec = make_spec(cfg, env, axis_name, env_groups)
-    hp = hyperparams(cfg)
-    return Trainer(
-        config=cfg,
-        spec=spec,
-        hyperparams=hp,
-        env=spec.env,
-        agent=ac.actor_critic(spec.agent, hp.agent, cfg.agent_config(), axis_name),
-        init=functools.partial(init, spec),
-        chunk=functools.partial(chunk, spec, hp),
-        evaluate=functools.partial(evaluate, spec),
-        sample=functools.partial(sample_batch, spec, hp),
-    )
 
 
 __all__ = [
@@ -708,19 +561,15 @@ __all__ = [
     "Recording",
     "TrainSpec",
     "TrainState",
-    "Trainer",
     "chunk",
     "chunk_and_evaluate",
     "collect",
     "collect_step",
     "evaluate",
     "evaluate_recorded",
-    "hyperparams",
     "init",
     "key_for_seed",
     "learn",
-    "make_spec",
     "make_train",
-    "make_trainer",
     "scheduled_evaluate",
 ]

@@ -19,6 +19,7 @@ import pytest
 
 from td3_jax import actor_critic as ac
 from td3_jax import cli, losses
+from td3_jax.build import agent_options, agent_settings
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.presets import preset
 from td3_jax.types import Transition
@@ -429,8 +430,8 @@ def test_impossible_float_options_are_refused():
 
 def test_defaults_leave_every_option_off():
     cfg = TrainConfig()
-    assert cfg.agent_options() == ac.AgentOptions()
-    s = cfg.agent_settings()
+    assert agent_options(cfg) == ac.AgentOptions()
+    s = agent_settings(cfg)
     assert s["weight_decay"] == 0.0 and s["max_grad_norm"] is None and not cfg.per_env_noise
 
 
@@ -446,7 +447,7 @@ def test_config_maps_to_agent_options():
         actor_hidden_sizes=(512, 256, 128),
         critic_hidden_sizes=(1024, 512, 256),
     )
-    options = cfg.agent_options()
+    options = agent_options(cfg)
     assert options == ac.AgentOptions(
         num_atoms=51,
         actor_hidden_sizes=(512, 256, 128),
@@ -461,22 +462,22 @@ def test_config_maps_to_agent_options():
     )
     # 20k steps of 16 envs: 1250 iterations, learning from iteration 125 (2000 warm-up steps).
     assert cfg.total_updates == (1250 - 125 + 1) * 8
-    assert dataclasses.replace(cfg, actor_q="mean").agent_options().actor_q == "mean"
-    assert TrainConfig(actor_q="auto").agent_options().actor_q == "first"
+    assert agent_options(dataclasses.replace(cfg, actor_q="mean")).actor_q == "mean"
+    assert agent_options(TrainConfig(actor_q="auto")).actor_q == "first"
     bounded = TrainConfig(max_weight_norm=2.0, critic_feature_norm=True)
-    assert bounded.agent_options().bound_weights and bounded.agent_options().critic_feature_norm
-    assert bounded.agent_settings()["max_weight_norm"] == 2.0
-    assert not TrainConfig().agent_options().bound_weights
+    assert agent_options(bounded).bound_weights and agent_options(bounded).critic_feature_norm
+    assert agent_settings(bounded)["max_weight_norm"] == 2.0
+    assert not agent_options(TrainConfig()).bound_weights
     fasttd3 = TrainConfig(target_update="every_update", c51_target_head="projected")
-    assert fasttd3.agent_options().target_update == "every_update"
-    assert fasttd3.agent_options().c51_target_head == "projected"
+    assert agent_options(fasttd3).target_update == "every_update"
+    assert agent_options(fasttd3).c51_target_head == "projected"
 
 
 @pytest.mark.parametrize("name", ["t1", "g1", "go1"])
 def test_presets_that_follow_fasttd3_use_its_target_rules(name):
-    options = preset(name).agent_options()
+    options = agent_options(preset(name))
     assert (options.target_update, options.c51_target_head) == ("every_update", "projected")
-    paper = preset("td3-classic").agent_options()
+    paper = agent_options(preset("td3-classic"))
     assert (paper.target_update, paper.c51_target_head) == ("with_actor", "unprojected")
 
 

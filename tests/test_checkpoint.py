@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from td3_jax.build import make_trainer
 from td3_jax.checkpoint import (
     Checkpointer,
     CheckpointError,
@@ -29,7 +30,7 @@ from td3_jax.checkpoint import (
 )
 from td3_jax.config import TrainConfig
 from td3_jax.runtime import quiet_library_logs
-from td3_jax.training import TrainState, make_trainer
+from td3_jax.training import TrainState
 
 CFG = TrainConfig(
     num_envs=2,

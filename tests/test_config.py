@@ -11,6 +11,7 @@ import dataclasses
 
 import pytest
 
+from td3_jax.build import agent_config, ou_params
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.presets import ENV_PRESETS, PRESETS, device_defaults, env_preset, preset
 from td3_jax.td3 import DDPGConfig, TD3Config
@@ -169,8 +170,8 @@ def test_replay_capacity_follows_the_run_up_to_buffer_size():
 def test_agent_config_td3_defaults():
     # TrainConfig's default networks are the pendulum preset's 256-256; hidden_sizes=None
     # leaves the algorithm's own default (TD3: the paper's 400-300).
-    assert tuple(TrainConfig(algo="td3").agent_config().hidden_sizes) == (256, 256)
-    agent = TrainConfig(algo="td3", hidden_sizes=None).agent_config()
+    assert tuple(agent_config(TrainConfig(algo="td3")).hidden_sizes) == (256, 256)
+    agent = agent_config(TrainConfig(algo="td3", hidden_sizes=None))
     assert isinstance(agent, TD3Config)
     assert tuple(agent.hidden_sizes) == (400, 300)
     assert agent.tau == pytest.approx(0.005)
@@ -183,7 +184,7 @@ def test_agent_config_td3_defaults():
 
 
 def test_agent_config_ddpg_defaults():
-    agent = TrainConfig(algo="ddpg").agent_config()
+    agent = agent_config(TrainConfig(algo="ddpg"))
     assert isinstance(agent, DDPGConfig)
     assert tuple(agent.hidden_sizes) == (256, 256)
     assert agent.actor_lr == pytest.approx(1e-4)
@@ -205,7 +206,7 @@ def test_agent_config_uses_given_values(algo, cls):
         noise_clip=0.7,
         policy_freq=5,
     )
-    agent = cfg.agent_config()
+    agent = agent_config(cfg)
     assert isinstance(agent, cls)
     assert tuple(agent.hidden_sizes) == (32, 8, 4)
     assert agent.actor_lr == pytest.approx(3e-4)
@@ -220,12 +221,12 @@ def test_agent_config_uses_given_values(algo, cls):
 
 def test_agent_config_mixes_given_and_default_values():
     # Only the learning rate given: DDPG keeps its own hidden sizes and tau.
-    agent = TrainConfig(algo="ddpg", actor_lr=5e-4).agent_config()
+    agent = agent_config(TrainConfig(algo="ddpg", actor_lr=5e-4))
     assert agent.actor_lr == pytest.approx(5e-4)
     assert tuple(agent.hidden_sizes) == (256, 256)
     assert agent.tau == pytest.approx(1e-2)
     # Only tau given: TD3 keeps (400, 300) and its actor learning rate.
-    agent = TrainConfig(algo="td3", tau=0.05, hidden_sizes=None).agent_config()
+    agent = agent_config(TrainConfig(algo="td3", tau=0.05, hidden_sizes=None))
     assert agent.tau == pytest.approx(0.05)
     assert tuple(agent.hidden_sizes) == (400, 300)
     assert agent.actor_lr == pytest.approx(1e-3)
@@ -233,7 +234,7 @@ def test_agent_config_mixes_given_and_default_values():
 
 def test_ou_params_follow_the_config():
     cfg = TrainConfig(ou_theta=0.2, ou_sigma=0.4, ou_min_sigma=0.1, ou_decay_period=1234)
-    params = cfg.ou_params()
+    params = ou_params(cfg)
     assert params.theta == pytest.approx(0.2)
     assert params.max_sigma == pytest.approx(0.4)
     assert params.min_sigma == pytest.approx(0.1)

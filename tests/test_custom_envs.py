@@ -19,10 +19,11 @@ import pytest
 from test_cli import assert_one_line_error, main, read_records
 
 from td3_jax import envs, errors
+from td3_jax.build import make_spec, make_train
 from td3_jax.config import TrainConfig
 from td3_jax.envs import FunctionalEnv
 from td3_jax.run import train
-from td3_jax.training import key_for_seed, make_spec, make_train
+from td3_jax.training import key_for_seed
 
 REPO = Path(__file__).parents[1]
 TINY = dict(num_envs=4, total_steps=64, eval_every=32, warmup_steps=16, batch_size=16,

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from td3_jax import training
+from td3_jax import build, training
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig
 
@@ -35,12 +35,12 @@ CFG = TrainConfig(
 
 @pytest.fixture(scope="module")
 def spec():
-    return training.make_spec(CFG)
+    return build.make_spec(CFG)
 
 
 @pytest.fixture(scope="module")
 def hp():
-    return training.hyperparams(CFG)
+    return build.hyperparams(CFG)
 
 
 @pytest.fixture(scope="module")
@@ -67,9 +67,9 @@ def test_initial_stds_are_uniform_per_environment(spec, hp, fresh):
 
 
 def test_without_the_range_every_environment_gets_expl_noise(hp, fresh):
-    spec = training.make_spec(dataclasses.replace(CFG, expl_noise_min=None, expl_noise_max=None))
+    spec = build.make_spec(dataclasses.replace(CFG, expl_noise_min=None, expl_noise_max=None))
     assert not spec.per_env_noise
-    plain_hp = training.hyperparams(dataclasses.replace(CFG, expl_noise=0.3))
+    plain_hp = build.hyperparams(dataclasses.replace(CFG, expl_noise=0.3))
     stds = training.exploration_std(spec, plain_hp, fresh.expl_draw)
     np.testing.assert_array_equal(stds, np.full(CFG.num_envs, 0.3, np.float32))
     ended = jnp.ones(CFG.num_envs, bool)

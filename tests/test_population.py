@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 
 from td3_jax import stats
+from td3_jax.build import make_population, make_train, members
 from td3_jax.cli import main as cli_main
 from td3_jax.config import ConfigError, TrainConfig
-from td3_jax.population import members
 from td3_jax.run import train
-from td3_jax.training import make_train
 
 TINY = TrainConfig(
     num_envs=4,
@@ -138,8 +137,6 @@ def test_bootstrap_ci_covers_the_mean_and_narrows_with_more_seeds():
 def test_population_keeps_reset_and_warmup_branches():
     """Under the seed vmap the batch-level conditions are reduced over members and stay conds
     (and loops)."""
-    from td3_jax.population import make_population
-
     cfg = dataclasses.replace(TINY, seeds=2)
     program = make_population(cfg, members(cfg))
     jaxpr = str(jax.make_jaxpr(program.chunk)(program.hyperparams, program.abstract_state, 4))

@@ -8,7 +8,7 @@ import os
 
 import jax
 
-from td3_jax import program_cache, training
+from td3_jax import build, program_cache
 from td3_jax.config import TrainConfig
 from td3_jax.run import train
 from td3_jax.sharding import make_mesh
@@ -100,7 +100,7 @@ def test_a_stored_run_traces_nothing_and_matches_a_traced_one(tmp_path, monkeypa
     traced = train(TINY, tmp_path / "b", progress=False)  # stored nowhere, jitted as usual
     assert _numbers(first) == _numbers(traced)
 
-    monkeypatch.setattr(training, "make_env", _refuse)
+    monkeypatch.setattr(build, "make_env", _refuse)
     again = train(TINY, tmp_path / "c", progress=False, program_dir=programs)
     assert _numbers(again) == _numbers(first)
 
@@ -117,7 +117,7 @@ def test_a_resume_takes_the_stored_programs(tmp_path, monkeypatch):
     programs = tmp_path / "programs"
     whole = train(TINY, tmp_path / "whole", progress=False, program_dir=programs)
     train(TINY, tmp_path / "run", progress=False, program_dir=programs, stop_after_chunks=1)
-    monkeypatch.setattr(training, "make_env", _refuse)
+    monkeypatch.setattr(build, "make_env", _refuse)
     rest = train(TINY, tmp_path / "run", progress=False, program_dir=programs, resume=True)
     assert _numbers(rest) == _numbers(whole)[-len(rest) :] and len(rest) == 2
 
@@ -129,7 +129,7 @@ def test_a_resume_that_traces_stores_what_a_fresh_run_needs(tmp_path, monkeypatc
     train(TINY, tmp_path / "run", progress=False, stop_after_chunks=1)
     programs = tmp_path / "programs"
     train(TINY, tmp_path / "run", progress=False, program_dir=programs, resume=True)
-    monkeypatch.setattr(training, "make_env", _refuse)
+    monkeypatch.setattr(build, "make_env", _refuse)
     fresh = train(TINY, tmp_path / "fresh", progress=False, program_dir=programs)
     assert _numbers(fresh) == _numbers(expected)
 

@@ -35,12 +35,14 @@ def library_section() -> str:
 
 
 def test_the_readme_library_section_uses_public_names_only():
-    """``tj.X``, ``tj.M.X`` and ``training.X`` in the section are in their module's __all__."""
+    """``tj.X``, ``tj.M.X``, ``training.X`` and ``build.X`` in the section are in their module's
+    __all__."""
     code = "\n".join(re.findall(r"```python\n(.*?)```", library_section(), re.S))
-    used = set(re.findall(r"\b(tj|training)\.([A-Za-z_]\w*)(?:\.([A-Za-z_]\w*))?", code))
+    used = set(re.findall(r"\b(tj|training|build)\.([A-Za-z_]\w*)(?:\.([A-Za-z_]\w*))?", code))
     assert len(used) > 10  # the section's two examples were read
+    assert {("build", "make_spec", ""), ("build", "hyperparams", "")} <= used
     for prefix, first, second in used:
-        module = td3_jax if prefix == "tj" else importlib.import_module("td3_jax.training")
+        module = td3_jax if prefix == "tj" else importlib.import_module(f"td3_jax.{prefix}")
         assert first in module.__all__, f"{prefix}.{first} is not public"
         inner = getattr(module, first)
         if second and inspect_is_module(inner):

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 from td3_jax import cli, render, rundir
+from td3_jax.build import make_population, members
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig
-from td3_jax.population import make_population, members
 
 EPISODE = 30  # time limit of the tiny runs
 WIDTH, HEIGHT = 64, 48

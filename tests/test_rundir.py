@@ -26,8 +26,9 @@ import pytest
 
 from td3_jax import cli, rundir
 from td3_jax import run as run_module
+from td3_jax.build import make_population, members
 from td3_jax.config import ConfigError, TrainConfig
-from td3_jax.population import Member, make_population, members
+from td3_jax.population import Member
 
 # tests/test_cli.py's tiny run, with a ring that holds the extended run too.
 TINY_FLAGS = [

@@ -76,7 +76,7 @@ def four_device_runs(tmp_path_factory):
         import dataclasses, json, jax
         from jax.sharding import PartitionSpec
         from td3_jax.config import TrainConfig
-        from td3_jax.population import make_population, members
+        from td3_jax.build import make_population, members
         from td3_jax.run import train
         from td3_jax.sharding import make_mesh, state_shardings
         cfg = TrainConfig(**{TINY!r})
@@ -224,9 +224,9 @@ def test_replay_slices_off_whole_devices_are_warned_about():
     from td3_jax.sharding import replay_layout_warning
 
     cfg = TrainConfig(**TINY)
-    assert replay_layout_warning(cfg, 1) is None
-    assert replay_layout_warning(TrainConfig(**{**TINY, "replay_shards": 8}), 4) is None
-    message = replay_layout_warning(cfg, 4)
+    assert replay_layout_warning(cfg.replay_shards, 1) is None
+    assert replay_layout_warning(8, 4) is None
+    message = replay_layout_warning(cfg.replay_shards, 4)
     assert "--replay-shards 1 is not a multiple of the 4 devices" in message
     assert "--replay-shards 4" in message
-    assert replay_layout_warning(TrainConfig(**{**TINY, "replay_shards": 2}), 4) is not None
+    assert replay_layout_warning(2, 4) is not None

@@ -95,12 +95,12 @@ def on_event(name, *_, **__):
     counts["hits"] += name == "/jax/compilation_cache/cache_hits"
 jax.monitoring.register_event_duration_secs_listener(on_duration)
 jax.monitoring.register_event_listener(on_event)
-from td3_jax import training
-made = training.make_env
+from td3_jax import build
+made = build.make_env
 def counted_make_env(*args, **kwargs):
     counts["envs_made"] = counts.get("envs_made", 0) + 1
     return made(*args, **kwargs)
-training.make_env = counted_make_env
+build.make_env = counted_make_env
 from td3_jax.cli import main
 try:
     main(sys.argv[1:])

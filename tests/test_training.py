@@ -23,13 +23,12 @@ import numpy as np
 import pytest
 
 from td3_jax import program_cache
+from td3_jax.build import make_population, make_trainer, members
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig, validate
 from td3_jax.logger import read_metrics
 from td3_jax.normalization import RunningStats
-from td3_jax.population import make_population, members
 from td3_jax.run import NonFiniteError, restore_state, train
-from td3_jax.training import make_trainer
 
 NUM_ENVS = 4
 EPISODE = 16  # time limit of the tiny runs (Pendulum's own is 200)

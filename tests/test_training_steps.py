@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from td3_jax import actor_critic, envs, training
+from td3_jax import actor_critic, build, envs, training
 from td3_jax.cli import main as cli_main
 from td3_jax.config import TrainConfig
 from td3_jax.logger import read_metrics
@@ -37,12 +37,12 @@ G, M, L, DT, MAX_SPEED, MAX_TORQUE = 10.0, 1.0, 1.0, 0.05, 8.0, 2.0  # gymnax Pe
 
 @pytest.fixture(scope="module")
 def spec():
-    return training.make_spec(TINY)
+    return build.make_spec(TINY)
 
 
 @pytest.fixture(scope="module")
 def hp():
-    return training.hyperparams(TINY)
+    return build.hyperparams(TINY)
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +147,7 @@ def test_evaluation_returns_each_first_episode_whether_or_not_it_stops_early(lim
     """The evaluation stops stepping once all episodes ended; the returns equal the lifetimes
     (cut at the time limit) and the recorded evaluation's, which steps to the limit."""
     env = lifetime_env(limit)
-    spec = training.make_spec(dataclasses.replace(TINY, eval_envs=16), env)
+    spec = build.make_spec(dataclasses.replace(TINY, eval_envs=16), env)
     state = jax.jit(training.init, static_argnums=0)(spec, jax.random.PRNGKey(0))
     key = jax.random.PRNGKey(5)
     returns = np.asarray(jax.jit(training.evaluate, static_argnums=0)(spec, state, key))
@@ -170,7 +170,7 @@ def test_the_command_and_make_train_give_the_same_evaluations(tmp_path):
     args = [part for k, v in flags.items() for part in (f"--{k}", *v.split())]
     cli_main(["train", *args, "--out", str(out), "--quiet", "--compile-cache", "off"])
     records = read_metrics(out / "metrics.jsonl")
-    _, metrics = jax.jit(training.make_train(cfg))(training.key_for_seed(4))
+    _, metrics = jax.jit(build.make_train(cfg))(training.key_for_seed(4))
     library = np.asarray(metrics["eval_returns"]).mean(axis=1)
     assert [r["env_steps"] for r in records] == [12, 24, 36]
     np.testing.assert_allclose([r["eval_return_mean"] for r in records], library, rtol=1e-4)
