@@ -341,6 +341,7 @@ def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]])
         "expl_noise_min": not cfg.per_env_noise,
         "expl_noise_max": not cfg.per_env_noise,
         "max_grad_norm": cfg.max_grad_norm is None,
+        "max_weight_norm": cfg.max_weight_norm is None,
         "v_min": cfg.critic != "distributional",
         "v_max": cfg.critic != "distributional",
         "ou_sigma": cfg.exploration != "ou",

@@ -10,6 +10,7 @@ import contextlib
 import dataclasses
 import errno
 import functools
+import importlib
 import io
 import os
 import signal
@@ -127,6 +128,8 @@ class SweepCommand(TrainCommand):
     """AdamW weight decays to try."""
     sweep_max_grad_norm: tuple[float, ...] = ()
     """Gradient-norm bounds to try (needs --max-grad-norm)."""
+    sweep_max_weight_norm: tuple[float, ...] = ()
+    """Weight-norm bounds to try (needs --max-weight-norm)."""
     sweep_v_min: tuple[float, ...] = ()
     """Lowest values of the distributional critic's support to try."""
     sweep_v_max: tuple[float, ...] = ()
@@ -744,6 +747,14 @@ def _without_warp_import_notes() -> Iterator[None]:
         sys.stdout.write("".join(kept))
 
 
+def _import_mjx() -> None:
+    """Imports MuJoCo MJX now (it prints its notes once, when first imported), if installed."""
+    try:
+        importlib.import_module("mujoco.mjx")
+    except ImportError:  # no MuJoCo: the environments that need it say so when made
+        pass
+
+
 def _run_reporting_errors(command, args: list[str]) -> None:
     """Runs a subcommand; a known failure becomes one message and its exit code
     (:mod:`td3_jax.errors`: 2 bad input, 3 a run stopped by what it computed; 130 interrupted)."""
@@ -751,7 +762,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
-        from td3_jax import envs  # noqa: F401  (imported here for the notes only)
+        _import_mjx()
     try:
         command(args)
     except Td3JaxError as err:

@@ -22,7 +22,9 @@ class TrainConfig:
     """
 
     env: str = "gymnax/Pendulum-v1"
-    """Environment as SOURCE/NAME: brax/ant, playground/CheetahRun, gymnax/Pendulum-v1, ..."""
+    """Environment as SOURCE/NAME (brax/ant, playground/CheetahRun, gymnax/Pendulum-v1, ...;
+    `td3-jax envs` lists them), or your own as module.path:function (a function returning the
+    environment; see the README's "Your own environment")."""
     algo: Literal["td3", "ddpg"] = "td3"
     """Algorithm."""
     seed: int = 0
@@ -269,7 +271,7 @@ WANDB_SETTINGS = ("wandb", "wandb_project", "wandb_entity", "wandb_name", "wandb
 #: inside one compiled program, :func:`td3_jax.build.members`).
 SWEEPABLE = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise",
              "noise_clip", "ou_sigma", "ou_theta", "expl_noise_min", "expl_noise_max",
-             "weight_decay", "max_grad_norm", "v_min", "v_max")  # fmt: skip
+             "weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max")  # fmt: skip
 
 
 def flag(name: str) -> str:
@@ -350,6 +352,11 @@ def _check_wandb(cfg: TrainConfig) -> None:
         raise ConfigError(f"unknown --wandb-mode {cfg.wandb_mode!r}; choose online or offline")
     if cfg.wandb and not cfg.wandb_project:
         raise ConfigError("--wandb-project must name a W&B project")
+    given = [flag(n) for n in ("wandb_entity", "wandb_name", "wandb_mode") if getattr(cfg, n)]
+    given += [flag("wandb_project")] if cfg.wandb_project != "td3-jax" else []
+    if given and not cfg.wandb:
+        raise ConfigError(f"{', '.join(given)} given without --wandb (add --wandb to log to "
+                          "Weights & Biases)")  # fmt: skip
 
 
 def _check_options(cfg: TrainConfig) -> None:

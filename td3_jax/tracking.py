@@ -66,7 +66,11 @@ def mode(cfg: TrainConfig) -> str:
     """The W&B mode of a run: ``--wandb-mode``, else ``$WANDB_MODE``, else online (with W&B's
     own aliases: ``dryrun`` is offline, ``run`` online)."""
     chosen = cfg.wandb_mode or os.environ.get("WANDB_MODE") or "online"
-    return {"dryrun": "offline", "run": "online"}.get(chosen, chosen)
+    chosen = {"dryrun": "offline", "run": "online"}.get(chosen, chosen)
+    if chosen not in ("online", "offline", "disabled", "shared"):
+        raise WandbError(f"$WANDB_MODE is {chosen!r}; W&B's modes are online, offline, disabled "
+                         "and shared (or give --wandb-mode online|offline)")  # fmt: skip
+    return chosen
 
 
 def check_ready(cfg: TrainConfig) -> None:

@@ -326,6 +326,21 @@ def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
     assert code == 2 and "--menagerie /no/such/dir is not a directory" in err
 
 
+@pytest.mark.processes
+def test_no_warp_notes_reach_stdout_where_warp_is_missing():
+    """In a process where warp cannot be imported, MJX prints two notes on import: the CLI's
+    output (`td3-jax envs`, which loads every source) has none of them."""
+    code = (
+        "import sys; sys.modules['warp'] = None; sys.modules['mujoco_warp'] = None\n"
+        "from td3_jax import cli\n"
+        "cli.main(['envs'])\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "gymnax/Pendulum-v1" in proc.stdout and "Failed to import" not in proc.stdout
+
+
 # --------------------------------------------------------------------------------------------
 # a finished tiny run
 # --------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from td3_jax import stats
-from td3_jax.build import make_population, make_train, members
+from td3_jax.build import make_population, make_train, member_hyperparams, members
 from td3_jax.cli import main as cli_main
 from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.run import train
@@ -83,6 +83,20 @@ def test_a_swept_value_trains_like_a_run_configured_with_it(tmp_path):
                       progress=False)  # fmt: skip
         for key in COMPARED:
             assert _close(records[-1]["per_member"][index][key], alone[-1][key]), key
+
+
+def test_weight_norm_bounds_are_swept_as_traced_values():
+    """Two bounds become two members whose hyperparameters carry them; without
+    --max-weight-norm (no bounding) sweeping them would change nothing and is refused."""
+    bounded = dataclasses.replace(TINY, max_weight_norm=5.0)
+    population = members(bounded, {"max_weight_norm": [0.5, 2.0]})
+    assert [dict(m.overrides) for m in population] == [
+        {"max_weight_norm": 0.5}, {"max_weight_norm": 2.0}
+    ]  # fmt: skip
+    stacked = member_hyperparams(bounded, population)
+    np.testing.assert_allclose(stacked.agent.max_weight_norm, [0.5, 2.0])
+    with pytest.raises(ConfigError, match="max_weight_norm"):
+        members(TINY, {"max_weight_norm": [0.5, 2.0]})
 
 
 def test_sweep_of_an_unknown_setting_is_refused():

@@ -229,6 +229,10 @@ def test_mode_is_the_flag_then_wandb_mode_then_online(monkeypatch):
     cfg = TrainConfig(wandb=True, wandb_mode="offline")
     assert tracking.init_arguments(cfg, Path("runs/x"), "abc")["mode"] == "offline"
     assert "mode" not in tracking.init_arguments(TrainConfig(wandb=True), Path("r"), "abc")
+    monkeypatch.setenv("WANDB_MODE", "bogus")  # one line (exit 2), not W&B's traceback
+    with pytest.raises(tracking.WandbError, match="WANDB_MODE is 'bogus'"):
+        tracking.check_ready(TrainConfig(wandb=True))
+    assert tracking.mode(TrainConfig(wandb=True, wandb_mode="offline")) == "offline"
 
 
 def test_nested_numbers_are_logged_under_slash_joined_keys():
@@ -255,6 +259,10 @@ def test_wandb_settings_may_change_on_resume_and_are_checked():
         validate(TrainConfig(wandb=True, wandb_mode="sometimes"))
     with pytest.raises(ConfigError, match="--wandb-project"):
         validate(TrainConfig(wandb=True, wandb_project=""))
+    # W&B settings without --wandb would do nothing: said, not ignored.
+    with pytest.raises(ConfigError, match="--wandb-mode, --wandb-project given without --wandb"):
+        validate(TrainConfig(wandb_mode="offline", wandb_project="p"))
+    assert validate(TrainConfig(wandb=True, wandb_mode="offline", wandb_name="n")).wandb
 
 
 # --------------------------------------------------------------------------------------------
