@@ -31,9 +31,11 @@ from td3_jax.rundir import (  # (re-exported: run.py was their home)
     CHECKPOINTS,
     CONFIG_FILE,
     MEMBERS_FILE,
+    check_environment_unchanged,
     check_fresh,
     check_resume,
     checkpoint_steps,
+    environment_record,
     load_config,
     load_members,
     open_run_dir,
@@ -226,6 +228,8 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
     if run.writer:
         info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
                         at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
+        if not resume:
+            info.update(environment_record(run.cfg))
         save_config(run.cfg, run.population, run.out_dir, info)
         if run.tracker is not None:
             run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
@@ -246,6 +250,7 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
         print(f"td3-jax: warning: {layout}", file=sys.stderr)
     if resume:
         population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
+        check_environment_unchanged(out_dir, cfg, env)
     else:
         check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}

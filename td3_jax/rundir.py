@@ -26,9 +26,10 @@ from typing import Any
 import jax
 import numpy as np
 
-from td3_jax.build import agent_config, make_population, members, ou_params
+from td3_jax.build import agent_config, make_env, make_population, members, ou_params
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
+from td3_jax.envs import custom
 from td3_jax.logger import write_atomically
 from td3_jax.population import Member, Population
 from td3_jax.sharding import make_mesh, state_shardings
@@ -462,11 +463,32 @@ def restore_state(population: Population, out_dir: Path, keep: int = 3, sharding
 
 def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member], Population]:
     """``(config, members, program)`` of a run directory, the config with ``changes`` (e.g.
-    ``eval_envs``) applied; nothing is compiled or restored yet."""
+    ``eval_envs``) applied; nothing is compiled or restored yet. A factory's environment must
+    be the one the run trained on (:func:`check_environment_unchanged`)."""
     cfg = dataclasses.replace(load_config(out_dir), **changes)
     cfg = _physics_here(cfg)
     population = load_members(out_dir, cfg)
-    return cfg, population, make_population(cfg, population)
+    program = make_population(cfg, population)
+    check_environment_unchanged(out_dir, cfg, program.spec.env)
+    return cfg, population, program
+
+
+def environment_record(cfg: TrainConfig, env: Any = None) -> dict:
+    """config.json's ``environment`` entry for a run of a factory (``module.path:function``):
+    its sizes, bounds and time limit (:func:`td3_jax.envs.custom.signature`), so that a later
+    ``--resume``, ``eval``, ``render`` or ``export`` notices a changed factory; ``{}`` for
+    environments known by name. ``env``: the environment when already made."""
+    if ":" not in cfg.env:
+        return {}
+    return {"environment": custom.signature(env or make_env(cfg))}
+
+
+def check_environment_unchanged(out_dir: Path, cfg: TrainConfig, env: Any = None) -> None:
+    """Raises :class:`~td3_jax.errors.CustomEnvironmentError` when a factory run's environment,
+    made now, differs from what its config.json recorded (nothing to check for others)."""
+    if ":" in cfg.env:
+        recorded = load_run_info(out_dir).get("environment")
+        custom.check_unchanged(cfg.env, recorded, env or make_env(cfg))
 
 
 def _physics_here(cfg: TrainConfig) -> TrainConfig:

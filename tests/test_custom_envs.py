@@ -300,6 +300,43 @@ def test_the_cli_sweeps_a_factory_over_seeds_and_finds_it_again(tmp_path, monkey
     assert_one_line_error(code, err, "no module 'examples'", "--resume, eval, render and export")
 
 
+CHANGING_FACTORY = """
+import test_custom_envs
+
+def make():
+    return test_custom_envs.counter(low=LOW, high=3.0)
+"""
+
+
+def test_a_changed_factory_is_noticed_by_resume_eval_and_export(tmp_path, monkeypatch, capsys):
+    """config.json records the factory's sizes, bounds and time limit; after the factory's
+    lower bound changes from -3 to -1, eval, export and --resume each stop with one line naming
+    the difference (export would otherwise write a policy with the new bounds)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delitem(sys.modules, "changing", raising=False)
+    (tmp_path / "changing.py").write_text(CHANGING_FACTORY.replace("LOW", "-3.0"))
+    out = tmp_path / "run"
+    args = ["train", "--env", "changing:make", *TINY_FLAGS, "--out", str(out)]
+    code, _, err = main(args, capsys)
+    assert code == 0, err
+    recorded = json.loads((out / "config.json").read_text())["environment"]
+    assert recorded == {"observation_size": 1, "critic_observation_size": None,
+                        "action_size": 3, "action_low": [-3.0] * 3, "action_high": [3.0] * 3,
+                        "episode_length": 100}  # fmt: skip
+    code, _, err = main(["eval", "--run", str(out), "--episodes", "2"], capsys)
+    assert code == 0, err  # unchanged: fine
+    (tmp_path / "changing.py").write_text(CHANGING_FACTORY.replace("LOW", "-1.0"))
+    monkeypatch.delitem(sys.modules, "changing", raising=False)
+    difference = "action_low [-3.0, -3.0, -3.0] then, [-1.0, -1.0, -1.0] now"
+    for command in (["eval", "--run", str(out)],
+                    ["export", "--run", str(out), "--format", "npz"],
+                    [*args, "--resume", "--total-steps", "384"]):  # fmt: skip
+        code, _, err = main(command, capsys)
+        assert_one_line_error(code, err, "changing:make makes another environment", difference)
+        monkeypatch.delitem(sys.modules, "changing", raising=False)
+    assert not (out / "policy.npz").exists()
+
+
 def test_td3_jax_envs_says_extras_whether_each_runs_here_and_how_to_add_your_own(capsys):
     code, stdout, _ = main(["envs"], capsys)
     rows = {line.split()[0]: line.split(maxsplit=2)[1:] for line in stdout.splitlines()

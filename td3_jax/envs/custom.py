@@ -123,6 +123,35 @@ def object_run_error(name: str) -> CustomEnvironmentError:
     )
 
 
+def signature(env: Environment) -> dict[str, Any]:
+    """What a run's policy and checkpoints depend on in ``env``, as JSON values: observation
+    and action sizes, action bounds, time limit (config.json records it for a factory run)."""
+    critic = env.critic_observation_size
+    return {
+        "observation_size": int(env.observation_size),
+        "critic_observation_size": None if critic is None else int(critic),
+        "action_size": int(env.action_size),
+        "action_low": np.asarray(env.action_low, np.float64).tolist(),
+        "action_high": np.asarray(env.action_high, np.float64).tolist(),
+        "episode_length": int(env.episode_length),
+    }
+
+
+def check_unchanged(name: str, recorded: dict[str, Any] | None, env: Environment) -> None:
+    """A :class:`CustomEnvironmentError` naming what differs when the environment ``name``
+    makes now is not the one a run recorded (:func:`signature`; nothing recorded: no check)."""
+    if not recorded:
+        return
+    now = signature(env)
+    differ = [f"{key} {recorded.get(key)} then, {now[key]} now" for key in now
+              if key in recorded and recorded[key] != now[key]]  # fmt: skip
+    if differ:
+        raise CustomEnvironmentError(
+            f"{name} makes another environment than the one this run trained on "
+            f"({'; '.join(differ)}): did the factory change? Restore it, or start a new run"
+        )
+
+
 # ---------------------------------------------------------------------------------------------
 # module.path:function
 # ---------------------------------------------------------------------------------------------
@@ -451,9 +480,11 @@ __all__ = [
     "OBJECT_PREFIX",
     "FunctionalEnv",
     "check_environment",
+    "check_unchanged",
     "from_factory",
     "from_object",
     "is_custom",
     "load_factory",
     "object_label",
+    "signature",
 ]
