@@ -239,6 +239,9 @@ def not_an_env():
 def make_env():
     return make()
 
+def the_class():
+    return FunctionalEnv
+
 NOT_CALLABLE = 3
 """
 
@@ -255,6 +258,7 @@ NOT_CALLABLE = 3
         ("my_factories_broken:make", "importing my_factories_broken raised ModuleNotFoundError"),
         ("my_factories:broken", "calling it raised RuntimeError: no robot here"),
         ("my_factories:not_an_env", "a builtins.int is not an environment"),
+        ("my_factories:the_class", "FunctionalEnv is a class: return an instance of it"),
     ],
 )
 def test_a_factory_is_found_from_the_current_directory_or_said_in_one_line(

@@ -242,6 +242,8 @@ def from_object(
     label = name or _label(obj)
     if kind is None:
         wrapped = " (a wrapper? hand over what it wraps)" if hasattr(obj, "_env") else ""
+        if isinstance(obj, type):
+            wrapped = f" ({obj.__qualname__} is a class: return an instance of it)"
         raise CustomEnvironmentError(f"{label}: a {type(obj).__module__}.{type(obj).__qualname__}"
                                      f"{wrapped} is not an environment td3-jax can use; give "
                                      f"{KINDS}")  # fmt: skip
@@ -404,8 +406,11 @@ def _check_sizes(env: Environment) -> None:
     low, high = np.asarray(env.action_low), np.asarray(env.action_high)
     for what, bound in (("action_low", low), ("action_high", high)):
         if bound.shape != (env.action_size,) or not np.all(np.isfinite(bound)):
-            raise CustomEnvironmentError(f"{env.name}: {what} must be {env.action_size} finite "
-                                         f"numbers, got {bound.tolist()}")  # fmt: skip
+            count = "a finite number"
+            if env.action_size > 1:
+                count = f"{env.action_size} finite numbers"
+            raise CustomEnvironmentError(f"{env.name}: {what} must be {count} (one per action), "
+                                         f"got {bound.tolist()}")  # fmt: skip
     if not np.all(low < high):
         raise CustomEnvironmentError(f"{env.name}: action_low {low.tolist()} must be below "
                                      f"action_high {high.tolist()} in every dimension")  # fmt: skip
