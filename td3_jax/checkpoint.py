@@ -31,7 +31,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
+
+from td3_jax.runtime import root_logging_kept
+
+with root_logging_kept():  # absl, under orbax's import, would add a handler to the root logger
+    import orbax.checkpoint as ocp
 
 from td3_jax.errors import CheckpointError, CheckpointWriteError, CorruptCheckpointError
 

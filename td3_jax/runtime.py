@@ -23,6 +23,21 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
+
+@contextlib.contextmanager
+def root_logging_kept() -> Iterator[None]:
+    """Leaves the root logger's handlers as they were around imports that configure it
+    (orbax's import reaches absl, which calls ``logging.basicConfig()``): importing td3_jax
+    must not change the user's logging."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        yield
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+
+
 __all__ = [
     "CACHE_MAX_BYTES",
     "PROGRAMS_FOLDER",
@@ -32,6 +47,7 @@ __all__ = [
     "in_background",
     "quiet_library_logs",
     "result",
+    "root_logging_kept",
     "stop_signals",
 ]
 

@@ -110,6 +110,16 @@ def test_importing_every_td3_jax_module_changes_no_process_wide_state(loaded):
     assert json.loads(_python(SNAPSHOT + COMPARE, loaded)) == {}
 
 
+def test_importing_td3_jax_first_leaves_the_root_logger_alone():
+    """Imported before anything else (orbax, under td3_jax.checkpoint, reaches absl, which
+    calls ``logging.basicConfig()``), td3_jax leaves the root logger without handlers and at
+    its level, as a fresh interpreter has it."""
+    code = ("import logging, json\nimport td3_jax.run, td3_jax.checkpoint\n"
+            "root = logging.getLogger()\n"
+            "print('CHANGES ' + json.dumps([len(root.handlers), root.level]))\n")  # fmt: skip
+    assert json.loads(_python(code)) == [0, 30]
+
+
 def test_the_comparison_sees_a_change(loaded):
     """The same check does find what an import-time change would leave."""
     code = SNAPSHOT + COMPARE.replace(
