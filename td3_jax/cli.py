@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from td3_jax import runtime
-from td3_jax.config import ConfigError, TrainConfig, as_flag, validate
+from td3_jax.config import ConfigError, TrainConfig, as_flag, idle_wandb_flags, validate
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
 USAGE = """\
@@ -465,6 +465,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     )
     command = _parse(command_type, args, prog, default=default)
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
+    idle_wandb_flags(cfg, _given_fields(args))
     sweep = _sweep_values(command) if sweeping else None
     import jax
 

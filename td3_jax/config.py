@@ -274,6 +274,16 @@ SWEEPABLE = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_n
              "weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max")  # fmt: skip
 
 
+def idle_wandb_flags(cfg: TrainConfig, given: set[str]) -> None:
+    """A :class:`ConfigError` when W&B settings were typed (``given``: the fields named on the
+    command line) for a run that does not log to W&B: they would do nothing. Settings carried
+    from config.json on ``--resume --no-wandb`` are not typed, so not refused."""
+    typed = sorted(flag(n) for n in given & set(WANDB_SETTINGS[1:]))
+    if typed and not cfg.wandb:
+        raise ConfigError(f"{', '.join(typed)} given without --wandb (add --wandb to log to "
+                          "Weights & Biases)")  # fmt: skip
+
+
 def flag(name: str) -> str:
     """The command-line flag of a config field: ``total_steps -> --total-steps``."""
     return f"--{name.replace('_', '-')}"
@@ -352,11 +362,6 @@ def _check_wandb(cfg: TrainConfig) -> None:
         raise ConfigError(f"unknown --wandb-mode {cfg.wandb_mode!r}; choose online or offline")
     if cfg.wandb and not cfg.wandb_project:
         raise ConfigError("--wandb-project must name a W&B project")
-    given = [flag(n) for n in ("wandb_entity", "wandb_name", "wandb_mode") if getattr(cfg, n)]
-    given += [flag("wandb_project")] if cfg.wandb_project != "td3-jax" else []
-    if given and not cfg.wandb:
-        raise ConfigError(f"{', '.join(given)} given without --wandb (add --wandb to log to "
-                          "Weights & Biases)")  # fmt: skip
 
 
 def _check_options(cfg: TrainConfig) -> None:

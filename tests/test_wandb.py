@@ -20,7 +20,7 @@ from test_cli import TINY_FLAGS, assert_one_line_error, main, read_records
 
 from td3_jax import run as run_module
 from td3_jax import tracking
-from td3_jax.config import ConfigError, TrainConfig, validate
+from td3_jax.config import ConfigError, TrainConfig, idle_wandb_flags, validate
 from td3_jax.rundir import check_fresh, config_changes
 
 # TINY_FLAGS with a ring of 64 rows, which a run of 64 steps and one of 128 both have: one
@@ -181,6 +181,14 @@ def test_wandb_without_the_package_is_one_line(monkeypatch, tmp_path, capsys):
     assert not out.exists()
 
 
+def test_wandb_settings_typed_without_wandb_are_one_line(monkeypatch, tmp_path, capsys):
+    _refuse_tracing(monkeypatch)
+    out = tmp_path / "run"
+    code, _, err = main(["train", *FLAGS, "--out", str(out), "--wandb-entity", "team"], capsys)
+    assert_one_line_error(code, err, "--wandb-entity given without --wandb")
+    assert not out.exists()
+
+
 def test_online_wandb_without_a_login_is_one_line(monkeypatch, no_wandb_environment, tmp_path,
                                                   capsys):  # fmt: skip
     pytest.importorskip("wandb")  # W&B's own look for credentials (none here)
@@ -259,10 +267,13 @@ def test_wandb_settings_may_change_on_resume_and_are_checked():
         validate(TrainConfig(wandb=True, wandb_mode="sometimes"))
     with pytest.raises(ConfigError, match="--wandb-project"):
         validate(TrainConfig(wandb=True, wandb_project=""))
-    # W&B settings without --wandb would do nothing: said, not ignored.
+    # W&B settings typed without --wandb would do nothing: said, not ignored; carried from
+    # config.json (a resume with --no-wandb), they are not refused.
     with pytest.raises(ConfigError, match="--wandb-mode, --wandb-project given without --wandb"):
-        validate(TrainConfig(wandb_mode="offline", wandb_project="p"))
-    assert validate(TrainConfig(wandb=True, wandb_mode="offline", wandb_name="n")).wandb
+        idle_wandb_flags(TrainConfig(), {"wandb_mode", "wandb_project", "num_envs"})
+    idle_wandb_flags(TrainConfig(wandb=True), {"wandb_mode"})
+    idle_wandb_flags(TrainConfig(wandb_mode="offline", wandb_entity="team"), {"wandb"})
+    assert validate(TrainConfig(wandb_mode="offline", wandb_entity="team")).wandb_mode
 
 
 # --------------------------------------------------------------------------------------------
