@@ -96,8 +96,9 @@ def raw_rate(task: str, num_envs: int, steps: int, root: str | None, impl: str) 
             "raw_compile_s": max(0.0, first + second - 2 * third)}  # fmt: skip
 
 
-def loop_config(task: str, num_envs: int, iters: int, root: str | None, batch: int | None,
-                impl: str = "jax"):
+def loop_config(
+    task: str, num_envs: int, iters: int, root: str | None, batch: int | None, impl: str = "jax"
+):
     """The task's preset (or its kind's) at ``num_envs`` environments, one chunk of ``iters``
     (``batch``: another batch size, for a smoke test on a CPU)."""
     name = ENV_PRESETS.get(f"playground/{task}") or robot_preset(f"playground/{task}")
@@ -149,8 +150,10 @@ def measure(task: str, num_envs: int, args, root: str | None) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    head = (f"{'task':38} {'impl':4} {'envs':>5} {'raw/s':>10} {'raw comp':>9} {'loop/s':>10} "
-            f"{'loop comp':>9}")
+    head = (
+        f"{'task':38} {'impl':4} {'envs':>5} {'raw/s':>10} {'raw comp':>9} {'loop/s':>10} "
+        f"{'loop comp':>9}"
+    )
     lines = [head]
     fmt = lambda v, spec: format(v, spec) if isinstance(v, float) else "-"
     for r in rows:

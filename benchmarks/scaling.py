@@ -202,7 +202,7 @@ def run_point(point: dict[str, Any], args: argparse.Namespace, platform: str) ->
         return {**point, "error": f"timed out after {args.point_timeout_s:.0f} s"}
     lines = [x for x in proc.stdout.splitlines() if x.startswith(RESULT_MARK)]
     if lines:
-        row = json.loads(lines[-1][len(RESULT_MARK):])
+        row = json.loads(lines[-1][len(RESULT_MARK) :])
     else:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-12:]
         row = {**point, "error": f"exit code {proc.returncode}: " + " | ".join(tail)[-1500:]}

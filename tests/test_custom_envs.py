@@ -419,7 +419,8 @@ def test_a_factory_env_on_two_devices_gives_the_one_device_numbers(tmp_path):
 def random_point_mass_return(episodes: int = 64, seed: int = 7) -> float:
     """The point mass's mean return under uniformly random actions, stepped here from its
     own reset and step (not through td3-jax), each episode to its termination or time limit."""
-    sys.path.insert(0, str(REPO))
+    if str(REPO) not in sys.path:  # (pytest runs from the repository's root: usually there)
+        sys.path.append(str(REPO))
     from examples import point_mass
 
     fenv = point_mass.make()

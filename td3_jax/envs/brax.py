@@ -29,10 +29,10 @@ def from_env(env: Any, name: str, episode_length: int | None = None) -> Environm
     Brax actions are already in ``[-1, 1]``. A pipeline environment (one with a ``sys``) keeps
     its ``MjModel`` and joint positions for rendering.
     """
-    sys = getattr(env, "sys", None)
-    mj_model = getattr(sys, "mj_model", None)
+    pipeline_sys = getattr(env, "sys", None)
+    mj_model = getattr(pipeline_sys, "mj_model", None)
     return from_mjx_style(name, env, episode_length or 1000, mj_model=mj_model,
-                          qpos_fn=pipeline_qpos if sys is not None else None)  # fmt: skip
+                          qpos_fn=pipeline_qpos if pipeline_sys is not None else None)  # fmt: skip
 
 
 def make(
