@@ -113,7 +113,7 @@ def train(
     cfg, population, changes, source = prepared
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
-               stop if stop is not None else StopToken())  # fmt: skip
+               stop if stop is not None else StopToken(), env=_made_env(source))  # fmt: skip
     try:
         if on_prepared is not None:
             on_prepared()
@@ -229,10 +229,15 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
         info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
                         at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
         if not resume:
-            info.update(environment_record(run.cfg))
+            info.update(environment_record(run.cfg, run.env))
         save_config(run.cfg, run.population, run.out_dir, info)
         if run.tracker is not None:
             run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
+
+
+def _made_env(source: program_cache.Source) -> Any:
+    """The environment of the program traced in this process (``None`` for a stored one)."""
+    return None if source.program is None else source.program.spec.env
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
@@ -250,12 +255,13 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
         print(f"td3-jax: warning: {layout}", file=sys.stderr)
     if resume:
         population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
-        check_environment_unchanged(out_dir, cfg, env)
     else:
         check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}
     source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume,
                                    env=env)  # fmt: skip
+    if resume:  # (the environment just made, before anything is compiled)
+        check_environment_unchanged(out_dir, cfg, _made_env(source))
     if source.entry is not None and writer:
         print(f"using the traced programs stored in {source.directory / source.key}")
     return cfg, population, changes, source
@@ -273,6 +279,7 @@ class _Run:
     stop_after_chunks: int | None
     time_budget_s: float | None
     stop: StopToken = dataclasses.field(default_factory=StopToken)
+    env: Any = None  # the environment, when this process made it (a stored program has none)
     checkpointer: Checkpointer | None = None
     logger: MetricsLogger | None = None
     tracker: tracking.Tracker | None = None
