@@ -22,6 +22,13 @@ with ``/.assets/`` in ``.git/info/exclude``). There::
 unpacks them into a temporary Menagerie root (plain robot folders in --menagerie work too: the
 ``MENAGERIE_ROOT`` layout ``DIR/booster_t1/...``). Results: ``$OUT/robots.jsonl`` (a line per
 measurement, written as they come) and a table at the end.
+
+Order: each physics in turn (all of the first --impl's cells before the next one's), then the
+number of environments, then the task, so a command cut short loses the slowest cells (JAX
+physics at the most environments). A line with the seconds since start is printed as each part
+begins, so a cell cut off by a time limit still says how long it ran. With Warp, the seconds its
+kernels spent compiling (``warp_compile_s``, modules compiled: ``warp_modules``; cached ones
+cost nothing here) are counted apart from the compile seconds that include them.
 """
 
 from __future__ import annotations
@@ -67,6 +74,29 @@ def unpack(source: Path) -> Path:
         elif item.is_dir():
             (root / item.name).symlink_to(item.resolve())
     return root
+
+
+_WARP = {"s": 0.0, "n": 0}
+
+
+def _time_warp_compiles() -> None:
+    """Counts the seconds and modules of MuJoCo Warp's kernel compiles (``Module._compile``
+    when it compiled, not when its cache had the module), apart from XLA's compile."""
+    try:
+        from warp._src.context import Module
+    except ImportError:
+        return
+    compile_ = Module._compile
+
+    def timed(self, *args, **kwargs):
+        start = time.perf_counter()
+        compiled = compile_(self, *args, **kwargs)
+        if compiled:
+            _WARP["s"] += time.perf_counter() - start
+            _WARP["n"] += 1
+        return compiled
+
+    Module._compile = timed
 
 
 def _seconds(fn, *args) -> tuple[float, object]:
@@ -142,10 +172,17 @@ def measure(task: str, num_envs: int, args, root: str | None) -> dict:
                      ("loop", lambda: loop_rate(task, num_envs, args, root))):  # fmt: skip
         if kind in args.skip:
             continue
+        begin, warp_s, warp_n = time.perf_counter(), _WARP["s"], _WARP["n"]
+        print(f"[{begin - args.start:.0f} s] {task} {args.impl_now} {num_envs} {kind}: start",
+              flush=True)  # fmt: skip
         try:
             row.update(fn())
         except Exception as err:  # reported per task, the sweep goes on
             row[f"{kind}_error"] = f"{type(err).__name__}: {err}"[:300]
+        row[f"{kind}_s"] = time.perf_counter() - begin
+        if args.impl_now == "warp":
+            row[f"{kind}_warp_compile_s"] = _WARP["s"] - warp_s
+            row[f"{kind}_warp_modules"] = _WARP["n"] - warp_n
     return row
 
 
@@ -186,11 +223,13 @@ def main() -> None:
     if args.pack:
         pack(args.tasks, args.pack)
         return
-    start = time.perf_counter()
+    start = args.start = time.perf_counter()
+    if "warp" in args.impl:
+        _time_warp_compiles()
     root = unpack(args.menagerie) if args.menagerie else None
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for task, impl, n in [(t, i, n) for t in args.tasks for i in args.impl for n in args.envs]:
+    for impl, n, task in [(i, n, t) for i in args.impl for n in args.envs for t in args.tasks]:
         if time.perf_counter() - start > args.budget_s:
             print(f"budget spent: {task} ({impl}) at {n} envs not measured", flush=True)
             continue
