@@ -351,14 +351,14 @@ def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     compiled ahead, before any state exists."""
     from td3_jax.build import make_population, members
     from td3_jax.config import validate
-    from td3_jax.population import compile_for_mesh
+    from td3_jax.programs import jitted
     from td3_jax.sharding import make_mesh
 
     seconds, clock = {}, time.perf_counter()
     mesh = make_mesh(devices)
     validate(cfg, devices=mesh.size)
     program = make_population(cfg, members(cfg), devices=mesh.size)
-    compiled = compile_for_mesh(program, mesh)
+    compiled = jitted(program, mesh)
     seconds["make_s"], clock = time.perf_counter() - clock, time.perf_counter()
     state, iterations = abstract_inputs(compiled, program)
     lowered = compiled.chunk.lower(compiled.hyperparams, state, iterations)

@@ -9,7 +9,7 @@ The first form times what ``td3-jax train`` does before its first evaluation, fr
 launch (``TD3_LAUNCH``, the shell's clock at launch; without it, from the script's first line):
 imports, the accelerator's start-up, environment creation, tracing each program and compiling
 it in a thread while the next is traced (as the command does:
-:func:`td3_jax.population.compile_ahead`), the init, the first chunk (the early part of it, as
+:func:`td3_jax.programs.compile_ahead`), the init, the first chunk (the early part of it, as
 the command runs it) and the first evaluation. ``--sequential`` compiles each program in turn
 instead, to see each one's cost.
 
@@ -40,9 +40,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from td3_jax import build, envs, program_cache  # noqa: E402
+from td3_jax import build, envs, program_cache, programs  # noqa: E402
 from td3_jax.build import make_population, members  # noqa: E402
-from td3_jax.population import compile_for_mesh  # noqa: E402
 from td3_jax.presets import preset  # noqa: E402
 from td3_jax.runtime import enable_compile_cache  # noqa: E402
 from td3_jax.sharding import make_mesh  # noqa: E402
@@ -112,15 +111,15 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
         env = build.make_env(cfg)
         clock.lap("make_env")
         program = make_population(cfg, population, devices=mesh.size, env=env)
-        compiled = _compile_in_turn(compile_for_mesh(program, mesh), program, clock)
+        compiled = _compile_in_turn(programs.jitted(program, mesh), program, clock)
         stored = False
     else:
-        source = program_cache.prepare(cfg, population, mesh, program_dir)
-        stored = source.entry is not None
+        source = programs.find(cfg, population, mesh, program_dir)
+        stored = source.stored is not None
         clock.lap("load_programs" if stored else "make_env")
         if stored:  # when each part of compile_all ends (seconds since it began)
             _time_parts(source, clock)
-        compiled = program_cache.compile_programs(source)
+        compiled = programs.compiled(source)
         clock.lap("compile_all" if stored else "trace_and_compile_all")
     state = jax.block_until_ready(compiled.init())
     clock.lap("init_run")
@@ -159,21 +158,15 @@ def _time_parts(source, clock: Clock) -> None:
         return executable
 
     program_cache.compile_flat = timed
-    source.entry.trees.add_done_callback(lambda _: clock.times.update(compile_all_trees=since()))
+    source.trees.add_done_callback(lambda _: clock.times.update(compile_all_trees=since()))
 
 
 def _compile_in_turn(compiled, program, clock: Clock):
-    from td3_jax.population import _with_sharding
-
-    state_spec = _with_sharding(program.abstract_state, compiled.shardings)
-    hp = compiled.hyperparams
-    abstract = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding)
-    hp_spec = jax.tree.map(abstract, hp)
-    iterations = abstract(jnp.zeros((), jnp.int32, device=jax.tree.leaves(hp)[0].sharding))
+    hp_spec, state_spec, iterations = programs.chunk_argument_specs(program, compiled.shardings)
     done = {}
-    programs = (("init", ()), ("chunk", (hp_spec, state_spec, iterations)),
-                ("evaluate", (state_spec,)))  # fmt: skip
-    for name, args in programs:
+    steps = (("init", ()), ("chunk", (hp_spec, state_spec, iterations)),
+             ("evaluate", (state_spec,)))  # fmt: skip
+    for name, args in steps:
         lowered = getattr(compiled, name).lower(*args)
         clock.lap(f"{name}_trace")
         done[name] = lowered.compile()

@@ -563,7 +563,7 @@ def print_sweep_ranking(record: dict) -> None:
 
 
 def eval_main(args: list[str]) -> None:
-    from td3_jax.rundir import evaluate_run
+    from td3_jax.finished import evaluate_run
     from td3_jax.stats import population_stats
 
     command = _parse(EvalCommand, args, "td3-jax eval")

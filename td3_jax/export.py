@@ -212,15 +212,15 @@ def _member(tree: Any, k: int) -> Any:
 
 def restore_checkpoint(run_dir: Path) -> tuple[Any, Any, Any, dict]:
     """``(config, population program, state, meta)`` of a run's newest good checkpoint,
-    restored onto one device (as :func:`td3_jax.rundir.evaluate_run` does)."""
-    from td3_jax import rundir
+    restored onto one device (as :func:`td3_jax.finished.evaluate_run` does)."""
+    from td3_jax import finished, rundir
 
     run_dir = Path(run_dir)
     rundir.load_config(run_dir)  # one line for a directory without config.json
     if not rundir.checkpoint_steps(run_dir):
         raise ExportError(f"{run_dir / rundir.CHECKPOINTS} holds no checkpoint to export")
-    cfg, _, program = rundir.run_program(run_dir)
-    state, meta = rundir.restore_on_one_device(program, run_dir)
+    cfg, _, program = finished.run_program(run_dir)
+    state, meta = finished.restore_on_one_device(program, run_dir)
     return cfg, program, state, meta
 
 

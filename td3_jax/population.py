@@ -21,9 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from td3_jax import envs, training
-from td3_jax.runtime import StopToken, in_background, result
-from td3_jax.sharding import replicate, state_shardings
 from td3_jax.training import TrainState
+
+__all__ = ["MEMBERS", "Member", "Population", "make_population", "member_keys", "on_host"]
 
 MEMBERS = "members"  # the vmap axis name of the population
 
@@ -137,81 +137,3 @@ def make_population(
     return Population(population, spec, hyperparams, init, functools.partial(chunk, spec),
                       evaluate, scheduled, abstract_state=jax.eval_shape(init), keys=keys,
                       init_from_keys=init_from_keys)  # fmt: skip
-
-
-class Compiled(NamedTuple):
-    """A population's functions jitted for a device mesh (see :mod:`td3_jax.sharding`).
-
-    ``chunk(hp, state, iterations)`` donates its state; ``evaluate(state)`` evaluates with the
-    run's key schedule; metrics and evaluation returns come back replicated. ``hyperparams``: the
-    members' settings, replicated on the mesh (the ``hp`` to pass to ``chunk``).
-    """
-
-    shardings: Any
-    hyperparams: training.Hyperparams
-    init: Callable[[], TrainState]
-    chunk: Callable[..., tuple[TrainState, dict[str, jax.Array]]]
-    evaluate: Callable[[TrainState], jax.Array]
-
-
-def compile_for_mesh(program: Population, mesh: Any) -> Compiled:
-    """Jits ``program`` with the state split over ``mesh`` (envs, replay), the rest replicated."""
-    shardings = state_shardings(program.abstract_state, mesh)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    return Compiled(
-        shardings=shardings,
-        hyperparams=jax.tree.map(lambda x: replicate(x, mesh), program.hyperparams),
-        init=jax.jit(program.init, out_shardings=shardings),
-        chunk=jax.jit(
-            program.chunk,
-            in_shardings=(replicated, shardings, replicated),
-            out_shardings=(shardings, replicated),
-            donate_argnums=1,
-        ),
-        evaluate=jax.jit(program.scheduled_evaluate, out_shardings=replicated),
-    )
-
-
-def _with_sharding(abstract: Any, shardings: Any) -> Any:
-    return jax.tree.map(
-        lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s, weak_type=a.weak_type),
-        abstract,
-        shardings,
-    )
-
-
-def chunk_argument_specs(program: Population, shardings: Any) -> tuple[Any, Any, Any]:
-    """The chunk's abstract arguments ``(hp, state, iterations)`` placed on a mesh: the state
-    by ``shardings`` (:func:`td3_jax.sharding.state_shardings`), the others replicated."""
-    mesh = jax.tree.leaves(shardings)[0].mesh
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    hp = jax.eval_shape(lambda: program.hyperparams)
-    hp_spec = _with_sharding(hp, jax.tree.map(lambda _: replicated, hp))
-    iterations = jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
-    return hp_spec, _with_sharding(program.abstract_state, shardings), iterations
-
-
-def compile_ahead(compiled: Compiled, program: Population, with_init: bool = True,
-                  stop: StopToken | None = None) -> Compiled:  # fmt: skip
-    """``compiled`` with its functions compiled now, side by side, instead of at their first call.
-
-    Each program is traced (Python, one at a time) and handed to a thread that compiles it
-    while the next is traced: the chunk first, as it takes longest. (Compiling the evaluation
-    during the first chunk instead gained nothing on G1: its autotuning waits for the GPU,
-    which the chunk holds.) The returned functions are the compiled executables: calling them
-    with other shapes or shardings raises instead of recompiling. Once ``stop`` is set, the
-    compiles are no longer waited for (KeyboardInterrupt).
-    """
-    stop = stop if stop is not None else StopToken()
-    hp_spec, state_spec, iterations = chunk_argument_specs(program, compiled.shardings)
-    programs = {
-        "chunk": lambda: compiled.chunk.lower(hp_spec, state_spec, iterations),
-        "evaluate": lambda: compiled.evaluate.lower(state_spec),
-    }
-    if with_init:
-        programs["init"] = compiled.init.lower
-    futures = {}
-    for name, lower in programs.items():
-        futures[name] = in_background(lower().compile)
-        stop.raise_if_set()
-    return compiled._replace(**{name: result(f, stop) for name, f in futures.items()})

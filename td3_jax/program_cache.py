@@ -20,6 +20,9 @@ removed, and the run traces as usual; so is a program :mod:`jax.export` refuses 
 compiled as a jitted function and not stored). Entries are written whole (a temporary
 directory renamed into place) and the least recently used beyond :data:`MAX_ENTRIES` are
 removed. Several processes of one run (:mod:`jax.distributed`) do not use it.
+
+This module is the store (keys, entries, flat programs); :mod:`td3_jax.programs` finds a run's
+programs in it, or traces and stores them, and compiles them.
 """
 
 from __future__ import annotations
@@ -45,20 +48,25 @@ import jax
 from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax.build import make_population, member_hyperparams
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, TrainConfig
-from td3_jax.envs import is_custom
-from td3_jax.population import (
-    Compiled,
-    Member,
-    Population,
-    chunk_argument_specs,
-    compile_ahead,
-    compile_for_mesh,
-    member_keys,
-)
-from td3_jax.runtime import StopToken, in_background, result
-from td3_jax.sharding import replicate, state_shardings
+from td3_jax.runtime import in_background
+
+__all__ = [
+    "FORMAT",
+    "MAX_ENTRIES",
+    "NAMES",
+    "FlatProgram",
+    "as_tree_function",
+    "assets_digest",
+    "compile_flat",
+    "discard",
+    "export_flat",
+    "fingerprint",
+    "load",
+    "save",
+    "source_digest",
+    "warn",
+]
 
 #: Bump when what an entry holds changes.
 FORMAT = 1
@@ -93,19 +101,6 @@ class FlatProgram(NamedTuple):
     in_specs: tuple[PartitionSpec, ...]
     out_specs: tuple[PartitionSpec, ...]
     donate: tuple[int, ...]
-
-
-@dataclasses.dataclass
-class Entry:
-    """A run's exported programs and their pytree structures.
-
-    ``trees`` (``{name: (input treedef, output treedef)}``, plus ``"state"``: the abstract
-    train state) loads in a thread: unpickling them imports the environment's packages (MJX),
-    which overlaps with compiling.
-    """
-
-    programs: dict[str, FlatProgram]
-    trees: Future
 
 
 def fingerprint(cfg: TrainConfig, overrides: list[tuple[str, ...]], mesh: Mesh) -> str:
@@ -266,7 +261,7 @@ def save(directory: Path, key: str, programs: dict[str, FlatProgram], trees: dic
             tmp = None
         _evict(directory)
     except Exception as err:  # a full disk, a read-only cache, an unpicklable structure
-        _warn(f"could not keep the traced programs in {directory} ({type(err).__name__}: {err})")
+        warn(f"could not keep the traced programs in {directory} ({type(err).__name__}: {err})")
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -284,33 +279,35 @@ def _write_entry(path: Path, programs: dict[str, FlatProgram], trees: dict) -> N
     path.chmod(0o777 & ~umask)  # mkdtemp made it private
 
 
-def load(directory: Path, key: str, names: tuple[str, ...]) -> Entry | None:
-    """The entry ``directory/key`` with these programs, or ``None``: when there is none, when
-    it lacks one of them (the run then traces and replaces it), or when it is unreadable (it
-    is removed with a warning)."""
+def load(directory: Path, key: str, names: tuple[str, ...]) -> tuple[dict | None, Future | None]:
+    """``(programs, trees)`` of the entry ``directory/key``: ``{name: FlatProgram}`` of these
+    programs, and their pytree structures (``{name: (input treedef, output treedef)}``, plus
+    ``"state"``: the abstract train state) loading in a thread, since unpickling them imports
+    the environment's packages (MJX), which overlaps with compiling. ``(None, None)`` when
+    there is none, when it lacks one of them (the run then traces and replaces it), or when it
+    is unreadable (it is removed with a warning)."""
     path = directory / key
     try:
         if not (path / "trees.pkl").is_file():
-            return None
+            return None, None
         layout = pickle.loads((path / "layout.pkl").read_bytes())
         if not set(names) <= set(layout["programs"]):
-            return None
+            return None, None
         programs = {name: FlatProgram(export.deserialize(bytearray((path / f"{name}.bin")
                                                                    .read_bytes())),
                                       *layout["programs"][name])
                     for name in names}  # fmt: skip
     except Exception as err:  # a partial or foreign directory: trace as usual
         discard(path, err)
-        return None
+        return None, None
     with contextlib.suppress(OSError):  # recently used (a read-only cache stays as it is)
         os.utime(path)
-    trees = in_background(lambda: pickle.loads((path / "trees.pkl").read_bytes()))
-    return Entry(programs, trees)
+    return programs, in_background(lambda: pickle.loads((path / "trees.pkl").read_bytes()))
 
 
 def discard(path: Path, err: BaseException) -> None:
     """Removes the unusable entry ``path``, with a warning naming the cause."""
-    _warn(f"ignored the unusable traced programs in {path} ({type(err).__name__}: {err}); "
+    warn(f"ignored the unusable traced programs in {path} ({type(err).__name__}: {err}); "
           "tracing them again")  # fmt: skip
     shutil.rmtree(path, ignore_errors=True)
 
@@ -329,160 +326,7 @@ def _evict(directory: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _warn(message: str) -> None:
+def warn(message: str) -> None:
+    """``td3-jax: warning: message`` on stderr, by the first process only."""
     if jax.process_index() == 0:
         print(f"td3-jax: warning: {message}", file=sys.stderr)
-
-
-@dataclasses.dataclass
-class Source:
-    """Where a run's programs come from: a stored :class:`Entry`, or ``program``, the
-    population traced now (and stored under ``directory/key`` once exported)."""
-
-    cfg: TrainConfig
-    population: list[Member]
-    mesh: Mesh
-    names: tuple[str, ...]
-    directory: Path | None = None
-    key: str | None = None
-    entry: Entry | None = None
-    program: Population | None = None
-
-
-def prepare(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path | None,
-            with_init: bool = True, env: Any = None) -> Source:  # fmt: skip
-    """Looks the run's programs up in ``directory`` (``None``, several processes, MuJoCo Warp
-    physics, whose FFI calls ``jax.export`` refuses, or an environment of your own, whose code
-    the key cannot see: never) and makes the population's program, environment included
-    (``env`` when given: :func:`td3_jax.build.make_env`), only when none is stored."""
-    names = NAMES if with_init else NAMES[:2]
-    source = Source(cfg, population, mesh, names)
-    if cfg.impl == "warp" or env is not None or is_custom(cfg.env):
-        directory = None  # XLA's persistent compilation cache still applies
-    if directory is not None and jax.process_count() == 1:
-        overrides = [tuple(name for name, _ in m.overrides) for m in population]
-        source.key = fingerprint(cfg, overrides, mesh)
-        source.directory = Path(directory)
-        source.entry = load(source.directory, source.key, names)
-    if source.entry is None:
-        source.program = make_population(cfg, population, devices=mesh.size, env=env)
-    return source
-
-
-def abstract_state(source: Source) -> Any:
-    """Shapes and dtypes of the run's train state (for restoring a checkpoint); an entry whose
-    structure cannot be read is given up (:func:`_give_up_entry`)."""
-    if source.entry is not None:
-        try:
-            return source.entry.trees.result()["state"]
-        except Exception as err:  # e.g. a class it names no longer exists
-            _give_up_entry(source, err)
-    return source.program.abstract_state
-
-
-def _give_up_entry(source: Source, err: BaseException) -> None:
-    """Discards the source's unusable entry and makes the population's program instead (its
-    environment included), so the run traces as if nothing had been stored."""
-    discard(source.directory / source.key, err)
-    source.entry = None
-    source.program = make_population(source.cfg, source.population, devices=source.mesh.size)
-
-
-def compile_programs(source: Source, stop: StopToken | None = None) -> Compiled:
-    """The run's programs compiled side by side: stored ones read back, otherwise each is
-    traced, handed to a thread to compile while the next is traced, then stored.
-
-    Without a directory (or when exporting fails) they are compiled as jitted functions
-    (:func:`td3_jax.population.compile_ahead`), the same programs, stored nowhere. A stored
-    entry that fails to compile is given up and the programs traced instead. Once ``stop`` is
-    set, nothing more is traced or waited for (KeyboardInterrupt).
-    """
-    stop = stop if stop is not None else StopToken()
-    if source.directory is None:
-        return _compile_plain(source, stop)
-    if source.entry is not None:
-        try:
-            return _compile_stored(source, stop)
-        except Exception as err:  # e.g. a program that reads back but does not compile
-            _give_up_entry(source, err)
-    try:
-        return _compile_traced(source, stop)
-    except _ExportFailed as err:
-        _warn(f"the traced programs cannot be kept ({err.__cause__}); compiling them as usual")
-        return _compile_plain(source, stop)
-
-
-class _ExportFailed(RuntimeError):
-    """jax.export refused a program (the run compiles it the usual way instead)."""
-
-
-def _compile_plain(source: Source, stop: StopToken) -> Compiled:
-    compiled = compile_for_mesh(source.program, source.mesh)
-    return compile_ahead(compiled, source.program, with_init="init" in source.names, stop=stop)
-
-
-def _compile_stored(source: Source, stop: StopToken) -> Compiled:
-    """The stored programs compiled side by side (read back from the compilation cache)."""
-    futures = {name: in_background(compile_flat, source.entry.programs[name], source.mesh)
-               for name in source.names}  # fmt: skip
-    inputs = _placed_inputs(source)  # while the programs are read back
-    trees = result(source.entry.trees, stop)
-    executables = {name: result(future, stop) for name, future in futures.items()}
-    return _compiled(source, executables, trees, *inputs)
-
-
-def _compile_traced(source: Source, stop: StopToken) -> Compiled:
-    """The programs traced and exported (all of them, so the stored entry is complete), the
-    run's compiled side by side, then stored."""
-    futures, programs, trees = _export_each(source, stop)
-    save(source.directory, source.key, programs, trees)
-    inputs = _placed_inputs(source)
-    executables = {name: result(future, stop) for name, future in futures.items()}
-    return _compiled(source, executables, trees, *inputs)
-
-
-def _placed_inputs(source: Source) -> tuple[Any, Any]:
-    """The members' hyperparameters and start keys, replicated on the mesh."""
-    hp = member_hyperparams(source.cfg, source.population)
-    place = lambda x: replicate(x, source.mesh)
-    return jax.tree.map(place, hp), place(member_keys(source.population))
-
-
-def _export_each(source: Source, stop: StopToken) -> tuple[dict, dict, dict]:
-    """Traces and exports each program, submitting the compile of each the run needs before
-    tracing the next."""
-    program, mesh = source.program, source.mesh
-    replicated = NamedSharding(mesh, PartitionSpec())
-    shardings = state_shardings(program.abstract_state, mesh)
-    everywhere = lambda tree: jax.tree.map(lambda _: replicated, tree)
-    hp, state, scalar = chunk_argument_specs(program, shardings)
-    keys = jax.ShapeDtypeStruct(program.keys.shape, program.keys.dtype, sharding=replicated)
-    plans = {
-        "chunk": (program.chunk, (hp, state, scalar),
-                  lambda out: (shardings, everywhere(out[1])), (1,)),
-        "evaluate": (program.scheduled_evaluate, (state,), everywhere, ()),
-        "init": (program.init_from_keys, (keys,), lambda out: shardings, ()),
-    }  # fmt: skip
-    executables, programs, trees = {}, {}, {"state": program.abstract_state}
-    for name in NAMES:
-        stop.raise_if_set()
-        try:
-            programs[name], trees[name] = export_flat(*plans[name])
-        except Exception as err:  # e.g. a custom call jax.export does not take
-            raise _ExportFailed(name) from err
-        if name in source.names:  # a resume needs no init, but the entry keeps it
-            executables[name] = in_background(compile_flat, programs[name], mesh)
-    return executables, programs, trees
-
-
-def _compiled(source: Source, executables: dict, trees: dict, hp: Any, keys: Any) -> Compiled:
-    """The run's :class:`~td3_jax.population.Compiled` over the flat executables."""
-    calls = {name: as_tree_function(executables[name], trees[name]) for name in executables}
-    init = calls.get("init")
-    return Compiled(
-        shardings=state_shardings(trees["state"], source.mesh),
-        hyperparams=hp,
-        init=(lambda: init(keys)) if init else None,
-        chunk=calls["chunk"],
-        evaluate=calls["evaluate"],
-    )

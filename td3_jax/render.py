@@ -1,7 +1,7 @@
 """Rollout videos of a run's deterministic policy (``td3-jax render``).
 
 * **The episodes are the evaluation's.** :func:`rollout` restores a run's newest checkpoint (as
-  :func:`td3_jax.rundir.evaluate_run` does) and runs :func:`td3_jax.training.evaluate_recorded`:
+  :func:`td3_jax.finished.evaluate_run` does) and runs :func:`td3_jax.training.evaluate_recorded`:
   the evaluation's own step, which also emits each step's joint positions (``qpos``), reward
   and whether the step counts. Member ``k`` uses the ``k``-th key of
   ``jax.random.split(PRNGKey(seed), members)``, so the returns are those of
@@ -357,7 +357,7 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
 
     ``check(env)``, if given, runs once the environment is made, before anything compiles.
     """
-    from td3_jax.rundir import restore_on_one_device, run_program
+    from td3_jax.finished import restore_on_one_device, run_program
 
     _, population, program = run_program(run_dir, eval_envs=episodes)
     choose_member(run_dir, len(population), member)  # a bad --member fails before compiling

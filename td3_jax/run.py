@@ -14,33 +14,30 @@ import re
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import jax
 import numpy as np
 
-from td3_jax import program_cache, tracking
+from td3_jax import programs, tracking
 from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
 from td3_jax.errors import NonFiniteError, PhysicsOverflowError
+from td3_jax.finished import check_environment_unchanged, environment_record
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, OutputWriteError, plot_curve
 from td3_jax.population import Member
-from td3_jax.rundir import (  # (re-exported: run.py was their home)
+from td3_jax.programs import Programs, Source
+from td3_jax.rundir import (
     CHECKPOINTS,
     CONFIG_FILE,
-    MEMBERS_FILE,
-    check_environment_unchanged,
     check_fresh,
     check_resume,
     checkpoint_steps,
-    environment_record,
-    load_config,
-    load_members,
     open_run_dir,
     previous_outputs,
-    restore_state,
     run_info,
     save_config,
 )
@@ -55,17 +52,7 @@ from td3_jax.sharding import (
 from td3_jax.stats import population_stats, return_stats
 from td3_jax.training import ring_as_saved
 
-__all__ = [
-    "CONFIG_FILE",
-    "MEMBERS_FILE",
-    "NonFiniteError",
-    "PhysicsOverflowError",
-    "load_config",
-    "load_members",
-    "restore_state",
-    "save_config",
-    "train",
-]
+__all__ = ["train"]
 
 
 def train(
@@ -113,7 +100,7 @@ def train(
     cfg, population, changes, source = prepared
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
-               stop if stop is not None else StopToken(), env=_made_env(source))  # fmt: skip
+               stop if stop is not None else StopToken(), env=source.env)  # fmt: skip
     try:
         if on_prepared is not None:
             on_prepared()
@@ -122,7 +109,7 @@ def train(
             return run.records
         _say_resuming(run, start_chunk)
         run.tracker = tracking.start(cfg, out_dir, resume=resume, enabled=writer)
-        compiled, state = _programs_and_state(run, source, state)
+        compiled, state = _compiled_and_state(run, source, state)
         _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
                          preset=preset, changes=changes)  # fmt: skip
     finally:
@@ -139,7 +126,7 @@ def _say_resuming(run: _Run, start_chunk: int) -> None:
     print(f"resuming from checkpoint {path} (env step {steps})", flush=True)
 
 
-def _write_and_train(run: _Run, compiled: Any, state: Any, start_chunk: int, progress: bool, *,
+def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int, progress: bool, *,
                      resume: bool, preset: str | None, changes: Any) -> None:  # fmt: skip
     """config.json, the progress display, metrics.jsonl, TensorBoard and W&B, then the chunks;
     a write the disk refuses (of those or of a checkpoint) is kept in ``run.failed_write``
@@ -199,26 +186,16 @@ def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
                             f"{fix}, then start the run again")  # fmt: skip
 
 
-def _programs_and_state(run: _Run, source: program_cache.Source, state: Any) -> tuple[Any, Any]:
-    """The compiled programs and the run's state (``state`` restored, else initialised), once
-    the disk is known to have room for the run's checkpoints: checked before compiling where
-    the state's shapes are at hand (a restored state, programs traced in this process), after
-    it where they come with the stored programs."""
-    known = state if state is not None else None if source.entry else source.program.abstract_state
-    if known is not None:
-        _check_room(run, source, known)
-    run.stop.raise_if_set()  # a Ctrl-C Python discarded while tracing
-    compiled = program_cache.compile_programs(source, run.stop)
-    if known is None:
-        _check_room(run, source, program_cache.abstract_state(source))
-    if state is None:
-        state = compiled.init()
-    return compiled, state
+def _compiled_and_state(run: _Run, source: Source, state: Any) -> tuple[Programs, Any]:
+    """The run's compiled programs, the state's room checked as soon as its shapes are known
+    (:func:`td3_jax.programs.compiled`), and its state: ``state`` restored, else initialised."""
+    compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
+    return compiled, compiled.init() if state is None else state
 
 
-def _check_room(run: _Run, source: program_cache.Source, state: Any) -> None:
+def _check_room(run: _Run, mesh: Any, state: Any) -> None:
     """The state (arrays or shapes) fits in a device's memory and its checkpoints on the disk."""
-    check_memory(state, source.mesh)
+    check_memory(state, mesh)
     run.checkpointer.check_space(state)
 
 
@@ -233,11 +210,6 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
         save_config(run.cfg, run.population, run.out_dir, info)
         if run.tracker is not None:
             run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
-
-
-def _made_env(source: program_cache.Source) -> Any:
-    """The environment of the program traced in this process (``None`` for a stored one)."""
-    return None if source.program is None else source.program.spec.env
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
@@ -258,12 +230,9 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     else:
         check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}
-    source = program_cache.prepare(cfg, population, mesh, program_dir, with_init=not resume,
-                                   env=env)  # fmt: skip
+    source = programs.find(cfg, population, mesh, program_dir, with_init=not resume, env=env)
     if resume:  # (the environment just made, before anything is compiled)
-        check_environment_unchanged(out_dir, cfg, _made_env(source))
-    if source.entry is not None and writer:
-        print(f"using the traced programs stored in {source.directory / source.key}")
+        check_environment_unchanged(out_dir, cfg, source.env)
     return cfg, population, changes, source
 
 
@@ -322,14 +291,14 @@ def _warn_on_failure(action: Any, what: str, hint: str = "") -> Any:
         return None
 
 
-def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, int]:
+def _start(run: _Run, source: Source, resume: bool) -> tuple[Any, int]:
     """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run; the run's
     checkpointer is opened here."""
     run.checkpointer = Checkpointer(run.out_dir / CHECKPOINTS, run.cfg.keep_checkpoints)
     run.clock_start = time.perf_counter()
     if not resume:
         return None, 0
-    abstract = program_cache.abstract_state(source)
+    abstract = programs.abstract_state(source)
     check_memory(abstract, source.mesh)
     shardings = state_shardings(abstract, source.mesh)
     state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings,
@@ -339,7 +308,7 @@ def _start(run: _Run, source: program_cache.Source, resume: bool) -> tuple[Any, 
     return state, start_chunk
 
 
-def _loop(run: _Run, compiled: Any, state: Any, start_chunk: int) -> None:
+def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
     """Chunks, evaluations, records and checkpoints until the run's end or a stop condition.
 
     A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
@@ -383,7 +352,7 @@ def _stopping(run: _Run, chunks_done: int) -> bool:
 
 
 def _chunk_and_record(
-    run: _Run, compiled: Any, state: Any, iterations: int
+    run: _Run, compiled: Programs, state: Any, iterations: int
 ) -> tuple[Any, dict[str, Any]]:
     """One compiled chunk of ``iterations``, the finiteness check, the evaluation and the
     record of both."""

@@ -1,5 +1,6 @@
-"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json,
-members.json, and reading a run back (:func:`restore_state`, :func:`evaluate_run`).
+"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json and
+members.json. Reading a finished run back (its checkpoint, its evaluations) is
+:mod:`td3_jax.finished`'s.
 
 * **One run at a time.** A run holds an exclusive ``fcntl.flock`` on ``DIR/.lock`` (the file
   names the holder's pid and host) from before it writes anything until it has written its last
@@ -23,18 +24,32 @@ import time
 from pathlib import Path
 from typing import Any
 
-import jax
-import numpy as np
-
-from td3_jax.build import agent_config, make_env, make_population, members, ou_params
-from td3_jax.checkpoint import Checkpointer
+from td3_jax.build import agent_config, members, ou_params
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
-from td3_jax.envs import custom
 from td3_jax.logger import write_atomically
-from td3_jax.population import Member, Population
-from td3_jax.sharding import make_mesh, state_shardings
+from td3_jax.population import Member
 from td3_jax.tracking import WANDB_DIR
-from td3_jax.training import ring_as_saved
+
+__all__ = [
+    "CHECKPOINTS",
+    "CONFIG_FILE",
+    "MEMBERS_FILE",
+    "OUTPUTS",
+    "SAFE_ON_RESUME",
+    "RunLock",
+    "check_fresh",
+    "check_resume",
+    "checkpoint_steps",
+    "config_changes",
+    "interrupted_message",
+    "load_config",
+    "load_members",
+    "load_run_info",
+    "open_run_dir",
+    "previous_outputs",
+    "run_info",
+    "save_config",
+]
 
 CONFIG_FILE = "config.json"
 MEMBERS_FILE = "members.json"
@@ -443,84 +458,3 @@ def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
         Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
         for m in json.loads(path.read_text())
     ]
-
-
-# --------------------------------------------------------------------------------------------
-# reading a run back: its newest checkpoint, and its policy evaluated
-# --------------------------------------------------------------------------------------------
-
-
-def restore_state(population: Population, out_dir: Path, keep: int = 3, shardings: Any = None):
-    """``(state, meta, step)`` of the newest good checkpoint of a run directory, checked against
-    the population's state layout (nothing is created in ``out_dir``)."""
-    checkpointer = Checkpointer(Path(out_dir) / CHECKPOINTS, keep, create=False)
-    try:
-        return checkpointer.restore(population.abstract_state, shardings=shardings,
-                                    resize=ring_as_saved)  # fmt: skip
-    finally:
-        checkpointer.close()
-
-
-def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member], Population]:
-    """``(config, members, program)`` of a run directory, the config with ``changes`` (e.g.
-    ``eval_envs``) applied; nothing is compiled or restored yet. A factory's environment must
-    be the one the run trained on (:func:`check_environment_unchanged`)."""
-    cfg = dataclasses.replace(load_config(out_dir), **changes)
-    cfg = _physics_here(cfg)
-    population = load_members(out_dir, cfg)
-    program = make_population(cfg, population)
-    check_environment_unchanged(out_dir, cfg, program.spec.env)
-    return cfg, population, program
-
-
-def environment_record(cfg: TrainConfig, env: Any = None) -> dict:
-    """config.json's ``environment`` entry for a run of a factory (``module.path:function``):
-    its sizes, bounds and time limit (:func:`td3_jax.envs.custom.signature`), so that a later
-    ``--resume``, ``eval``, ``render`` or ``export`` notices a changed factory; ``{}`` for
-    environments known by name. ``env``: the environment when already made."""
-    if ":" not in cfg.env:
-        return {}
-    return {"environment": custom.signature(env or make_env(cfg))}
-
-
-def check_environment_unchanged(out_dir: Path, cfg: TrainConfig, env: Any = None) -> None:
-    """Raises :class:`~td3_jax.errors.CustomEnvironmentError` when a factory run's environment,
-    made now, differs from what its config.json recorded (nothing to check for others)."""
-    if ":" in cfg.env:
-        recorded = load_run_info(out_dir).get("environment")
-        custom.check_unchanged(cfg.env, recorded, env or make_env(cfg))
-
-
-def _physics_here(cfg: TrainConfig) -> TrainConfig:
-    """``cfg``, checked: a run trained on MuJoCo Warp holds Warp's data in its checkpoints, so
-    it is read back only where Warp runs (a :class:`ConfigError` naming what is missing)."""
-    from td3_jax.envs import physics
-
-    missing = physics.warp_missing() if cfg.impl == "warp" else None
-    if missing:
-        raise ConfigError(f"the run trained on MuJoCo Warp, whose data its checkpoints hold, "
-                          f"and {missing}; read it where Warp runs")  # fmt: skip
-    return cfg
-
-
-def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict]:
-    """``(state, meta)`` of the newest good checkpoint of ``out_dir`` on one device, whatever
-    device count wrote it."""
-    shardings = state_shardings(program.abstract_state, make_mesh(1))
-    state, meta, _ = restore_state(program, out_dir, shardings=shardings)
-    return state, meta
-
-
-def evaluate_run(
-    out_dir: Path, episodes: int, seed: int
-) -> tuple[TrainConfig, list[Member], dict, np.ndarray]:
-    """Re-evaluates every member of a run's newest checkpoint on ``episodes`` episodes.
-
-    Returns ``(config, members, checkpoint meta, returns [members, episodes])``; member ``k``
-    uses the ``k``-th key of ``jax.random.split(PRNGKey(seed), members)``. Restores onto one
-    device, whatever device count wrote the checkpoint.
-    """
-    cfg, population, program = run_program(out_dir, eval_envs=episodes)
-    state, meta = restore_on_one_device(program, out_dir)
-    keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
-    return cfg, population, meta, np.asarray(jax.jit(program.evaluate)(state, keys))

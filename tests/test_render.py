@@ -20,7 +20,7 @@ import jax
 import numpy as np
 import pytest
 
-from td3_jax import cli, render, rundir
+from td3_jax import cli, finished, render, rundir
 from td3_jax.build import make_population, members
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig
@@ -101,7 +101,7 @@ def test_rendered_video_matches_the_evaluation(mujoco_run, rendered):
     assert frames.shape[1:] == (HEIGHT, WIDTH, 3)
     # inverted_pendulum pays 1 per step until the pole passes 0.2 rad (termination) or the
     # time limit: the evaluation's returns are the episodes' lengths, hence the frame counts.
-    _, _, _, returns = rundir.evaluate_run(mujoco_run, 2, SEED)
+    _, _, _, returns = finished.evaluate_run(mujoco_run, 2, SEED)
     lengths = [int(r) for r in returns[0]]
     np.testing.assert_array_equal(returns[0], lengths)
     assert all(1 <= n <= EPISODE for n in lengths)
@@ -175,7 +175,7 @@ def test_pendulum_gif_has_one_frame_per_step(tmp_path):
     result = render.render_run(run, run / "p.gif", episodes=2, seed=SEED, width=32, height=32)
     frames = np.asarray(imageio.mimread(run / "p.gif"))
     assert result.lengths == [12, 12] and frames.shape == (24, 32, 32, 3)
-    _, _, _, returns = rundir.evaluate_run(run, 2, SEED)
+    _, _, _, returns = finished.evaluate_run(run, 2, SEED)
     np.testing.assert_allclose(result.returns, returns[0], rtol=1e-6)
     assert np.abs(np.diff(frames.astype(np.int16), axis=0)).max() > 30
 

@@ -24,7 +24,7 @@ import jax
 import numpy as np
 import pytest
 
-from td3_jax import cli, rundir
+from td3_jax import cli, finished, rundir
 from td3_jax import run as run_module
 from td3_jax.build import make_population, members
 from td3_jax.config import ConfigError, TrainConfig
@@ -299,11 +299,6 @@ def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
     assert rundir.run_info(tmp_path, resume=False, preset=None, changes={}, at_env_steps=0) == {}
 
 
-def test_run_module_still_exports_the_config_helpers():
-    for name in ("save_config", "load_config", "load_members", "CONFIG_FILE", "MEMBERS_FILE"):
-        assert getattr(run_module, name) is getattr(rundir, name)
-
-
 def test_interrupted_message_says_what_is_kept(tmp_path):
     message = rundir.interrupted_message(tmp_path)
     assert "before the first checkpoint" in message and "run the same command again" in message
@@ -352,8 +347,8 @@ def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
 
     cfg = rundir.load_config(long)
     program = make_population(cfg, members(cfg))
-    state_short, meta_short, step_short = run_module.restore_state(program, short)
-    state_long, meta_long, step_long = run_module.restore_state(program, long)
+    state_short, meta_short, step_short = finished.restore_state(program, short)
+    state_long, meta_long, step_long = finished.restore_state(program, long)
     assert step_short == step_long == 4 and meta_short["env_steps"] == meta_long["env_steps"]
     leaves = jax.tree_util.tree_leaves_with_path(state_long)
     for (path, a), b in zip(leaves, jax.tree.leaves(state_short), strict=True):

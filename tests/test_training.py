@@ -22,13 +22,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from td3_jax import program_cache
+from td3_jax import programs
 from td3_jax.build import make_population, make_trainer, members
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig, validate
+from td3_jax.errors import NonFiniteError
+from td3_jax.finished import restore_state
 from td3_jax.logger import read_metrics
 from td3_jax.normalization import RunningStats
-from td3_jax.run import NonFiniteError, restore_state, train
+from td3_jax.run import train
 
 NUM_ENVS = 4
 EPISODE = 16  # time limit of the tiny runs (Pendulum's own is 200)
@@ -331,7 +333,7 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch, second_
         warmup_steps=16,
     )
     per_chunk = 32
-    real_make_population = program_cache.make_population
+    real_make_population = programs.make_population
 
     def poisoned_make_population(cfg, population, **kwargs):
         program = real_make_population(cfg, population, **kwargs)
@@ -354,7 +356,7 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch, second_
 
         return program._replace(chunk=chunk)
 
-    monkeypatch.setattr(program_cache, "make_population", poisoned_make_population)
+    monkeypatch.setattr(programs, "make_population", poisoned_make_population)
     out = tmp_path / "run"
     if second_write_fails:
         fail_writes_under(monkeypatch, out / "checkpoints" / "2")

@@ -168,7 +168,7 @@ def _refuse_tracing(monkeypatch) -> None:
     def traced(*args, **kwargs):
         raise AssertionError("the run was traced before its W&B check")
 
-    monkeypatch.setattr(run_module.program_cache, "prepare", traced)
+    monkeypatch.setattr(run_module.programs, "find", traced)
 
 
 def test_wandb_without_the_package_is_one_line(monkeypatch, tmp_path, capsys):
