@@ -1,6 +1,7 @@
 """Reading a finished run back (``td3-jax eval``, ``render`` and ``export``): its program, its
-newest checkpoint restored onto one device, its members evaluated, and the check that a
-factory's environment is still the one the run trained on.
+newest checkpoint restored onto one device and its members evaluated, once a factory's
+environment is known to be the one the run trained on
+(:func:`td3_jax.rundir.check_environment_unchanged`).
 
 Nothing here writes into the run directory; its files, lock and config record are
 :mod:`td3_jax.rundir`'s.
@@ -15,18 +16,15 @@ from typing import Any
 import jax
 import numpy as np
 
-from td3_jax.build import make_env, make_population
+from td3_jax.build import make_population
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig
-from td3_jax.envs import custom
 from td3_jax.population import Member, Population
-from td3_jax.rundir import CHECKPOINTS, load_config, load_members, load_run_info
+from td3_jax.rundir import CHECKPOINTS, check_environment_unchanged, load_config, load_members
 from td3_jax.sharding import make_mesh, state_shardings
 from td3_jax.training import ring_as_saved
 
 __all__ = [
-    "check_environment_unchanged",
-    "environment_record",
     "evaluate_run",
     "restore_on_one_device",
     "restore_state",
@@ -54,26 +52,8 @@ def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member
     cfg = _physics_here(cfg)
     population = load_members(out_dir, cfg)
     program = make_population(cfg, population)
-    check_environment_unchanged(out_dir, cfg, program.spec.env)
+    check_environment_unchanged(out_dir, cfg.env, program.spec.env)
     return cfg, population, program
-
-
-def environment_record(cfg: TrainConfig, env: Any = None) -> dict:
-    """config.json's ``environment`` entry for a run of a factory (``module.path:function``):
-    its sizes, bounds and time limit (:func:`td3_jax.envs.custom.signature`), so that a later
-    ``--resume``, ``eval``, ``render`` or ``export`` notices a changed factory; ``{}`` for
-    environments known by name. ``env``: the environment when already made."""
-    if ":" not in cfg.env:
-        return {}
-    return {"environment": custom.signature(env or make_env(cfg))}
-
-
-def check_environment_unchanged(out_dir: Path, cfg: TrainConfig, env: Any = None) -> None:
-    """Raises :class:`~td3_jax.errors.CustomEnvironmentError` when a factory run's environment,
-    made now, differs from what its config.json recorded (nothing to check for others)."""
-    if ":" in cfg.env:
-        recorded = load_run_info(out_dir).get("environment")
-        custom.check_unchanged(cfg.env, recorded, env or make_env(cfg))
 
 
 def _physics_here(cfg: TrainConfig) -> TrainConfig:

@@ -26,16 +26,17 @@ from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
 from td3_jax.errors import NonFiniteError, PhysicsOverflowError
-from td3_jax.finished import check_environment_unchanged, environment_record
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, OutputWriteError, plot_curve
 from td3_jax.population import Member
 from td3_jax.programs import Programs, Source
 from td3_jax.rundir import (
     CHECKPOINTS,
     CONFIG_FILE,
+    check_environment_unchanged,
     check_fresh,
     check_resume,
     checkpoint_steps,
+    environment_record,
     open_run_dir,
     previous_outputs,
     run_info,
@@ -206,7 +207,7 @@ def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
         info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
                         at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
         if not resume:
-            info.update(environment_record(run.cfg, run.env))
+            info.update(environment_record(run.cfg.env, run.env))
         save_config(run.cfg, run.population, run.out_dir, info)
         if run.tracker is not None:
             run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
@@ -232,7 +233,7 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
         population, changes = members(cfg, sweep), {}
     source = programs.find(cfg, population, mesh, program_dir, with_init=not resume, env=env)
     if resume:  # (the environment just made, before anything is compiled)
-        check_environment_unchanged(out_dir, cfg, source.env)
+        check_environment_unchanged(out_dir, cfg.env, source.env)
     return cfg, population, changes, source
 
 

@@ -1,6 +1,6 @@
-"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json and
-members.json. Reading a finished run back (its checkpoint, its evaluations) is
-:mod:`td3_jax.finished`'s.
+"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json (with a
+factory's environment recorded) and members.json. Reading a finished run back (its checkpoint,
+its evaluations) is :mod:`td3_jax.finished`'s.
 
 * **One run at a time.** A run holds an exclusive ``fcntl.flock`` on ``DIR/.lock`` (the file
   names the holder's pid and host) from before it writes anything until it has written its last
@@ -26,6 +26,7 @@ from typing import Any
 
 from td3_jax.build import agent_config, members, ou_params
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
+from td3_jax.envs import Environment, custom
 from td3_jax.logger import write_atomically
 from td3_jax.population import Member
 from td3_jax.tracking import WANDB_DIR
@@ -37,10 +38,12 @@ __all__ = [
     "OUTPUTS",
     "SAFE_ON_RESUME",
     "RunLock",
+    "check_environment_unchanged",
     "check_fresh",
     "check_resume",
     "checkpoint_steps",
     "config_changes",
+    "environment_record",
     "interrupted_message",
     "load_config",
     "load_members",
@@ -458,3 +461,19 @@ def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
         Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
         for m in json.loads(path.read_text())
     ]
+
+
+def environment_record(env_name: str, env: Environment | None) -> dict:
+    """config.json's ``environment`` entry for a run of a factory (``env_name`` is
+    ``module.path:function``): ``env``'s sizes, bounds and time limit
+    (:func:`td3_jax.envs.custom.signature`), so that a later ``--resume``, ``eval``, ``render``
+    or ``export`` notices a changed factory; ``{}`` for environments known by name."""
+    return {"environment": custom.signature(env)} if ":" in env_name else {}
+
+
+def check_environment_unchanged(out_dir: Path, env_name: str, env: Environment | None) -> None:
+    """Raises :class:`~td3_jax.errors.CustomEnvironmentError` when a factory run's environment
+    ``env``, made now, differs from what its config.json recorded (nothing to check for
+    environments known by name)."""
+    if ":" in env_name:
+        custom.check_unchanged(env_name, load_run_info(out_dir).get("environment"), env)
