@@ -34,6 +34,8 @@ import numpy as np
 
 from td3_jax.runtime import root_logging_kept
 
+__all__ = ["FORMAT", "Checkpointer", "size_text", "state_bytes"]
+
 with root_logging_kept():  # absl, under orbax's import, would add a handler to the root logger
     import orbax.checkpoint as ocp
 

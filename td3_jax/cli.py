@@ -25,6 +25,8 @@ from td3_jax import runtime
 from td3_jax.config import ConfigError, TrainConfig, as_flag, idle_wandb_flags, validate
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
+__all__ = ["main"]
+
 USAGE = """\
 usage: td3-jax {train,sweep,eval,export,render,plot,envs,presets} [FLAGS]
        td3-jax --version

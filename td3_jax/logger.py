@@ -11,7 +11,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from td3_jax.errors import ConfigError, OutputWriteError  # noqa: F401  (OutputWriteError: defined there)
+from td3_jax.errors import ConfigError
+
+__all__ = [
+    "WRITE_ERRNOS",
+    "MetricsLogger",
+    "append_line",
+    "plot_curve",
+    "read_metrics",
+    "write_atomically",
+]
 
 #: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)

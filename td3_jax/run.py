@@ -25,8 +25,8 @@ from td3_jax import programs, tracking
 from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
-from td3_jax.errors import NonFiniteError, PhysicsOverflowError
-from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, OutputWriteError, plot_curve
+from td3_jax.errors import NonFiniteError, OutputWriteError, PhysicsOverflowError
+from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, plot_curve
 from td3_jax.population import Member
 from td3_jax.programs import Programs, Source
 from td3_jax.rundir import (

@@ -25,6 +25,39 @@ from typing import Any
 
 from td3_jax.errors import UpstreamChanged
 
+__all__ = [
+    "CALL_PRIMITIVES",
+    "CONCATENATE",
+    "COPY_PRIMITIVES",
+    "JAX_ATIME_SUFFIX",
+    "JAX_CACHE_SUFFIX",
+    "MJX_IO",
+    "MJX_RESOLVER",
+    "PLAYGROUND_LOCOMOTION",
+    "PLAYGROUND_MENAGERIE",
+    "PLAYGROUND_MJX_ENV",
+    "TASK_MODEL",
+    "UpstreamChanged",
+    "brax_env_names",
+    "called_jaxpr",
+    "concatenation_axis",
+    "jax_cache_atime",
+    "jax_cache_entries",
+    "jax_cache_timestamp",
+    "may_copy",
+    "mjx_device_resolver",
+    "playground_locomotion",
+    "playground_menagerie_at",
+    "playground_menagerie_path",
+    "quiet_warp_overflow_warnings",
+    "set_mjx_device_resolver",
+    "set_task_mjx_model",
+    "simulating",
+    "stamp_jax_cache_entries",
+    "task_mjx_model",
+    "warp_overflow_flags",
+]
+
 
 def _require(owner: Any, name: str, upstream: str) -> Any:
     """``owner.name``, or :class:`UpstreamChanged` naming ``upstream`` when it is absent."""
@@ -201,6 +234,9 @@ PLAYGROUND_MJX_ENV = "mujoco_playground._src.mjx_env"
 #: and ``step`` simulate; Playground's own ``wrapper.BraxDomainRandomizationVmapWrapper`` swaps
 #: it the same way (checked: Playground 0.2.0).
 TASK_MODEL = "_mjx_model"
+#: Where Playground's ``mjx_env.MENAGERIE_PATH`` lies inside its package, the folder its
+#: ``ensure_menagerie_exists`` clones the Menagerie into (checked: Playground 0.2.0).
+PLAYGROUND_MENAGERIE = "mujoco_playground/external_deps/mujoco_menagerie"
 
 
 def playground_locomotion() -> Any:
@@ -212,10 +248,11 @@ def playground_menagerie_path() -> Path | None:
     """Where Playground reads the Menagerie by default, its ``mjx_env.MENAGERIE_PATH``
     (``<package>/external_deps/mujoco_menagerie``), found without importing Playground
     (``None`` without it; checked: Playground 0.2.0)."""
-    spec = importlib.util.find_spec("mujoco_playground")
+    package, inside = PLAYGROUND_MENAGERIE.split("/", 1)
+    spec = importlib.util.find_spec(package)
     if spec is None or spec.origin is None:
         return None
-    return Path(spec.origin).parent / "external_deps" / "mujoco_menagerie"
+    return Path(spec.origin).parent / inside
 
 
 def _no_clone() -> None:

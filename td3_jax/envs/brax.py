@@ -9,6 +9,8 @@ import jax
 from td3_jax import upstream
 from td3_jax.envs.base import Environment, from_mjx_style
 
+__all__ = ["from_env", "make", "names", "pipeline_qpos"]
+
 
 def names() -> list[str]:
     """The Brax environment names this installation knows."""

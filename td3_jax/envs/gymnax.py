@@ -11,6 +11,8 @@ import numpy as np
 from td3_jax.envs.base import Environment, action_bound
 from td3_jax.errors import CustomEnvironmentError
 
+__all__ = ["CONTINUOUS", "from_env", "make", "names", "pendulum_angle"]
+
 CONTINUOUS = ("Pendulum-v1", "MountainCarContinuous-v0")
 
 

@@ -35,6 +35,25 @@ from td3_jax import upstream
 from td3_jax.envs import menagerie, physics
 from td3_jax.envs.base import Environment, EnvironmentOptionError, EnvOptions
 
+__all__ = [
+    "PUSH_SECTIONS",
+    "Layout",
+    "Randomization",
+    "draw",
+    "from_task",
+    "is_prefix",
+    "layout",
+    "load",
+    "make",
+    "names",
+    "push_overrides",
+    "randomization",
+    "randomized_model",
+    "row",
+    "warp_overflow",
+    "warp_overrides",
+]
+
 
 def names() -> list[str]:
     """Playground's locomotion task names, or an empty list without Playground."""

@@ -22,6 +22,22 @@ from pathlib import Path
 from td3_jax import upstream
 from td3_jax.errors import MissingAssetsError
 
+__all__ = [
+    "ASSET_PACKAGES",
+    "ENV_VAR",
+    "PACKAGE_SUBDIR",
+    "QUADRUPED_FOLDERS",
+    "ROBOTS",
+    "candidates",
+    "find_root",
+    "first_holding",
+    "holds",
+    "missing_message",
+    "package_root",
+    "playground_root",
+    "robot",
+]
+
 #: The environment variable read when no ``--menagerie`` is given.
 ENV_VAR = "MENAGERIE_ROOT"
 
@@ -117,7 +133,7 @@ def first_holding(folder: str, places: list[tuple[str, Path | None]]) -> Path | 
 def missing_message(task: str, folder: str, package: str, places: list) -> str:
     """The one error of a task whose robot folder is nowhere to be found."""
     looked = "; ".join(f"{name}: {'absent' if root is None else root}" for name, root in places)
-    own = places[-1][1] or "mujoco_playground/external_deps/mujoco_menagerie"
+    own = places[-1][1] or upstream.PLAYGROUND_MENAGERIE
     return (
         f"playground/{task} needs the MuJoCo Menagerie robot folder '{folder}', found in none "
         f"of the places searched ({looked}). Supply it one of three ways: "

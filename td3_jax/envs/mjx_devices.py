@@ -18,6 +18,8 @@ import jax
 
 from td3_jax import upstream
 
+__all__ = ["local_device", "place_on_local_devices", "with_local_default"]
+
 _MARK = "_td3_jax_local_devices"
 
 

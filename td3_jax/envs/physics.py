@@ -18,6 +18,18 @@ from typing import Any
 
 from td3_jax import upstream
 
+__all__ = [
+    "IMPLS",
+    "PLAYGROUND_WORLDS",
+    "WARP_ON_CPU",
+    "WRONG_PHYSICS",
+    "contact_capacity",
+    "default_impl",
+    "quiet_solver_limits",
+    "resolve",
+    "warp_missing",
+]
+
 IMPLS = ("warp", "jax")
 #: Set to 1, MuJoCo Warp may run on its CPU kernels (slow; for the tests of the Warp path on
 #: machines without a GPU). Without it, Warp needs an NVIDIA GPU.

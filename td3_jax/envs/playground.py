@@ -15,6 +15,8 @@ import jax
 from td3_jax.envs import locomotion, physics
 from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style, refuse_locomotion_options
 
+__all__ = ["data_qpos", "from_env", "make", "names"]
+
 
 def _suite():
     try:
