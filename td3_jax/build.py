@@ -69,7 +69,8 @@ _ENV_OPTIONS = ("menagerie", "domain_randomization", "actor_obs_key", "critic_ob
                 "nconmax", "njmax")  # fmt: skip
 _SPEC_SETTINGS = ("num_envs", "batch_size", "replay_capacity", "replay_shards", "n_step",
                   "steps_per_iter", "updates_per_iter", "iters_per_chunk", "warmup_steps",
-                  "eval_envs", "normalize_obs", "exploration", "per_env_noise")  # fmt: skip
+                  "eval_envs", "normalize_obs", "exploration", "per_env_noise",
+                  "eval_in_chunk")  # fmt: skip
 
 
 def _as_given(cfg: TrainConfig, names: tuple[str, ...]) -> dict[str, Any]:
@@ -143,9 +144,15 @@ def env_options(cfg: TrainConfig, members: int = 1) -> envs.EnvOptions:
     return envs.EnvOptions(
         pushes=None if cfg.pushes == "default" else cfg.pushes == "on",
         impl=cfg.impl or ("warp" if cfg.env_backend == "warp" else None),
-        worlds=members * cfg.num_envs,  # not eval_envs: it may change on resume
+        worlds=members * _worlds(cfg),
         **_as_given(cfg, _ENV_OPTIONS),
     )
+
+
+def _worlds(cfg: TrainConfig) -> int:
+    """Environments one member steps together: the training ones, and the evaluation ones
+    where they are stepped inside the chunk (a separate evaluation steps fewer)."""
+    return cfg.num_envs + (cfg.eval_envs if cfg.eval_in_chunk else 0)
 
 
 def make_env(cfg: TrainConfig, members: int = 1, env: Any = None) -> envs.Environment:
@@ -197,13 +204,34 @@ def make_spec(
     """
     env = make_env(cfg, members, env)
     shards = cfg.replay_shards
-    return training.TrainSpec(
+    spec = training.TrainSpec(
         env=env,
         agent=agent_spec(cfg, env),
         reset_groups=shards if shards % env_groups == 0 else env_groups,
         axis_name=axis_name,
         **_as_given(cfg, _SPEC_SETTINGS),
     )
+    if spec.eval_in_chunk:
+        _check_eval_in_chunk(spec)
+    return spec
+
+
+def _check_eval_in_chunk(spec: training.TrainSpec) -> None:
+    """Raises :class:`ConfigError` where the evaluation worlds cannot be stepped in the chunk:
+    a chunk shorter than an episode (no round would finish in it), or evaluation worlds that
+    the environment groups (replay slices, devices) do not divide."""
+    steps = spec.iters_per_chunk * spec.steps_per_iter
+    if steps < spec.env.episode_length:
+        raise ConfigError(
+            f"--eval-in-chunk needs chunks of at least one episode ({spec.env.episode_length} "
+            f"steps per environment), but --eval-every gives {steps}: use --eval-every "
+            f"{spec.env.episode_length * spec.num_envs} or more, or leave out --eval-in-chunk"
+        )
+    if spec.eval_envs % spec.reset_groups:
+        raise ConfigError(
+            f"--eval-envs ({spec.eval_envs}) must be divisible by {spec.reset_groups} (the "
+            "replay slices or devices that the environments are split into) with --eval-in-chunk"
+        )
 
 
 def ou_params(cfg: TrainConfig) -> OUParams:

@@ -8,7 +8,9 @@
 * The steps of the loop: :func:`init`, :func:`explore`, :func:`collect` (act in every
   environment, step them, write the ring), :func:`learn` (``updates_per_iter`` gradient
   steps), :func:`iteration`, :func:`chunk` (a loop of iterations, summarised by
-  :func:`summarize`) and :func:`evaluate`.
+  :func:`summarize`) and :func:`evaluate`. With the spec's ``eval_in_chunk``, evaluation
+  worlds are stepped inside the chunk instead (:mod:`td3_jax.eval_worlds`) and the
+  evaluation after a chunk reads their last finished round.
 * One driver and one key schedule: :func:`chunk_and_evaluate` is what both the CLI's host
   loop (:mod:`td3_jax.run`) and :func:`make_train` run; the evaluation key after a chunk is
   :func:`evaluation_key` of the state, so ``td3-jax train --seed s`` and
@@ -30,8 +32,9 @@ import jax.numpy as jnp
 from flax import struct
 
 from td3_jax import actor_critic as ac
-from td3_jax import envs, noise, normalization, replay
+from td3_jax import envs, eval_worlds, noise, normalization, replay
 from td3_jax.axes import any_member
+from td3_jax.envs.base import reset_from_keys, reset_keys
 from td3_jax.types import AgentState, Metrics, PRNGKey, Transition
 
 #: Folded into a run's key to make its evaluation key (independent of the training draws).
@@ -58,6 +61,9 @@ class TrainState:
     eval_key: jax.Array  # evaluation after chunk c uses fold_in(eval_key, c)
     env_steps: jax.Array  # int32 transitions collected so far (summed over environments)
     iteration: jax.Array  # int32 iterations done
+    # with eval_in_chunk: the evaluation worlds' round (env_state then holds
+    # num_envs + eval_envs worlds, laid out by TrainSpec.layout); None without
+    evaluator: eval_worlds.EvalRound | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +79,8 @@ class TrainSpec:
       steps_per_iter, updates_per_iter, iters_per_chunk: the loop's shape.
       warmup_steps: environment steps of uniform random actions before learning starts.
       eval_envs: evaluation episodes (one per environment).
+      eval_in_chunk: the evaluation environments are stepped inside the chunk, beside the
+        training ones (:mod:`td3_jax.eval_worlds`); needs a chunk of at least one episode.
       normalize_obs: observations normalised by running statistics.
       exploration: ``"gaussian"`` or ``"ou"``.
       per_env_noise: Gaussian exploration with a std per environment (:func:`exploration_std`).
@@ -97,11 +105,19 @@ class TrainSpec:
     per_env_noise: bool = False
     reset_groups: int = 1
     axis_name: str | None = None
+    eval_in_chunk: bool = False
 
     @property
     def stride(self) -> int:
         """Rows one vectorised step writes into each replay slice."""
         return self.num_envs // self.replay_shards
+
+    @property
+    def layout(self) -> eval_worlds.Layout:
+        """Where the training and (with ``eval_in_chunk``) evaluation worlds are in the
+        environment batch."""
+        evaluation = self.eval_envs if self.eval_in_chunk else 0
+        return eval_worlds.Layout(self.num_envs, evaluation, self.reset_groups)
 
 
 @struct.dataclass
@@ -138,22 +154,48 @@ def _first_draws(spec: TrainSpec, key: PRNGKey) -> jax.Array | None:
     return jax.random.uniform(jax.random.fold_in(key, NOISE_KEY_SALT), (spec.num_envs,))
 
 
+def _first_worlds(spec: TrainSpec, env_key: PRNGKey, eval_key: PRNGKey) -> envs.EnvState:
+    """The freshly reset environment batch: ``num_envs`` training worlds drawn from
+    ``env_key`` and, with ``eval_in_chunk``, the first evaluation round's worlds (reset in one
+    batch; the training worlds are those of a run without them)."""
+    keys = reset_keys(env_key, spec.num_envs)
+    if spec.eval_in_chunk:
+        evaluation = reset_keys(round_key(eval_key, 0), spec.eval_envs)
+        join = functools.partial(eval_worlds.join, spec.layout)
+        keys = tuple(join(t, e) for t, e in zip(keys, evaluation, strict=True))
+    return reset_from_keys(spec.env, keys)
+
+
 def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
-    """A fresh run: new networks, an empty ring, ``num_envs`` freshly reset environments."""
+    """A fresh run: new networks, an empty ring, ``num_envs`` freshly reset environments
+    (and, with ``eval_in_chunk``, the evaluation worlds' first round)."""
     agent_key, env_key, loop_key = jax.random.split(key, 3)
+    eval_key = jax.random.fold_in(key, EVAL_KEY_SALT)
     ou_state = noise.ou_init(spec.env.action_size)
+    agent = ac.init(spec.agent, agent_key)
+    obs_stats = normalization.init(spec.env.row_size)  # per feature, so per input too
+    evaluator = None
+    if spec.eval_in_chunk:
+        evaluator = eval_worlds.begin(agent.actor_params, obs_stats, spec.eval_envs)
     return TrainState(
-        agent=ac.init(spec.agent, agent_key),
+        agent=agent,
         buffer=replay.init_slices(spec.replay_capacity, spec.replay_shards, _example_row(spec)),
-        env_state=envs.reset(spec.env, env_key, spec.num_envs),
-        obs_stats=normalization.init(spec.env.row_size),  # per feature, so per input too
+        env_state=_first_worlds(spec, env_key, eval_key),
+        obs_stats=obs_stats,
         ou_state=jax.tree.map(lambda x: jnp.broadcast_to(x, (spec.num_envs, *x.shape)), ou_state),
         expl_draw=_first_draws(spec, key),
         key=loop_key,
-        eval_key=jax.random.fold_in(key, EVAL_KEY_SALT),
+        eval_key=eval_key,
         env_steps=jnp.zeros((), jnp.int32),
         iteration=jnp.zeros((), jnp.int32),
+        evaluator=evaluator,
     )
+
+
+def round_key(eval_key: PRNGKey, round_index: jax.Array | int) -> PRNGKey:
+    """The key that resets the evaluation worlds of in-chunk round ``round_index`` (the key
+    :func:`evaluate` would be given for the same episodes)."""
+    return jax.random.fold_in(eval_key, round_index)
 
 
 def ring_as_saved(abstract_state: Any, layout: list) -> tuple[Any, Callable[[Any], Any] | None]:
@@ -188,13 +230,23 @@ def normalize(spec: TrainSpec, stats: normalization.RunningStats, obs: jax.Array
     return normalization.normalize(stats, obs) if spec.normalize_obs else obs
 
 
+def policy_action(
+    spec: TrainSpec, actor_params: Any, stats: normalization.RunningStats, obs: jax.Array
+) -> jax.Array:
+    """The deterministic policy's actions ``[n, action_size]`` for observation rows
+    ``obs [n, row_size]`` (normalised by ``stats`` where the spec asks; NaN actions as 0)."""
+    actor_obs = envs.actor_observation(spec.env, normalize(spec, stats, obs))
+    return safe_action(spec.agent.actor.apply(actor_params, actor_obs))
+
+
 def explore(
-    spec: TrainSpec, hp: Hyperparams, state: TrainState, key: PRNGKey
+    spec: TrainSpec, hp: Hyperparams, state: TrainState, obs: jax.Array, key: PRNGKey
 ) -> tuple[jax.Array, noise.OUState]:
-    """Actions ``[num_envs, action_size]`` in ``[-1, 1]``: uniform during warm-up, the noisy
-    policy after (Gaussian or OU per environment); returns the new OU states too."""
+    """Actions ``[num_envs, action_size]`` in ``[-1, 1]`` for the training worlds' observation
+    rows ``obs [num_envs, row_size]``: uniform during warm-up, the noisy policy after (Gaussian
+    or OU per environment); returns the new OU states too."""
     random_key, noise_key = jax.random.split(key)
-    obs = envs.actor_observation(spec.env, normalize(spec, state.obs_stats, state.env_state.obs))
+    obs = envs.actor_observation(spec.env, normalize(spec, state.obs_stats, obs))
     policy = spec.agent.actor.apply(state.agent.actor_params, obs)
     noise_keys = jax.random.split(noise_key, spec.num_envs)
     ou_state = state.ou_state
@@ -252,14 +304,37 @@ def _episode_metrics(result: envs.StepResult) -> Metrics:
     }
 
 
+def _worlds_actions(spec: TrainSpec, state: TrainState, action: jax.Array) -> jax.Array:
+    """``action [num_envs, ...]`` of the training worlds, with the evaluation worlds' actions
+    (the round's frozen deterministic policy) joined in where they are stepped too."""
+    if not spec.eval_in_chunk:
+        return action
+    evaluator = state.evaluator
+    _, obs = eval_worlds.split(spec.layout, state.env_state.obs)
+    evaluated = policy_action(spec, evaluator.actor_params, evaluator.obs_stats, obs)
+    return eval_worlds.join(spec.layout, action, evaluated)
+
+
+def _split_result(
+    spec: TrainSpec, result: envs.StepResult
+) -> tuple[envs.StepResult, envs.StepResult | None]:
+    """``(training worlds' result, evaluation worlds' result or None)``."""
+    if not spec.eval_in_chunk:
+        return result, None
+    parts = [eval_worlds.split(spec.layout, x) for x in result]
+    return type(result)(*(p[0] for p in parts)), type(result)(*(p[1] for p in parts))
+
+
 def collect_step(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
-    """One vectorised step: act, step every environment, write the transitions to the ring."""
+    """One vectorised step: act, step every environment, write the transitions to the ring
+    (and, with ``eval_in_chunk``, step the evaluation worlds alongside, their rewards counted
+    in the round: :func:`next_evaluation_round` starts the next)."""
     key, act_key = jax.random.split(state.key)
-    action, ou_state = explore(spec, hp, state, act_key)
-    obs = state.env_state.obs
-    env_state, result = envs.step(
-        spec.env, state.env_state, action, spec.axis_name, groups=spec.reset_groups
-    )
+    obs = _training_rows(spec, state.env_state.obs)
+    action, ou_state = explore(spec, hp, state, obs, act_key)
+    env_state, result = envs.step(spec.env, state.env_state, _worlds_actions(spec, state, action),
+                                  spec.axis_name, groups=spec.reset_groups)  # fmt: skip
+    result, evaluated = _split_result(spec, result)
     transition = Transition(obs, action, result.reward, result.next_obs,
                             result.terminated.astype(jnp.float32))  # fmt: skip
     ended = result.terminated | result.truncated
@@ -272,7 +347,39 @@ def collect_step(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[T
         key=key,
         env_steps=state.env_steps + spec.num_envs,
     )
-    return state, _episode_metrics(result)
+    metrics = _episode_metrics(result)
+    if evaluated is not None:
+        ended = evaluated.terminated | evaluated.truncated
+        evaluator = eval_worlds.advance(state.evaluator, evaluated.reward, ended)
+        state = state.replace(evaluator=evaluator)
+        metrics["physics_overflow"] += jnp.sum(evaluated.overflow).astype(jnp.float32)
+    return state, metrics
+
+
+def _training_rows(spec: TrainSpec, x: jax.Array) -> jax.Array:
+    """The training worlds' rows of ``x [worlds, ...]``."""
+    return eval_worlds.split(spec.layout, x)[0] if spec.eval_in_chunk else x
+
+
+def next_evaluation_round(spec: TrainSpec, state: TrainState) -> TrainState:
+    """At the end of an iteration (with ``eval_in_chunk``): where every episode of the
+    evaluation round has ended, the round is kept as the last finished one and the next
+    starts, its worlds reset with :func:`round_key` and its policy the current one (of
+    ``state.env_steps``). No reset runs while no member's round has finished."""
+    evaluator = state.evaluator
+    done = eval_worlds.finished(evaluator)
+
+    def next_round(_, carry: tuple) -> tuple:  # run when some member's round is done
+        env_state, evaluator = carry
+        fresh = envs.reset(spec.env, round_key(state.eval_key, evaluator.rounds), spec.eval_envs)
+        env_state = eval_worlds.put_evaluation(spec.layout, env_state, fresh, done)
+        evaluator = eval_worlds.restart(evaluator, state.agent.actor_params, state.obs_stats,
+                                        state.env_steps, done)  # fmt: skip
+        return env_state, evaluator
+
+    trips = any_member(done, spec.axis_name).astype(jnp.int32)
+    carry = jax.lax.fori_loop(0, trips, next_round, (state.env_state, evaluator))
+    return state.replace(env_state=carry[0], evaluator=carry[1])
 
 
 def collect(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
@@ -374,6 +481,8 @@ def iteration(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[Trai
             update_key,
         )
     state = state.replace(agent=agent_state, key=key, iteration=state.iteration + 1)
+    if spec.eval_in_chunk:
+        state = next_evaluation_round(spec, state)
     return state, {**env_metrics, **update_metrics}
 
 
@@ -407,7 +516,16 @@ def summarize(totals: Metrics, iterations: jax.Array, state: TrainState) -> Metr
         "params_finite": all_finite(state.agent).astype(jnp.float32),
         "env_steps": state.env_steps,
         "agent_steps": state.agent.step,
+        **_evaluator_metrics(state),
     }
+
+
+def _evaluator_metrics(state: TrainState) -> Metrics:
+    """With in-chunk evaluation: ``eval_policy_env_steps``, the training env steps at which
+    the last finished round's policy was taken (-1 before one)."""
+    if state.evaluator is None:
+        return {}
+    return {"eval_policy_env_steps": state.evaluator.last_policy_env_steps.astype(jnp.float32)}
 
 
 def _iteration_summed(spec: TrainSpec, hp: Hyperparams, _, carry: tuple) -> tuple:
@@ -454,8 +572,7 @@ def _evaluation_step(
     """One deterministic-policy step of every evaluation environment; emits a
     :class:`Recording` step of the first ``record`` environments (``None`` when 0)."""
     env_state, returns, alive = carry
-    obs = envs.actor_observation(spec.env, normalize(spec, state.obs_stats, env_state.obs))
-    action = safe_action(spec.agent.actor.apply(state.agent.actor_params, obs))
+    action = policy_action(spec, state.agent.actor_params, state.obs_stats, env_state.obs)
     # Only each environment's first episode counts: no resets needed.
     env_state, result = envs.step(spec.env, env_state, action, auto_reset=False)
     returns = returns + jnp.where(alive, result.reward, 0.0)
@@ -521,7 +638,11 @@ def evaluation_key(spec: TrainSpec, state: TrainState) -> PRNGKey:
 
 
 def scheduled_evaluate(spec: TrainSpec, state: TrainState) -> jax.Array:
-    """:func:`evaluate` with the run's own key schedule (:func:`evaluation_key`)."""
+    """:func:`evaluate` with the run's own key schedule (:func:`evaluation_key`); with
+    ``eval_in_chunk``, the returns ``[eval_envs]`` of the last finished in-chunk round instead
+    (NaN before one; its policy's env steps are the chunk metric ``eval_policy_env_steps``)."""
+    if spec.eval_in_chunk:
+        return state.evaluator.last_returns
     return evaluate(spec, state, evaluation_key(spec, state))
 
 
@@ -571,5 +692,8 @@ __all__ = [
     "key_for_seed",
     "learn",
     "make_train",
+    "next_evaluation_round",
+    "policy_action",
+    "round_key",
     "scheduled_evaluate",
 ]

@@ -388,8 +388,10 @@ def test_presets_follow_fasttd3():
     # The humanoids keep FastTD3's 2 updates per 1024 env steps, over 4096 environments.
     for name in ("t1", "g1"):
         assert (preset(name).num_envs, preset(name).updates_per_iter) == (4096, 8)
-        # An evaluation costs 15 s there: every 4,096,000 steps, none after 512k steps.
+        # An evaluation costs 8-15 s there: every 4,096,000 steps (one episode per chunk),
+        # none after 512k steps, stepped inside the chunk.
         assert (preset(name).eval_every, preset(name).early_evaluation) == (4_096_000, False)
+        assert preset(name).eval_in_chunk
     # Their checkpoints hold rings of 8.4M (t1, g1) and 10.5M (go1) transitions: one is kept.
     assert {preset(name).keep_checkpoints for name in ("t1", "g1", "go1")} == {1}
     assert preset("t1").pushes == "off"
@@ -412,11 +414,12 @@ def test_presets_follow_fasttd3():
 
 def test_cli_training_run_on_t1(tmp_path):
     """The whole path on a CPU: a few steps of T1 with randomised physics, pushes off, two
-    evaluations, the options recorded in config.json."""
+    evaluations stepped inside the chunks (the preset's), the options recorded in
+    config.json."""
     needs_assets(T1)
     out = tmp_path / "run"
-    flags = ["--env", f"playground/{T1}", "--num-envs", "2", "--total-steps", "8",
-             "--eval-every", "4", "--warmup-steps", "2", "--batch-size", "4",
+    flags = ["--env", f"playground/{T1}", "--num-envs", "2", "--total-steps", "12",
+             "--eval-every", "6", "--warmup-steps", "2", "--batch-size", "4",
              "--buffer-size", "64", "--updates-per-iter", "1", "--hidden-sizes", "8",
              "--eval-envs", "1", "--episode-length", "3", "--domain-randomization",
              "--pushes", "off", "--out", str(out), "--quiet", "--compile-cache", "off"]  # fmt: skip
@@ -428,7 +431,8 @@ def test_cli_training_run_on_t1(tmp_path):
     assert (config["actor_obs_key"], config["critic_obs_key"]) == ("state", "privileged_state")
     assert config["menagerie"] is None and config["preset"] == "t1"
     records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines() if x]
-    assert [r["env_steps"] for r in records] == [4, 8]
+    assert [r["env_steps"] for r in records] == [6, 12]
+    assert [r["eval_policy_env_steps"] for r in records] == [0, 6]  # one episode per chunk
     assert all(np.isfinite(r["critic_loss"]) and np.isfinite(r["eval_return_mean"])
                for r in records)  # fmt: skip
     assert records[-1]["eval_return_mean"] >= 0.0  # T1's reward is clipped at 0 from below

@@ -263,9 +263,18 @@ def _reset_batch(env: Environment, keys: jax.Array) -> tuple[Any, jax.Array]:
     return _strong(inner), obs.astype(jnp.float32)
 
 
-def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
-    """``num_envs`` environments, each from its own random initial state."""
-    reset_keys, state_keys = jnp.split(jax.random.split(key, 2 * num_envs), 2)
+def reset_keys(key: jax.Array, num_envs: int) -> tuple[jax.Array, jax.Array]:
+    """``(reset_keys, state_keys)``, each ``[num_envs]``: the keys :func:`reset` draws
+    ``num_envs`` initial states and their step-key chains from."""
+    return tuple(jnp.split(jax.random.split(key, 2 * num_envs), 2))
+
+
+def reset_from_keys(env: Environment, keys: tuple[jax.Array, jax.Array]) -> EnvState:
+    """Environments from ``keys = (reset_keys, state_keys)`` (each ``[num_envs]``, as
+    :func:`reset_keys` draws them; keys of several draws may be concatenated to reset their
+    environments in one batch)."""
+    reset_keys, state_keys = keys
+    num_envs = reset_keys.shape[0]
     inner, obs = _reset_batch(env, reset_keys)
     return EnvState(
         inner=inner,
@@ -274,6 +283,11 @@ def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
         steps=jnp.zeros((num_envs,), jnp.int32),
         episode_return=jnp.zeros((num_envs,), jnp.float32),
     )
+
+
+def reset(env: Environment, key: jax.Array, num_envs: int) -> EnvState:
+    """``num_envs`` environments, each from its own random initial state."""
+    return reset_from_keys(env, reset_keys(key, num_envs))
 
 
 def default_reset_slots(num_envs: int) -> int:

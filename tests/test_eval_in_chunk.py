@@ -1,0 +1,150 @@
+"""Evaluation inside the training chunk (``--eval-in-chunk``): the training worlds see exactly
+what they see without the evaluation worlds, and every finished round's returns are those of a
+separate evaluation of the policy the round froze, with the same episodes."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from td3_jax import build, eval_worlds, training
+from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.envs import FunctionalEnv
+from td3_jax.run import train
+
+LIMIT = 12  # the time limit of the drift environment
+
+
+def _drift_env() -> FunctionalEnv:
+    """A point on a line drifting right, pushed by the action; reward for staying near 0.6,
+    termination past |x| = 1 (a policy that does not push back ends before the time limit)."""
+
+    def reset(key):
+        x = jax.random.uniform(key, (), minval=-0.9, maxval=0.9)
+        return x, jnp.stack([x, x * x])
+
+    def step(x, action):
+        x = x + 0.4 * action[0] + 0.2
+        return x, jnp.stack([x, x * x]), 1.0 - (x - 0.6) ** 2, jnp.abs(x) > 1.0
+
+    return FunctionalEnv(reset, step, observation_size=2, action_size=1, episode_length=LIMIT,
+                         name="drift")  # fmt: skip
+
+
+CFG = TrainConfig(
+    num_envs=4,
+    eval_envs=4,
+    eval_every=4 * LIMIT,  # one episode per chunk
+    total_steps=8 * LIMIT * 4,
+    warmup_steps=8,
+    batch_size=16,
+    updates_per_iter=2,
+    hidden_sizes=(16, 16),
+    buffer_size=512,
+    expl_noise=0.5,
+)
+IN_CHUNK = dataclasses.replace(CFG, eval_in_chunk=True)
+
+
+def _program(cfg: TrainConfig):
+    spec = build.make_spec(cfg, env=_drift_env())
+    chunk = jax.jit(lambda hp, s, n: training.chunk(spec, hp, s, n))
+    return spec, build.hyperparams(cfg), chunk
+
+
+def test_training_worlds_are_those_of_a_run_without_evaluation_worlds():
+    (plain, hp, plain_chunk), (inside, _, inside_chunk) = _program(CFG), _program(IN_CHUNK)
+    key = jax.random.PRNGKey(3)
+    a, b = training.init(plain, key), training.init(inside, key)
+    for _ in range(3):
+        a, metrics_a = plain_chunk(hp, a, LIMIT)
+        b, metrics_b = inside_chunk(hp, b, LIMIT)
+    assert b.env_state.obs.shape[0] == CFG.num_envs + CFG.eval_envs
+    # Same parameters, replay ring (no evaluation transitions in it), statistics, counters
+    # (up to float rounding: the two programs are fused differently by XLA).
+    same = lambda x, y: np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5,
+                                                   atol=1e-6)  # fmt: skip
+    jax.tree.map(same, (a.agent, a.buffer, a.obs_stats, a.env_steps, a.key),
+                 (b.agent, b.buffer, b.obs_stats, b.env_steps, b.key))  # fmt: skip
+    train_obs, _ = eval_worlds.split(inside.layout, b.env_state.obs)
+    same(a.env_state.obs, train_obs)
+    for name in ("critic_loss", "train_return_mean", "train_episodes", "reward_mean"):
+        same(metrics_a[name], metrics_b[name])
+    taken = int(metrics_b["eval_policy_env_steps"])  # a round finished, with an older policy
+    assert 0 <= taken < int(b.env_steps) and taken % CFG.num_envs == 0
+
+
+def test_each_finished_round_is_a_separate_evaluation_of_its_frozen_policy():
+    spec, hp, chunk = _program(IN_CHUNK)
+    state = training.init(spec, jax.random.PRNGKey(1))
+    policies = {0: state}  # env steps -> the state whose policy a round froze then
+    checked, early = 0, 0
+    for _ in range(5 * LIMIT):
+        state, _ = chunk(hp, state, 1)  # one iteration at a time
+        policies[int(state.env_steps)] = state
+        evaluator = state.evaluator
+        taken = int(evaluator.last_policy_env_steps)
+        if taken < 0 or int(evaluator.policy_env_steps) != int(state.env_steps):
+            continue  # no round finished in this iteration
+        finished = int(evaluator.rounds) - 2  # the round before the one just started
+        key = training.round_key(state.eval_key, finished)
+        expected = training.evaluate(spec, policies[taken], key)
+        np.testing.assert_allclose(evaluator.last_returns, expected, rtol=1e-5, atol=1e-5)
+        checked += 1
+        early += int(state.env_steps - taken) < LIMIT * spec.num_envs
+    assert checked >= 4
+    assert early >= 1  # some round ended before the time limit: every episode terminated
+
+
+def test_rounds_of_a_population_member_are_those_of_its_lone_run():
+    cfg = dataclasses.replace(IN_CHUNK, total_steps=2 * LIMIT * 4)
+    env = _drift_env()
+    _, lone = jax.jit(build.make_train(cfg, env=env))(jax.random.PRNGKey(7))
+    vmapped = jax.vmap(build.make_train(cfg, env=env, axis_name="seeds"), axis_name="seeds")
+    _, both = jax.jit(vmapped)(jnp.stack([jax.random.PRNGKey(7), jax.random.PRNGKey(8)]))
+    np.testing.assert_allclose(both["eval_returns"][0], lone["eval_returns"], rtol=1e-4)
+    np.testing.assert_array_equal(both["eval_policy_env_steps"][0], lone["eval_policy_env_steps"])
+    assert np.all(np.isfinite(lone["eval_returns"]))
+
+
+def test_layout_splits_and_joins_groups_of_training_then_evaluation_worlds():
+    layout = eval_worlds.Layout(train=4, evaluation=2, groups=2)
+    batch = np.arange(6 * 3, dtype=np.int32).reshape(6, 3)  # groups [t t e][t t e]
+    train_rows, eval_rows = eval_worlds.split(layout, batch)
+    np.testing.assert_array_equal(train_rows[:, 0], [0, 3, 9, 12])
+    np.testing.assert_array_equal(eval_rows[:, 0], [6, 15])
+    np.testing.assert_array_equal(eval_worlds.join(layout, train_rows, eval_rows), batch)
+    tree = {"rows": batch, "shared": jnp.zeros((0,))}
+    fresh = {"rows": -jnp.ones((2, 3), jnp.int32), "shared": jnp.zeros((0,))}
+    kept = eval_worlds.put_evaluation(layout, tree, fresh, jnp.array(False))
+    np.testing.assert_array_equal(kept["rows"], batch)
+    put = np.asarray(eval_worlds.put_evaluation(layout, tree, fresh, jnp.array(True))["rows"])
+    np.testing.assert_array_equal(put[[2, 5]], -1)
+    np.testing.assert_array_equal(put[[0, 1, 3, 4]], batch[[0, 1, 3, 4]])
+
+
+def test_a_chunk_shorter_than_an_episode_is_refused():
+    short = dataclasses.replace(IN_CHUNK, eval_every=4 * (LIMIT - 1))
+    with pytest.raises(ConfigError, match="--eval-in-chunk needs chunks of at least one episode"):
+        build.make_spec(short, env=_drift_env())
+    split = dataclasses.replace(IN_CHUNK, eval_envs=3, replay_shards=2)
+    with pytest.raises(ConfigError, match=r"--eval-envs \(3\) must be divisible by 2"):
+        build.make_spec(split, env=_drift_env())
+
+
+def test_records_carry_the_rounds_policy_steps(tmp_path):
+    records = train(IN_CHUNK, tmp_path / "run", env=_drift_env(), progress=False)
+    steps = [r["eval_policy_env_steps"] for r in records]
+    chunk = IN_CHUNK.steps_per_chunk
+    # every chunk is one episode long, so each record holds the round that ran through it,
+    # whose policy is that of the chunk's start (some rounds end early, then a later round)
+    assert steps[0] == 0 and all(s >= c * chunk for c, s in enumerate(steps))
+    assert all(s < r["env_steps"] for s, r in zip(steps, records, strict=True))
+    assert all(np.isfinite(r["eval_return_mean"]) for r in records)
+    saved = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
+    assert [r["eval_policy_env_steps"] for r in saved] == steps
