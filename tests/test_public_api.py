@@ -56,12 +56,12 @@ def inspect_is_module(value) -> bool:
 def test_every_error_is_one_class_of_the_errors_module_with_its_exit_code():
     """The modules that raise an error re-export errors' class (one class, not a copy); bad
     input exits 2, a run stopped by what it computed exits 3."""
-    from td3_jax import checkpoint, config, envs, errors, export, logger, render, run, upstream
+    from td3_jax import checkpoint, config, envs, errors, export, render, run, upstream
 
     for module, name in [(config, "ConfigError"), (checkpoint, "CorruptCheckpointError"),
                          (envs, "UnknownEnvironmentError"), (envs, "MissingAssetsError"),
                          (envs, "EnvironmentOptionError"), (export, "ExportError"),
-                         (logger, "OutputWriteError"), (render, "GLUnavailableError"),
+                         (run, "OutputWriteError"), (render, "GLUnavailableError"),
                          (run, "NonFiniteError"), (run, "PhysicsOverflowError"),
                          (upstream, "UpstreamChanged")]:  # fmt: skip
         assert getattr(module, name) is getattr(errors, name), name
