@@ -7,9 +7,11 @@ import dataclasses
 import os
 
 import jax
+import numpy as np
 
 from td3_jax import build, program_cache
 from td3_jax.config import TrainConfig
+from td3_jax.programs import compiled, find
 from td3_jax.run import train
 from td3_jax.sharding import make_mesh
 
@@ -111,6 +113,32 @@ def test_a_stored_run_traces_nothing_and_matches_a_traced_one(tmp_path, monkeypa
     monkeypatch.undo()
     fresh = train(other, tmp_path / "e", progress=False)
     assert _numbers(stored) == _numbers(fresh) != _numbers(first)
+
+
+def test_the_programs_are_one_type_whatever_their_origin(tmp_path):
+    """programs.compiled gives the same Programs traced and read back from the store (shapes,
+    shardings, numbers), calling the room check once with the state's shapes either way."""
+    population, mesh, checked = build.members(TINY), make_mesh(None), {}
+
+    def compile_from(origin: str):
+        source = find(TINY, population, mesh, tmp_path / "programs")
+        check = lambda shapes: checked.setdefault(origin, []).append(shapes)
+        return source, compiled(source, check=check)
+
+    (traced_source, traced), (stored_source, stored) = map(compile_from, ("traced", "stored"))
+    assert traced_source.stored is None and traced_source.env is not None
+    assert stored_source.stored is not None and stored_source.env is None  # nothing made
+    shapes = lambda tree: jax.tree.map(lambda x: (x.shape, x.dtype), tree)
+    assert [len(calls) for calls in checked.values()] == [1, 1]
+    assert shapes(checked["traced"][0]) == shapes(checked["stored"][0])
+    assert shapes(traced.abstract_state) == shapes(stored.abstract_state)
+    assert jax.tree.leaves(traced.shardings) == jax.tree.leaves(stored.shardings)
+    out = [
+        p.chunk(p.hyperparams, p.init(), np.int32(TINY.iters_per_chunk)) for p in (traced, stored)
+    ]
+    for a, b in zip(*(jax.tree.leaves(o) for o in out), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(traced.evaluate(out[0][0]), stored.evaluate(out[1][0]))
 
 
 def test_a_resume_takes_the_stored_programs(tmp_path, monkeypatch):
