@@ -6,6 +6,7 @@ import os
 import tempfile
 
 import jax
+import pytest
 from hypothesis import HealthCheck, settings
 
 # The CLI's default --compile-cache is ~/.cache/td3-jax/jax (with its traced programs): tests
@@ -33,3 +34,15 @@ settings.register_profile(
     derandomize=False,
 )
 settings.load_profile("td3_jax")
+
+
+#: The markers of the tests left out of the fast command (``-m "not heavy"``); pyproject.toml
+#: says what each one selects.
+HEAVY = ("slow", "robots", "mjx", "processes", "subprocess")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Marks ``heavy`` every test that carries one of the ``HEAVY`` markers."""
+    for item in items:
+        if any(item.get_closest_marker(name) for name in HEAVY):
+            item.add_marker(pytest.mark.heavy)

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from support import TINY_FLAGS, assert_one_line_error, main, read_records, td3_jax
 
 from td3_jax import cli
 from td3_jax import run as run_module
@@ -43,71 +44,8 @@ RECORD_KEYS = {
     "actor_loss",
     "env_steps_per_s",
 }
-TINY_FLAGS = [
-    "--env",
-    "gymnax/Pendulum-v1",
-    "--num-envs",
-    "4",
-    "--total-steps",
-    "128",
-    "--eval-every",
-    "64",
-    "--warmup-steps",
-    "32",
-    "--batch-size",
-    "16",
-    "--updates-per-iter",
-    "1",
-    "--hidden-sizes",
-    "16",
-    "16",
-    "--eval-envs",
-    "2",
-    "--episode-length",
-    "16",
-    "--seed",
-    "7",
-    "--buffer-size",
-    "256",
-]
 EPISODE = 16
 PENDULUM_WORST_STEP = -16.3  # -(pi^2 + 0.1 * 8^2 + 0.001 * 2^2)
-
-
-def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "td3_jax", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-
-
-def main(args: list[str], capsys) -> tuple[int, str, str]:
-    """Runs ``cli.main(args)`` in-process: (exit code, stdout, stderr)."""
-    capsys.readouterr()
-    try:
-        cli.main(args)
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code if isinstance(exit_.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def assert_one_line_error(code: int, err: str, *needles: str) -> None:
-    assert code == 2, err
-    assert "Traceback" not in err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1, err
-    assert lines[0].startswith("td3-jax: error: "), err
-    for needle in needles:
-        assert needle in lines[0], (needle, err)
-
-
-def read_records(run_dir: Path) -> list[dict]:
-    text = (run_dir / "metrics.jsonl").read_text()
-    return [json.loads(line) for line in text.splitlines() if line.strip()]
 
 
 def tensorboard_scalars(run_dir: Path) -> dict[str, dict[int, float]]:
@@ -129,10 +67,11 @@ def tensorboard_scalars(run_dir: Path) -> dict[str, dict[int, float]]:
 
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
+    """The tiny run, trained in this process: (its directory, stdout, stderr)."""
     out = tmp_path_factory.mktemp("cli") / "run"
-    proc = td3_jax("train", *TINY_FLAGS, "--out", str(out), "--quiet")
-    assert proc.returncode == 0, proc.stderr
-    return out, proc
+    code, stdout, stderr = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"])
+    assert code == 0, stderr
+    return out, stdout, stderr
 
 
 # --------------------------------------------------------------------------------------------
@@ -347,9 +286,21 @@ def test_no_warp_notes_reach_stdout_where_warp_is_missing():
 
 
 def test_train_writes_every_output(finished_run):
-    out, proc = finished_run
-    assert "Traceback" not in proc.stderr
-    assert re.search(r"done: 128 env steps .* eval return -?\d+\.\d ± \d+\.\d", proc.stdout)
+    assert_every_output(*finished_run)
+
+
+@pytest.mark.subprocess
+def test_train_in_a_real_process_writes_every_output(tmp_path):
+    out = tmp_path / "run"
+    proc = td3_jax("train", *TINY_FLAGS, "--out", str(out), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert_every_output(out, proc.stdout, proc.stderr)
+
+
+def assert_every_output(out: Path, stdout: str, stderr: str) -> None:
+    """The tiny run's outputs: its line, config.json, the records, TensorBoard, the curve."""
+    assert "Traceback" not in stderr
+    assert re.search(r"done: 128 env steps .* eval return -?\d+\.\d ± \d+\.\d", stdout)
 
     config = json.loads((out / "config.json").read_text())
     assert config["num_envs"] == 4 and config["total_steps"] == 128 and config["seed"] == 7
@@ -358,7 +309,7 @@ def test_train_writes_every_output(finished_run):
     # the settings, and the preset they started from (Pendulum's, as no --preset was given)
     assert set(config) == {f.name for f in dataclasses.fields(TrainConfig)} | {"preset"}
     assert config["preset"] == "pendulum"
-    assert "using preset 'pendulum' for gymnax/Pendulum-v1" in proc.stdout
+    assert "using preset 'pendulum' for gymnax/Pendulum-v1" in stdout
 
     records = read_records(out)
     assert [r["env_steps"] for r in records] == [64, 128]
@@ -385,18 +336,18 @@ def test_train_writes_every_output(finished_run):
     assert steps == [1, 2]
 
 
-def test_eval_prints_mean_and_std(finished_run):
-    out, _ = finished_run
-    proc = td3_jax("eval", "--run", str(out), "--episodes", "4")
-    assert proc.returncode == 0, proc.stderr
-    assert "Traceback" not in proc.stderr
-    header = next(line for line in proc.stdout.splitlines() if "mean" in line)
+def test_eval_prints_mean_and_std(finished_run, capsys):
+    out = finished_run[0]
+    code, stdout, stderr = main(["eval", "--run", str(out), "--episodes", "4"], capsys)
+    assert code == 0, stderr
+    assert "Traceback" not in stderr
+    header = next(line for line in stdout.splitlines() if "mean" in line)
     cells = [c.strip() for c in re.split(r"[│┃|]", header) if c.strip()]
     assert cells[-4:] == ["mean", "std", "min", "max"]
     # (rich wraps a title to the table's width)
-    assert re.search(r"128\s+env\s+steps", proc.stdout)
-    assert re.search(r"\b4\s+episodes", proc.stdout) or "episodes" in cells
-    row = next(line for line in proc.stdout.splitlines() if re.search(r"-\d+\.\d", line))
+    assert re.search(r"128\s+env\s+steps", stdout)
+    assert re.search(r"\b4\s+episodes", stdout) or "episodes" in cells
+    row = next(line for line in stdout.splitlines() if re.search(r"-\d+\.\d", line))
     values = [c.strip() for c in re.split(r"[│┃|]", row) if c.strip()]
     mean, std, low, high = (float(v) for v in values[-4:])
     assert low <= mean <= high and std >= 0
@@ -404,7 +355,7 @@ def test_eval_prints_mean_and_std(finished_run):
 
 
 def test_second_train_to_the_same_out_exits_2(finished_run, capsys):
-    out, _ = finished_run
+    out = finished_run[0]
     before = {p: (out / p).read_bytes() for p in ("metrics.jsonl", "config.json")}
     code, _, err = main(["train", *TINY_FLAGS, "--seed", "8", "--out", str(out), "--quiet"], capsys)
     assert_one_line_error(code, err, "--resume")
@@ -412,7 +363,7 @@ def test_second_train_to_the_same_out_exits_2(finished_run, capsys):
 
 
 def test_resume_of_a_finished_run_adds_nothing(finished_run, capsys):
-    out, _ = finished_run
+    out = finished_run[0]
     records = read_records(out)
     code, _, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
     assert code == 0, err
@@ -423,7 +374,7 @@ def test_resume_of_a_finished_run_adds_nothing(finished_run, capsys):
 
 
 def test_plot_redraws_the_curve(finished_run, capsys):
-    out, _ = finished_run
+    out = finished_run[0]
     (out / "curve.png").unlink()
     code, stdout, _ = main(["plot", "--run", str(out)], capsys)
     assert code == 0
@@ -466,7 +417,7 @@ def test_envs_says_what_each_task_still_needs(capsys, monkeypatch):
 
 
 def _copy_run(finished_run, tmp_path) -> Path:
-    src, _ = finished_run
+    src = finished_run[0]
     dst = tmp_path / "copy"
     shutil.copytree(src, dst)
     return dst
@@ -494,6 +445,7 @@ def _garble_arrays(run_dir: Path) -> None:
             path.write_bytes(bytes((i * 37 + 11) % 256 for i in range(size)))
 
 
+@pytest.mark.subprocess
 def test_corrupted_checkpoint_arrays_exit_2(finished_run, tmp_path):
     run_dir = _copy_run(finished_run, tmp_path)
     _garble_arrays(run_dir)
@@ -505,6 +457,7 @@ def test_corrupted_checkpoint_arrays_exit_2(finished_run, tmp_path):
         assert "checkpoints/2" in errors[0] and "corrupt" in errors[0]
 
 
+@pytest.mark.subprocess
 def test_corrupted_checkpoint_arrays_message_is_clean(finished_run, tmp_path):
     # After the failed read, tensorstore callbacks still pending hit orbax's closed asyncio loop;
     # Checkpointer keeps their "Event loop is closed" tracebacks off stderr.
@@ -530,7 +483,7 @@ RESUME_CHANGES = {
 
 @pytest.mark.parametrize("case", list(RESUME_CHANGES))
 def test_resume_with_a_changed_structural_flag_exits_2(finished_run, case, capsys):
-    out, _ = finished_run
+    out = finished_run[0]
     before = {p: (out / p).read_bytes() for p in ("metrics.jsonl", "config.json", "members.json")}
     flags, needles = RESUME_CHANGES[case]
     code, _, err = main(["train", "--resume", *flags, "--out", str(out), "--quiet"], capsys)
@@ -730,6 +683,7 @@ def test_resume_uses_the_saved_config(finished_run, tmp_path, capsys, monkeypatc
     assert saved["preset"] == "pendulum" and kwargs["preset"] is None  # (kept by train())
 
 
+@pytest.mark.subprocess
 def test_compile_cache_is_filled_once_and_reused(finished_run, tmp_path):
     """A second run with the same shapes loads its programs from the cache and matches."""
     cache = tmp_path / "cache"

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_cli import assert_one_line_error, main, read_records
+from support import assert_one_line_error, main, read_records
 
 from td3_jax import envs, errors
 from td3_jax.build import make_spec, make_train
@@ -279,6 +279,7 @@ def test_a_factory_is_found_from_the_current_directory_or_said_in_one_line(
     assert needle in str(caught.value) and "\n" not in str(caught.value)
 
 
+@pytest.mark.mjx
 def test_the_cli_sweeps_a_factory_over_seeds_and_finds_it_again(tmp_path, monkeypatch, capsys):
     """``sweep --env examples.point_mass:make`` over 2 learning rates x 2 seeds: config.json
     records the factory, each member is evaluated, ``eval`` makes the environment again from

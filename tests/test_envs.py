@@ -474,6 +474,7 @@ def brax_rollout():
     )
 
 
+@pytest.mark.mjx
 def test_brax_spec(brax_rollout):
     env = brax_rollout["env"]
     assert env.name == "brax/inverted_pendulum"
@@ -482,6 +483,7 @@ def test_brax_spec(brax_rollout):
     np.testing.assert_array_equal(env.action_high, [1.0])
 
 
+@pytest.mark.mjx
 def test_brax_step_compiles_once(brax_rollout):
     # The step was fed its own output 40 times; a state whose types drift (weak types, dtypes,
     # commitment) between reset and step would have been compiled again.
@@ -496,6 +498,7 @@ def test_brax_step_compiles_once(brax_rollout):
     assert [kind(x) for x in jax.tree.leaves(initial)] == [kind(x) for x in jax.tree.leaves(final)]
 
 
+@pytest.mark.mjx
 def test_brax_falling_pole_terminates(brax_rollout):
     terminated = np.stack([s["result"].terminated for s in brax_rollout["steps"]])
     truncated = np.stack([s["result"].truncated for s in brax_rollout["steps"]])
@@ -504,6 +507,7 @@ def test_brax_falling_pole_terminates(brax_rollout):
     assert terminated.sum() >= BRAX_ENVS * 2  # and fall again after its reset
 
 
+@pytest.mark.mjx
 def test_brax_episode_bookkeeping(brax_rollout):
     # An independent count of each environment's steps since its last reset.
     count = np.zeros(BRAX_ENVS, np.int64)
@@ -522,6 +526,7 @@ def test_brax_episode_bookkeeping(brax_rollout):
         np.testing.assert_allclose(state.episode_return, ret, rtol=1e-5)
 
 
+@pytest.mark.mjx
 def test_brax_terminal_observation_is_the_fallen_pole(brax_rollout):
     # Brax's inverted pendulum: obs = [cart, angle, cart velocity, angle velocity], terminated
     # when |angle| > 0.2; a reset starts within 0.01 of upright and at rest.

@@ -19,6 +19,7 @@ import imageio.v2 as imageio
 import jax
 import numpy as np
 import pytest
+from support import assert_one_line_error, main
 
 from td3_jax import cli, finished, render, rundir
 from td3_jax.build import make_population, members
@@ -45,24 +46,6 @@ def make_run(out: Path, env: str, **overrides) -> Path:
     checkpointer.save(1, state, {"env_steps": 0})
     checkpointer.close()
     return out
-
-
-def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
-    try:
-        cli.main(args)
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
-
-
-def assert_one_line_error(code: int, err: str, *needles: str) -> None:
-    assert code == 2, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("td3-jax: error: "), err
-    for needle in needles:
-        assert needle in lines[0], (needle, err)
 
 
 @pytest.fixture(scope="module")
@@ -93,6 +76,7 @@ def rendered(mujoco_run):
     return out, stdout.getvalue().splitlines()
 
 
+@pytest.mark.mjx
 def test_rendered_video_matches_the_evaluation(mujoco_run, rendered):
     out, lines = rendered
     assert lines[0] == str(out)
@@ -114,17 +98,19 @@ def test_rendered_video_matches_the_evaluation(mujoco_run, rendered):
     assert frames.std() > 5
 
 
+@pytest.mark.mjx
 def test_bad_camera_exits_2_before_compiling(mujoco_run, capsys):
-    code, _, err = run_cli(["render", "--run", str(mujoco_run), "--camera", "nope"], capsys)
+    code, _, err = main(["render", "--run", str(mujoco_run), "--camera", "nope"], capsys)
     assert_one_line_error(code, err, "--camera nope", "-1: the free camera")
 
 
+@pytest.mark.mjx
 def test_no_opengl_exits_2_with_what_to_install(mujoco_run, capsys, monkeypatch):
     def unavailable():
         return render.gl_backend({}, probe=lambda backend: "no display")
 
     monkeypatch.setattr(render, "default_gl_backend", unavailable)
-    code, _, err = run_cli(["render", "--run", str(mujoco_run)], capsys)
+    code, _, err = main(["render", "--run", str(mujoco_run)], capsys)
     assert_one_line_error(code, err, "egl: no display", "osmesa: no display", "libosmesa6")
     assert not (mujoco_run / "rollout.mp4").exists()
 
@@ -188,21 +174,21 @@ def test_pendulum_drawing_points_at_the_angle():
 
 
 def test_errors_exit_2(tmp_path, capsys):
-    code, _, err = run_cli(["render", "--run", str(tmp_path)], capsys)
+    code, _, err = main(["render", "--run", str(tmp_path)], capsys)
     assert_one_line_error(code, err, "not a td3-jax run directory")
     cfg = TrainConfig(env="gymnax/MountainCarContinuous-v0", **TINY)
     (tmp_path / "car").mkdir()
     (tmp_path / "empty").mkdir()
     rundir.save_config(cfg, members(cfg), tmp_path / "car")
-    code, _, err = run_cli(["render", "--run", str(tmp_path / "car")], capsys)
+    code, _, err = main(["render", "--run", str(tmp_path / "car")], capsys)
     assert_one_line_error(code, err, "gymnax/MountainCarContinuous-v0 cannot be rendered")
     pendulum = dataclasses.replace(cfg, env="gymnax/Pendulum-v1")
     rundir.save_config(pendulum, members(pendulum), tmp_path / "empty")
-    code, _, err = run_cli(["render", "--run", str(tmp_path / "empty")], capsys)
+    code, _, err = main(["render", "--run", str(tmp_path / "empty")], capsys)
     assert_one_line_error(code, err, "no checkpoint")
     for flags, needle in ((["--out", "x.avi"], "must end in .mp4 or .gif"),
                           (["--gif", "--out", "x.mp4"], "ends in .gif"),
                           (["--episodes", "0"], "--episodes must be positive"),
                           (["--member", "3"], "members 0..0")):  # fmt: skip
-        code, _, err = run_cli(["render", "--run", str(tmp_path / "empty"), *flags], capsys)
+        code, _, err = main(["render", "--run", str(tmp_path / "empty"), *flags], capsys)
         assert_one_line_error(code, err, needle)

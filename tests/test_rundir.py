@@ -23,20 +23,16 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from support import TINY_FLAGS, main, read_records
 
-from td3_jax import cli, finished, rundir
+from td3_jax import finished, rundir
 from td3_jax import run as run_module
 from td3_jax.build import make_population, members
 from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.population import Member
 
-# tests/test_cli.py's tiny run, with a ring that holds the extended run too.
-TINY_FLAGS = [
-    "--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--total-steps", "128",
-    "--eval-every", "64", "--warmup-steps", "32", "--batch-size", "16",
-    "--updates-per-iter", "1", "--hidden-sizes", "16", "16", "--eval-envs", "2",
-    "--episode-length", "16", "--seed", "7", "--buffer-size", "256", "--quiet",
-]  # fmt: skip
+# tests/test_cli.py's tiny run (its ring holds the extended run too).
+TINY_FLAGS = [*TINY_FLAGS, "--quiet"]
 VOLATILE = {"wall_time_s", "env_steps_per_s", "chunk_s", "eval_s"}
 SMALL = TrainConfig(num_envs=4, total_steps=128, eval_every=64, batch_size=16, buffer_size=256)
 
@@ -49,18 +45,6 @@ def td3_jax_process(*args: str, **kwargs) -> subprocess.Popen:
         text=True,
         **kwargs,
     )
-
-
-def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
-    """``cli.main(args)`` in-process: (exit code, stdout, stderr)."""
-    capsys.readouterr()
-    try:
-        cli.main(args)
-        code = 0
-    except SystemExit as exit_:
-        code = exit_.code if isinstance(exit_.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def error_line(err: str) -> str:
@@ -87,16 +71,12 @@ def lock_is_held(folder: Path) -> bool:
     return False
 
 
-def records(folder: Path) -> list[dict]:
-    text = (folder / "metrics.jsonl").read_text()
-    return [json.loads(line) for line in text.splitlines() if line.strip()]
-
-
 # --------------------------------------------------------------------------------------------
 # the lock
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.subprocess
 def test_a_second_run_on_a_directory_in_use_exits_2_and_writes_nothing(tmp_path):
     out = tmp_path / "run"
     first = td3_jax_process("train", *TINY_FLAGS, "--out", str(out))
@@ -121,7 +101,7 @@ def test_a_second_run_on_a_directory_in_use_exits_2_and_writes_nothing(tmp_path)
     stdout, stderr = first.communicate(timeout=240)
     assert first.returncode == 0, stderr
     assert "done: 128 env steps" in stdout
-    assert [(r["env_steps"], r["seed"]) for r in records(out)] == [(64, 7), (128, 7)]
+    assert [(r["env_steps"], r["seed"]) for r in read_records(out)] == [(64, 7), (128, 7)]
     assert not lock_is_held(out)  # released at the end of the run
 
 
@@ -324,21 +304,19 @@ def test_interrupted_message_says_what_is_kept(tmp_path):
 
 def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
     short, long = tmp_path / "short", tmp_path / "long"
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(short)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(short)], capsys)
     assert code == 0, err
-    code, out, err = run_cli(
+    code, out, err = main(
         ["train", "--resume", "--total-steps", "256", "--out", str(short), "--quiet"], capsys
     )
     assert code == 0, err
     assert f"resuming from checkpoint {short / 'checkpoints' / '2'} (env step 128)\n" in out
-    code, _, err = run_cli(
-        ["train", *TINY_FLAGS, "--total-steps", "256", "--out", str(long)], capsys
-    )
+    code, _, err = main(["train", *TINY_FLAGS, "--total-steps", "256", "--out", str(long)], capsys)
     assert code == 0, err
 
     strip = lambda rs: [{k: v for k, v in r.items() if k not in VOLATILE} for r in rs]
-    assert [r["env_steps"] for r in records(short)] == [64, 128, 192, 256]
-    assert strip(records(short)) == strip(records(long))
+    assert [r["env_steps"] for r in read_records(short)] == [64, 128, 192, 256]
+    assert strip(read_records(short)) == strip(read_records(long))
 
     config = json.loads((short / "config.json").read_text())
     assert config["total_steps"] == 256
@@ -360,7 +338,7 @@ def test_a_directory_of_other_files_is_refused(tmp_path, capsys):
     """``--out ~`` or ``--out /`` used to train into the directory, among the user's files."""
     (tmp_path / "thesis.tex").write_text("mine\n")
     (tmp_path / "data").mkdir()
-    code, _, err = run_cli(["train", "--out", str(tmp_path), "--quiet"], capsys)
+    code, _, err = main(["train", "--out", str(tmp_path), "--quiet"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "a directory of other files (data, thesis.tex)" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "thesis.tex"]
@@ -390,7 +368,7 @@ def test_a_background_checkpoint_that_fails_stops_the_run_with_its_records_kept(
         return real_open(file, mode, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "open", open_)
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--total-steps", "192", "--out", str(out)],
+    code, _, err = main(["train", *TINY_FLAGS, "--total-steps", "192", "--out", str(out)],
                            capsys)  # fmt: skip
     monkeypatch.undo()
     assert code == 2
@@ -400,7 +378,7 @@ def test_a_background_checkpoint_that_fails_stops_the_run_with_its_records_kept(
         f"{out / 'checkpoints' / '1'} (env step 64); free space on the disk holding {out}, then "
         f"continue with: td3-jax train --out {out} --resume"
     )
-    assert [r["env_steps"] for r in records(out)][-1] == 192
+    assert [r["env_steps"] for r in read_records(out)][-1] == 192
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["1"]
 
 
@@ -414,7 +392,7 @@ def test_a_run_whose_checkpoints_cannot_fit_is_refused_before_training(
     usage = shutil.disk_usage(tmp_path)._replace(free=1000)
     monkeypatch.setattr(checkpoint.shutil, "disk_usage", lambda path: usage)
     out = tmp_path / "run"
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     assert code == 2
     line = error_line(err)
     assert f"the disk holding {out / 'checkpoints'} has 0.0 MB free" in line
@@ -428,22 +406,22 @@ def test_a_last_metrics_line_cut_short_is_left_out_and_the_run_resumes(tmp_path,
     from td3_jax.logger import read_metrics
 
     out = tmp_path / "run"
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     assert code == 0, err
     metrics = out / "metrics.jsonl"
-    whole = records(out)
+    whole = read_records(out)
     metrics.write_text(metrics.read_text() + '{"env_steps": 192, "eval_ret')
     assert read_metrics(metrics) == whole
     assert "the last line of" in capsys.readouterr().err
-    code, _, err = run_cli(
+    code, _, err = main(
         ["train", "--resume", "--total-steps", "256", "--out", str(out), "--quiet"], capsys
     )
     assert code == 0, err
-    assert [r["env_steps"] for r in records(out)] == [64, 128, 192, 256]
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128, 192, 256]
     # A broken line before the last is not guessed at: one line, exit 2.
     lines = metrics.read_text().splitlines()
     metrics.write_text("\n".join([lines[0], "{oops", *lines[1:]]) + "\n")
-    code, _, err = run_cli(["plot", "--run", str(out)], capsys)
+    code, _, err = main(["plot", "--run", str(out)], capsys)
     assert code == 2 and "line 2 of" in error_line(err)
 
 
@@ -470,7 +448,7 @@ def test_a_full_disk_while_logging_ends_on_one_line_that_says_how_to_go_on(
     whole records only; nothing suggests td3-jax plot; the resume, with room again, completes."""
     out = tmp_path / "run"
     _fill_the_disk_at(monkeypatch, 128)
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     monkeypatch.undo()
     assert code == 2 and "Traceback" not in err and "td3-jax plot" not in err, err
     assert err.strip().splitlines()[-1] == (
@@ -479,11 +457,11 @@ def test_a_full_disk_while_logging_ends_on_one_line_that_says_how_to_go_on(
         f"the disk holding {out}, then continue with: td3-jax train --out {out} --resume"
     )
     assert (out / "metrics.jsonl").read_text().endswith("}\n")  # no part of the failed record
-    assert [r["env_steps"] for r in records(out)] == [64]
-    code, stdout, err = run_cli(["train", "--resume", "--out", str(out)], capsys)
+    assert [r["env_steps"] for r in read_records(out)] == [64]
+    code, stdout, err = main(["train", "--resume", "--out", str(out)], capsys)
     assert code == 0, err
     assert f"resuming from checkpoint {out / 'checkpoints' / '1'} (env step 64)" in stdout
-    assert [r["env_steps"] for r in records(out)] == [64, 128]
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128]
 
 
 def test_a_full_disk_before_the_first_checkpoint_says_to_remove_the_directory(
@@ -491,7 +469,7 @@ def test_a_full_disk_before_the_first_checkpoint_says_to_remove_the_directory(
 ):
     out = tmp_path / "run"
     _fill_the_disk_at(monkeypatch, 64)
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     monkeypatch.undo()
     assert code == 2 and "td3-jax plot" not in err, err
     assert err.strip().splitlines()[-1] == (
@@ -517,7 +495,7 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
 
     monkeypatch.setattr(_Path, "write_text", write_text)
     out = tmp_path / "run"
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     monkeypatch.undo()
     assert code == 2
     assert error_line(err) == (
@@ -527,7 +505,7 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
     )
     assert not (out / "config.json.tmp").exists()
     # Once there is room, the same --out starts (nothing half-written blocks it).
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     assert code == 0, err
 
 
@@ -551,7 +529,7 @@ def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path,
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         run_module.train(cfg, out, progress=False, stop=stop)
-    assert [r["env_steps"] for r in records(out)] == [64]
+    assert [r["env_steps"] for r in read_records(out)] == [64]
     checkpointer = Checkpointer(out / "checkpoints", create=False)
     assert checkpointer.steps() == [1]
     checkpointer.close()
@@ -594,7 +572,7 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     state = make_population(cfg, members(cfg)).abstract_state
     need, ring = state_bytes(state), state_bytes(state.buffer)
     monkeypatch.setattr(sharding, "memory_of", lambda device: (need - 1, "the test's memory is"))
-    code, _, err = run_cli(["train", *TINY_FLAGS, "--out", str(tmp_path / "run")], capsys)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "run")], capsys)
     line = err.strip().splitlines()[-1]
     assert code == 2 and "--buffer-size" in line, err
     assert f"{size_text(need)} per device" in line and f"ring {size_text(ring)})" in line

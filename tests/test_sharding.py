@@ -12,9 +12,9 @@ import socket
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import pytest
+from support import read_records
 
 TINY = dict(
     num_envs=8,
@@ -53,10 +53,6 @@ def _python(code: str, devices: int) -> dict:
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def _records(run_dir: Path) -> list[dict]:
-    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
 
 
 def _assert_same_numbers(a: list[dict], b: list[dict], rtol: float) -> None:
@@ -132,7 +128,7 @@ def test_state_is_split_along_envs_and_buffer(four_device_runs):
 @pytest.mark.processes
 def test_four_devices_give_the_one_device_numbers(four_device_runs):
     out, _ = four_device_runs
-    d4, d1 = _records(out / "d4"), _records(out / "d1")
+    d4, d1 = read_records(out / "d4"), read_records(out / "d1")
     assert [r["devices"] for r in d4] == [4, 4] and [r["devices"] for r in d1] == [1, 1]
     _assert_same_numbers(d4, d1, rtol=1e-3)
 
@@ -140,17 +136,20 @@ def test_four_devices_give_the_one_device_numbers(four_device_runs):
 @pytest.mark.processes
 def test_replay_slices_on_four_devices_give_the_one_device_numbers(four_device_runs):
     out, _ = four_device_runs
-    _assert_same_numbers(_records(out / "sliced_d4"), _records(out / "sliced_d1"), rtol=1e-3)
+    _assert_same_numbers(
+        read_records(out / "sliced_d4"), read_records(out / "sliced_d1"), rtol=1e-3
+    )
 
 
 @pytest.mark.processes
 def test_checkpoint_from_four_devices_resumes_on_one(four_device_runs):
     out, _ = four_device_runs
-    resumed = _records(out / "resumed")
+    resumed = read_records(out / "resumed")
     assert [r["devices"] for r in resumed] == [4, 1]
-    _assert_same_numbers(resumed, _records(out / "d1"), rtol=1e-3)
+    _assert_same_numbers(resumed, read_records(out / "d1"), rtol=1e-3)
 
 
+@pytest.mark.processes
 def test_sizes_that_do_not_divide_are_refused():
     result = _python(
         """
@@ -197,9 +196,9 @@ def test_two_processes_through_the_distributed_runtime(tmp_path, four_device_run
     outputs = [p.communicate(timeout=600) for p in procs]
     for p, (_, err) in zip(procs, outputs, strict=True):
         assert p.returncode == 0, err[-3000:]
-    records = _records(tmp_path / "mp")
+    records = read_records(tmp_path / "mp")
     assert [r["devices"] for r in records] == [4, 4]
-    _assert_same_numbers(records, _records(out / "d1"), rtol=1e-3)
+    _assert_same_numbers(records, read_records(out / "d1"), rtol=1e-3)
     assert sorted(p.name for p in (tmp_path / "mp" / "checkpoints").iterdir()) == ["1", "2"]
 
 

@@ -121,6 +121,7 @@ def _counted_train(out, cache) -> dict[str, int]:
     return json.loads(line.removeprefix("COUNTS "))
 
 
+@pytest.mark.subprocess
 def test_a_second_identical_run_compiles_nothing(tmp_path):
     # ... and makes no environment: its programs come from the cache's programs/ folder, and
     # only the compiles of the first run's environment creation are not looked up again.
@@ -133,6 +134,7 @@ def test_a_second_identical_run_compiles_nothing(tmp_path):
     assert 3 <= second["hits"] <= first["misses"], (first, second)
 
 
+@pytest.mark.subprocess
 def test_a_cache_filled_without_the_size_cap_still_takes_new_entries(tmp_path):
     # A cache directory written before the 4 GB cap (entries without access-time files) is
     # stamped, so the capped cache can evict and write: the run fills it as a fresh one would.

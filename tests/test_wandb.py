@@ -16,7 +16,7 @@ import types
 from pathlib import Path
 
 import pytest
-from test_cli import TINY_FLAGS, assert_one_line_error, main, read_records
+from support import TINY_FLAGS, assert_one_line_error, main, read_records
 
 from td3_jax import run as run_module
 from td3_jax import tracking

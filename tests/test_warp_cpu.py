@@ -8,7 +8,7 @@ import importlib.util
 import json
 
 import pytest
-from test_cli import main
+from support import main
 
 from td3_jax.envs import physics
 

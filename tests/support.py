@@ -1,0 +1,74 @@
+"""What several test files share: the tiny CLI run's flags, the command line run in this process
+or in a child process, and a run directory's records.
+
+One set of tiny flags keeps the programs of the tests' small runs identical, so that the test
+session's compilation cache (tests/conftest.py) compiles them once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from td3_jax import cli
+
+#: A run of 128 steps of 4 Pendulums in two chunks of 64: one evaluation and checkpoint each.
+TINY_FLAGS = [
+    "--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--total-steps", "128",
+    "--eval-every", "64", "--warmup-steps", "32", "--batch-size", "16",
+    "--updates-per-iter", "1", "--hidden-sizes", "16", "16", "--eval-envs", "2",
+    "--episode-length", "16", "--seed", "7", "--buffer-size", "256",
+]  # fmt: skip
+
+
+def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    """``python -m td3_jax ARGS`` in a child process, its output captured as text."""
+    return subprocess.run(
+        [sys.executable, "-m", "td3_jax", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def main(args: list[str], capsys=None) -> tuple[int, str, str]:
+    """Runs ``cli.main(args)`` in-process: (exit code, stdout, stderr), read from pytest's
+    ``capsys`` where given, else captured here (for a fixture wider than one test)."""
+    if capsys is None:
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = _exit_code(args)
+        return code, out.getvalue(), err.getvalue()
+    capsys.readouterr()
+    code = _exit_code(args)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _exit_code(args: list[str]) -> int:
+    try:
+        cli.main(args)
+    except SystemExit as exit_:
+        return exit_.code if isinstance(exit_.code, int) else 1
+    return 0
+
+
+def assert_one_line_error(code: int, err: str, *needles: str) -> None:
+    """A refused command: exit code 2 and one ``td3-jax: error:`` line holding each needle."""
+    assert code == 2, err
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("td3-jax: error: "), err
+    for needle in needles:
+        assert needle in lines[0], (needle, err)
+
+
+def read_records(run_dir: Path) -> list[dict]:
+    """The run's metrics.jsonl, one dict per record."""
+    text = (run_dir / "metrics.jsonl").read_text()
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
