@@ -319,16 +319,24 @@ def _complete(out_dir: Path, chunks_done: int) -> bool:
 
 def config_changes(saved: TrainConfig, cfg: TrainConfig) -> dict[str, list]:
     """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other."""
-    changes = {}
+    changes, safe = {}, _safe_on_resume(saved)
     for field in dataclasses.fields(TrainConfig):
         old, new = getattr(saved, field.name), getattr(cfg, field.name)
         if old == new or _effective(saved, field.name) == _effective(cfg, field.name):
             continue
-        if field.name not in SAFE_ON_RESUME:
+        if field.name not in safe:
             raise ConfigError(_mismatch(field.name, _shown(saved, field.name),
-                                        _shown(cfg, field.name)))  # fmt: skip
+                                        _shown(cfg, field.name), safe))  # fmt: skip
         changes[field.name] = [old, new]
     return changes
+
+
+def _safe_on_resume(saved: TrainConfig) -> tuple[str, ...]:
+    """:data:`SAFE_ON_RESUME`, less ``eval_envs`` for a run whose evaluation worlds are in the
+    environment batch (``--eval-in-chunk``: their number is part of the checkpoint)."""
+    if saved.eval_in_chunk:
+        return tuple(name for name in SAFE_ON_RESUME if name != "eval_envs")
+    return SAFE_ON_RESUME
 
 
 def _effective(cfg: TrainConfig, name: str) -> Any:
@@ -357,10 +365,11 @@ _REASONS = {
     "seeds": "the members and their states are fixed (members.json)",
     "num_envs": "it fixes the environment and replay state in the checkpoint",
     "buffer_size": "it fixes the replay buffer in the checkpoint",
+    "eval_envs": "with --eval-in-chunk the evaluation worlds are in the checkpoint's environments",
 }
 
 
-def _mismatch(name: str, saved: str, given: str) -> str:
+def _mismatch(name: str, saved: str, given: str, safe_names: tuple[str, ...]) -> str:
     if name in FLOAT_SETTINGS:
         why = (
             "learning rates, tau, noise scales and the discount cannot change on --resume yet "
@@ -368,7 +377,7 @@ def _mismatch(name: str, saved: str, given: str) -> str:
         )
     else:
         why = _REASONS.get(name, "it fixes the run's state layout, key schedule or meaning")
-    safe = ", ".join(flag(n) for n in SAFE_ON_RESUME)
+    safe = ", ".join(flag(n) for n in safe_names)
     return (
         f"{given} given but the run was started with {saved}: "
         f"{why}; leave it out to resume (only {safe} may change) or start a new --out"

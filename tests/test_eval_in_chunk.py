@@ -148,3 +148,17 @@ def test_records_carry_the_rounds_policy_steps(tmp_path):
     assert all(np.isfinite(r["eval_return_mean"]) for r in records)
     saved = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert [r["eval_policy_env_steps"] for r in saved] == steps
+
+
+def test_a_resumed_run_evaluates_as_a_straight_one(tmp_path):
+    straight = train(IN_CHUNK, tmp_path / "straight", env=_drift_env(), progress=False)
+    half = dataclasses.replace(IN_CHUNK, total_steps=IN_CHUNK.total_steps // 2)
+    first = train(half, tmp_path / "resumed", env=_drift_env(), progress=False)
+    with pytest.raises(ConfigError, match=r"--eval-envs 2 given .* evaluation worlds are in"):
+        train(dataclasses.replace(IN_CHUNK, eval_envs=2), tmp_path / "resumed",
+              env=_drift_env(), progress=False, resume=True)  # fmt: skip
+    rest = train(IN_CHUNK, tmp_path / "resumed", env=_drift_env(), progress=False, resume=True)
+    assert len(first) + len(rest) == len(straight)
+    for a, b in zip(straight, first + rest, strict=True):
+        assert a["eval_policy_env_steps"] == b["eval_policy_env_steps"]
+        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-5, abs=1e-5)
