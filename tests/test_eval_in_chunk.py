@@ -6,11 +6,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support import TINY_FLAGS, read_records
 
 from td3_jax import build, eval_worlds, training
 from td3_jax.config import ConfigError, TrainConfig
@@ -162,3 +166,31 @@ def test_a_resumed_run_evaluates_as_a_straight_one(tmp_path):
     for a, b in zip(straight, first + rest, strict=True):
         assert a["eval_policy_env_steps"] == b["eval_policy_env_steps"]
         assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-5, abs=1e-5)
+
+
+@pytest.mark.processes
+def test_two_devices_evaluate_as_one(tmp_path):
+    """The evaluation worlds split over 2 devices (each device's groups: its training worlds,
+    then its evaluation worlds) give the one-device rounds."""
+    flags = [
+        *TINY_FLAGS,
+        "--total-steps",
+        "192",
+        "--eval-in-chunk",
+        "--replay-shards",
+        "2",
+        "--quiet",
+    ]  # fmt: skip  (chunks of 16 iterations: one 16-step episode)
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}  # fmt: skip
+    for devices in (1, 2):
+        out = tmp_path / f"d{devices}"
+        proc = subprocess.run([sys.executable, "-m", "td3_jax", "train", *flags, "--devices",
+                               str(devices), "--out", str(out)], env=env, capture_output=True,
+                              text=True, timeout=600)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    one, two = read_records(tmp_path / "d1"), read_records(tmp_path / "d2")
+    assert [r["eval_policy_env_steps"] for r in one] == [r["eval_policy_env_steps"] for r in two]
+    for a, b in zip(one, two, strict=True):
+        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-3, abs=1e-3)
+        assert a["devices"] == 1 and b["devices"] == 2

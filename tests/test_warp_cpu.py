@@ -19,12 +19,13 @@ pytestmark = [
     ),
 ]
 
+# (8-step episodes: the t1 preset evaluates inside the chunk, whose 8 iterations are one episode)
 TINY_T1 = [
     "train", "--env", "playground/T1JoystickFlatTerrain", "--impl", "warp", "--num-envs", "4",
     "--total-steps", "64", "--eval-every", "32", "--warmup-steps", "16", "--batch-size", "16",
     "--eval-envs", "2", "--updates-per-iter", "1", "--hidden-sizes", "16", "16",
     "--actor-hidden-sizes", "16", "--critic-hidden-sizes", "16", "--num-atoms", "11",
-    "--episode-length", "20", "--quiet",
+    "--episode-length", "8", "--quiet",
 ]  # fmt: skip
 
 
@@ -48,12 +49,13 @@ def test_a_tiny_robot_run_trains_on_warp_and_records_it(warp_on_cpu, tmp_path, c
 
 def test_a_constraint_buffer_too_small_stops_the_run_naming_the_flag(warp_on_cpu, tmp_path, capsys):
     """2 constraints per T1 (it needs about 60): every step overflows; the run stops after the
-    first chunk with exit code 3 and no record of it."""
+    first chunk with exit code 3 and no record of it. The chunk's 8 steps of 4 training and 2
+    evaluation robots are counted."""
     out = tmp_path / "run"
     code, _, err = main([*TINY_T1, "--njmax", "2", "--out", str(out)], capsys)
     assert code == 3, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("td3-jax: error: MuJoCo Warp's contact or constraint buffer was full in")
-    assert "32 environment steps of the chunk ending at env step 32" in last
+    assert "48 environment steps of the chunk ending at env step 32" in last
     assert "raise --nconmax or --njmax" in last
     assert not (out / "metrics.jsonl").exists() or not (out / "metrics.jsonl").read_text()
