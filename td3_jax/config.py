@@ -447,3 +447,14 @@ def _check_replay(cfg: TrainConfig) -> None:
             f"{(cfg.n_step - 1) * cfg.num_envs} stored transitions, "
             f"more than the replay buffer holds ({capacity})"
         )
+
+
+__all__ = [
+    "SWEEPABLE",
+    "WANDB_SETTINGS",
+    "TrainConfig",
+    "as_flag",
+    "flag",
+    "idle_wandb_flags",
+    "validate",
+]

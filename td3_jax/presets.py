@@ -293,3 +293,13 @@ def preset(name: str | None) -> TrainConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
     return TrainConfig(**PRESETS[name])
+
+
+__all__ = [
+    "ENV_PRESETS",
+    "PRESETS",
+    "device_defaults",
+    "env_preset",
+    "preset",
+    "robot_preset",
+]

@@ -21,9 +21,10 @@ MODULES = sorted(
 
 
 @pytest.mark.parametrize("name", MODULES)
-def test_every_name_in_all_exists(name):
+def test_every_module_has_an_all_naming_what_exists(name):
     module = importlib.import_module(name)
-    exported = getattr(module, "__all__", [])
+    assert hasattr(module, "__all__"), f"{name} says nothing of what is public (no __all__)"
+    exported = module.__all__
     assert len(set(exported)) == len(exported), f"{name}.__all__ repeats a name"
     missing = [n for n in exported if not hasattr(module, n)]
     assert not missing, f"{name}.__all__ names what it does not define: {missing}"

@@ -420,3 +420,23 @@ def step(
                 else jax.vmap(env.overflow_fn)(inner).astype(bool))  # fmt: skip
     return new_state, StepResult(obs, reward, terminated, truncated, episode_return, steps,
                                  overflow)  # fmt: skip
+
+
+__all__ = [
+    "EnvOptions",
+    "EnvState",
+    "Environment",
+    "EnvironmentOptionError",
+    "StepResult",
+    "action_bound",
+    "actor_observation",
+    "critic_observation",
+    "default_reset_slots",
+    "from_mjx_style",
+    "refuse_locomotion_options",
+    "reset",
+    "reset_ended",
+    "reset_from_keys",
+    "reset_keys",
+    "step",
+]
