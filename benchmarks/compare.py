@@ -698,6 +698,37 @@ def at_or_before(rows: list[dict], t: float) -> dict | None:
     return before[-1] if before else None
 
 
+def steady_rate(rows: list[dict]) -> float | None:
+    """Env steps/s between the second and the last evaluation (a program's start-up and first
+    compiles excluded; ``None`` with fewer than three evaluations)."""
+    rows = sorted(rows, key=lambda r: r["wall_s"])
+    if len(rows) < 3 or rows[-1]["wall_s"] <= rows[1]["wall_s"]:
+        return None
+    return (rows[-1]["env_steps"] - rows[1]["env_steps"]) / (rows[-1]["wall_s"] - rows[1]["wall_s"])
+
+
+def table_from_first(results: dict[str, dict], budget: float) -> str:
+    """Each algorithm's return at the same times counted from its own first evaluation (its
+    start-up set aside), and its steady env steps/s."""
+    points = time_points(budget)
+    head = ["algorithm", "first eval s", *(f"first +{p:g} s" for p in points), "steady env steps/s"]
+    lines = ["| " + " | ".join(head) + " |", "| --- |" + " ---: |" * (len(head) - 1)]
+    for algo, result in results.items():
+        rows = sorted(result["rows"], key=lambda r: r["wall_s"])
+        if not rows:
+            continue
+        first = rows[0]["wall_s"]
+        shifted = [{**r, "wall_s": r["wall_s"] - first} for r in rows]
+        cells = [algo, f"{first:.1f}"]
+        for p in points:
+            row = at_or_before(shifted, p)
+            cells.append("-" if row is None else f"{row['eval_return']:.1f}")
+        rate = steady_rate(rows)
+        cells.append("-" if rate is None else f"{rate:,.0f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def table(results: dict[str, dict], budget: float) -> str:
     points = time_points(budget)
     head = ["algorithm", "first eval s"] + [f"@{p:g} s" for p in points]
@@ -836,7 +867,9 @@ def summary_record(args: argparse.Namespace, env: str, results: dict[str, dict],
         "versions": versions(),
         "algorithms": {
             algo: {key: value for key, value in result.items() if key not in ("rows", "algo")}
-            | {"evals": len(result["rows"]), "evals_within_budget": within(result["rows"])}
+            | {"evals": len(result["rows"]), "evals_within_budget": within(result["rows"]),
+               "first_eval_s": min((r["wall_s"] for r in result["rows"]), default=None),
+               "steady_env_steps_per_s": steady_rate(result["rows"])}
             for algo, result in results.items()
         },
     }  # fmt: skip
@@ -850,6 +883,11 @@ def print_report(args: argparse.Namespace, env: str, results: dict[str, dict], d
           + (" (SMOKE)" if args.smoke else ""))  # fmt: skip
     print("eval return of the last evaluation at or before each time (compile included):")
     print(table(results, args.budget_s))
+    print(
+        "the same, counted from each algorithm's first evaluation (start-up set aside), and "
+        "its steady rate (from its second evaluation on):"
+    )
+    print(table_from_first(results, args.budget_s))
     points = time_points(args.budget_s)
     for algo, curve in published_curves(env).items():
         values = [published_at(curve, t) for t in points]
