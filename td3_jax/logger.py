@@ -161,8 +161,16 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
     return records
 
 
+def _evaluated_steps(record: dict) -> int:
+    """The env steps of the policy a record evaluated: the record's own, or with the
+    evaluation inside the chunk those of its round's policy (once a round has finished)."""
+    policy = record.get("eval_policy_env_steps", -1)
+    return int(policy) if policy is not None and policy >= 0 else int(record["env_steps"])
+
+
 def plot_curve(out_dir: Path) -> Path | None:
-    """Writes ``curve.png``: evaluation return against env steps and against wall-clock time."""
+    """Writes ``curve.png``: evaluation return against env steps (of the evaluated policy) and
+    against wall-clock time (when the record was written)."""
     records = read_metrics(Path(out_dir) / "metrics.jsonl")
     if not records:
         return None
@@ -171,7 +179,7 @@ def plot_curve(out_dir: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    steps = [r["env_steps"] for r in records]
+    steps = [_evaluated_steps(r) for r in records]
     wall = [r["wall_time_s"] for r in records]
     mean = [_number(r["eval_return_mean"]) for r in records]
     several = "per_member" in records[-1]
@@ -185,7 +193,9 @@ def plot_curve(out_dir: Path) -> Path | None:
         upper = [m + d for m, d in zip(mean, std, strict=True)]
         band = "mean ± std over episodes"
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for ax, x, label in ((axes[0], steps, "environment steps"), (axes[1], wall, "wall-clock (s)")):
+    in_chunk = "eval_policy_env_steps" in records[-1]
+    step_label = "environment steps of the evaluated policy" if in_chunk else "environment steps"
+    for ax, x, label in ((axes[0], steps, step_label), (axes[1], wall, "wall-clock (s)")):
         if several:
             for i in range(len(records[-1]["per_member"])):
                 member = [_number(r["per_member"][i]["eval_return_mean"]) for r in records]

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from support import TINY_FLAGS, read_records
 
-from td3_jax import build, eval_worlds, training
+from td3_jax import build, eval_worlds, logger, training
 from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.envs import FunctionalEnv
 from td3_jax.run import train
@@ -152,6 +152,10 @@ def test_records_carry_the_rounds_policy_steps(tmp_path):
     assert all(np.isfinite(r["eval_return_mean"]) for r in records)
     saved = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert [r["eval_policy_env_steps"] for r in saved] == steps
+    # curve.png plots each return at its policy's env steps (the record's own without a round)
+    assert [logger._evaluated_steps(r) for r in saved] == steps
+    assert logger._evaluated_steps({"env_steps": 96, "eval_policy_env_steps": -1}) == 96
+    assert logger._evaluated_steps({"env_steps": 96}) == 96
 
 
 def test_a_resumed_run_evaluates_as_a_straight_one(tmp_path):
