@@ -542,7 +542,12 @@ def test_a_background_save_survives_the_caller_donating_the_state(tmp_path, abst
     overwrite = jax.jit(lambda tree: jax.tree.map(zero, tree), donate_argnums=0)
     zeros = jax.block_until_ready(overwrite(original))
     assert all(not np.asarray(x).any() for x in jax.tree.leaves(zeros))
-    assert all(x.is_deleted() for x in jax.tree.leaves(original))  # donated, so reusable
+    # The arrays are either donated (deleted, their memory reused) or, on the CPU, pinned by the
+    # pending write's zero-copy host views, when XLA silently declines the donation (seen in 1
+    # run of 6 under load, and always when saves follow each other): both are safe, and the
+    # checkpoint must hold the values of the moment of the save either way.
+    deleted = {x.is_deleted() for x in jax.tree.leaves(original)}
+    assert len(deleted) == 1  # all or none
     ckpt.wait()
     assert step_dirs(tmp_path) == [1]
     restored, meta, step = ckpt.restore(abstract)
