@@ -204,34 +204,37 @@ def make_spec(
     """
     env = make_env(cfg, members, env)
     shards = cfg.replay_shards
-    spec = training.TrainSpec(
+    groups = shards if shards % env_groups == 0 else env_groups
+    if cfg.eval_in_chunk:
+        _check_eval_in_chunk(cfg, env.episode_length, groups)
+    return training.TrainSpec(
         env=env,
         agent=agent_spec(cfg, env),
-        reset_groups=shards if shards % env_groups == 0 else env_groups,
+        reset_groups=groups,
         axis_name=axis_name,
         **_as_given(cfg, _SPEC_SETTINGS),
     )
-    if spec.eval_in_chunk:
-        _check_eval_in_chunk(spec)
-    return spec
 
 
-def _check_eval_in_chunk(spec: training.TrainSpec) -> None:
+def _check_eval_in_chunk(cfg: TrainConfig, length: int, reset_groups: int) -> None:
     """Raises :class:`ConfigError` where the evaluation worlds cannot be stepped in the chunk:
-    a chunk shorter than an episode (no round would finish in it), or evaluation worlds that
-    the environment groups (replay slices, devices) do not divide."""
-    steps = spec.iters_per_chunk * spec.steps_per_iter
-    if steps < spec.env.episode_length:
+    a chunk shorter than an episode of ``length`` steps (its round would not finish in it), or
+    evaluation worlds that the environment groups (replay slices, devices) do not divide."""
+    per_iter, num_envs = cfg.steps_per_iter, cfg.num_envs
+    steps = cfg.iters_per_chunk * per_iter
+    if steps < length:
+        enough = -(-length // per_iter) * per_iter * num_envs
         raise ConfigError(
-            f"--eval-in-chunk needs chunks of at least one episode ({spec.env.episode_length} "
-            f"steps per environment), but --eval-every gives {steps}: use --eval-every "
-            f"{spec.env.episode_length * spec.num_envs} or more, or leave out --eval-in-chunk"
+            f"--eval-in-chunk needs chunks of at least one episode ({length} steps per "
+            f"environment), but --eval-every {steps * num_envs} is {steps} steps per "
+            f"environment ({num_envs} environments): use --eval-every {enough} or more, "
+            "or leave out --eval-in-chunk"
         )
-    if spec.eval_envs % spec.reset_groups:
-        raise ConfigError(
-            f"--eval-envs ({spec.eval_envs}) must be divisible by {spec.reset_groups} (the "
-            "replay slices or devices that the environments are split into) with --eval-in-chunk"
-        )
+    for groups, what in ((cfg.replay_shards, "--replay-shards"),
+                         (reset_groups, "the replay slices or devices")):  # fmt: skip
+        if cfg.eval_envs % groups:
+            raise ConfigError(f"--eval-envs ({cfg.eval_envs}) must be divisible by {groups} "
+                              f"({what}) with --eval-in-chunk")  # fmt: skip
 
 
 def ou_params(cfg: TrainConfig) -> OUParams:

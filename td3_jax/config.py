@@ -57,11 +57,11 @@ class TrainConfig:
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False
     """Step the evaluation environments inside the training chunk, in the same physics call
-    as the training ones, instead of evaluating after it: an evaluation then costs a few
-    percent more physics instead of a whole episode of sequential steps (seconds per
-    evaluation on MuJoCo Warp). Each record then holds the last finished round, whose policy is
-    the one of env step eval_policy_env_steps (up to a chunk earlier); training is unchanged.
-    Needs --eval-every of at least one episode of every environment."""
+    as the training ones, instead of evaluating after it: eval_envs/num_envs more physics
+    instead of a whole episode of sequential steps (seconds per evaluation on MuJoCo Warp);
+    training is unchanged. Each record then holds the evaluation of the policy at its chunk's
+    start (eval_policy_env_steps). Needs --eval-every of at least episode length x num_envs;
+    --eval-envs cannot change on --resume."""
     episode_length: int | None = None
     """Time limit in steps; default: the environment's own (1000 for Brax/Playground)."""
     env_backend: str = "mjx"

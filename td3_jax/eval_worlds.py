@@ -8,10 +8,12 @@ Here the environment batch holds the evaluation worlds beside the training ones 
 so they cost a few percent more physics work and no extra latency. They act with a frozen copy
 of the deterministic policy (actor parameters and observation statistics taken when their round
 started), count only each world's first episode, and are not written to the replay ring: the
-training worlds see exactly what they see without them. A round ends when every evaluation
-episode has ended; its returns are kept (:attr:`EvalRound.last_returns`) with the env steps at
-which its policy was taken, and the next round starts from fresh resets with the policy of that
-moment.
+training worlds see exactly what they see without them. A round starts at the start of a chunk
+(from fresh resets, with the policy of that moment) and, the chunk being at least an episode
+long, ends within it; at the chunk's end its returns are kept (:attr:`EvalRound.last_returns`)
+with the env steps at which its policy was taken: a record after chunk ``c`` holds a separate
+evaluation of the checkpoint after chunk ``c - 1``. Members of a population start and end
+their rounds together.
 """
 
 from __future__ import annotations
@@ -64,7 +66,8 @@ def put_evaluation(layout: Layout, batch: Any, evaluation: Any, where: jax.Array
     scalar). Leaves without the batch axis (MuJoCo Warp's shared buffers) are kept."""
 
     def put(full: jax.Array, part: jax.Array) -> jax.Array:
-        if jnp.ndim(full) == 0 or full.shape[0] != layout.worlds:
+        batched = jnp.ndim(full) > 0 and full.shape[0] == layout.worlds
+        if not batched or jnp.ndim(part) == 0 or part.shape[0] != layout.evaluation:
             return full
         train, old = split(layout, full)
         return join(layout, train, jnp.where(where, part.astype(full.dtype), old))
@@ -97,14 +100,15 @@ class EvalRound:
 
 
 def begin(actor_params: Any, obs_stats: Any, eval_envs: int) -> EvalRound:
-    """The first round (round 0), with the policy ``actor_params``/``obs_stats`` of env step 0."""
+    """No round yet (every episode counted as ended, so the first chunk starts round 0); the
+    parameters only give the snapshot its structure."""
     return EvalRound(
         actor_params=actor_params,
         obs_stats=obs_stats,
         returns=jnp.zeros((eval_envs,), jnp.float32),
-        alive=jnp.ones((eval_envs,), bool),
-        policy_env_steps=jnp.zeros((), jnp.int32),
-        rounds=jnp.ones((), jnp.int32),
+        alive=jnp.zeros((eval_envs,), bool),
+        policy_env_steps=jnp.full((), -1, jnp.int32),
+        rounds=jnp.zeros((), jnp.int32),
         last_returns=jnp.full((eval_envs,), jnp.nan, jnp.float32),
         last_policy_env_steps=jnp.full((), -1, jnp.int32),
     )
@@ -122,23 +126,32 @@ def finished(state: EvalRound) -> jax.Array:
     return ~jnp.any(state.alive)
 
 
-def restart(
+def _pick(where: jax.Array, new: EvalRound, old: EvalRound) -> EvalRound:
+    return jax.tree.map(lambda n, o: jnp.where(where, n, o), new, old)
+
+
+def start(
     state: EvalRound, actor_params: Any, obs_stats: Any, env_steps: jax.Array, where: jax.Array
 ) -> EvalRound:
-    """Where ``where`` (a bool scalar): the round's returns kept as the last finished ones and a
-    new round started with the policy ``actor_params``/``obs_stats`` of ``env_steps``."""
-    pick = lambda new, old: jax.tree.map(lambda n, o: jnp.where(where, n, o), new, old)
-    restarted = EvalRound(
+    """Where ``where`` (a bool scalar): a new round started with the policy
+    ``actor_params``/``obs_stats`` of ``env_steps`` (its worlds reset by the caller)."""
+    started = state.replace(
         actor_params=actor_params,
         obs_stats=obs_stats,
         returns=jnp.zeros_like(state.returns),
         alive=jnp.ones_like(state.alive),
         policy_env_steps=jnp.asarray(env_steps, jnp.int32),
         rounds=state.rounds + 1,
-        last_returns=state.returns,
-        last_policy_env_steps=state.policy_env_steps,
     )
-    return pick(restarted, state)
+    return _pick(where, started, state)
+
+
+def close(state: EvalRound) -> EvalRound:
+    """Where the round has finished (:func:`finished`): its returns and policy steps kept as the
+    last finished round's."""
+    closed = state.replace(last_returns=state.returns,
+                           last_policy_env_steps=state.policy_env_steps)  # fmt: skip
+    return _pick(finished(state), closed, state)
 
 
 __all__ = [
@@ -146,9 +159,10 @@ __all__ = [
     "Layout",
     "advance",
     "begin",
+    "close",
     "finished",
     "join",
     "put_evaluation",
-    "restart",
     "split",
+    "start",
 ]

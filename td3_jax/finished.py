@@ -16,6 +16,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from td3_jax import population as pop
 from td3_jax.build import make_population
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig
@@ -44,16 +45,24 @@ def restore_state(population: Population, out_dir: Path, keep: int = 3, sharding
         checkpointer.close()
 
 
-def run_program(out_dir: Path, **changes: Any) -> tuple[TrainConfig, list[Member], Population]:
-    """``(config, members, program)`` of a run directory, the config with ``changes`` (e.g.
-    ``eval_envs``) applied; nothing is compiled or restored yet. A factory's environment must
-    be the one the run trained on (:func:`check_environment_unchanged`)."""
-    cfg = dataclasses.replace(load_config(out_dir), **changes)
-    cfg = _physics_here(cfg)
+def run_program(
+    out_dir: Path, eval_envs: int | None = None
+) -> tuple[TrainConfig, list[Member], Population]:
+    """``(config, members, program)`` of a run directory; nothing is compiled or restored yet.
+    The program's state is the run's own (its checkpoints restore into it); with ``eval_envs``
+    its evaluation runs that many episodes after the chunk, also for a run that evaluated
+    inside its chunks (whose checkpoints hold its own evaluation worlds). A factory's
+    environment must be the one the run trained on (:func:`check_environment_unchanged`)."""
+    cfg = _physics_here(load_config(out_dir))
     population = load_members(out_dir, cfg)
     program = make_population(cfg, population)
     check_environment_unchanged(out_dir, cfg.env, program.spec.env)
-    return cfg, population, program
+    if eval_envs is None:
+        return cfg, population, program
+    spec = dataclasses.replace(program.spec, eval_envs=eval_envs, eval_in_chunk=False)
+    evaluating = pop.make_population(spec, program.hyperparams, population)
+    evaluating = evaluating._replace(abstract_state=program.abstract_state)
+    return dataclasses.replace(cfg, eval_envs=eval_envs), population, evaluating
 
 
 def _physics_here(cfg: TrainConfig) -> TrainConfig:

@@ -54,7 +54,8 @@ class Population(NamedTuple):
         iterations of every member.
       evaluate: ``evaluate(state, keys[num_members]) -> returns[num_members, eval_envs]``.
       scheduled_evaluate: ``scheduled_evaluate(state) -> returns[num_members, eval_envs]``,
-        with the run's own key schedule (:func:`td3_jax.training.evaluation_key`).
+        with the run's own key schedule (:func:`td3_jax.training.evaluation_key`); with
+        ``eval_in_chunk`` the returns of the chunk's evaluation round.
       abstract_state: shapes and dtypes of the state (for restoring checkpoints).
       keys: the members' start keys (``[num_members, 2]``, from their seeds).
       init_from_keys: ``init_from_keys(keys) -> state`` (``init`` is it of ``keys``).

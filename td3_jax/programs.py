@@ -53,7 +53,8 @@ class Programs(NamedTuple):
       init: ``init() -> state`` (``None`` where compiled without it: a resumed run).
       chunk: ``chunk(hp, state, iterations) -> (state, metrics[members])``; ``iterations`` is
         an int32 scalar; donates its state.
-      evaluate: ``evaluate(state) -> returns[members, eval_envs]`` with the run's key schedule.
+      evaluate: ``evaluate(state) -> returns[members, eval_envs]`` with the run's key
+        schedule (with ``eval_in_chunk``: the returns of the chunk's evaluation round).
     Metrics and returns come back replicated.
     """
 

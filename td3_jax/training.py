@@ -107,6 +107,12 @@ class TrainSpec:
     axis_name: str | None = None
     eval_in_chunk: bool = False
 
+    def __post_init__(self) -> None:
+        steps, length = self.iters_per_chunk * self.steps_per_iter, self.env.episode_length
+        if self.eval_in_chunk and steps < length:
+            raise ValueError(f"eval_in_chunk needs chunks of at least one episode ({length} "
+                             f"steps per environment), not {steps}")  # fmt: skip
+
     @property
     def stride(self) -> int:
         """Rows one vectorised step writes into each replay slice."""
@@ -115,9 +121,10 @@ class TrainSpec:
     @property
     def layout(self) -> eval_worlds.Layout:
         """Where the training and (with ``eval_in_chunk``) evaluation worlds are in the
-        environment batch."""
+        environment batch: one group per replay slice (a setting of the run, so a checkpoint
+        resumes on any device count with its worlds where they were)."""
         evaluation = self.eval_envs if self.eval_in_chunk else 0
-        return eval_worlds.Layout(self.num_envs, evaluation, self.reset_groups)
+        return eval_worlds.Layout(self.num_envs, evaluation, self.replay_shards)
 
 
 @struct.dataclass
@@ -328,7 +335,7 @@ def _split_result(
 def collect_step(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[TrainState, Metrics]:
     """One vectorised step: act, step every environment, write the transitions to the ring
     (and, with ``eval_in_chunk``, step the evaluation worlds alongside, their rewards counted
-    in the round: :func:`next_evaluation_round` starts the next)."""
+    in the round that :func:`start_evaluation_round` started)."""
     key, act_key = jax.random.split(state.key)
     obs = _training_rows(spec, state.env_state.obs)
     action, ou_state = explore(spec, hp, state, obs, act_key)
@@ -361,11 +368,10 @@ def _training_rows(spec: TrainSpec, x: jax.Array) -> jax.Array:
     return eval_worlds.split(spec.layout, x)[0] if spec.eval_in_chunk else x
 
 
-def next_evaluation_round(spec: TrainSpec, state: TrainState) -> TrainState:
-    """At the end of an iteration (with ``eval_in_chunk``): where every episode of the
-    evaluation round has ended, the round is kept as the last finished one and the next
-    starts, its worlds reset with :func:`round_key` and its policy the current one (of
-    ``state.env_steps``). No reset runs while no member's round has finished."""
+def start_evaluation_round(spec: TrainSpec, state: TrainState) -> TrainState:
+    """At the start of a chunk (with ``eval_in_chunk``), where the last round has finished:
+    the next round starts, its worlds reset with :func:`round_key` and its policy the current
+    one (of ``state.env_steps``). No reset runs while no member's round has finished."""
     evaluator = state.evaluator
     done = eval_worlds.finished(evaluator)
 
@@ -373,8 +379,8 @@ def next_evaluation_round(spec: TrainSpec, state: TrainState) -> TrainState:
         env_state, evaluator = carry
         fresh = envs.reset(spec.env, round_key(state.eval_key, evaluator.rounds), spec.eval_envs)
         env_state = eval_worlds.put_evaluation(spec.layout, env_state, fresh, done)
-        evaluator = eval_worlds.restart(evaluator, state.agent.actor_params, state.obs_stats,
-                                        state.env_steps, done)  # fmt: skip
+        evaluator = eval_worlds.start(evaluator, state.agent.actor_params, state.obs_stats,
+                                      state.env_steps, done)  # fmt: skip
         return env_state, evaluator
 
     trips = any_member(done, spec.axis_name).astype(jnp.int32)
@@ -481,8 +487,6 @@ def iteration(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[Trai
             update_key,
         )
     state = state.replace(agent=agent_state, key=key, iteration=state.iteration + 1)
-    if spec.eval_in_chunk:
-        state = next_evaluation_round(spec, state)
     return state, {**env_metrics, **update_metrics}
 
 
@@ -541,13 +545,19 @@ def chunk(
 
     ``iterations`` (an int32 scalar, traced: any count runs the same compiled program) defaults
     to ``spec.iters_per_chunk``; a run's first chunk may be split in two (an early evaluation)
-    without a second compile.
+    without a second compile. With ``eval_in_chunk`` the chunk starts an evaluation round
+    (:func:`start_evaluation_round`) and keeps it once finished (at the end of this chunk when
+    it holds an episode, else of a later call).
     """
     iterations = spec.iters_per_chunk if iterations is None else iterations
     zeros = {**{name: jnp.zeros((), jnp.float32) for name in EPISODE_METRICS},
              **skip_learning(state.agent)[1]}  # fmt: skip
     body = functools.partial(_iteration_summed, spec, hp)
+    if spec.eval_in_chunk:
+        state = start_evaluation_round(spec, state)
     state, totals = jax.lax.fori_loop(0, iterations, body, (state, zeros))
+    if spec.eval_in_chunk:
+        state = state.replace(evaluator=eval_worlds.close(state.evaluator))
     return state, summarize(totals, jnp.asarray(iterations), state)
 
 
@@ -692,8 +702,8 @@ __all__ = [
     "key_for_seed",
     "learn",
     "make_train",
-    "next_evaluation_round",
     "policy_action",
     "round_key",
     "scheduled_evaluate",
+    "start_evaluation_round",
 ]

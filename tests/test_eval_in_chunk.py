@@ -79,24 +79,26 @@ def test_training_worlds_are_those_of_a_run_without_evaluation_worlds():
     same(a.env_state.obs, train_obs)
     for name in ("critic_loss", "train_return_mean", "train_episodes", "reward_mean"):
         same(metrics_a[name], metrics_b[name])
-    taken = int(metrics_b["eval_policy_env_steps"])  # a round finished, with an older policy
-    assert 0 <= taken < int(b.env_steps) and taken % CFG.num_envs == 0
+    # the round of the third chunk evaluated the policy of its start
+    assert int(metrics_b["eval_policy_env_steps"]) == 2 * LIMIT * CFG.num_envs
 
 
 def test_each_finished_round_is_a_separate_evaluation_of_its_frozen_policy():
+    """Called one iteration at a time, each call starts a round where the last one has
+    finished, with the policy of its start, and keeps it once finished."""
     spec, hp, chunk = _program(IN_CHUNK)
     state = training.init(spec, jax.random.PRNGKey(1))
     policies = {0: state}  # env steps -> the state whose policy a round froze then
-    checked, early = 0, 0
+    checked, early, seen = 0, 0, 0
     for _ in range(5 * LIMIT):
         state, _ = chunk(hp, state, 1)  # one iteration at a time
         policies[int(state.env_steps)] = state
         evaluator = state.evaluator
+        if not eval_worlds.finished(evaluator) or int(evaluator.rounds) == seen:
+            continue  # no round finished in this call
+        seen = int(evaluator.rounds)
         taken = int(evaluator.last_policy_env_steps)
-        if taken < 0 or int(evaluator.policy_env_steps) != int(state.env_steps):
-            continue  # no round finished in this iteration
-        finished = int(evaluator.rounds) - 2  # the round before the one just started
-        key = training.round_key(state.eval_key, finished)
+        key = training.round_key(state.eval_key, seen - 1)
         expected = training.evaluate(spec, policies[taken], key)
         np.testing.assert_allclose(evaluator.last_returns, expected, rtol=1e-5, atol=1e-5)
         checked += 1
@@ -145,10 +147,8 @@ def test_records_carry_the_rounds_policy_steps(tmp_path):
     records = train(IN_CHUNK, tmp_path / "run", env=_drift_env(), progress=False)
     steps = [r["eval_policy_env_steps"] for r in records]
     chunk = IN_CHUNK.steps_per_chunk
-    # every chunk is one episode long, so each record holds the round that ran through it,
-    # whose policy is that of the chunk's start (some rounds end early, then a later round)
-    assert steps[0] == 0 and all(s >= c * chunk for c, s in enumerate(steps))
-    assert all(s < r["env_steps"] for s, r in zip(steps, records, strict=True))
+    # each record holds the round that ran through its chunk: the policy of the chunk's start
+    assert steps == [c * chunk for c in range(len(records))]
     assert all(np.isfinite(r["eval_return_mean"]) for r in records)
     saved = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert [r["eval_policy_env_steps"] for r in saved] == steps
@@ -173,28 +173,43 @@ def test_a_resumed_run_evaluates_as_a_straight_one(tmp_path):
 
 
 @pytest.mark.processes
-def test_two_devices_evaluate_as_one(tmp_path):
-    """The evaluation worlds split over 2 devices (each device's groups: its training worlds,
-    then its evaluation worlds) give the one-device rounds."""
-    flags = [
-        *TINY_FLAGS,
-        "--total-steps",
-        "192",
-        "--eval-in-chunk",
-        "--replay-shards",
-        "2",
-        "--quiet",
-    ]  # fmt: skip  (chunks of 16 iterations: one 16-step episode)
+def test_two_devices_and_a_resume_on_one_evaluate_as_one_device(tmp_path):
+    """The evaluation worlds split over 2 devices give the one-device rounds, and a run started
+    on 2 devices and resumed on 1 keeps its worlds where they were (the layout follows the
+    replay slices, a setting of the run, not the device count)."""
+    flags = [*TINY_FLAGS, "--eval-in-chunk", "--quiet"]  # chunks of 16 steps: one episode
     env = {**os.environ, "JAX_PLATFORMS": "cpu",
            "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}  # fmt: skip
-    for devices in (1, 2):
-        out = tmp_path / f"d{devices}"
+
+    def run(name: str, devices: int, steps: int, *more: str) -> None:
         proc = subprocess.run([sys.executable, "-m", "td3_jax", "train", *flags, "--devices",
-                               str(devices), "--out", str(out)], env=env, capture_output=True,
+                               str(devices), "--total-steps", str(steps), "--out",
+                               str(tmp_path / name), *more], env=env, capture_output=True,
                               text=True, timeout=600)  # fmt: skip
         assert proc.returncode == 0, proc.stderr[-3000:]
-    one, two = read_records(tmp_path / "d1"), read_records(tmp_path / "d2")
-    assert [r["eval_policy_env_steps"] for r in one] == [r["eval_policy_env_steps"] for r in two]
-    for a, b in zip(one, two, strict=True):
-        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-3, abs=1e-3)
-        assert a["devices"] == 1 and b["devices"] == 2
+
+    run("d1", 1, 192)
+    run("d2", 2, 192)
+    run("moved", 2, 96)
+    run("moved", 1, 192, "--resume")
+    one = read_records(tmp_path / "d1")
+    for other in (read_records(tmp_path / "d2"), read_records(tmp_path / "moved")):
+        assert [r["eval_policy_env_steps"] for r in other] == [r["eval_policy_env_steps"]
+                                                                for r in one]  # fmt: skip
+        for a, b in zip(one, other, strict=True):
+            for name in ("eval_return_mean", "train_return_mean", "critic_loss"):
+                assert a[name] == pytest.approx(b[name], rel=1e-3, abs=1e-3), name
+
+
+def test_eval_and_export_read_an_in_chunk_run_with_any_episode_count(tmp_path):
+    """The checkpoint holds the run's own evaluation worlds; `td3-jax eval --episodes N`
+    evaluates the final policy on N fresh episodes whatever N."""
+    from td3_jax.finished import evaluate_run
+
+    out = tmp_path / "run"
+    cfg = dataclasses.replace(IN_CHUNK, env="test_eval_in_chunk:_drift_env")  # a factory
+    train(cfg, out, progress=False)
+    for episodes in (3, IN_CHUNK.eval_envs):
+        _, members, meta, returns = evaluate_run(out, episodes, seed=0)
+        assert returns.shape == (1, episodes) and np.all(np.isfinite(returns))
+        assert meta["env_steps"] == IN_CHUNK.run_steps and len(members) == 1
