@@ -505,14 +505,19 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if not records:
         print(f"nothing to do: the run in {command.out} is complete")
         return
-    last = records[-1]
-    print(
-        f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
-        f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}; "
-        f"outputs in {command.out}"
-    )
-    if sweeping and "per_member" in last:
-        print_sweep_ranking(last)
+    print(done_line(records[-1], command.out))
+    if sweeping and "per_member" in records[-1]:
+        print_sweep_ranking(records[-1])
+
+
+def done_line(last: dict, out: Path) -> str:
+    """The line that ends a run: its steps, time and last evaluation (with the env steps of
+    the policy it is of, where evaluated inside the chunk)."""
+    policy = last.get("eval_policy_env_steps", -1)
+    of = f" (policy of {int(policy)} steps; td3-jax eval for the final one)" if policy >= 0 else ""
+    return (f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
+            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}{of}; "
+            f"outputs in {out}")  # fmt: skip
 
 
 def sweep_main(args: list[str]) -> None:

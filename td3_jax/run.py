@@ -487,19 +487,27 @@ class _Progress:
         if self.lines:  # the run's wall-clock: compile included, counted across resumes
             print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, "
                   f"{record['env_steps_per_s']:,.0f} env steps/s, eval "
-                  f"{record['eval_return_mean']:.1f}, {record['wall_time_s']:.0f} s",
+                  f"{_evaluation_text(record)}, {record['wall_time_s']:.0f} s",
                   flush=True)  # fmt: skip
         elif self.enabled:
             self._progress.update(
                 self._task,
                 completed=record["env_steps"],
                 rate=f"{record['env_steps_per_s']:,.0f}/s",
-                ret=f"{record['eval_return_mean']:.1f}",
+                ret=_evaluation_text(record),
             )
 
     def close(self) -> None:
         if self.enabled and not self.lines:
             self._progress.stop()
+
+
+def _evaluation_text(record: dict) -> str:
+    """The record's mean evaluation return, with the env steps of the policy it is of where
+    that is not the record's own (the evaluation inside the chunk)."""
+    text = f"{record['eval_return_mean']:.1f}"
+    policy = record.get("eval_policy_env_steps")
+    return text if policy is None or policy < 0 else f"{text} (policy of {int(policy):,} steps)"
 
 
 def _progress_bar(title: str, total: int, completed: int) -> tuple[Any, Any]:

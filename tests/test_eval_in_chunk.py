@@ -213,3 +213,18 @@ def test_eval_and_export_read_an_in_chunk_run_with_any_episode_count(tmp_path):
         _, members, meta, returns = evaluate_run(out, episodes, seed=0)
         assert returns.shape == (1, episodes) and np.all(np.isfinite(returns))
         assert meta["env_steps"] == IN_CHUNK.run_steps and len(members) == 1
+
+
+def test_the_console_says_which_policy_an_in_chunk_return_is_of():
+    from td3_jax import cli
+    from td3_jax.run import _evaluation_text
+
+    record = {"env_steps": 6400, "wall_time_s": 16.4, "eval_return_mean": -1532.54,
+              "eval_return_std": 62.5, "eval_policy_env_steps": 3200.0}  # fmt: skip
+    assert _evaluation_text(record) == "-1532.5 (policy of 3,200 steps)"
+    assert "-1532.5 ± 62.5 (policy of 3200 steps; td3-jax eval for the final one)" in (
+        cli.done_line(record, "runs/x")
+    )
+    separate = {k: v for k, v in record.items() if k != "eval_policy_env_steps"}
+    assert _evaluation_text(separate) == "-1532.5"
+    assert cli.done_line(separate, "runs/x").endswith("-1532.5 ± 62.5; outputs in runs/x")
