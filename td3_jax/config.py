@@ -432,6 +432,11 @@ def _check_replay(cfg: TrainConfig) -> None:
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
             f"run collects (--total-steps {cfg.total_steps}): it would never update"
         )
+    if cfg.updates_per_iter and cfg.warmup_steps >= cfg.run_steps:
+        raise ConfigError(
+            f"--warmup-steps {cfg.warmup_steps} is not below the {cfg.run_steps} env steps the "
+            f"run collects (--total-steps {cfg.total_steps}): it would end before it learns"
+        )
     if cfg.batch_size > capacity:
         raise ConfigError(f"--batch-size {cfg.batch_size} is larger than the replay buffer "
                           f"({capacity} transitions)")  # fmt: skip

@@ -293,3 +293,11 @@ def test_the_replay_ring_never_has_more_rows_than_the_run_collects():
     rounded = dataclasses.replace(t1, total_steps=2049)  # rounded up to whole chunks: 3072
     assert rounded.replay_capacity == 3072
     assert dataclasses.replace(t1, buffer_size=1000).replay_capacity == 1000
+
+
+def test_a_warm_up_as_long_as_the_run_is_refused():
+    """A run whose random warm-up covers all its steps would exit 0 having learnt nothing."""
+    with pytest.raises(ConfigError, match=r"--warmup-steps 20000 is not below the 20000 env"):
+        validate(TrainConfig(total_steps=20_000, warmup_steps=20_000))
+    validate(TrainConfig(total_steps=20_000, warmup_steps=19_999))
+    validate(TrainConfig(total_steps=64, warmup_steps=100, updates_per_iter=0))  # no learning asked
