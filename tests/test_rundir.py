@@ -34,7 +34,9 @@ from td3_jax.population import Member
 # tests/test_cli.py's tiny run (its ring holds the extended run too).
 TINY_FLAGS = [*TINY_FLAGS, "--quiet"]
 VOLATILE = {"wall_time_s", "env_steps_per_s", "chunk_s", "eval_s"}
-SMALL = TrainConfig(num_envs=4, total_steps=128, eval_every=64, batch_size=16, buffer_size=256)
+SMALL = TrainConfig(
+    num_envs=4, total_steps=128, eval_every=64, batch_size=16, buffer_size=256, warmup_steps=32
+)
 
 
 def td3_jax_process(*args: str, **kwargs) -> subprocess.Popen:
