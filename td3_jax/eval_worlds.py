@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from td3_jax.envs.base import batched, by_group
+
 
 class Layout(NamedTuple):
     """Where the worlds of an environment batch are: ``groups`` contiguous groups (one per
@@ -40,14 +42,10 @@ class Layout(NamedTuple):
         return self.train + self.evaluation
 
 
-def _grouped(x: jax.Array, groups: int) -> jax.Array:
-    return x.reshape(groups, x.shape[0] // groups, *x.shape[1:])
-
-
 def split(layout: Layout, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """``x [worlds, ...]`` as ``(training rows [train, ...], evaluation rows [evaluation, ...])``
     (each in group order)."""
-    grouped = _grouped(x, layout.groups)
+    grouped = by_group(x, layout.groups)
     per_group = layout.train // layout.groups
     train = grouped[:, :per_group].reshape(layout.train, *x.shape[1:])
     return train, grouped[:, per_group:].reshape(layout.evaluation, *x.shape[1:])
@@ -56,7 +54,7 @@ def split(layout: Layout, x: jax.Array) -> tuple[jax.Array, jax.Array]:
 def join(layout: Layout, train: jax.Array, evaluation: jax.Array) -> jax.Array:
     """The batch ``[worlds, ...]`` of ``train [train, ...]`` and ``evaluation [evaluation, ...]``
     rows (the inverse of :func:`split`)."""
-    both = (_grouped(train, layout.groups), _grouped(evaluation.astype(train.dtype), layout.groups))
+    both = (by_group(train, layout.groups), by_group(evaluation.astype(train.dtype), layout.groups))
     return jnp.concatenate(both, axis=1).reshape(layout.worlds, *train.shape[1:])
 
 
@@ -66,9 +64,8 @@ def put_evaluation(layout: Layout, batch: Any, evaluation: Any, where: jax.Array
     scalar). Leaves without the batch axis (MuJoCo Warp's shared buffers) are kept."""
 
     def put(full: jax.Array, part: jax.Array) -> jax.Array:
-        batched = jnp.ndim(full) > 0 and full.shape[0] == layout.worlds
-        if not batched or jnp.ndim(part) == 0 or part.shape[0] != layout.evaluation:
-            return full
+        if not batched(full, layout.worlds) or not batched(part, layout.evaluation):
+            return full  # kept once for every environment (MuJoCo Warp's shared buffers)
         train, old = split(layout, full)
         return join(layout, train, jnp.where(where, part.astype(full.dtype), old))
 

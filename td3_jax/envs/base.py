@@ -300,12 +300,12 @@ def default_reset_slots(num_envs: int) -> int:
     return max(1, num_envs // 16)
 
 
-def _by_group(x: jax.Array, groups: int) -> jax.Array:
+def by_group(x: jax.Array, groups: int) -> jax.Array:
     """``[num_envs, ...] -> [groups, num_envs / groups, ...]``."""
     return x.reshape(groups, x.shape[0] // groups, *x.shape[1:])
 
 
-def _batched(x: jax.Array, size: int) -> bool:
+def batched(x: jax.Array, size: int) -> bool:
     """Whether ``x`` has a leading batch axis of ``size`` (MuJoCo Warp keeps some of its data,
     e.g. its contact buffer, once for all the environments stepped together: no batch axis)."""
     return jnp.ndim(x) > 0 and jnp.shape(x)[0] == size
@@ -326,14 +326,14 @@ def _reset_round(env, ended, keys, groups, slots, round_index, carry):
     num_envs = ended.shape[0]
     size = num_envs // groups
     first = round_index * slots
-    index = jax.vmap(lambda e: _ended_in_round(e, first, slots))(_by_group(ended, groups))
-    picked = jax.vmap(lambda k, i: k[jnp.minimum(i, size - 1)])(_by_group(keys, groups), index)
+    index = jax.vmap(lambda e: _ended_in_round(e, first, slots))(by_group(ended, groups))
+    picked = jax.vmap(lambda k, i: k[jnp.minimum(i, size - 1)])(by_group(keys, groups), index)
     fresh_inner, fresh_obs = _reset_batch(env, picked.reshape(groups * slots, *picked.shape[2:]))
 
     def put(full, part):
-        if not _batched(full, num_envs) or not _batched(part, groups * slots):
+        if not batched(full, num_envs) or not batched(part, groups * slots):
             return full  # kept once for every environment (MuJoCo Warp's contacts, counters)
-        full = _by_group(full, groups)
+        full = by_group(full, groups)
         part = part.reshape(groups, slots, *part.shape[1:]).astype(full.dtype)
         scatter = lambda f, i, p: f.at[i].set(p, mode="drop")
         return jax.vmap(scatter)(full, index, part).reshape(num_envs, *full.shape[2:])
@@ -371,7 +371,7 @@ def reset_ended(
     if slots <= 0:
         raise ValueError(f"reset_slots must be positive, got {slots}")
     slots = min(slots, size)
-    count = max_member(jnp.max(jnp.sum(_by_group(ended, groups).astype(jnp.int32), axis=1)),
+    count = max_member(jnp.max(jnp.sum(by_group(ended, groups).astype(jnp.int32), axis=1)),
                        axis_name)  # fmt: skip
     rounds = (count + slots - 1) // slots
     body = functools.partial(_reset_round, env, ended, keys, groups, slots)
@@ -430,6 +430,8 @@ __all__ = [
     "StepResult",
     "action_bound",
     "actor_observation",
+    "batched",
+    "by_group",
     "critic_observation",
     "default_reset_slots",
     "from_mjx_style",
