@@ -127,23 +127,33 @@ def raw_rate(task: str, num_envs: int, steps: int, root: str | None, impl: str) 
 
 
 def loop_config(
-    task: str, num_envs: int, iters: int, root: str | None, batch: int | None, impl: str = "jax"
+    task: str,
+    num_envs: int,
+    iters: int,
+    root: str | None,
+    batch: int | None,
+    impl: str = "jax",
+    precision: str = "float32",
 ):
     """The task's preset (or its kind's) at ``num_envs`` environments, one chunk of ``iters``
-    (``batch``: another batch size, for a smoke test on a CPU)."""
+    (``batch``: another batch size, for a smoke test on a CPU) with ``precision`` matmuls. The
+    preset's evaluation inside the chunk is off: a chunk this short holds no episode."""
     name = ENV_PRESETS.get(f"playground/{task}") or robot_preset(f"playground/{task}")
     cfg = preset(name)
     cfg = dataclasses.replace(cfg, batch_size=batch or cfg.batch_size)
     return dataclasses.replace(
         cfg, env=f"playground/{task}", num_envs=num_envs, eval_every=num_envs * iters,
         buffer_size=max(num_envs * iters * 2, cfg.batch_size), warmup_steps=0,
-        total_steps=num_envs * iters, menagerie=root, impl=impl,
+        total_steps=num_envs * iters, menagerie=root, impl=impl, precision=precision,
+        eval_in_chunk=False,
     ), name  # fmt: skip
 
 
 def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
     """td3-jax's training chunk: env steps/s of the second call, compile seconds of the first."""
-    cfg, name = loop_config(task, num_envs, args.iters, root, args.batch, args.impl_now)
+    cfg, name = loop_config(
+        task, num_envs, args.iters, root, args.batch, args.impl_now, args.precision_now
+    )
     start = time.perf_counter()
     trainer = build.make_trainer(cfg)
     make_s = time.perf_counter() - start
@@ -167,7 +177,7 @@ def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
 def measure(task: str, num_envs: int, args, root: str | None) -> dict:
     """One row of results (an ``error`` entry instead of a crash: the next task still runs)."""
     row = {"task": task, "num_envs": num_envs, "impl": args.impl_now,
-           "device": jax.devices()[0].device_kind}  # fmt: skip
+           "precision": args.precision_now, "device": jax.devices()[0].device_kind}  # fmt: skip
     for kind, fn in (("raw", lambda: raw_rate(task, num_envs, args.steps, root, args.impl_now)),
                      ("loop", lambda: loop_rate(task, num_envs, args, root))):  # fmt: skip
         if kind in args.skip:
@@ -188,14 +198,14 @@ def measure(task: str, num_envs: int, args, root: str | None) -> dict:
 
 def table(rows: list[dict]) -> str:
     head = (
-        f"{'task':38} {'impl':4} {'envs':>5} {'raw/s':>10} {'raw comp':>9} {'loop/s':>10} "
-        f"{'loop comp':>9}"
+        f"{'task':38} {'impl':4} {'prec':8} {'envs':>5} {'raw/s':>10} {'raw comp':>9} "
+        f"{'loop/s':>10} {'loop comp':>9}"
     )
     lines = [head]
     fmt = lambda v, spec: format(v, spec) if isinstance(v, float) else "-"
     for r in rows:
         lines.append(
-            f"{r['task']:38} {r['impl']:4} {r['num_envs']:>5} "
+            f"{r['task']:38} {r['impl']:4} {r.get('precision', 'float32'):8} {r['num_envs']:>5} "
             f"{fmt(r.get('raw_env_steps_per_s'), '10.0f')} "
             f"{fmt(r.get('raw_compile_s'), '9.1f')} {fmt(r.get('loop_env_steps_per_s'), '10.0f')} "
             f"{fmt(r.get('loop_compile_s'), '9.1f')}"
@@ -214,6 +224,9 @@ def main() -> None:
     parser.add_argument("--skip", nargs="*", default=[], choices=["raw", "loop"])
     parser.add_argument("--impl", nargs="*", default=["jax"], choices=["jax", "warp"],
                         help="physics to measure, each in turn")  # fmt: skip
+    parser.add_argument("--precision", nargs="*", default=["float32"],
+                        choices=["float32", "bfloat16"],
+                        help="loop: the networks' matmul precision, each in turn")  # fmt: skip
     parser.add_argument("--menagerie", type=Path, help="robot folders or their .tar.xz")
     parser.add_argument("--pack", type=Path, help="write the tasks' robots as .tar.xz here")
     parser.add_argument("--budget-s", type=float, default=540.0,
@@ -229,12 +242,18 @@ def main() -> None:
     root = unpack(args.menagerie) if args.menagerie else None
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for impl, n, task in [(i, n, t) for i in args.impl for n in args.envs for t in args.tasks]:
+    cells = [(i, n, t, p) for i in args.impl for n in args.envs for t in args.tasks
+             for p in args.precision]  # fmt: skip
+    for impl, n, task, precision in cells:
         if time.perf_counter() - start > args.budget_s:
-            print(f"budget spent: {task} ({impl}) at {n} envs not measured", flush=True)
+            print(f"budget spent: {task} ({impl}, {precision}) at {n} envs not measured")
             continue
-        args.impl_now = impl
+        args.impl_now, args.precision_now = impl, precision
+        skip = args.skip
+        if precision != args.precision[0]:  # the raw physics has no networks: measured once
+            args.skip = [*skip, "raw"]
         rows.append(measure(task, n, args, str(root) if root else None))
+        args.skip = skip
         with (args.out / "robots.jsonl").open("a") as f:
             f.write(json.dumps(rows[-1]) + "\n")
         print(json.dumps(rows[-1]), flush=True)
