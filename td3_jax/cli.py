@@ -12,9 +12,13 @@ import errno
 import functools
 import importlib
 import io
+import itertools
 import os
+import re
 import signal
 import sys
+import types
+import typing
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -49,6 +53,8 @@ subcommands:
 """
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+#: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
+Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]
 
 
 class Interrupted(Exception):
@@ -64,6 +70,8 @@ class Interrupted(Exception):
 class TrainCommand(TrainConfig):
     """Train TD3 or DDPG. Flags not given take the preset's value, else the default shown."""
 
+    hidden_sizes: Widths = (256, 256)  # (None, for a library caller: the algorithm's own)
+    """Hidden widths of actor and critics (the TD3 paper used 400 300)."""
     out: Path = Path("runs/latest")
     """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/."""
     resume: bool = False
@@ -236,6 +244,10 @@ def _parse_error(text: str, command_type: type, args: list[str], prog: str) -> s
     title, sections = _tyro_box(text)
     if title == "Unrecognized options":
         return _unrecognized(command_type, args, prog, sections[0])
+    if title == "Value error":
+        said = _value_error(command_type, args, " ".join(line.strip() for line in sections[0]))
+        if said:
+            return said
     if title == "Required options":  # "Missing from PROG:", each flag 4 deeper, its help 8
         flag = " " * (len(sections[0][0]) - len(sections[0][0].lstrip()) + 4) + "-"
         missing = [line.split()[0] for line in sections[0] if line.startswith(flag)]
@@ -243,6 +255,43 @@ def _parse_error(text: str, command_type: type, args: list[str], prog: str) -> s
             return f"{prog} needs {', '.join(missing)} (see {prog} --help)"
     first = " ".join(line.strip() for line in sections[0]) or title
     return first or f"could not parse {' '.join(args)} (see {prog} --help)"
+
+
+def _value_error(command_type: type, args: list[str], text: str) -> str | None:
+    """``--actor-lr takes a number, got 'abc'``: tyro's "Error parsing FLAG" for a flag of
+    numbers, in one line (None for other flags or errors)."""
+    match = re.match(r"Error parsing (--[\w-]+):", text)
+    kinds = match and _number_kinds(command_type, match.group(1)[2:].replace("-", "_"))
+    if not kinds:
+        return None
+    flag, (kind, several) = match.group(1), kinds
+    given = [a.split("=", 1)[1] for a in args if a.startswith(flag + "=")][:1]
+    if flag in args:
+        after = args[args.index(flag) + 1 :]
+        given = list(itertools.takewhile(lambda a: not a.startswith("--"), after))
+    what = "whole number" if kind is int else "number"
+    what = f"{what}s" if several else f"a {what}"
+    return f"{flag} takes {what}, got {' '.join(map(repr, given)) or 'nothing'}"
+
+
+def _number_kinds(command_type: type, name: str) -> tuple[type, bool] | None:
+    """``(int or float, whether several)`` for a field of ``command_type`` holding numbers (a
+    number, an optional one or a tuple of them); None for other fields."""
+    hint = typing.get_type_hints(command_type, include_extras=False).get(name)
+    several = False
+    parts = [hint]
+    while parts:
+        part = parts.pop()
+        if part in (int, float):
+            return part, several
+        origin = typing.get_origin(part)
+        if origin is tuple:
+            several = True
+        if origin in (tuple, typing.Union, types.UnionType):
+            parts.extend(
+                a for a in typing.get_args(part) if a is not Ellipsis and a is not type(None)
+            )
+    return None
 
 
 def _tyro_box(text: str) -> tuple[str, list[list[str]]]:
@@ -469,6 +518,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
     idle_wandb_flags(cfg, _given_fields(args))
     sweep = _sweep_values(command) if sweeping else None
+    from td3_jax import envs
+
+    envs.check_name(cfg.env)  # before anything about the environment is said
     import jax
 
     from td3_jax.sharding import initialize_distributed

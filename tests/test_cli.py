@@ -234,7 +234,7 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
         ("eval", "--run", out, "extra"): "unexpected argument extra (see td3-jax eval --help)",
         ("eval",): "td3-jax eval needs --run (see td3-jax eval --help)",
         ("train", "--num-envs", "many", "--out", out):
-            "Error parsing --num-envs: invalid literal for int() with base 10: 'many'",
+            "--num-envs takes a whole number, got 'many'",
     }  # fmt: skip
     for args, message in cases.items():
         code, _, err = main(list(args), capsys)

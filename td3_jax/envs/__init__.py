@@ -78,6 +78,18 @@ def known_names() -> list[str]:
     return [f"{src}/{n}" for src, module in _SOURCES.items() for n in module.names()]
 
 
+def check_name(name: str) -> None:
+    """Raises :class:`UnknownEnvironmentError` (naming the closest known names) when
+    ``SOURCE/NAME`` is not one this installation can make; a factory (``module:function``) or
+    an object's name passes (:func:`make` checks those when it makes them)."""
+    if ":" in name or name.startswith(_custom.OBJECT_PREFIX):
+        return
+    source, _, task = name.partition("/")
+    module = _SOURCES.get(source)
+    if module is None or task not in module.names():
+        raise UnknownEnvironmentError(_unknown_message(name, source))
+
+
 def what_is_missing(name: str, menagerie: str | None = None) -> str:
     """What a known environment ``name`` still needs before it can run here ("" when
     nothing): a Playground locomotion task's robot folder (:mod:`.menagerie`)."""
@@ -140,10 +152,9 @@ def make(
         raise _custom.object_run_error(name)
     if ":" in name:
         return _custom.from_factory(name, episode_length=episode_length, options=options)
+    check_name(name)
     source, _, task = name.partition("/")
-    module = _SOURCES.get(source)
-    if module is None or task not in module.names():
-        raise UnknownEnvironmentError(_unknown_message(name, source))
+    module = _SOURCES[source]
     options = options or EnvOptions()
     if source == "playground":
         if backend == "warp":  # Playground's physics is options.impl
@@ -166,6 +177,7 @@ __all__ = [
     "actor_observation",
     "catalog",
     "check_environment",
+    "check_name",
     "critic_observation",
     "extra",
     "from_object",
