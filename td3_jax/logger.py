@@ -17,6 +17,8 @@ __all__ = [
     "WRITE_ERRNOS",
     "MetricsLogger",
     "append_line",
+    "evaluated_steps",
+    "is_return",
     "plot_curve",
     "read_metrics",
     "write_atomically",
@@ -28,8 +30,10 @@ WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 class MetricsLogger:
     """Appends one JSON object per evaluation to ``metrics.jsonl`` and mirrors it to TensorBoard
-    (and to ``mirror``, e.g. a :class:`td3_jax.tracking.Tracker`: an object whose ``log`` takes
-    each record once the file holds it, and never raises).
+    (its evaluation returns at the env steps of the policy evaluated, :func:`evaluated_steps`,
+    the other numbers at the record's env steps) and to ``mirror`` (e.g. a
+    :class:`td3_jax.tracking.Tracker`: an object whose ``log`` takes each record once the file
+    holds it, and never raises).
 
     On resume, records beyond the restored checkpoint (written after it, then lost with the
     stop) are dropped first, so the file never holds an evaluation twice.
@@ -58,11 +62,11 @@ class MetricsLogger:
         if not self.enabled:
             return
         append_line(self.path, json.dumps(_jsonable(record)) + "\n")
-        step = int(record["env_steps"])
+        step, evaluated = int(record["env_steps"]), evaluated_steps(record)
         try:
             for key, value in record.items():
                 if isinstance(value, int | float) and key != "env_steps" and math.isfinite(value):
-                    self._tb.add_scalar(key, value, step)
+                    self._tb.add_scalar(key, value, evaluated if is_return(key) else step)
             self._tb.flush()
         except OSError as err:
             raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
@@ -161,11 +165,17 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
     return records
 
 
-def _evaluated_steps(record: dict) -> int:
+def evaluated_steps(record: dict) -> int:
     """The env steps of the policy a record evaluated: the record's own, or with the
     evaluation inside the chunk those of its round's policy (once a round has finished)."""
     policy = record.get("eval_policy_env_steps", -1)
     return int(policy) if policy is not None and policy >= 0 else int(record["env_steps"])
+
+
+def is_return(key: str) -> bool:
+    """Whether a record's key (or a nested one, ``per_member/0/eval_return_mean``) is an
+    evaluation return statistic, plotted at :func:`evaluated_steps`."""
+    return key.rpartition("/")[2].startswith("eval_return_")
 
 
 def plot_curve(out_dir: Path) -> Path | None:
@@ -179,7 +189,7 @@ def plot_curve(out_dir: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    steps = [_evaluated_steps(r) for r in records]
+    steps = [evaluated_steps(r) for r in records]
     wall = [r["wall_time_s"] for r in records]
     mean = [_number(r["eval_return_mean"]) for r in records]
     several = "per_member" in records[-1]

@@ -363,6 +363,7 @@ def _chunk_and_record(
     chunk_seconds = time.perf_counter() - chunk_start
     env_steps = int(metrics.pop("env_steps")[0])
     updates = int(metrics.pop("agent_steps")[0])
+    policy = metrics.pop("eval_policy_env_steps", None)  # (every member's: one env clock)
     metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
     _check_finite(run, metrics, env_steps)
     _check_physics(run, metrics, env_steps)
@@ -371,6 +372,8 @@ def _chunk_and_record(
     eval_seconds = time.perf_counter() - eval_start
     returns[sorted(run.diverged)] = np.nan
     record = _record(run, updates, metrics, returns, env_steps)
+    if policy is not None:  # a whole number of env steps, as env_steps is
+        record["eval_policy_env_steps"] = int(policy[0])
     record["wall_time_s"] = run.wall_offset + time.perf_counter() - run.clock_start
     record["chunk_s"], record["eval_s"] = chunk_seconds, eval_seconds
     steps = iterations * run.cfg.env_steps_per_iter

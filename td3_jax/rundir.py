@@ -395,9 +395,25 @@ def save_config(
     """Writes config.json (the resolved config, then ``info``: preset, resume_changes, ...) and
     members.json, each atomically (a temporary file renamed)."""
     out_dir = Path(out_dir)
-    _write_json(out_dir / CONFIG_FILE, {**dataclasses.asdict(cfg), **(info or {})})
+    _write_json(out_dir / CONFIG_FILE, {**_as_used(cfg), **(info or {})})
     listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
     _write_json(out_dir / MEMBERS_FILE, listing)
+
+
+#: Settings whose ``None`` means "the algorithm's default" (:func:`td3_jax.build.agent_config`).
+_ALGORITHM_DEFAULTS = ("hidden_sizes", "actor_lr", "critic_lr", "tau")
+
+
+def _as_used(cfg: TrainConfig) -> dict[str, Any]:
+    """``cfg`` as config.json records it: the settings left to the algorithm (``None``) as the
+    values the run uses (a TD3 run's ``actor_lr`` 0.001, not null). An older config.json with
+    nulls still loads (:func:`load_config`) and resumes: both mean the same values."""
+    values = dataclasses.asdict(cfg)
+    agent = agent_config(cfg)
+    for name in _ALGORITHM_DEFAULTS:
+        if values[name] is None:
+            values[name] = getattr(agent, name)
+    return values
 
 
 def _write_json(path: Path, value: Any) -> None:

@@ -2,11 +2,12 @@
 
 Each evaluation record of ``metrics.jsonl`` is logged with the same keys and numbers (nested
 ones, a population's ``per_member``, under ``per_member/0/eval_return_mean``, ...; text and
-null are left out, as TensorBoard leaves them), plotted against ``env_steps``; ``config.json``
-is the W&B run's config and ``curve.png`` is logged as an image when the run ends. W&B's files
-go to ``OUT/wandb/``, which also holds the W&B run's id, so ``--resume`` continues the same
-W&B run. ``wandb`` is imported only when a run asks for it: importing this module changes no
-process-wide state.
+null are left out, as TensorBoard leaves them), plotted against ``env_steps`` (evaluation
+returns against the env steps of the policy evaluated, as in TensorBoard and curve.png);
+``config.json`` is the W&B run's config and ``curve.png`` is logged as an image when the run
+ends. W&B's files go to ``OUT/wandb/``, which also holds the W&B run's id, so ``--resume``
+continues the same W&B run. ``wandb`` is imported only when a run asks for it: importing this
+module changes no process-wide state.
 
 metrics.jsonl is written before W&B is told: a W&B failure during a run is one warning, after
 which the run goes on without W&B and loses no record.
@@ -27,7 +28,7 @@ from typing import Any
 
 from td3_jax.config import TrainConfig
 from td3_jax.errors import WandbError
-from td3_jax.logger import write_atomically
+from td3_jax.logger import evaluated_steps, is_return, write_atomically
 
 __all__ = [
     "ID_FILE",
@@ -156,8 +157,15 @@ class Tracker:
     """Whether a W&B call failed (nothing more is sent)."""
 
     def log(self, record: dict[str, Any]) -> None:
-        """Logs a metrics.jsonl record's numbers (:func:`numbers`)."""
-        self._guard(lambda: self.run.log(numbers(record)))
+        """Logs a metrics.jsonl record's numbers (:func:`numbers`) at its env steps, its
+        evaluation returns at those of the policy evaluated (as TensorBoard places them;
+        :func:`td3_jax.logger.evaluated_steps`)."""
+        values, evaluated = numbers(record), evaluated_steps(record)
+        if evaluated != values["env_steps"]:  # an evaluation inside the chunk: logged apart
+            returns = {k: values.pop(k) for k in list(values) if is_return(k)}
+            self._guard(lambda: self.run.log(values))
+            values = {**returns, "env_steps": evaluated}
+        self._guard(lambda: self.run.log(values))
         self.env_steps = int(record["env_steps"])
 
     def set_config(self, config: dict[str, Any]) -> None:

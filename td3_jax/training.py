@@ -529,7 +529,7 @@ def _evaluator_metrics(state: TrainState) -> Metrics:
     the last finished round's policy was taken (-1 before one)."""
     if state.evaluator is None:
         return {}
-    return {"eval_policy_env_steps": state.evaluator.last_policy_env_steps.astype(jnp.float32)}
+    return {"eval_policy_env_steps": state.evaluator.last_policy_env_steps}  # int32, exact
 
 
 def _iteration_summed(spec: TrainSpec, hp: Hyperparams, _, carry: tuple) -> tuple:

@@ -152,10 +152,12 @@ def test_records_carry_the_rounds_policy_steps(tmp_path):
     assert all(np.isfinite(r["eval_return_mean"]) for r in records)
     saved = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
     assert [r["eval_policy_env_steps"] for r in saved] == steps
+    # env steps are whole numbers, in the records and in metrics.jsonl (3200, not 3200.0)
+    assert all(type(r["eval_policy_env_steps"]) is int for r in records + saved)
     # curve.png plots each return at its policy's env steps (the record's own without a round)
-    assert [logger._evaluated_steps(r) for r in saved] == steps
-    assert logger._evaluated_steps({"env_steps": 96, "eval_policy_env_steps": -1}) == 96
-    assert logger._evaluated_steps({"env_steps": 96}) == 96
+    assert [logger.evaluated_steps(r) for r in saved] == steps
+    assert logger.evaluated_steps({"env_steps": 96, "eval_policy_env_steps": -1}) == 96
+    assert logger.evaluated_steps({"env_steps": 96}) == 96
 
 
 def test_a_resumed_run_evaluates_as_a_straight_one(tmp_path):
