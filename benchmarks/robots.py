@@ -134,9 +134,11 @@ def loop_config(
     batch: int | None,
     impl: str = "jax",
     precision: str = "float32",
+    updates: int | None = None,
 ):
     """The task's preset (or its kind's) at ``num_envs`` environments, one chunk of ``iters``
-    (``batch``: another batch size, for a smoke test on a CPU) with ``precision`` matmuls. The
+    (``batch``: another batch size, for a smoke test on a CPU) with ``precision`` matmuls and
+    ``updates`` updates per iteration (default: the preset's). The
     preset's evaluation inside the chunk is off: a chunk this short holds no episode."""
     name = ENV_PRESETS.get(f"playground/{task}") or robot_preset(f"playground/{task}")
     cfg = preset(name)
@@ -145,14 +147,21 @@ def loop_config(
         cfg, env=f"playground/{task}", num_envs=num_envs, eval_every=num_envs * iters,
         buffer_size=max(num_envs * iters * 2, cfg.batch_size), warmup_steps=0,
         total_steps=num_envs * iters, menagerie=root, impl=impl, precision=precision,
-        eval_in_chunk=False,
+        eval_in_chunk=False, updates_per_iter=updates or cfg.updates_per_iter,
     ), name  # fmt: skip
 
 
 def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
     """td3-jax's training chunk: env steps/s of the second call, compile seconds of the first."""
     cfg, name = loop_config(
-        task, num_envs, args.iters, root, args.batch, args.impl_now, args.precision_now
+        task,
+        num_envs,
+        args.iters,
+        root,
+        args.batch,
+        args.impl_now,
+        args.precision_now,
+        args.updates_now,
     )
     start = time.perf_counter()
     trainer = build.make_trainer(cfg)
@@ -177,7 +186,8 @@ def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
 def measure(task: str, num_envs: int, args, root: str | None) -> dict:
     """One row of results (an ``error`` entry instead of a crash: the next task still runs)."""
     row = {"task": task, "num_envs": num_envs, "impl": args.impl_now,
-           "precision": args.precision_now, "device": jax.devices()[0].device_kind}  # fmt: skip
+           "precision": args.precision_now, "updates_per_iter": args.updates_now,
+           "device": jax.devices()[0].device_kind}  # fmt: skip
     for kind, fn in (("raw", lambda: raw_rate(task, num_envs, args.steps, root, args.impl_now)),
                      ("loop", lambda: loop_rate(task, num_envs, args, root))):  # fmt: skip
         if kind in args.skip:
@@ -227,6 +237,8 @@ def main() -> None:
     parser.add_argument("--precision", nargs="*", default=["float32"],
                         choices=["float32", "bfloat16"],
                         help="loop: the networks' matmul precision, each in turn")  # fmt: skip
+    parser.add_argument("--updates", type=int, nargs="*", default=[0],
+                        help="loop: updates per iteration, each in turn (0: preset's)")  # fmt: skip
     parser.add_argument("--menagerie", type=Path, help="robot folders or their .tar.xz")
     parser.add_argument("--pack", type=Path, help="write the tasks' robots as .tar.xz here")
     parser.add_argument("--budget-s", type=float, default=540.0,
@@ -242,15 +254,18 @@ def main() -> None:
     root = unpack(args.menagerie) if args.menagerie else None
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    cells = [(i, n, t, p) for i in args.impl for n in args.envs for t in args.tasks
-             for p in args.precision]  # fmt: skip
-    for impl, n, task, precision in cells:
+    cells = [(i, n, t, p, u) for i in args.impl for n in args.envs for t in args.tasks
+             for p in args.precision for u in args.updates]  # fmt: skip
+    for impl, n, task, precision, updates in cells:
         if time.perf_counter() - start > args.budget_s:
             print(f"budget spent: {task} ({impl}, {precision}) at {n} envs not measured")
             continue
-        args.impl_now, args.precision_now = impl, precision
+        args.impl_now, args.precision_now, args.updates_now = impl, precision, updates or None
         skip = args.skip
-        if precision != args.precision[0]:  # the raw physics has no networks: measured once
+        if (precision, updates) != (
+            args.precision[0],
+            args.updates[0],
+        ):  # the raw physics has no networks: measured once
             args.skip = [*skip, "raw"]
         rows.append(measure(task, n, args, str(root) if root else None))
         args.skip = skip
