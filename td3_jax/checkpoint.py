@@ -209,7 +209,7 @@ class Checkpointer:
                 print(f"td3-jax: warning: {reasons}; using checkpoint {used}", file=sys.stderr)
             return result
         if skipped:
-            raise skipped[0] if len(skipped) == 1 else _all_corrupt(self.directory, skipped)
+            raise _all_corrupt(self.directory, skipped)
         raise CheckpointError(f"no checkpoint found in {self.directory}")
 
     def close(self) -> None:
@@ -422,15 +422,33 @@ def _verify(state: Any, checksums: Any, path: Path) -> None:
 
 
 def _all_corrupt(directory: Path, errors: list[CorruptCheckpointError]) -> CorruptCheckpointError:
-    """One error naming every checkpoint of ``directory`` (newest first) and what is wrong."""
+    """One error naming every checkpoint of ``directory`` (newest first), what is wrong with
+    each, and what to do: none can be restored, so the run starts again elsewhere."""
     reasons = "; ".join(str(err) for err in errors)
-    return CorruptCheckpointError(f"no usable checkpoint in {directory}: {reasons}")
+    run = directory.parent
+    fix = (f"none can be restored: start the run again with another --out (or remove {run}), "
+           "or put back an intact copy of the checkpoints")  # fmt: skip
+    if len(errors) == 1:
+        return CorruptCheckpointError(f"{reasons}; {fix}")
+    return CorruptCheckpointError(f"no usable checkpoint in {directory}: {reasons}; {fix}")
 
 
 def _unusable(path: Path, err: Exception) -> CorruptCheckpointError:
-    return CorruptCheckpointError(
-        f"checkpoint {path} is unreadable or corrupt ({_first_line(err)})"
-    )
+    """A read of checkpoint ``path`` failed with ``err``: what is wrong, in words (the
+    storage library's own message names its drivers and byte ranges)."""
+    return CorruptCheckpointError(f"checkpoint {path} is unreadable or corrupt ({_cause(err)})")
+
+
+def _cause(err: Exception) -> str:
+    """Why a checkpoint could not be read: its metadata damaged, files missing or damaged."""
+    text = str(err)
+    if isinstance(err, ValueError | TypeError | KeyError) and "JSON" in type(err).__name__ + text:
+        return "its metadata is damaged"
+    if isinstance(err, FileNotFoundError) or "NOT_FOUND" in text:
+        return "files of it are missing"
+    if any(code in text for code in ("DATA_LOSS", "OUT_OF_RANGE", "corrupt", "checksum")):
+        return "its array files are damaged"
+    return f"it cannot be read: {_first_line(err, 120)}"
 
 
 def _first_line(err: BaseException, limit: int = 200) -> str:

@@ -17,6 +17,7 @@ import os
 import re
 import signal
 import sys
+import time
 import types
 import typing
 from collections.abc import Iterator
@@ -533,6 +534,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if jax.process_index() == 0:
         _announce(validate(cfg), preset_name, source)
     received: list[int] = []
+    started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
     try:
         with runtime.stop_signals(stop, received, say=jax.process_index() == 0):
@@ -557,17 +559,25 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if not records:
         print(f"nothing to do: the run in {command.out} is complete")
         return
-    print(done_line(records[-1], command.out))
+    resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
+    print(done_line(records[-1], command.out, time.perf_counter() - started, resumed_at))
     if sweeping and "per_member" in records[-1]:
         print_sweep_ranking(records[-1])
 
 
-def done_line(last: dict, out: Path) -> str:
+def done_line(last: dict, out: Path, process_s: float | None = None,
+              resumed_at: int | None = None) -> str:  # fmt: skip
     """The line that ends a run: its steps, time and last evaluation (with the env steps of
-    the policy it is of, where evaluated inside the chunk)."""
+    the policy it is of, where evaluated inside the chunk). A run resumed at ``resumed_at`` env
+    steps says what this process did in ``process_s`` seconds, then the whole run's time."""
     policy = last.get("eval_policy_env_steps", -1)
     of = f" (policy of {int(policy)} steps; td3-jax eval for the final one)" if policy >= 0 else ""
-    return (f"done: {last['env_steps']} env steps in {last['wall_time_s']:.0f} s; eval return "
+    took = f"in {last['wall_time_s']:.0f} s"
+    if resumed_at is not None:
+        seconds = last["wall_time_s"] if process_s is None else process_s
+        took = (f"({last['env_steps'] - resumed_at} in this process, in {seconds:.0f} s; "
+                f"{last['wall_time_s']:.0f} s over the whole run)")  # fmt: skip
+    return (f"done: {last['env_steps']} env steps {took}; eval return "
             f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}{of}; "
             f"outputs in {out}")  # fmt: skip
 

@@ -110,7 +110,7 @@ def train(
             return run.records
         _say_resuming(run, start_chunk)
         run.tracker = tracking.start(cfg, out_dir, resume=resume, enabled=writer)
-        compiled, state = _compiled_and_state(run, source, state)
+        compiled, state = _compiled_and_state(run, source, state, say=progress and writer)
         _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
                          preset=preset, changes=changes)  # fmt: skip
     finally:
@@ -187,9 +187,13 @@ def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
                             f"{fix}, then start the run again")  # fmt: skip
 
 
-def _compiled_and_state(run: _Run, source: Source, state: Any) -> tuple[Programs, Any]:
+def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
+                        ) -> tuple[Programs, Any]:  # fmt: skip
     """The run's compiled programs, the state's room checked as soon as its shapes are known
-    (:func:`td3_jax.programs.compiled`), and its state: ``state`` restored, else initialised."""
+    (:func:`td3_jax.programs.compiled`), and its state: ``state`` restored, else initialised.
+    ``say``: print that it compiles first (a log then shows where the time goes)."""
+    if say:
+        print("compiling the training program...", flush=True)
     compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
     return compiled, compiled.init() if state is None else state
 
@@ -320,6 +324,7 @@ def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
     cfg = run.cfg
     early = cfg.early_iterations if start_chunk == 0 else 0
     completed = start_chunk
+    run.stop.mark_training()  # (a stop from here on waits for the chunk's checkpoint)
     for index in range(start_chunk, cfg.num_chunks):
         if _stopping(run, index - start_chunk):
             break
@@ -472,52 +477,76 @@ def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) ->
 
 
 class _Progress:
-    """A rich progress bar (env steps, env steps/s, last evaluation return, time left); where
-    the output is not a terminal (a log file, a batch job), one plain line per evaluation."""
+    """A rich progress bar (env steps, env steps/s, last evaluation return, time left) that fits
+    80 columns; where the output is not a terminal (a log file, a batch job), one plain line per
+    evaluation. A part of the run spent in the random warm-up says so instead of a rate (it
+    steps without updates, far faster than training)."""
 
-    def __init__(self, cfg: TrainConfig, start_chunk: int, enabled: bool):
+    def __init__(self, cfg: TrainConfig, start_chunk: int, enabled: bool, console: Any = None):
         from rich.console import Console
 
-        self.enabled = enabled
+        self.enabled, self.warmup = enabled, cfg.warmup_steps
         self.total = cfg.num_chunks * cfg.steps_per_chunk
-        self.lines = enabled and not Console().is_terminal
+        self.done = start_chunk * cfg.steps_per_chunk  # (env steps before the next record)
+        console = console or Console()
+        self.lines = enabled and not console.is_terminal
         self.title = f"{cfg.algo} {cfg.env}"
         if enabled and not self.lines:
-            done = start_chunk * cfg.steps_per_chunk
-            self._progress, self._task = _progress_bar(self.title, self.total, done)
+            console.print(f"{self.title}: {self.total:,} env steps")
+            self._progress, self._task = _progress_bar(self.total, self.done, console)
 
     def update(self, record: dict) -> None:
+        start, self.done = self.done, record["env_steps"]
+        rate = _rate_text(record, start, self.warmup, compact=not self.lines)
         if self.lines:  # the run's wall-clock: compile included, counted across resumes
-            print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, "
-                  f"{record['env_steps_per_s']:,.0f} env steps/s, eval "
-                  f"{_evaluation_text(record)}, {record['wall_time_s']:.0f} s",
+            print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, {rate}, "
+                  f"eval {_evaluation_text(record)}, {record['wall_time_s']:.0f} s",
                   flush=True)  # fmt: skip
         elif self.enabled:
-            self._progress.update(
-                self._task,
-                completed=record["env_steps"],
-                rate=f"{record['env_steps_per_s']:,.0f}/s",
-                ret=_evaluation_text(record),
-            )
+            steps = f"{_count(record['env_steps'])}/{_count(self.total)}"
+            self._progress.update(self._task, completed=record["env_steps"], steps=steps,
+                                  rate=rate,
+                                  ret=_evaluation_text(record, short=True))  # fmt: skip
 
     def close(self) -> None:
         if self.enabled and not self.lines:
             self._progress.stop()
 
 
-def _evaluation_text(record: dict) -> str:
+def _rate_text(record: dict, start: int, warmup: int, compact: bool = False) -> str:
+    """``12,345 env steps/s`` of the record's part of the run (from ``start`` env steps), or
+    ``warm-up`` where all of it was the random warm-up (``(with warm-up)`` where part was;
+    ``compact``: ``12.35k/s``, for the bar)."""
+    if record["env_steps"] <= warmup:
+        return "warm-up"
+    if compact:
+        return f"{_count(record['env_steps_per_s'])}/s"
+    rate = f"{record['env_steps_per_s']:,.0f} env steps/s"
+    return f"{rate} (with warm-up)" if start < warmup else rate
+
+
+def _count(value: float) -> str:
+    """A count in at most 6 characters: ``9,999``, ``20.48k``, ``102.4M``."""
+    if value < 10_000:
+        return f"{value:,.0f}"
+    return f"{value / 1e3:.4g}k" if value < 999_950 else f"{value / 1e6:.4g}M"
+
+
+def _evaluation_text(record: dict, short: bool = False) -> str:
     """The record's mean evaluation return, with the env steps of the policy it is of where
-    that is not the record's own (the evaluation inside the chunk)."""
+    that is not the record's own (the evaluation inside the chunk; ``short``: ``@4.096M``)."""
     text = f"{record['eval_return_mean']:.1f}"
     policy = record.get("eval_policy_env_steps")
-    return text if policy is None or policy < 0 else f"{text} (policy of {int(policy):,} steps)"
+    if policy is None or policy < 0:
+        return text
+    return f"{text} @{_count(policy)}" if short else f"{text} (policy of {int(policy):,} steps)"
 
 
-def _progress_bar(title: str, total: int, completed: int) -> tuple[Any, Any]:
-    """A started rich progress bar and its task."""
+def _progress_bar(total: int, completed: int, console: Any) -> tuple[Any, Any]:
+    """A started rich progress bar on ``console`` and its task; the bar takes the width the
+    texts leave (80 columns leave it a dozen)."""
     from rich.progress import (
         BarColumn,
-        MofNCompleteColumn,
         Progress,
         TextColumn,
         TimeElapsedColumn,
@@ -525,16 +554,17 @@ def _progress_bar(title: str, total: int, completed: int) -> tuple[Any, Any]:
     )
 
     progress = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("env steps"),
+        BarColumn(bar_width=None),
+        TextColumn("{task.fields[steps]} steps"),
         TextColumn("{task.fields[rate]}"),
         TextColumn("eval {task.fields[ret]}"),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
+        console=console,
+        expand=True,
     )
-    task = progress.add_task(title, total=total, completed=completed, rate="compiling...",
+    steps = f"{_count(completed)}/{_count(total)}"
+    task = progress.add_task("", total=total, completed=completed, steps=steps, rate="-",
                              ret="-")  # fmt: skip
     progress.start()
     return progress, task

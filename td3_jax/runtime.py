@@ -17,6 +17,7 @@ import os
 import signal
 import sys
 import threading
+import traceback
 import warnings
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
@@ -64,6 +65,17 @@ class StopToken:
 
     def __init__(self) -> None:
         self._event = threading.Event()
+        self._training = threading.Event()
+
+    def mark_training(self) -> None:
+        """Says the run has compiled and is training (:func:`td3_jax.run.train` calls it before
+        its first chunk): a stop from now on waits for the chunk in flight and its checkpoint;
+        before, nothing has been trained, so there is nothing to wait for or save."""
+        self._training.set()
+
+    def training(self) -> bool:
+        """Whether the run has started training (:meth:`mark_training`)."""
+        return self._training.is_set()
 
     def set(self) -> None:
         """Asks the run to stop."""
@@ -213,18 +225,22 @@ def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable
         stop.set()
         if signum == signal.SIGTERM:
             if say:
-                print(
-                    "td3-jax: terminated (SIGTERM): stopping once the chunk in flight is "
-                    "checkpointed (SIGTERM again to stop at once)",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                print(f"td3-jax: terminated (SIGTERM): {_what_stopping_does(stop)} (SIGTERM "
+                      "again to stop at once)", file=sys.stderr, flush=True)  # fmt: skip
             return
         if say:
             print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
         raise KeyboardInterrupt
 
     return on_signal
+
+
+def _what_stopping_does(stop: StopToken) -> str:
+    """What a SIGTERM does now: wait for the chunk in flight and checkpoint it, or, before the
+    run trains (making the environment, restoring, compiling), stop with nothing to save."""
+    if stop.training():
+        return "stopping once the chunk in flight is checkpointed"
+    return "nothing trained yet, so nothing to save: stopping before training starts"
 
 
 # --------------------------------------------------------------------------------------------
@@ -239,21 +255,25 @@ class _OrbaxLogFilter(logging.Filter):
         return f"{os.sep}orbax{os.sep}" not in record.pathname
 
 
-def _closed_loop_callback(args: Any) -> bool:
-    """Whether an unraisable error is tensorstore completing a future of a closed event loop.
+def _stray_read_error(args: Any) -> bool:
+    """Whether an unraisable error is what a failed checkpoint read leaves behind.
 
-    Orbax runs each read or write in a fresh asyncio loop and closes it as soon as one operation
-    fails; those still in flight finish later on tensorstore's threads, whose callbacks then find
-    the loop closed. Nothing waits for them any more, so the error says nothing new.
+    Orbax runs each read in a fresh asyncio loop and closes it as soon as one operation fails;
+    those still in flight finish later on tensorstore's threads (their callbacks find the loop
+    closed), and their coroutines and tasks are dropped unfinished. Nothing waits for any of
+    them any more, and the failed read itself is reported (a CheckpointError), so their errors
+    say nothing new: ``Event loop is closed``, or an error raised in orbax's or tensorstore's
+    code or by one of their coroutines.
     """
-    tb = args.exc_traceback
-    return (
-        args.object is None
-        and isinstance(args.exc_value, RuntimeError)
-        and str(args.exc_value) == "Event loop is closed"
-        and tb is not None
-        and tb.tb_frame.f_code.co_name == "call_soon_threadsafe"
+    if isinstance(args.exc_value, RuntimeError) and str(args.exc_value) == "Event loop is closed":
+        return True
+    code = getattr(args.object, "cr_code", None) or getattr(
+        getattr(args.object, "get_coro", lambda: None)(), "cr_code", None
     )
+    files = [frame.filename for frame in traceback.extract_tb(args.exc_traceback)]
+    files.append(getattr(code, "co_filename", ""))
+    return any(f"{os.sep}{package}{os.sep}" in name for name in files
+               for package in ("orbax", "tensorstore"))  # fmt: skip
 
 
 def quiet_library_logs() -> None:
@@ -261,10 +281,11 @@ def quiet_library_logs() -> None:
     calls it; a library user may): absl's logger at ERROR without orbax's records, asyncio's
     at CRITICAL (after a failed read of a corrupt checkpoint, tensorstore callbacks still in
     flight hit orbax's closed event loop; the CheckpointError says it all), an
-    unraisable-exception hook that drops those callbacks' errors (they can arrive after the
-    failed restore has returned, so it stays), and Brax's notice that its own physics pipelines
-    are unmaintained (td3-jax steps Brax's tasks on MJX by default). Calling it again adds
-    nothing."""
+    unraisable-exception hook that drops those callbacks' errors and those of the coroutines
+    the read left behind (they can arrive after the failed restore has returned, so it stays;
+    :func:`_stray_read_error`), Python's warning about those never awaited, and Brax's notice
+    that its own physics pipelines are unmaintained (td3-jax steps Brax's tasks on MJX by
+    default). Calling it again adds nothing."""
     import absl.logging  # noqa: F401  (absl's own logger class, not a plain one made here)
 
     absl_logger = logging.getLogger("absl")
@@ -273,12 +294,16 @@ def quiet_library_logs() -> None:
         absl_logger.addFilter(_OrbaxLogFilter())
     logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     warnings.filterwarnings("ignore", message="Brax System, piplines and environments")
+    # (orbax's coroutines that a failed read left unstarted, collected later)
+    warnings.filterwarnings(
+        "ignore", message="coroutine .* was never awaited", category=RuntimeWarning
+    )
     previous = sys.unraisablehook
     if getattr(previous, "td3_jax_quiet", False):
         return
 
     def hook(args: Any) -> None:
-        if not _closed_loop_callback(args):
+        if not _stray_read_error(args):
             previous(args)
 
     hook.td3_jax_quiet = True  # type: ignore[attr-defined]

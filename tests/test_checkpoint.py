@@ -405,19 +405,26 @@ def test_when_every_checkpoint_is_corrupt_the_error_names_each_of_them(three_ste
         bit_rot(directory / str(step))
     with pytest.raises(CorruptCheckpointError) as err:
         Checkpointer(directory).restore(jax.eval_shape(lambda: trees[3]))
-    assert str(err.value) == f"no usable checkpoint in {directory}: " + "; ".join(
-        f"checkpoint {directory / str(step)} is corrupt (array ['big'] fails its checksum)"
-        for step in (3, 2, 1)
+    fix = (f"; none can be restored: start the run again with another --out (or remove "
+           f"{directory.parent}), or put back an intact copy of the checkpoints")  # fmt: skip
+    assert (
+        str(err.value)
+        == f"no usable checkpoint in {directory}: "
+        + "; ".join(
+            f"checkpoint {directory / str(step)} is corrupt (array ['big'] fails its checksum)"
+            for step in (3, 2, 1)
+        )
+        + fix
     )
     assert capsys.readouterr().err == ""
-    # With one checkpoint, its own error is the message.
+    # With one checkpoint, its own error is the message, and what to do.
     for step in (1, 2):
         shutil.rmtree(directory / str(step))
     only = Checkpointer(directory, keep=3)
     with pytest.raises(CorruptCheckpointError) as err:
         only.restore(jax.eval_shape(lambda: trees[3]))
     assert str(err.value) == (
-        f"checkpoint {directory / '3'} is corrupt (array ['big'] fails its checksum)"
+        f"checkpoint {directory / '3'} is corrupt (array ['big'] fails its checksum)" + fix
     )
     only.close()
 

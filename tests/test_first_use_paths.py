@@ -4,13 +4,24 @@ config.json records and where TensorBoard and W&B place evaluation returns."""
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import os
+import re
+import signal
+import sys
+import types
+from pathlib import Path
 
+from rich.console import Console
 from support import assert_one_line_error, main
 from test_cli import tensorboard_scalars
 
+from td3_jax import runtime
+from td3_jax.checkpoint import _all_corrupt, _unusable
 from td3_jax.config import TrainConfig
 from td3_jax.logger import MetricsLogger
+from td3_jax.run import _Progress
 from td3_jax.rundir import config_changes, load_config, save_config
 from td3_jax.tracking import Tracker
 
@@ -124,3 +135,105 @@ def test_wandb_places_in_chunk_returns_at_the_policys_steps():
     run.logged.clear()
     tracker.log({"env_steps": 9600, "eval_return_mean": -90.0})  # evaluated after the chunk
     assert run.logged == [{"env_steps": 9600, "eval_return_mean": -90.0}]
+
+
+# --------------------------------------------------------------------------------------------
+# corrupt checkpoints
+# --------------------------------------------------------------------------------------------
+
+TENSORSTORE_ERROR = (
+    'DATA_LOSS: Error opening "cast" driver: Error opening "zarr" driver: Error reading '
+    '"00075/.zarray" in OCDBT database at local file "/r/state/"'
+)
+
+
+def test_a_corrupt_checkpoint_is_said_in_words_with_what_to_do():
+    run = Path("/runs/x")
+    newest = _unusable(run / "checkpoints" / "2", ValueError(TENSORSTORE_ERROR))
+    assert str(newest) == ("checkpoint /runs/x/checkpoints/2 is unreadable or corrupt (its array "
+                           "files are damaged)")  # fmt: skip
+    older = _unusable(run / "checkpoints" / "1", json.JSONDecodeError("Expecting value", "{", 1))
+    assert str(older).endswith("/1 is unreadable or corrupt (its metadata is damaged)")
+    said = str(_all_corrupt(run / "checkpoints", [newest, older]))
+    assert said.startswith(f"no usable checkpoint in /runs/x/checkpoints: {newest}; {older}; ")
+    fix = ("none can be restored: start the run again with another --out (or remove /runs/x), "
+           "or put back an intact copy of the checkpoints")  # fmt: skip
+    assert said.endswith(fix)
+    assert "zarr" not in said and "DATA_LOSS" not in said
+    assert str(_all_corrupt(run / "checkpoints", [newest])).startswith(f"{newest}; none can be")
+
+
+def test_errors_a_failed_read_leaves_behind_are_dropped(monkeypatch):
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", seen.append)
+    runtime.quiet_library_logs()
+    namespace: dict = {}  # a coroutine of orbax's, as collected unfinished after a failed read
+    exec(compile("async def read(): pass", f"{os.sep}site-packages{os.sep}orbax{os.sep}x.py",
+                 "exec"), namespace)  # fmt: skip
+    stray = namespace["read"]()
+    error = RuntimeError("coroutine ignored GeneratorExit")
+    left = types.SimpleNamespace(exc_type=RuntimeError, exc_value=error, exc_traceback=None,
+                                 err_msg=None, object=stray)  # fmt: skip
+    sys.unraisablehook(left)
+    stray.close()
+    assert seen == []
+    own = types.SimpleNamespace(exc_type=ValueError, exc_value=ValueError("ours"),
+                                exc_traceback=None, err_msg=None, object=None)  # fmt: skip
+    sys.unraisablehook(own)
+    assert seen == [own]  # anything else still reaches the previous hook
+
+
+# --------------------------------------------------------------------------------------------
+# the console of a run
+# --------------------------------------------------------------------------------------------
+
+
+def test_sigterm_says_what_it_does_before_and_after_training_starts(capsys):
+    stop = runtime.StopToken()
+    handler = runtime._signal_handler(stop, [], say=True)
+    handler(signal.SIGTERM, None)
+    err = capsys.readouterr().err
+    assert "nothing trained yet, so nothing to save" in err and "checkpointed" not in err
+    stop = runtime.StopToken()
+    stop.mark_training()
+    runtime._signal_handler(stop, [], say=True)(signal.SIGTERM, None)
+    assert "stopping once the chunk in flight is checkpointed" in capsys.readouterr().err
+
+
+def test_the_progress_bar_fits_80_columns():
+    cfg = TrainConfig(env="playground/T1JoystickFlatTerrain", num_envs=4096, eval_every=4_096_000,
+                      total_steps=102_400_000, eval_in_chunk=True)  # fmt: skip
+    console = Console(width=80, file=io.StringIO(), force_terminal=True, color_system=None)
+    progress = _Progress(cfg, 0, enabled=True, console=console)
+    progress.update({"env_steps": 8_192_000, "eval_return_mean": -1532.54, "wall_time_s": 300.0,
+                     "eval_policy_env_steps": 4_096_000, "env_steps_per_s": 55_123.4})  # fmt: skip
+    progress.close()
+    shown = Console(width=80, file=io.StringIO(), color_system=None)
+    shown.print(progress._progress.make_tasks_table(progress._progress.tasks))
+    (line,) = shown.file.getvalue().splitlines()
+    assert len(line) <= 80 and "…" not in line, line
+    for part in ("8.192M/102.4M steps", "55.12k/s", "eval -1532.5 @4.096M"):
+        assert part in line, line
+
+
+def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
+    # 64 iterations of 4 envs a chunk: the early evaluation after 8 (32 steps), all warm-up
+    flags = ["--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--eval-every", "256",
+             "--warmup-steps", "64", "--batch-size", "16", "--updates-per-iter", "1",
+             "--hidden-sizes", "16", "16", "--eval-envs", "2", "--episode-length", "16",
+             "--buffer-size", "256", "--out", str(tmp_path / "run")]  # fmt: skip
+    code, out, err = main(["train", *flags, "--total-steps", "256"], capsys)
+    assert code == 0, err
+    lines = out.splitlines()
+    compiling = lines.index("compiling the training program...")
+    early, whole = (line for line in lines if line.startswith("td3 gymnax/Pendulum-v1: "))
+    assert lines.index(early) > compiling
+    assert early.startswith("td3 gymnax/Pendulum-v1: 32/256 env steps, warm-up, eval ")
+    assert ": 256/256 env steps, " in whole and "env steps/s (with warm-up), eval" in whole
+    assert "done: 256 env steps in " in lines[-1]
+    code, out, err = main(["train", "--resume", "--out", str(tmp_path / "run"), "--total-steps",
+                           "512"], capsys)  # fmt: skip
+    assert code == 0, err
+    done = re.fullmatch(r"done: 512 env steps \(256 in this process, in (\d+) s; (\d+) s over the "
+                        r"whole run\); eval return .*", out.splitlines()[-1])  # fmt: skip
+    assert done and int(done[1]) <= int(done[2]), out
