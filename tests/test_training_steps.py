@@ -79,14 +79,18 @@ def test_learn_is_the_agents_update_on_sampled_normalised_batches(spec, hp, fres
     learn = jax.jit(training.learn, static_argnums=0)
     agent, metrics = learn(spec, hp, state.agent, state.buffer, state.obs_stats, key)
     assert int(agent.step) == 2 and float(metrics["updates"]) == 2.0
-    # The same two updates, composed by hand from the agent's own functions.
+    # The same two updates, composed by hand from the agent's own functions (each compiled on
+    # its own: run op by op, they took most of this test's time).
+    sample = jax.jit(training.sample_batch, static_argnums=0)
+    normalize = jax.jit(training.normalize, static_argnums=0)
+    update = jax.jit(actor_critic.update, static_argnums=0)
     expected, losses = state.agent, []
     for k in jax.random.split(key, 2):
         sample_key, update_key = jax.random.split(k)
-        batch = training.sample_batch(spec, hp, state.buffer, sample_key)
-        norm = lambda o: training.normalize(spec, state.obs_stats, o)
+        batch = sample(spec, hp, state.buffer, sample_key)
+        norm = lambda o: normalize(spec, state.obs_stats, o)
         batch = batch._replace(obs=norm(batch.obs), next_obs=norm(batch.next_obs))
-        expected, m = actor_critic.update(spec.agent, hp.agent, expected, batch, update_key)
+        expected, m = update(spec.agent, hp.agent, expected, batch, update_key)
         losses.append(float(m["critic_loss"]))
     for a, b in zip(jax.tree.leaves(agent), jax.tree.leaves(expected), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
