@@ -57,7 +57,7 @@ settings.load_profile("td3_jax")
 
 #: The markers of the tests left out of the fast command (``-m "not heavy"``); pyproject.toml
 #: says what each one selects.
-HEAVY = ("slow", "robots", "mjx", "processes", "subprocess")
+HEAVY = ("slow", "robots", "mjx", "processes", "subprocess", "runs")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -33,6 +34,15 @@ def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
         text=True,
         timeout=timeout,
     )
+
+
+def optimised_env() -> dict[str, str]:
+    """This process's environment without the XLA flag that tests/conftest.py adds (programs
+    compiled unoptimised): for child processes that train long enough for optimised code to
+    pay, and whose learning thresholds were measured on it, as the CLI compiles by default."""
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    kept = [flag for flag in flags if not flag.startswith("--xla_backend_optimization_level")]
+    return {**os.environ, "XLA_FLAGS": " ".join(kept)}
 
 
 def main(args: list[str], capsys=None) -> tuple[int, str, str]:

@@ -533,6 +533,7 @@ def test_train_help_documents_each_option_and_its_default(capsys):
         assert f"(default: {default})" in text, default
 
 
+@pytest.mark.runs
 def test_a_run_with_every_option_trains_checkpoints_and_resumes(tmp_path):
     """The command with all options on (the cosine schedule checked apart: it cannot be
     extended): finite metrics, config.json keeps them, and --resume restores the state

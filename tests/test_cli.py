@@ -96,6 +96,7 @@ def test_version_is_the_packaged_version(capsys):
     assert capsys.readouterr().out == f"td3-jax {pyproject['project']['version']}\n"
 
 
+@pytest.mark.subprocess  # a child process that imports JAX: 4 s
 def test_output_into_a_closed_pipe_ends_quietly():
     """`td3-jax train --help | head -1`: the reader goes away before the help is written."""
     proc = subprocess.Popen([sys.executable, "-m", "td3_jax", "train", "--help"],
@@ -106,6 +107,7 @@ def test_output_into_a_closed_pipe_ends_quietly():
     assert "Traceback" not in err and "BrokenPipe" not in err, err
 
 
+@pytest.mark.subprocess  # a child process that imports JAX: 4 s
 def test_train_help_lists_the_documented_flags():
     proc = td3_jax("train", "--help")
     assert proc.returncode == 0
@@ -149,11 +151,13 @@ def test_impossible_train_settings_exit_2(case, tmp_path, capsys):
             assert known in err
 
 
+@pytest.mark.subprocess  # a child process that imports JAX: 4 s
 def test_impossible_setting_in_a_real_process(tmp_path):
     proc = td3_jax("train", "--num-envs", "0", "--out", str(tmp_path / "run"))
     assert_one_line_error(proc.returncode, proc.stderr, "--num-envs must be positive")
 
 
+@pytest.mark.subprocess  # a child process that imports JAX: 4 s
 def test_unknown_algo_exits_2_without_traceback(tmp_path):
     proc = td3_jax("train", "--algo", "foo", "--out", str(tmp_path / "run"))
     assert proc.returncode == 2
@@ -216,6 +220,7 @@ def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
     assert_one_line_error(code, err, f"{tmp_path / 'notes.txt'} is a file, not a run directory")
 
 
+@pytest.mark.subprocess  # a child process that imports JAX: 4 s
 def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsys):
     out = str(tmp_path / "run")
     code, _, err = main(["train", "--totl-steps", "5", "--out", out], capsys)

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from support import assert_one_line_error, main, read_records
+from support import assert_one_line_error, main, optimised_env, read_records
 
 from td3_jax import envs, errors
 from td3_jax.build import make_spec, make_train
@@ -313,6 +313,7 @@ def make():
 """
 
 
+@pytest.mark.runs
 def test_a_changed_factory_is_noticed_by_resume_eval_and_export(tmp_path, monkeypatch, capsys):
     """config.json records the factory's sizes, bounds and time limit; after the factory's
     lower bound changes from -3 to -1, eval, export and --resume each stop with one line naming
@@ -369,6 +370,7 @@ def test_make_train_takes_an_object_and_vmaps_over_seeds():
     assert not np.allclose(returns[0], returns[1])
 
 
+@pytest.mark.runs
 def test_a_run_of_an_object_records_it_and_resumes_only_with_it(tmp_path, capsys):
     """config.json records ``object/drift``; resuming without the object (CLI or eval) is one
     line saying what to do; with it the run goes on; no traced programs are stored."""
@@ -445,7 +447,8 @@ def test_the_example_learns_to_reach_the_target():
     random_return = random_point_mass_return()
     assert -80 < random_return < -40
     proc = subprocess.run([sys.executable, str(REPO / "examples" / "point_mass.py")],
-                          capture_output=True, text=True, timeout=600)  # fmt: skip
+                          capture_output=True, text=True, timeout=600,
+                          env=optimised_env())  # fmt: skip
     assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
     evaluations = re.search(r"steps: (.*) \(\d+ s\)", proc.stdout).group(1)
     returns = [float(r) for r in evaluations.split(", ")]

@@ -61,6 +61,7 @@ def _program(cfg: TrainConfig):
     return spec, build.hyperparams(cfg), chunk
 
 
+@pytest.mark.runs
 def test_training_worlds_are_those_of_a_run_without_evaluation_worlds():
     (plain, hp, plain_chunk), (inside, _, inside_chunk) = _program(CFG), _program(IN_CHUNK)
     key = jax.random.PRNGKey(3)
@@ -87,7 +88,8 @@ def test_each_finished_round_is_a_separate_evaluation_of_its_frozen_policy():
     """Called one iteration at a time, each call starts a round where the last one has
     finished, with the policy of its start, and keeps it once finished."""
     spec, hp, chunk = _program(IN_CHUNK)
-    state = training.init(spec, jax.random.PRNGKey(1))
+    state = jax.jit(training.init, static_argnums=0)(spec, jax.random.PRNGKey(1))
+    evaluate = jax.jit(training.evaluate, static_argnums=0)  # compiled once, not every round
     policies = {0: state}  # env steps -> the state whose policy a round froze then
     checked, early, seen = 0, 0, 0
     for _ in range(5 * LIMIT):
@@ -99,7 +101,7 @@ def test_each_finished_round_is_a_separate_evaluation_of_its_frozen_policy():
         seen = int(evaluator.rounds)
         taken = int(evaluator.last_policy_env_steps)
         key = training.round_key(state.eval_key, seen - 1)
-        expected = training.evaluate(spec, policies[taken], key)
+        expected = evaluate(spec, policies[taken], key)
         np.testing.assert_allclose(evaluator.last_returns, expected, rtol=1e-5, atol=1e-5)
         checked += 1
         early += int(state.env_steps - taken) < LIMIT * spec.num_envs
@@ -107,6 +109,7 @@ def test_each_finished_round_is_a_separate_evaluation_of_its_frozen_policy():
     assert early >= 1  # some round ended before the time limit: every episode terminated
 
 
+@pytest.mark.runs
 def test_rounds_of_a_population_member_are_those_of_its_lone_run():
     cfg = dataclasses.replace(IN_CHUNK, total_steps=2 * LIMIT * 4)
     env = _drift_env()
@@ -143,6 +146,7 @@ def test_a_chunk_shorter_than_an_episode_is_refused():
         build.make_spec(split, env=_drift_env())
 
 
+@pytest.mark.runs
 def test_records_carry_the_rounds_policy_steps(tmp_path):
     records = train(IN_CHUNK, tmp_path / "run", env=_drift_env(), progress=False)
     steps = [r["eval_policy_env_steps"] for r in records]
@@ -160,6 +164,7 @@ def test_records_carry_the_rounds_policy_steps(tmp_path):
     assert logger.evaluated_steps({"env_steps": 96}) == 96
 
 
+@pytest.mark.runs
 def test_a_resumed_run_evaluates_as_a_straight_one(tmp_path):
     straight = train(IN_CHUNK, tmp_path / "straight", env=_drift_env(), progress=False)
     half = dataclasses.replace(IN_CHUNK, total_steps=IN_CHUNK.total_steps // 2)

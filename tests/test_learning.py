@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from support import optimised_env
 
 pytestmark = pytest.mark.slow
 
@@ -56,7 +57,11 @@ class Run:
         cmd = [sys.executable, "-m", "td3_jax", "train", *RUNS[name], "--out", str(out)]
         self._log_file = self.log.open("w")
         self.proc = subprocess.Popen(
-            [*cmd, "--quiet"], stdout=self._log_file, stderr=subprocess.STDOUT, text=True
+            [*cmd, "--quiet"],
+            stdout=self._log_file,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=optimised_env(),
         )
 
     def records(self) -> list[dict]:

@@ -41,6 +41,7 @@ def three_seeds(tmp_path_factory):
     return cfg, train(cfg, out, progress=False)
 
 
+@pytest.mark.runs
 def test_seed_k_of_a_population_is_the_single_seed_run(three_seeds, tmp_path):
     cfg, records = three_seeds
     for k in range(cfg.seeds):
@@ -67,6 +68,7 @@ def test_population_record_carries_the_statistics_over_seeds(three_seeds):
     )
 
 
+@pytest.mark.runs
 def test_a_swept_value_trains_like_a_run_configured_with_it(tmp_path):
     """Hyperparameters traced through vmap give the numbers of the constant-config run."""
     sweep = {"actor_lr": [1e-3, 1e-2], "tau": [0.005, 0.05]}
@@ -104,6 +106,7 @@ def test_sweep_of_an_unknown_setting_is_refused():
         members(TINY, {"batch_size": [32, 64]})
 
 
+@pytest.mark.runs
 def test_sweep_command_prints_a_ranked_table(tmp_path, capsys):
     cli_main([
         "sweep", "--sweep-actor-lr", "1e-3", "1e-2", "--seeds", "2", "--out", str(tmp_path / "s"),
@@ -118,6 +121,7 @@ def test_sweep_command_prints_a_ranked_table(tmp_path, capsys):
     assert table.index("1 ") < table.index("2 ")
 
 
+@pytest.mark.runs
 def test_make_train_vmaps_over_keys():
     train_fn = make_train(TINY)
     states, metrics = jax.jit(jax.vmap(train_fn))(jax.random.split(jax.random.PRNGKey(0), 2))
@@ -183,6 +187,7 @@ def test_an_impossible_swept_value_names_its_sweep_flag():
         members(dataclasses.replace(TINY, critic="distributional", v_min=5.0), {"v_max": [1.0]})
 
 
+@pytest.mark.runs
 def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
     """Issue 10.4: one exploding setting no longer stops the sweep (nor every resume)."""
     out = tmp_path / "s"

@@ -8,6 +8,7 @@ import os
 
 import jax
 import numpy as np
+import pytest
 
 from td3_jax import build, program_cache
 from td3_jax.config import TrainConfig
@@ -93,6 +94,7 @@ def test_a_robots_key_follows_its_asset_files(tmp_path):
     assert program_cache.assets_digest(TINY) is None  # gymnax: its package's version covers it
 
 
+@pytest.mark.runs
 def test_a_stored_run_traces_nothing_and_matches_a_traced_one(tmp_path, monkeypatch):
     programs = tmp_path / "programs"
     first = train(TINY, tmp_path / "a", progress=False, program_dir=programs)
@@ -162,6 +164,7 @@ def test_a_resume_that_traces_stores_what_a_fresh_run_needs(tmp_path, monkeypatc
     assert _numbers(fresh) == _numbers(expected)
 
 
+@pytest.mark.runs
 def test_an_unusable_entry_is_a_warning_and_is_traced_again(tmp_path, capsys):
     # Unreadable bytes, a program that reads back but does not compile (another program's in
     # its place) and an unreadable structure: each is reported, traced again and stored anew.

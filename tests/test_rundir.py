@@ -306,6 +306,7 @@ def test_interrupted_message_says_what_is_kept(tmp_path):
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.runs
 def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
     short, long = tmp_path / "short", tmp_path / "long"
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(short)], capsys)
@@ -513,6 +514,7 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
     assert code == 0, err
 
 
+@pytest.mark.runs
 def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path, monkeypatch):
     """The stop token given to train (set by the CLI's Ctrl-C handler, also when Python
     discards the interrupt) stops a run at the next chunk boundary: that chunk is logged and

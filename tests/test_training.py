@@ -479,6 +479,7 @@ def _comparable(records):
     return [json.dumps({k: v for k, v in r.items() if k not in VOLATILE}) for r in records]
 
 
+@pytest.mark.runs
 def test_stop_and_resume_reproduces_the_uninterrupted_run(tmp_path):
     dir_a, dir_b = tmp_path / "a", tmp_path / "b"
     full = train(RESUME, dir_a, progress=False)

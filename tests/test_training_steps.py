@@ -163,6 +163,7 @@ def test_evaluation_returns_each_first_episode_whether_or_not_it_stops_early(lim
     np.testing.assert_array_equal(recorded(spec_q, state, key, 2)[0], returns)
 
 
+@pytest.mark.runs
 def test_the_command_and_make_train_give_the_same_evaluations(tmp_path):
     """One driver, one key schedule: ``td3-jax train --seed s`` = ``make_train(cfg)(key(s))``."""
     cfg = dataclasses.replace(TINY, warmup_steps=12, total_steps=36, seed=4)

@@ -102,6 +102,7 @@ def stored_id(out: Path) -> str:
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.runs
 def test_a_run_sends_its_records_config_and_curve(wandb_module, tmp_path, capsys):
     out = tmp_path / "pendulum-run"
     args = ["train", *FLAGS, "--out", str(out), "--quiet", "--wandb", "--wandb-entity", "team"]
