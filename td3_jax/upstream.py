@@ -33,6 +33,8 @@ __all__ = [
     "JAX_CACHE_SUFFIX",
     "MJX_IO",
     "MJX_RESOLVER",
+    "MJX_WARP_BATCH_DIM",
+    "MJX_WARP_TYPES",
     "PLAYGROUND_LOCOMOTION",
     "PLAYGROUND_MENAGERIE",
     "PLAYGROUND_MJX_ENV",
@@ -56,6 +58,7 @@ __all__ = [
     "stamp_jax_cache_entries",
     "task_mjx_model",
     "warp_overflow_flags",
+    "warp_per_world_model_fields",
 ]
 
 
@@ -200,6 +203,22 @@ def set_mjx_device_resolver(resolve: Callable[..., tuple[Any, Any]]) -> None:
     module = _private_module(MJX_IO)
     _require(module, MJX_RESOLVER, f"{MJX_IO}.{MJX_RESOLVER}")
     setattr(module, MJX_RESOLVER, resolve)
+
+
+#: MJX's Warp bridge and its table of the fields that carry a per-world axis
+#: (``_BATCH_DIM["Model"]``: field name -> whether MuJoCo Warp simulates it per world when it is
+#: batched under ``jax.vmap``; checked: MuJoCo 4.0.0).
+MJX_WARP_TYPES = "mujoco.mjx.warp.types"
+MJX_WARP_BATCH_DIM = "_BATCH_DIM"
+
+
+def warp_per_world_model_fields() -> frozenset[str]:
+    """The ``mujoco.mjx.Model`` fields that MuJoCo Warp simulates per world (one value per
+    environment) when they carry a batch axis: the True entries of MJX's Warp bridge's
+    ``mujoco.mjx.warp.types._BATCH_DIM["Model"]``."""
+    table = _require(_private_module(MJX_WARP_TYPES), MJX_WARP_BATCH_DIM,
+                     f"{MJX_WARP_TYPES}.{MJX_WARP_BATCH_DIM}")  # fmt: skip
+    return frozenset(name for name, per_world in table["Model"].items() if per_world is True)
 
 
 def warp_overflow_flags(data: Any) -> Any:

@@ -39,6 +39,7 @@ __all__ = [
     "PUSH_SECTIONS",
     "Layout",
     "Randomization",
+    "check_warp_randomization",
     "draw",
     "from_task",
     "is_prefix",
@@ -48,6 +49,7 @@ __all__ = [
     "names",
     "push_overrides",
     "randomization",
+    "randomized_field_names",
     "randomized_model",
     "row",
     "warp_overflow",
@@ -285,6 +287,26 @@ def randomization(task: str, env: Any) -> Randomization:
     return Randomization(randomizer, model, leaves)
 
 
+def randomized_field_names(rand: Randomization) -> tuple[str, ...]:
+    """The model fields ``rand`` draws, as ``jax.tree_util.keystr`` spells their paths without
+    the leading dot (``body_mass``; a nested field ``opt.gravity``)."""
+    paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(rand.model)[0]]
+    return tuple(jax.tree_util.keystr(paths[i]).lstrip(".") for i in rand.leaves)
+
+
+def check_warp_randomization(task: str, rand: Randomization, per_world: frozenset[str]) -> None:
+    """``EnvironmentOptionError`` when ``rand`` draws a field that MuJoCo Warp would simulate as
+    one value for every world (not in ``per_world``): domain randomisation would silently not
+    happen there."""
+    shared = [name for name in randomized_field_names(rand) if name not in per_world]
+    if shared:
+        raise EnvironmentOptionError(
+            f"playground/{task}'s domain randomiser draws {', '.join(shared)}, which MuJoCo Warp "
+            "simulates as one value for every environment: use --impl jax with "
+            "--domain-randomization"
+        )
+
+
 def draw(rand: Randomization, key: jax.Array) -> tuple[jax.Array, ...]:
     """One environment's randomised model leaves (unbatched)."""
     leaves = jax.tree.leaves(rand.randomizer(rand.model, key[None])[0])
@@ -352,6 +374,8 @@ def make(
     impl = physics.resolve(options.impl)
     env, config = load(task, impl=impl, options=options)
     rand = randomization(task, env) if options.domain_randomization else None
+    if rand is not None and impl == "warp":
+        check_warp_randomization(task, rand, upstream.warp_per_world_model_fields())
     return from_task(env, f"playground/{task}", int(episode_length or config.episode_length),
                      options, rand=rand, warp=impl == "warp")  # fmt: skip
 
