@@ -423,11 +423,14 @@ def _verify(state: Any, checksums: Any, path: Path) -> None:
 
 def _all_corrupt(directory: Path, errors: list[CorruptCheckpointError]) -> CorruptCheckpointError:
     """One error naming every checkpoint of ``directory`` (newest first), what is wrong with
-    each, and what to do: none can be restored, so the run starts again elsewhere."""
+    each, and what to do: where each is damaged, none can be restored, so the run starts again
+    elsewhere; where one failed for another cause (no memory, no permission), that is fixed."""
     reasons = "; ".join(str(err) for err in errors)
     run = directory.parent
     fix = (f"none can be restored: start the run again with another --out (or remove {run}), "
            "or put back an intact copy of the checkpoints")  # fmt: skip
+    if not all(getattr(err, "damaged", True) for err in errors):
+        fix = "fix what keeps them from being read, then --resume again"
     if len(errors) == 1:
         return CorruptCheckpointError(f"{reasons}; {fix}")
     return CorruptCheckpointError(f"no usable checkpoint in {directory}: {reasons}; {fix}")
@@ -436,7 +439,10 @@ def _all_corrupt(directory: Path, errors: list[CorruptCheckpointError]) -> Corru
 def _unusable(path: Path, err: Exception) -> CorruptCheckpointError:
     """A read of checkpoint ``path`` failed with ``err``: what is wrong, in words (the
     storage library's own message names its drivers and byte ranges)."""
-    return CorruptCheckpointError(f"checkpoint {path} is unreadable or corrupt ({_cause(err)})")
+    cause = _cause(err)
+    error = CorruptCheckpointError(f"checkpoint {path} is unreadable or corrupt ({cause})")
+    error.damaged = not cause.startswith(_UNKNOWN)  # (else not known to be damaged)
+    return error
 
 
 def _cause(err: Exception) -> str:
@@ -448,7 +454,11 @@ def _cause(err: Exception) -> str:
         return "files of it are missing"
     if any(code in text for code in ("DATA_LOSS", "OUT_OF_RANGE", "corrupt", "checksum")):
         return "its array files are damaged"
-    return f"it cannot be read: {_first_line(err, 120)}"
+    return f"{_UNKNOWN}: {_first_line(err, 120)}"
+
+
+#: :func:`_cause` for a failure that says nothing of damage (out of memory, no permission).
+_UNKNOWN = "it cannot be read"
 
 
 def _first_line(err: BaseException, limit: int = 200) -> str:

@@ -163,6 +163,18 @@ def test_a_corrupt_checkpoint_is_said_in_words_with_what_to_do():
     assert str(_all_corrupt(run / "checkpoints", [newest])).startswith(f"{newest}; none can be")
 
 
+def test_a_checkpoint_unread_for_another_cause_is_not_called_for_removal():
+    # Out of memory (or no permission) says nothing of damage: the run is not to be thrown away.
+    run = Path("/runs/x")
+    damaged = _unusable(run / "checkpoints" / "2", ValueError(TENSORSTORE_ERROR))
+    memory = _unusable(run / "checkpoints" / "1", RuntimeError("RESOURCE_EXHAUSTED: Out of memory"))
+    assert str(memory).endswith("(it cannot be read: RuntimeError: RESOURCE_EXHAUSTED: Out of "
+                                "memory)")  # fmt: skip
+    said = str(_all_corrupt(run / "checkpoints", [damaged, memory]))
+    assert said.endswith("; fix what keeps them from being read, then --resume again")
+    assert "remove" not in said and "another --out" not in said
+
+
 def test_errors_a_failed_read_leaves_behind_are_dropped(monkeypatch):
     seen = []
     monkeypatch.setattr(sys, "unraisablehook", seen.append)
