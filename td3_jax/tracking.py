@@ -161,10 +161,11 @@ class Tracker:
         evaluation returns at those of the policy evaluated (as TensorBoard places them;
         :func:`td3_jax.logger.evaluated_steps`)."""
         values, evaluated = numbers(record), evaluated_steps(record)
-        if evaluated != values["env_steps"]:  # an evaluation inside the chunk: logged apart
+        if evaluated != values["env_steps"]:  # an evaluation inside the chunk: logged apart,
+            # first (its env steps are the earlier: W&B's env_steps then never goes back, and
+            # the run's summary keeps the record's)
             returns = {k: values.pop(k) for k in list(values) if is_return(k)}
-            self._guard(lambda: self.run.log(values))
-            values = {**returns, "env_steps": evaluated}
+            self._guard(lambda: self.run.log({**returns, "env_steps": evaluated}))
         self._guard(lambda: self.run.log(values))
         self.env_steps = int(record["env_steps"])
 

@@ -125,7 +125,7 @@ def test_wandb_places_in_chunk_returns_at_the_policys_steps():
     tracker = Tracker(run, image=lambda path: path)
     member = {"seed": 0, "eval_return_mean": -140.0, "critic_loss": 0.5}
     tracker.log({**IN_CHUNK_RECORD, "per_member": [member]})
-    rest, returns = run.logged
+    returns, rest = run.logged  # (the earlier env steps first: W&B's env_steps never goes back)
     assert returns == {"eval_return_mean": -150.0, "eval_return_std": 12.5,
                        "per_member/0/eval_return_mean": -140.0, "env_steps": 3200}  # fmt: skip
     assert rest["env_steps"] == 6400 and rest["critic_loss"] == 0.25
