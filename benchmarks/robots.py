@@ -258,7 +258,8 @@ def main() -> None:
              for p in args.precision for u in args.updates]  # fmt: skip
     for impl, n, task, precision, updates in cells:
         if time.perf_counter() - start > args.budget_s:
-            print(f"budget spent: {task} ({impl}, {precision}) at {n} envs not measured")
+            print(f"budget spent: {task} ({impl}, {precision}) at {n} envs not measured",
+                  flush=True)  # fmt: skip
             continue
         args.impl_now, args.precision_now, args.updates_now = impl, precision, updates or None
         skip = args.skip

@@ -255,6 +255,20 @@ class _OrbaxLogFilter(logging.Filter):
         return f"{os.sep}orbax{os.sep}" not in record.pathname
 
 
+def _closed_loop_callback(args: Any) -> bool:
+    """Whether an unraisable error is tensorstore completing a future of orbax's closed event
+    loop: ``Event loop is closed`` raised in asyncio's ``call_soon_threadsafe``, with no object
+    (a closed loop of anyone else's code still reaches the previous hook)."""
+    tb = args.exc_traceback
+    return (
+        args.object is None
+        and isinstance(args.exc_value, RuntimeError)
+        and str(args.exc_value) == "Event loop is closed"
+        and tb is not None
+        and tb.tb_frame.f_code.co_name == "call_soon_threadsafe"
+    )
+
+
 def _stray_read_error(args: Any) -> bool:
     """Whether an unraisable error is what a failed checkpoint read leaves behind.
 
@@ -263,9 +277,10 @@ def _stray_read_error(args: Any) -> bool:
     closed), and their coroutines and tasks are dropped unfinished. Nothing waits for any of
     them any more, and the failed read itself is reported (a CheckpointError), so their errors
     say nothing new: ``Event loop is closed``, or an error raised in orbax's or tensorstore's
-    code or by one of their coroutines.
+    code or by one of their coroutines. (Python's warning about the coroutines never awaited
+    is silenced by :func:`quiet_library_logs` for the whole process: the CLI's only.)
     """
-    if isinstance(args.exc_value, RuntimeError) and str(args.exc_value) == "Event loop is closed":
+    if _closed_loop_callback(args):
         return True
     code = getattr(args.object, "cr_code", None) or getattr(
         getattr(args.object, "get_coro", lambda: None)(), "cr_code", None

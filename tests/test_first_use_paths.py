@@ -13,9 +13,11 @@ import sys
 import types
 from pathlib import Path
 
+import pytest
 from rich.console import Console
 from support import assert_one_line_error, main
 from test_cli import tensorboard_scalars
+from test_runtime import restored_logging  # noqa: F401  (a fixture)
 
 from td3_jax import runtime
 from td3_jax.checkpoint import _all_corrupt, _unusable
@@ -175,6 +177,7 @@ def test_a_checkpoint_unread_for_another_cause_is_not_called_for_removal():
     assert "remove" not in said and "another --out" not in said
 
 
+@pytest.mark.usefixtures("restored_logging")
 def test_errors_a_failed_read_leaves_behind_are_dropped(monkeypatch):
     seen = []
     monkeypatch.setattr(sys, "unraisablehook", seen.append)
@@ -193,6 +196,13 @@ def test_errors_a_failed_read_leaves_behind_are_dropped(monkeypatch):
                                 exc_traceback=None, err_msg=None, object=None)  # fmt: skip
     sys.unraisablehook(own)
     assert seen == [own]  # anything else still reaches the previous hook
+    try:  # a closed event loop of someone else's code (not tensorstore's callback) is kept
+        raise RuntimeError("Event loop is closed")
+    except RuntimeError as err:
+        closed = types.SimpleNamespace(exc_type=RuntimeError, exc_value=err, object=None,
+                                       exc_traceback=err.__traceback__, err_msg=None)  # fmt: skip
+    sys.unraisablehook(closed)
+    assert seen == [own, closed]
 
 
 # --------------------------------------------------------------------------------------------
