@@ -516,8 +516,10 @@ def test_stop_and_resume_reproduces_the_uninterrupted_run(tmp_path):
         assert set(records[0]) >= VOLATILE | {"eval_return_mean", "critic_loss", "updates"}
         walls = [r["wall_time_s"] for r in records]
         assert walls == sorted(walls)
+    # (tau left to the algorithm is recorded as the value TD3 uses: the paper's 0.005)
     assert json.loads((dir_b / "config.json").read_text()) == dataclasses.asdict(RESUME) | {
-        "hidden_sizes": list(RESUME.hidden_sizes)
+        "hidden_sizes": list(RESUME.hidden_sizes),
+        "tau": 0.005,
     }
 
 
