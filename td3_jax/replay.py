@@ -22,6 +22,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from td3_jax import n_step
@@ -212,16 +213,26 @@ def slice_rows(buffer: ReplayBuffer) -> int:
 
 
 def grow_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
-    """Every slice of a ring that never wrapped, grown to ``rows`` rows: the same rows, zeros
-    after them, the next write after the last filled row (``position = size``). The result is
-    the buffer a ring of ``rows`` rows would be after the same adds (leading member axes kept).
+    """Every slice of a ring that never wrapped, resized to ``rows`` rows: the same filled rows,
+    zeros after them, the next write after the last filled row (``position = size``, 0 when
+    full). The
+    result is the buffer a ring of ``rows`` rows would be after the same adds (leading member
+    axes kept). It grows the ring of a run that ``--resume`` extends, and shrinks that of a run
+    it shortens: a slice with more filled rows than ``rows`` raises ``ValueError`` (checked
+    where the sizes are concrete; under tracing the caller guarantees it).
     """
     axis = jnp.ndim(buffer.position)
     added = rows - slice_rows(buffer)
+    if added < 0 and not isinstance(buffer.size, jax.core.Tracer):
+        filled = int(np.max(np.asarray(buffer.size)))
+        if filled > rows:
+            raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to "
+                             f"{rows}: {filled} rows of a slice are filled")  # fmt: skip
     if added < 0:
-        raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to {rows}")
+        cut = lambda x: jax.lax.slice_in_dim(x, 0, rows, axis=axis)
+        return buffer.replace(data=jax.tree.map(cut, buffer.data), position=buffer.size % rows)
     pad = lambda x: jnp.pad(x, [(0, added if i == axis else 0) for i in range(x.ndim)])
-    return buffer.replace(data=jax.tree.map(pad, buffer.data), position=buffer.size)
+    return buffer.replace(data=jax.tree.map(pad, buffer.data), position=buffer.size % rows)
 
 
 __all__ = [

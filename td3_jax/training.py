@@ -206,13 +206,14 @@ def round_key(eval_key: PRNGKey, round_index: jax.Array | int) -> PRNGKey:
 
 
 def ring_as_saved(abstract_state: Any, layout: list) -> tuple[Any, Callable[[Any], Any] | None]:
-    """How to restore a checkpoint whose replay ring is shorter than ``abstract_state``'s (a
-    run extended by ``--resume``: the ring is capped at the run's length and never wrapped).
+    """How to restore a checkpoint whose replay ring has other rows than ``abstract_state``'s: a
+    run extended or shortened by ``--resume`` (the ring is capped at the run's length, so it
+    never wrapped, and a shortened run still holds every step already taken).
 
     ``layout``: the checkpoint's ``[path, shape, dtype]`` rows, in leaf order. Returns the
     abstract state with the saved ring's rows and the function that grows a state restored with
     it to ``abstract_state``'s shapes (:func:`td3_jax.replay.grow_slices`); unchanged and
-    ``None`` where the ring is not shorter (any other difference is the layout check's).
+    ``None`` where the rows agree (any other difference is the layout check's).
     """
     paths = [jax.tree_util.keystr(p) for p, _ in
              jax.tree_util.tree_leaves_with_path(abstract_state)]  # fmt: skip
@@ -222,12 +223,12 @@ def ring_as_saved(abstract_state: Any, layout: list) -> tuple[Any, Callable[[Any
     buffer = abstract_state.buffer
     axis, rows = jnp.ndim(buffer.position), replay.slice_rows(buffer)
     saved_shape = list(layout[first][1])
-    if len(saved_shape) <= axis or saved_shape[axis] >= rows:
+    if len(saved_shape) <= axis or saved_shape[axis] == rows:
         return abstract_state, None
     saved_rows = saved_shape[axis]
-    shorter = lambda x: jax.ShapeDtypeStruct((*x.shape[:axis], saved_rows, *x.shape[axis + 1:]),
-                                             x.dtype)  # fmt: skip
-    saved = buffer.replace(data=jax.tree.map(shorter, buffer.data))
+    as_saved = lambda x: jax.ShapeDtypeStruct((*x.shape[:axis], saved_rows, *x.shape[axis + 1:]),
+                                              x.dtype)  # fmt: skip
+    saved = buffer.replace(data=jax.tree.map(as_saved, buffer.data))
     grow = lambda state: state.replace(buffer=replay.grow_slices(state.buffer, rows))
     return abstract_state.replace(buffer=saved), grow
 

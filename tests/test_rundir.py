@@ -12,6 +12,7 @@ import dataclasses
 import errno
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -337,6 +338,30 @@ def test_a_finished_run_extended_equals_the_longer_run(tmp_path, capsys):
     for (path, a), b in zip(leaves, jax.tree.leaves(state_short), strict=True):
         a, b = np.asarray(a), np.asarray(b)
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), jax.tree_util.keystr(path)
+
+
+@pytest.mark.runs
+def test_an_interrupted_run_shortened_on_resume_equals_the_shorter_run(tmp_path, capsys):
+    """The replay ring is sized to the run, so a run shortened by ``--resume --total-steps``
+    restores a larger ring than its own: it is cut to the new run's rows (every step taken so
+    far fits), and the run then equals one started that short."""
+    cut, short = tmp_path / "cut", tmp_path / "short"
+    code, _, err = main(["train", *TINY_FLAGS, "--total-steps", "256", "--out", str(cut)], capsys)
+    assert code == 0, err
+    for chunk in (3, 4):  # as if stopped after the second chunk's checkpoint
+        shutil.rmtree(cut / "checkpoints" / str(chunk))
+    kept = [line for line in (cut / "metrics.jsonl").read_text().splitlines()
+            if json.loads(line)["env_steps"] <= 128]  # fmt: skip
+    (cut / "metrics.jsonl").write_text("\n".join(kept) + "\n")
+    code, out, err = main(["train", "--resume", "--total-steps", "192", "--out", str(cut),
+                           "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    assert f"resuming from checkpoint {cut / 'checkpoints' / '2'} (env step 128)" in out
+    code, _, err = main(["train", *TINY_FLAGS, "--total-steps", "192", "--out", str(short)], capsys)
+    assert code == 0, err
+    strip = lambda rs: [{k: v for k, v in r.items() if k not in VOLATILE} for r in rs]
+    assert [r["env_steps"] for r in read_records(cut)] == [64, 128, 192]
+    assert strip(read_records(cut)) == strip(read_records(short))
 
 
 def test_a_directory_of_other_files_is_refused(tmp_path, capsys):
