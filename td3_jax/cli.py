@@ -559,8 +559,20 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if not records:
         print(f"nothing to do: the run in {command.out} is complete")
         return
+    _print_end(records, cfg, command, time.perf_counter() - started, sweeping)
+
+
+def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: float,
+               sweeping: bool) -> None:  # fmt: skip
+    """The lines that end a run this process trained: :func:`done_line`, a note when
+    ``--time-budget-s`` stopped it before its last step (and how to go on), a sweep's ranking."""
     resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
-    print(done_line(records[-1], command.out, time.perf_counter() - started, resumed_at))
+    print(done_line(records[-1], command.out, process_s, resumed_at))
+    taken = records[-1]["env_steps"]
+    if command.time_budget_s is not None and taken < cfg.run_steps:
+        print(f"stopped by --time-budget-s {command.time_budget_s:g} at {taken:,} of "
+              f"{cfg.run_steps:,} env steps; td3-jax train --out {command.out} --resume "
+              "continues it")  # fmt: skip
     if sweeping and "per_member" in records[-1]:
         print_sweep_ranking(records[-1])
 

@@ -336,7 +336,8 @@ def _check_environment(cfg: TrainConfig) -> None:
         raise ConfigError(f"unknown --impl {cfg.impl!r}; choose warp or jax")
     physics_flags = [flag(n) for n in ("impl", "nconmax", "njmax") if getattr(cfg, n) is not None]
     if physics_flags and not cfg.env.startswith("playground/"):
-        raise ConfigError(f"{', '.join(physics_flags)} apply to Playground tasks, not {cfg.env}")
+        verb = "applies" if len(physics_flags) == 1 else "apply"
+        raise ConfigError(f"{', '.join(physics_flags)} {verb} to Playground tasks, not {cfg.env}")
     for name in ("nconmax", "njmax"):
         if getattr(cfg, name) is not None and getattr(cfg, name) <= 0:
             raise ConfigError(f"{flag(name)} must be positive, got {getattr(cfg, name)}")

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 from rich.console import Console
-from support import assert_one_line_error, main
+from support import TINY_FLAGS, assert_one_line_error, main
 from test_cli import tensorboard_scalars
 from test_runtime import restored_logging  # noqa: F401  (a fixture)
 
@@ -259,3 +259,16 @@ def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     done = re.fullmatch(r"done: 512 env steps \(256 in this process, in (\d+) s; (\d+) s over the "
                         r"whole run\); eval return .*", out.splitlines()[-1])  # fmt: skip
     assert done and int(done[1]) <= int(done[2]), out
+
+
+def test_a_run_stopped_by_its_time_budget_says_so_and_how_to_go_on(tmp_path, capsys):
+    """A budget smaller than one chunk stops the 128-step run after its first chunk of 64: the
+    run exits 0, and its last line says why it stopped early and how to continue."""
+    out = tmp_path / "run"
+    code, stdout, err = main(["train", *TINY_FLAGS, "--time-budget-s", "0.001", "--out", str(out),
+                              "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    lines = stdout.strip().splitlines()
+    assert lines[-2].startswith("done: 64 env steps")
+    assert lines[-1] == (f"stopped by --time-budget-s 0.001 at 64 of 128 env steps; "
+                         f"td3-jax train --out {out} --resume continues it")  # fmt: skip
