@@ -187,8 +187,8 @@ class Checkpointer:
         ``resize(abstract_state, saved_layout) -> (abstract_as_saved, grow)`` restores a
         checkpoint of other shapes that the run can still use: its arrays are restored as
         ``abstract_as_saved``, checked, then ``grow(state)`` gives ``abstract_state``'s shapes
-        (``grow`` ``None``: restored as ``abstract_state``); e.g. a replay ring that an extended
-        run grows (:func:`td3_jax.training.ring_as_saved`).
+        (``grow`` ``None``: restored as ``abstract_state``); e.g. the replay ring of a run that
+        ``--resume`` extends or shortens (:func:`td3_jax.training.ring_as_saved`).
 
         Without ``step``, a corrupt newest checkpoint is skipped for the next older one, with a
         one-line warning on stderr; the returned ``step`` says which was used. If all are

@@ -212,36 +212,44 @@ def slice_rows(buffer: ReplayBuffer) -> int:
     return jax.tree.leaves(buffer.data)[0].shape[jnp.ndim(buffer.position)]
 
 
-def grow_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
+def resize_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
     """Every slice of a ring that never wrapped, resized to ``rows`` rows: the same filled rows,
     zeros after them, the next write after the last filled row (``position = size``, 0 when
-    full). The
-    result is the buffer a ring of ``rows`` rows would be after the same adds (leading member
-    axes kept). It grows the ring of a run that ``--resume`` extends, and shrinks that of a run
-    it shortens: a slice with more filled rows than ``rows`` raises ``ValueError`` (checked
-    where the sizes are concrete; under tracing the caller guarantees it).
+    full). The result is the buffer a ring of ``rows`` rows would be after the same adds
+    (leading member axes kept): a run that ``--resume`` extends grows its ring, one it shortens
+    cuts it. A slice with more filled rows than ``rows`` raises ``ValueError`` where the sizes
+    are concrete; under tracing the caller guarantees it (a resume never shortens a run below
+    the steps it has taken).
     """
     axis = jnp.ndim(buffer.position)
     added = rows - slice_rows(buffer)
-    if added < 0 and not isinstance(buffer.size, jax.core.Tracer):
-        filled = int(np.max(np.asarray(buffer.size)))
-        if filled > rows:
-            raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to "
-                             f"{rows}: {filled} rows of a slice are filled")  # fmt: skip
     if added < 0:
+        _check_fits(buffer, rows)
         cut = lambda x: jax.lax.slice_in_dim(x, 0, rows, axis=axis)
         return buffer.replace(data=jax.tree.map(cut, buffer.data), position=buffer.size % rows)
     pad = lambda x: jnp.pad(x, [(0, added if i == axis else 0) for i in range(x.ndim)])
     return buffer.replace(data=jax.tree.map(pad, buffer.data), position=buffer.size % rows)
 
 
+def _check_fits(buffer: ReplayBuffer, rows: int) -> None:
+    """``ValueError`` where a slice holds more filled rows than ``rows`` (nothing to check
+    while tracing)."""
+    try:
+        filled = int(np.max(np.asarray(buffer.size)))
+    except jax.errors.TracerArrayConversionError:
+        return
+    if filled > rows:
+        raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to {rows}: "
+                         f"{filled} rows of a slice are filled")  # fmt: skip
+
+
 __all__ = [
     "ReplayBuffer",
     "add",
     "add_slices",
-    "grow_slices",
     "init",
     "init_slices",
+    "resize_slices",
     "sample",
     "sample_n_step",
     "sample_runs",

@@ -211,8 +211,8 @@ def ring_as_saved(abstract_state: Any, layout: list) -> tuple[Any, Callable[[Any
     never wrapped, and a shortened run still holds every step already taken).
 
     ``layout``: the checkpoint's ``[path, shape, dtype]`` rows, in leaf order. Returns the
-    abstract state with the saved ring's rows and the function that grows a state restored with
-    it to ``abstract_state``'s shapes (:func:`td3_jax.replay.grow_slices`); unchanged and
+    abstract state with the saved ring's rows and the function that resizes a state restored
+    with it to ``abstract_state``'s shapes (:func:`td3_jax.replay.resize_slices`); unchanged and
     ``None`` where the rows agree (any other difference is the layout check's).
     """
     paths = [jax.tree_util.keystr(p) for p, _ in
@@ -229,8 +229,8 @@ def ring_as_saved(abstract_state: Any, layout: list) -> tuple[Any, Callable[[Any
     as_saved = lambda x: jax.ShapeDtypeStruct((*x.shape[:axis], saved_rows, *x.shape[axis + 1:]),
                                               x.dtype)  # fmt: skip
     saved = buffer.replace(data=jax.tree.map(as_saved, buffer.data))
-    grow = lambda state: state.replace(buffer=replay.grow_slices(state.buffer, rows))
-    return abstract_state.replace(buffer=saved), grow
+    resize = lambda state: state.replace(buffer=replay.resize_slices(state.buffer, rows))
+    return abstract_state.replace(buffer=saved), resize
 
 
 def normalize(spec: TrainSpec, stats: normalization.RunningStats, obs: jax.Array) -> jax.Array:

@@ -323,11 +323,11 @@ def test_a_ring_grown_after_its_adds_equals_the_larger_ring_after_them(shards, a
         small, large = replay.add_slices(small, rows), replay.add_slices(large, rows)
     if stack:
         small, large = stack(small), stack(large)
-    grown = replay.grow_slices(small, long)
+    grown = replay.resize_slices(small, long)
     assert replay.slice_rows(grown) == long
     for a, b in zip(jax.tree.leaves(grown), jax.tree.leaves(large), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    shrunk = replay.grow_slices(large, short)  # a resume that shortens the run
+    shrunk = replay.resize_slices(large, short)  # a resume that shortens the run
     assert replay.slice_rows(shrunk) == short
     for a, b in zip(jax.tree.leaves(shrunk), jax.tree.leaves(small), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -335,4 +335,4 @@ def test_a_ring_grown_after_its_adds_equals_the_larger_ring_after_them(shards, a
         extra = {"x": jnp.ones((per_add, 3)), "flag": jnp.ones(per_add, bool)}
         over = replay.add_slices(large, extra)
         with pytest.raises(ValueError, match="shrink"):
-            replay.grow_slices(over, short)
+            replay.resize_slices(over, short)
