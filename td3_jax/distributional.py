@@ -41,20 +41,57 @@ def project(probs: jax.Array, target_z: jax.Array, v_min: jax.Array, v_max: jax.
 
     Args:
       probs: ``[..., num_atoms]`` probabilities of the moved atoms.
-      target_z: ``[..., num_atoms]`` where each atom moved to (clamped to ``[v_min, v_max]``).
+      target_z: ``[..., num_atoms]`` where each atom moved to (clamped to ``[v_min, v_max]``),
+        nondecreasing along the last axis, as ``r + c * z`` is for any ``c >= 0`` (a C51
+        target's moved support; unsorted positions give a wrong result).
 
     Returns:
       ``[..., num_atoms]``: each moved atom's mass split between its two neighbours on the
       support in proportion to their closeness (all of it on one atom that it lands on
-      exactly), i.e. atom ``i`` receives ``p_j * max(0, 1 - |b_j - i|)`` from moved atom ``j``
-      at fractional index ``b_j``. Written as that dense sum (no scatter), which XLA fuses.
+      exactly): moved atom ``j`` at fractional index ``b_j`` with ``l_j = floor(b_j)`` gives
+      ``p_j (1 - (b_j - l_j))`` to atom ``l_j`` and ``p_j (b_j - l_j)`` to atom ``l_j + 1``.
+      Computed without a floating-point scatter (its order would change the rounding) and
+      without the ``[..., atoms, atoms]`` weights of the dense form ``sum_j p_j max(0, 1 -
+      |b_j - i|)``: as ``l`` is sorted, the atoms with ``l_j = i`` are a contiguous run, found
+      from the prefix sums of the histogram of ``l`` (:func:`_run_starts`), and each run's sum
+      is a difference of prefix sums of the masses (:func:`_run_sums`). On an H100 this made
+      a C51 update of batch 32768 with two heads 20% faster than the dense form (BENCHMARKS.md,
+      2026-11-25).
     """
     num_atoms = probs.shape[-1]
     delta = (v_max - v_min) / (num_atoms - 1)
-    b = (jnp.clip(target_z, v_min, v_max) - v_min) / delta
-    atoms = jnp.arange(num_atoms, dtype=b.dtype)
-    weights = jnp.clip(1.0 - jnp.abs(b[..., :, None] - atoms), 0.0, 1.0)  # [..., j, i]
-    return jnp.einsum("...j,...ji->...i", probs, weights)
+    b = jnp.clip((jnp.clip(target_z, v_min, v_max) - v_min) / delta, 0.0, num_atoms - 1.0)
+    lower = jnp.floor(b)
+    frac = b - lower
+    starts = _run_starts(lower.astype(jnp.int32))
+    to_lower = _run_sums(probs * (1.0 - frac), starts)  # [..., i]: from atoms with l_j = i
+    to_upper = _run_sums(probs * frac, starts)  # [..., i]: for atom i + 1
+    shifted = jnp.concatenate([jnp.zeros_like(to_upper[..., :1]), to_upper[..., :-1]], axis=-1)
+    return to_lower + shifted
+
+
+def _run_starts(lower: jax.Array) -> jax.Array:
+    """``[..., atoms + 1]``: for ``i = 0..atoms``, the number of entries of each sorted row of
+    ``lower [..., atoms]`` (values in ``[0, atoms)``) below ``i`` (where the run of ``i``
+    starts): the prefix sums of each row's histogram, counted by an integer scatter-add (exact,
+    so the same in any order; a binary search per atom took 0.25 ms per update of batch 32768
+    on an H100)."""
+    num_atoms = lower.shape[-1]
+    rows = lower.reshape(-1, num_atoms)
+    row_index = jnp.arange(rows.shape[0])[:, None]
+    counts = jnp.zeros(rows.shape, jnp.int32).at[row_index, rows].add(1)
+    starts = jnp.cumsum(counts, axis=-1, dtype=jnp.int32)
+    starts = jnp.concatenate([jnp.zeros_like(starts[:, :1]), starts], axis=-1)
+    return starts.reshape(*lower.shape[:-1], num_atoms + 1)
+
+
+def _run_sums(mass: jax.Array, starts: jax.Array) -> jax.Array:
+    """``[..., atoms]``: the sums of ``mass [..., atoms]`` over each run ``starts[i] <= j <
+    starts[i + 1]`` (differences of its prefix sums); ``starts`` broadcasts to ``mass``'s
+    leading axes (one histogram serves every critic head)."""
+    prefix = jnp.concatenate([jnp.zeros_like(mass[..., :1]), jnp.cumsum(mass, axis=-1)], axis=-1)
+    at = jnp.take_along_axis(prefix, jnp.broadcast_to(starts, prefix.shape), axis=-1)
+    return at[..., 1:] - at[..., :-1]
 
 
 def lower_mean_head(probs: jax.Array, z: jax.Array) -> jax.Array:

@@ -48,6 +48,7 @@ import jax
 from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from td3_jax import upstream
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, TrainConfig
 from td3_jax.runtime import in_background
 
@@ -226,7 +227,8 @@ def compile_flat(program: FlatProgram, mesh: Mesh) -> Any:
                      out_shardings=out_shardings, donate_argnums=program.donate)  # fmt: skip
     avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s)
              for a, s in zip(program.exported.in_avals, in_shardings, strict=True)]  # fmt: skip
-    return jitted.lower(*avals).compile()
+    platform = mesh.devices.flat[0].platform
+    return jitted.lower(*avals).compile(compiler_options=upstream.compile_options(platform))
 
 
 def as_tree_function(executable: Any, trees: tuple[Any, Any]) -> Callable:

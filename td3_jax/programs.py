@@ -11,6 +11,7 @@ loop (:mod:`td3_jax.run`) never asks where they came from.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
@@ -20,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax import program_cache
+from td3_jax import program_cache, upstream
 from td3_jax.build import make_population, member_hyperparams
 from td3_jax.config import TrainConfig
 from td3_jax.envs import Environment, is_custom
@@ -325,8 +326,11 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
     }
     if with_init:
         lowerings["init"] = programs.init.lower
+    options = upstream.compile_options(
+        jax.tree.leaves(programs.shardings)[0].mesh.devices.flat[0].platform
+    )
     futures = {}
     for name, lower in lowerings.items():
-        futures[name] = in_background(lower().compile)
+        futures[name] = in_background(functools.partial(lower().compile, compiler_options=options))
         stop.raise_if_set()
     return programs._replace(**{name: result(f, stop) for name, f in futures.items()})

@@ -2,7 +2,7 @@
 
 The reference projects with FastTD3's floor/ceil rule (mass split between the atoms below and
 above each moved atom, all of it on the atom it lands on exactly), written with explicit loops;
-the library uses a dense triangle-kernel sum. The full update is re-derived by hand: the target
+the library sums runs of atoms by prefix sums. The full update is re-derived by hand: the target
 action with the same noise draw, the lower-mean head per sample, the projected target, the
 summed per-head cross-entropy, hand-written float64 Adam with decoupled weight decay, the actor
 on the lower critic mean, Polyak averaging. Only forward passes and ``jax.grad`` are shared.
@@ -90,6 +90,24 @@ def test_projection_matches_reference_on_random_distributions(num_atoms):
     np.testing.assert_allclose(got, np_project(probs, target_z, -3.0, 7.0), atol=1e-5)
     np.testing.assert_allclose(got.sum(-1), 1.0, atol=1e-5)  # mass is conserved
     np.testing.assert_allclose(got[:4], probs[:4], atol=1e-6)  # identity when z maps to z
+
+
+def test_projection_of_several_heads_onto_one_moved_support():
+    """Heads ``[2, batch, atoms]`` against one moved support ``[batch, atoms]`` (as the C51
+    target projects both critics' distributions): each head as projected alone, by the
+    reference; rows with a zero slope (ended episodes) put all mass beside the reward."""
+    rng = np.random.default_rng(7)
+    probs = np_softmax(rng.normal(size=(2, 32, 101))).astype(np.float32)
+    z = np.linspace(-10.0, 10.0, 101)
+    reward = rng.uniform(-12, 12, size=(32, 1))
+    slope = np.where(np.arange(32)[:, None] % 4 == 0, 0.0, 0.97)
+    target_z = (reward + slope * z).astype(np.float32)
+    got = np.asarray(jax.jit(distributional.project)(probs, target_z, -10.0, 10.0))
+    for head in range(2):
+        want = np_project(probs[head], target_z, -10.0, 10.0)
+        np.testing.assert_allclose(got[head], want, atol=2e-5)
+    ended = np.clip(reward[::4, 0], -10.0, 10.0)  # every atom moved to the clamped reward
+    np.testing.assert_allclose(got[:, ::4] @ z, np.broadcast_to(ended, (2, 8)), atol=1e-4)
 
 
 # --------------------------------------------------------------------------------------------

@@ -33,6 +33,29 @@ def _names(eqns) -> list[str]:
     return [e.primitive.name for e in eqns]
 
 
+# XLA: the GPU matmul option -------------------------------------------------------------------
+
+
+def test_gpu_programs_compile_without_triton_gemm_unless_xla_flags_say_otherwise():
+    off = {upstream.XLA_TRITON_GEMM: False}
+    assert upstream.compile_options("gpu", xla_flags="") == off
+    assert upstream.compile_options("gpu", xla_flags="--xla_dump_to=/tmp/x") == off
+    assert upstream.compile_options("cpu", xla_flags="") == {}
+    user = f"--{upstream.XLA_TRITON_GEMM}=true"
+    assert upstream.compile_options("gpu", xla_flags=user) == {}
+
+
+def test_xla_still_accepts_the_triton_gemm_compile_option():
+    """XLA checks option names on every backend (a CPU rejects unknown ones too), so a release
+    that drops it fails here rather than in a GPU run's compile."""
+    lowered = jax.jit(lambda x: x @ x).lower(jnp.ones((3, 3)))
+    try:
+        compiled = lowered.compile(compiler_options={upstream.XLA_TRITON_GEMM: False})
+    except Exception as err:  # any rejection is the canary's message
+        pytest.fail(f"XLA no longer accepts the compile option {upstream.XLA_TRITON_GEMM}: {err}")
+    np.testing.assert_allclose(compiled(jnp.ones((3, 3))), 3 * np.ones((3, 3)))
+
+
 # JAX: the persistent compilation cache's files ----------------------------------------------
 
 _COMPILE = """
