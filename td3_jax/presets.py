@@ -81,6 +81,10 @@ _PLAYGROUND_LOCOMOTION = dict(
     target_update="every_update",
     c51_target_head="projected",
     precision="bfloat16",
+    # cuBLAS for the matmuls (XLA's Triton GEMM off): 1.28x the T1 and G1 loops on an H100,
+    # with the C51 projection by run sums (BENCHMARKS.md, 2026-11-25 sixth session). A speed
+    # setting: the same computation, rounded differently.
+    matmuls="cublas",
     pushes="off",
     domain_randomization=False,
     # A checkpoint holds the whole train state, the replay ring included: 15-19 GB here (G1's

@@ -48,7 +48,6 @@ import jax
 from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax import upstream
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, TrainConfig
 from td3_jax.runtime import in_background
 
@@ -217,9 +216,10 @@ def _leaf_positions(args: tuple) -> list[range]:
     return positions
 
 
-def compile_flat(program: FlatProgram, mesh: Mesh) -> Any:
-    """``program`` compiled for ``mesh``: called with the flat input leaves, returns the flat
-    output leaves (other shapes or placements raise instead of recompiling)."""
+def compile_flat(program: FlatProgram, mesh: Mesh, options: dict | None = None) -> Any:
+    """``program`` compiled for ``mesh`` with XLA compile ``options``
+    (:func:`td3_jax.upstream.compile_options`): called with the flat input leaves, returns the
+    flat output leaves (other shapes or placements raise instead of recompiling)."""
     place = lambda specs: [NamedSharding(mesh, spec) for spec in specs]
     in_shardings = place(program.in_specs)
     out_shardings = place(program.out_specs)
@@ -227,8 +227,7 @@ def compile_flat(program: FlatProgram, mesh: Mesh) -> Any:
                      out_shardings=out_shardings, donate_argnums=program.donate)  # fmt: skip
     avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s)
              for a, s in zip(program.exported.in_avals, in_shardings, strict=True)]  # fmt: skip
-    platform = mesh.devices.flat[0].platform
-    return jitted.lower(*avals).compile(compiler_options=upstream.compile_options(platform))
+    return jitted.lower(*avals).compile(compiler_options=options)
 
 
 def as_tree_function(executable: Any, trees: tuple[Any, Any]) -> Callable:

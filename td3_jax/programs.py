@@ -37,6 +37,7 @@ __all__ = [
     "abstract_state",
     "chunk_argument_specs",
     "compile_ahead",
+    "compile_options",
     "compiled",
     "find",
     "jitted",
@@ -180,10 +181,17 @@ class _ExportFailed(RuntimeError):
 # --------------------------------------------------------------------------------------------
 
 
+def compile_options(source: Source) -> dict:
+    """The XLA compile options of the run's programs: ``--matmuls`` on its devices
+    (:func:`td3_jax.upstream.compile_options`)."""
+    return upstream.compile_options(source.mesh.devices.flat[0].platform, source.cfg.matmuls)
+
+
 def _compile_plain(source: Source, stop: StopToken) -> Programs:
     """The traced population jitted for the mesh and compiled now (stored nowhere)."""
     programs = jitted(source.program, source.mesh)
-    return compile_ahead(programs, source.program, with_init="init" in source.names, stop=stop)
+    return compile_ahead(programs, source.program, with_init="init" in source.names, stop=stop,
+                         options=compile_options(source))  # fmt: skip
 
 
 def _compile_stored(source: Source) -> dict[str, Future]:
@@ -191,7 +199,9 @@ def _compile_stored(source: Source) -> dict[str, Future]:
     compilation cache); ``{}`` where none are stored."""
     if source.stored is None:
         return {}
-    return {name: in_background(program_cache.compile_flat, source.stored[name], source.mesh)
+    options = compile_options(source)
+    return {name: in_background(program_cache.compile_flat, source.stored[name], source.mesh,
+                                options)
             for name in source.names}  # fmt: skip
 
 
@@ -243,7 +253,8 @@ def _export_each(source: Source, stop: StopToken) -> tuple[dict, dict, dict]:
         except Exception as err:  # e.g. a custom call jax.export does not take
             raise _ExportFailed(name) from err
         if name in source.names:  # a resume needs no init, but the entry keeps it
-            executables[name] = in_background(program_cache.compile_flat, flat[name], mesh)
+            executables[name] = in_background(program_cache.compile_flat, flat[name], mesh,
+                                              compile_options(source))  # fmt: skip
     return executables, flat, trees
 
 
@@ -307,7 +318,8 @@ def chunk_argument_specs(program: Population, shardings: Any) -> tuple[Any, Any,
 
 
 def compile_ahead(programs: Programs, program: Population, with_init: bool = True,
-                  stop: StopToken | None = None) -> Programs:  # fmt: skip
+                  stop: StopToken | None = None,
+                  options: dict | None = None) -> Programs:  # fmt: skip
     """``programs`` (:func:`jitted`) with their functions compiled now, side by side, instead
     of at their first call.
 
@@ -316,7 +328,8 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
     during the first chunk instead gained nothing on G1: its autotuning waits for the GPU,
     which the chunk holds.) The returned functions are the compiled executables: calling them
     with other shapes or shardings raises instead of recompiling. Once ``stop`` is set, the
-    compiles are no longer waited for (KeyboardInterrupt).
+    compiles are no longer waited for (KeyboardInterrupt). ``options``: XLA compile options
+    (:func:`compile_options`).
     """
     stop = stop if stop is not None else StopToken()
     hp_spec, state_spec, iterations = chunk_argument_specs(program, programs.shardings)
@@ -326,9 +339,6 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
     }
     if with_init:
         lowerings["init"] = programs.init.lower
-    options = upstream.compile_options(
-        jax.tree.leaves(programs.shardings)[0].mesh.devices.flat[0].platform
-    )
     futures = {}
     for name, lower in lowerings.items():
         futures[name] = in_background(functools.partial(lower().compile, compiler_options=options))

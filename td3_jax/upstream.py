@@ -100,17 +100,18 @@ def _private_module(name: str) -> Any:
 XLA_TRITON_GEMM = "xla_gpu_enable_triton_gemm"
 
 
-def compile_options(platform: str, xla_flags: str | None = None) -> dict[str, Any]:
-    """The compile options of td3-jax's programs on ``platform`` (``jax.Device.platform``).
+def compile_options(platform: str, matmuls: str = "auto", xla_flags: str | None = None) -> dict:
+    """The compile options of a run's programs on ``platform`` (``jax.Device.platform``).
 
-    On a GPU, XLA's Triton GEMM emitter is turned off, so cuBLAS runs the matmuls: a C51 TD3
-    update of batch 32768 with FastTD3's
-    networks took 2.76 ms instead of 3.39 ms on an H100 (BENCHMARKS.md, 2026-11-25). Where
-    ``xla_flags`` (default: the ``XLA_FLAGS`` environment variable) sets the option itself,
-    it stands and nothing is added; elsewhere no option is given.
+    ``matmuls="cublas"`` on a GPU turns XLA's Triton GEMM emitter off, so cuBLAS runs the
+    matrix products: a C51 TD3 update of batch 32768 with FastTD3's networks took 2.76 ms
+    instead of 3.39 ms on an H100, but the ant preset's loop ran 10% slower (BENCHMARKS.md,
+    2026-11-25 and 2026-11-22). ``"auto"`` leaves XLA's choice. Where ``xla_flags`` (default:
+    the ``XLA_FLAGS`` environment variable) sets the option itself, it stands and nothing is
+    added; on other platforms no option is given.
     """
     flags = os.environ.get("XLA_FLAGS", "") if xla_flags is None else xla_flags
-    if platform != "gpu" or XLA_TRITON_GEMM in flags:
+    if matmuls != "cublas" or platform != "gpu" or XLA_TRITON_GEMM in flags:
         return {}
     return {XLA_TRITON_GEMM: False}
 

@@ -210,3 +210,22 @@ def test_the_readme_install_can_serialise_the_stored_programs():
     exported = export.export(jax.jit(lambda x: 2.0 * x + 1.0))(shape)
     restored = export.deserialize(bytearray(exported.serialize()))
     assert restored.call(jax.numpy.arange(3.0)).tolist() == [1.0, 3.0, 5.0]
+
+
+def test_a_run_compiles_with_its_matmul_choice_on_a_gpu_and_plainly_elsewhere(monkeypatch):
+    """``--matmuls cublas`` reaches the compile as XLA's Triton GEMM option on a GPU mesh;
+    ``auto`` and a CPU mesh add no option (what every compile path of the run is given)."""
+    from types import SimpleNamespace
+
+    from td3_jax import programs, upstream
+
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+
+    def source(platform: str, matmuls: str) -> SimpleNamespace:
+        devices = np.array([SimpleNamespace(platform=platform)])
+        mesh = SimpleNamespace(devices=devices)
+        return SimpleNamespace(mesh=mesh, cfg=TrainConfig(matmuls=matmuls))
+
+    assert programs.compile_options(source("gpu", "cublas")) == {upstream.XLA_TRITON_GEMM: False}
+    assert programs.compile_options(source("gpu", "auto")) == {}
+    assert programs.compile_options(source("cpu", "cublas")) == {}

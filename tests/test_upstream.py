@@ -36,13 +36,14 @@ def _names(eqns) -> list[str]:
 # XLA: the GPU matmul option -------------------------------------------------------------------
 
 
-def test_gpu_programs_compile_without_triton_gemm_unless_xla_flags_say_otherwise():
+def test_cublas_matmuls_turn_triton_gemm_off_on_a_gpu_unless_xla_flags_set_it():
     off = {upstream.XLA_TRITON_GEMM: False}
-    assert upstream.compile_options("gpu", xla_flags="") == off
-    assert upstream.compile_options("gpu", xla_flags="--xla_dump_to=/tmp/x") == off
-    assert upstream.compile_options("cpu", xla_flags="") == {}
+    assert upstream.compile_options("gpu", "cublas", xla_flags="") == off
+    assert upstream.compile_options("gpu", "cublas", xla_flags="--xla_dump_to=/tmp/x") == off
+    assert upstream.compile_options("gpu", "auto", xla_flags="") == {}  # XLA's own choice
+    assert upstream.compile_options("cpu", "cublas", xla_flags="") == {}
     user = f"--{upstream.XLA_TRITON_GEMM}=true"
-    assert upstream.compile_options("gpu", xla_flags=user) == {}
+    assert upstream.compile_options("gpu", "cublas", xla_flags=user) == {}
 
 
 def test_xla_still_accepts_the_triton_gemm_compile_option():
