@@ -265,18 +265,22 @@ class _Run:
     failed_write: Exception | None = None  # the write the disk refused, which stopped the run
 
     def close(self) -> None:
-        """Closes the outputs (each on its own; a checkpoint still being written is finished),
-        redraws the curve (not after a failed write: the resumed run draws it) and ends the W&B
-        run with it; a failure here is a warning, so it never hides the error that ended the
-        run."""
-        for part in (self.display, self.logger):
-            if part is not None:
-                _warn_on_failure(part.close, "closing the run's outputs")
+        """Closes the outputs, each on its own: the progress display, a checkpoint still being
+        written (finished first), then the logs; redraws the curve (not after a failed write:
+        the resumed run draws it) and ends the W&B run with it. A failure here is a warning,
+        so it never hides the error that ended the run (none where the disk that stopped the
+        run refuses the logs' last flush too: the run's error line says so)."""
+        if self.display is not None:
+            _warn_on_failure(self.display.close, "closing the progress display")
         if self.checkpointer is not None:
             if self.writer and self.checkpointer.pending is not None:
                 print(f"td3-jax: finishing checkpoint {self.checkpointer.pending}...",
                       file=sys.stderr)  # fmt: skip
             _warn_on_failure(self.checkpointer.close, "")
+        if self.logger is not None:
+            said = self.failed_write is not None
+            _warn_on_failure(self.logger.close, "closing the run's logs",
+                             unless=lambda err: said and _refused_write(err))  # fmt: skip
         curve = None
         if self.writer and self.logger is not None and self.failed_write is None:
             curve = _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png",
@@ -285,12 +289,20 @@ class _Run:
             self.tracker.finish(curve)
 
 
-def _warn_on_failure(action: Any, what: str, hint: str = "") -> Any:
+def _refused_write(err: Exception) -> bool:
+    """Whether ``err`` is a write that the disk refused (full, over quota, read-only)."""
+    return isinstance(err, OSError) and err.errno in WRITE_ERRNOS
+
+
+def _warn_on_failure(action: Any, what: str, hint: str = "",
+                     unless: Callable[[Exception], bool] | None = None) -> Any:  # fmt: skip
     """Runs ``action`` and returns what it returns; an error becomes a warning (and ``None``):
-    ``what`` failed (the error); ``hint``."""
+    ``what`` failed (the error); ``hint``. An error for which ``unless`` is true is dropped."""
     try:
         return action()
     except Exception as err:  # e.g. a full disk: the records are kept, the curve is not
+        if unless is not None and unless(err):
+            return None
         text = f"{what} failed ({type(err).__name__}: {err})" if what else str(err)
         print(f"td3-jax: warning: {text}" + (f"; {hint}" if hint else ""), file=sys.stderr)
         return None
