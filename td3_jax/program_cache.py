@@ -48,6 +48,7 @@ import jax
 from jax import export
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from td3_jax.build import agent_config
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, TrainConfig
 from td3_jax.runtime import in_background
 
@@ -77,6 +78,9 @@ MAX_ENTRIES = 24
 HOST_ONLY = ("seed", "keep_checkpoints", "checkpoint_every", "early_evaluation", "menagerie",
              *WANDB_SETTINGS)  # fmt: skip
 #: Traced floats whose ``None`` means the algorithm's default value (not another program).
+#: ``hidden_sizes`` is not one (it shapes the programs): its ``None`` is keyed as the
+#: algorithm's widths instead, as config.json records them, so a resume from the command line
+#: finds a library run's programs.
 DEFAULTED = ("actor_lr", "critic_lr", "tau")
 #: Packages whose code is traced into the programs.
 PACKAGES = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco", "mujoco-core", "mujoco-mjx",
@@ -114,6 +118,7 @@ def fingerprint(cfg: TrainConfig, overrides: list[tuple[str, ...]], mesh: Mesh) 
     # The run's length shapes a program only through a schedule's length and the replay ring
     # (capped at the run's steps): the key holds the ring's rows instead where that is all.
     settings["replay_capacity"] = cfg.replay_capacity
+    settings["hidden_sizes"] = list(agent_config(cfg).hidden_sizes)  # (None: the algorithm's)
     if cfg.lr_schedule == "constant":
         settings.pop("total_steps")
     device = mesh.devices.flat[0]
