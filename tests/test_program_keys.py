@@ -7,26 +7,16 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+from test_program_cache import TINY as SMALL
 
 from td3_jax import build, program_cache
 from td3_jax.config import TrainConfig
-from td3_jax.rundir import load_config
 from td3_jax.run import train
+from td3_jax.rundir import load_config
 from td3_jax.sharding import make_mesh
 
-TINY = TrainConfig(
-    env="gymnax/Pendulum-v1",
-    hidden_sizes=None,  # the algorithm's: TD3 400 300, DDPG 256 256
-    num_envs=2,
-    eval_envs=2,
-    episode_length=16,
-    eval_every=32,
-    total_steps=2 * 32,
-    updates_per_iter=1,
-    batch_size=8,
-    buffer_size=256,
-    warmup_steps=16,
-)
+# test_program_cache.py's tiny run, its widths left to the algorithm (TD3 400 300, DDPG 256 256).
+TINY = dataclasses.replace(SMALL, hidden_sizes=None, total_steps=2 * 32)
 
 
 def _key(cfg: TrainConfig) -> str:
