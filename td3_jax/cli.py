@@ -328,6 +328,10 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     if not unknown:
         leftover = " ".join(listed).split(":", 1)[-1].strip() or " ".join(args)
         return f"unexpected argument {leftover} (see {prog} --help)"
+    sweeps = [name for name in unknown if name.startswith("--sweep-")]
+    if sweeps and prog == "td3-jax train":  # a sweep's lists are `td3-jax sweep`'s flags
+        return (f"{sweeps[0]}: the --sweep-* lists are flags of td3-jax sweep, which trains "
+                f"every combination of their values: td3-jax sweep {' '.join(args)}")  # fmt: skip
     names = {name.lstrip("-"): name for name in known}
     said = []
     for name in dict.fromkeys(unknown):
@@ -372,12 +376,26 @@ def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
             return load_config(Path(out)), None, "resume"
         return TrainConfig(), None, "resume"  # (train() says there is nothing to resume)
     if name:
-        return preset(name), name, "preset"  # ConfigError listing the presets for an unknown name
+        _check_preset_name(name)
+        return preset(name), name, "preset"
     env = _flag_value(args, "--env") or TrainConfig.env
     name = env_preset(env)
     if name:
         return dataclasses.replace(preset(name), env=env), name, "env"
     return device_defaults(env, accelerator=False), None, "device"
+
+
+def _check_preset_name(name: str) -> None:
+    """A ConfigError for an unknown ``--preset``: the closest names, else every one."""
+    import difflib
+
+    if name in PRESETS:
+        return
+    close = difflib.get_close_matches(name, list(PRESETS), n=2, cutoff=0.6)
+    if close:
+        raise ConfigError(f"unknown preset {name!r}; did you mean {' or '.join(close)}? "
+                          "(`td3-jax presets` lists them with their settings)")  # fmt: skip
+    raise ConfigError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
 
 
 def _given_fields(args: list[str]) -> set[str]:

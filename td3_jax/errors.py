@@ -39,7 +39,7 @@ class NotRenderableError(RenderError):
 
 class UnknownEnvironmentError(Td3JaxError, ValueError):
     """An environment name that no source knows; the message names the closest known ones
-    (or lists them all when none is close)."""
+    (when none is close: how names are written, and ``td3-jax envs`` to list them)."""
 
 
 class EnvironmentOptionError(Td3JaxError, ValueError):

@@ -146,9 +146,9 @@ def test_impossible_train_settings_exit_2(case, tmp_path, capsys):
     assert_one_line_error(code, err, needle)
     assert not out.exists(), "a refused run must not leave a run directory behind"
     if case == "unknown-env":
-        # The message lists the names that do exist.
-        for known in ("gymnax/Pendulum-v1", "brax/inverted_pendulum", "brax/ant"):
-            assert known in err
+        # The message lists the names that do exist under that source (and no others).
+        assert "gymnax has Pendulum-v1, MountainCarContinuous-v0 (`td3-jax envs` lists" in err
+        assert "brax" not in err
 
 
 @pytest.mark.subprocess  # a child process that imports JAX: 4 s
@@ -181,6 +181,35 @@ def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
     assert_one_line_error(code, err, "no-such-preset")
     for name in PRESETS:
         assert name in err
+
+
+def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(tmp_path, capsys):
+    """A mistyped preset names the closest presets; a `train --sweep-*` flag points to `td3-jax
+    sweep` with the same flags; an environment name that suggests nothing says how names are
+    written instead of listing every one, and a module path without its function says how to
+    name the function."""
+    out = str(tmp_path / "run")
+    cases = {
+        ("train", "--preset", "pendullum"): "unknown preset 'pendullum'; did you mean pendulum "
+            "or inverted-pendulum? (`td3-jax presets` lists them with their settings)",
+        ("train", "--sweep-tau", "0.1", "0.2", "--seeds", "2"): "--sweep-tau: the --sweep-* "
+            "lists are flags of td3-jax sweep, which trains every combination of their values: "
+            "td3-jax sweep --sweep-tau 0.1 0.2 --seeds 2",
+        ("train", "--env", "td3_jax.envs"): "unknown environment 'td3_jax.envs'; your own "
+            "environment is given as module.path:function, a function of td3_jax.envs returning "
+            "it (--env td3_jax.envs:FUNCTION), and a known one as SOURCE/NAME (`td3-jax envs` "
+            "lists all",
+        ("train", "--env", "xyz"): "unknown environment 'xyz'; names are SOURCE/NAME, SOURCE "
+            "one of brax, playground, gymnax (`td3-jax envs` lists all",
+        ("train", "--env", "gymnax/zzzzzz"): "unknown environment 'gymnax/zzzzzz'; gymnax has "
+            "Pendulum-v1, MountainCarContinuous-v0 (`td3-jax envs` lists all",
+    }  # fmt: skip
+    for args, message in cases.items():
+        code, stdout, err = main([*args, "--out", out], capsys)
+        assert_one_line_error(code, err)
+        assert err.strip().startswith(f"td3-jax: error: {message}"), err
+        assert stdout == "" and "brax/ant" not in err
+    assert not (tmp_path / "run").exists()
 
 
 def test_resume_of_an_empty_dir_exits_2(tmp_path, capsys):

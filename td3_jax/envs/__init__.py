@@ -67,10 +67,20 @@ def _unknown_message(name: str, source: str) -> str:
     if source == "playground" and not _playground.names():
         hint = " (playground tasks need: pip install 'td3-jax[playground]')"
     guesses = closest_names(name, names)
+    every = f"`td3-jax envs` lists all {len(names)}"
     if guesses:
-        return (f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? "
-                f"(`td3-jax envs` lists all {len(names)})")  # fmt: skip
-    return f"unknown environment {name!r}{hint}; known: {', '.join(names)}"
+        return f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? ({every})"
+    if "/" not in name and "." in name:  # a module path without its function
+        return (f"unknown environment {name!r}; your own environment is given as "
+                f"module.path:function, a function of {name} returning it "
+                f"(--env {name}:FUNCTION), and a known one as SOURCE/NAME ({every})")  # fmt: skip
+    if source in _SOURCES and _SOURCES[source].names():
+        return (f"unknown environment {name!r}; {source} has "
+                f"{', '.join(_SOURCES[source].names())} ({every})")  # fmt: skip
+    if source in _SOURCES:
+        return f"unknown environment {name!r}{hint}; {every}"
+    return (f"unknown environment {name!r}; names are SOURCE/NAME, SOURCE one of "
+            f"{', '.join(_SOURCES)} ({every})")  # fmt: skip
 
 
 def known_names() -> list[str]:
