@@ -468,6 +468,18 @@ def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
     )
 
 
+def eval_size_warning(cfg: TrainConfig) -> str | None:
+    """A warning when ``--eval-envs`` dwarfs the training (more than 1024 environments and 8
+    times ``--num-envs``): every evaluation steps them all through a whole episode."""
+    if cfg.eval_envs <= max(1024, 8 * cfg.num_envs):
+        return None
+    return (
+        f"--eval-envs {cfg.eval_envs} is {cfg.eval_envs / cfg.num_envs:.0f}x --num-envs "
+        f"{cfg.num_envs}: every evaluation steps {cfg.eval_envs} environments through a whole "
+        "episode (the env steps/s shown leave it out; metrics.jsonl's eval_s has its seconds)"
+    )
+
+
 def _announce(cfg: TrainConfig, preset_name: str | None, source: str) -> None:
     """Prints which settings the run got, before it starts."""
     for line in (_defaults_note(cfg, preset_name, source), rounding_note(cfg)):
@@ -501,13 +513,17 @@ def _choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig,
     return dataclasses.replace(cfg, impl=impl), devices
 
 
-def _warn_about_size(cfg: TrainConfig) -> None:
-    """Once the run's environment and directory are good: a GPU-sized run on a CPU is said."""
+def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str) -> None:
+    """Once the run's settings, directory and environment are good (a run they stop says
+    nothing else): which settings it got, and a GPU-sized run on a CPU."""
     import jax
 
-    warning = cpu_size_warning(cfg, jax.default_backend())
-    if warning and jax.process_index() == 0:
-        print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
+    if jax.process_index() != 0:
+        return
+    _announce(cfg, preset_name, source)
+    for warning in (cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg)):
+        if warning:
+            print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
 def _sweep_values(command: Any) -> dict[str, list[float]]:
@@ -549,8 +565,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if source == "device":
         cfg = _scale_to_device(cfg, args)
     cfg, devices = _choose_physics(cfg, command.devices)
-    if jax.process_index() == 0:
-        _announce(validate(cfg), preset_name, source)
+    validate(cfg)  # (said once the directory and the environment are good too)
+    prepared = functools.partial(_when_prepared, cfg, preset_name, source)
     received: list[int] = []
     started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
@@ -565,7 +581,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
                 sweep=sweep,
                 time_budget_s=command.time_budget_s,
                 preset=preset_name,
-                on_prepared=functools.partial(_warn_about_size, cfg),
+                on_prepared=prepared,
                 program_dir=program_dir,
                 stop=stop,
             )

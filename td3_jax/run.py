@@ -512,8 +512,8 @@ class _Progress:
         rate = _rate_text(record, start, self.warmup, compact=not self.lines)
         if self.lines:  # the run's wall-clock: compile included, counted across resumes
             print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, {rate}, "
-                  f"eval {_evaluation_text(record)}, {record['wall_time_s']:.0f} s",
-                  flush=True)  # fmt: skip
+                  f"eval {_evaluation_text(record)}, {record['wall_time_s']:.0f} s"
+                  f"{_slow_evaluation(record)}", flush=True)  # fmt: skip
         elif self.enabled:
             steps = f"{_count(record['env_steps'])}/{_count(self.total)}"
             self._progress.update(self._task, completed=record["env_steps"], steps=steps,
@@ -535,6 +535,15 @@ def _rate_text(record: dict, start: int, warmup: int, compact: bool = False) -> 
         return f"{_count(record['env_steps_per_s'])}/s"
     rate = f"{record['env_steps_per_s']:,.0f} env steps/s"
     return f"{rate} (with warm-up)" if start < warmup else rate
+
+
+def _slow_evaluation(record: dict) -> str:
+    """``; evaluating took 10.4 s`` where the record's evaluation took a second or more and
+    longer than its chunk's training (the rate shown leaves it out), else nothing."""
+    seconds = record.get("eval_s", 0.0)
+    if seconds < 1.0 or seconds <= record.get("chunk_s", 0.0):
+        return ""
+    return f"; evaluating took {seconds:.1f} s"
 
 
 def _count(value: float) -> str:

@@ -8,6 +8,7 @@ checks. One tiny training run (module-scoped) serves every assertion about run o
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
 import re
@@ -615,6 +616,8 @@ def _capture_train(monkeypatch) -> list:
 
     def fake_train(cfg, out_dir, **kwargs):
         calls.append((cfg, Path(out_dir), kwargs))
+        if kwargs.get("on_prepared"):  # (as train() calls it once all is checked)
+            kwargs["on_prepared"]()
         Path(out_dir).mkdir(parents=True, exist_ok=True)
         config = json.dumps(dataclasses.asdict(cfg))
         (Path(out_dir) / "config.json").write_text(config)
@@ -772,6 +775,42 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert f"{ant.num_envs} environments" in cli.cpu_size_warning(ant, "cpu")
     assert cli.cpu_size_warning(ant, "gpu") is None
     assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None
+
+
+def test_an_evaluation_that_dwarfs_the_training_is_warned_about_and_its_time_shown(capsys):
+    """--eval-envs far above --num-envs is a warning before the run; a line whose evaluation
+    took longer than its chunk's training (and a second or more) says how long."""
+    from rich.console import Console
+
+    from td3_jax.run import _Progress
+
+    pendulum = preset("pendulum")  # 16 environments, 16 evaluated
+    assert cli.eval_size_warning(pendulum) is None
+    assert cli.eval_size_warning(dataclasses.replace(pendulum, eval_envs=1024)) is None
+    big = dataclasses.replace(pendulum, eval_envs=100_000)
+    assert cli.eval_size_warning(big).startswith("--eval-envs 100000 is 6250x --num-envs 16: ")
+    assert cli.eval_size_warning(dataclasses.replace(big, num_envs=16_384)) is None
+    lines = _Progress(pendulum, 0, enabled=True, console=Console(file=io.StringIO()))
+    record = {"env_steps": 4000, "env_steps_per_s": 2000.0, "eval_return_mean": -100.0,
+              "wall_time_s": 12.0, "chunk_s": 2.0}  # fmt: skip
+    for eval_s, said in ((9.44, "; evaluating took 9.4 s"), (1.5, ""), (0.5, "")):
+        lines.update({**record, "chunk_s": 1.0 if eval_s == 0.5 else 2.0, "eval_s": eval_s})
+        assert capsys.readouterr().out.rstrip("\n").endswith(f"eval -100.0, 12 s{said}")
+
+
+def test_a_refused_run_says_nothing_before_its_error(tmp_path, capsys):
+    """The preset and rounding lines come once the directory and the environment are good: a
+    run that they stop prints its error line alone."""
+    used = tmp_path / "used"
+    (used / "checkpoints" / "1").mkdir(parents=True)
+    cases = {
+        ("--out", str(used)): "already holds a run",
+        ("--env", "td3_jax.envs:make_envv", "--out", str(tmp_path / "b")): "has no 'make_envv'",
+    }
+    for args, needle in cases.items():
+        code, stdout, err = main(["train", "--eval-every", "1000", *args, "--quiet"], capsys)
+        assert_one_line_error(code, err, needle)
+        assert stdout == "", stdout
 
 
 def test_progress_into_a_log_file_is_one_line_per_evaluation(tmp_path, capsys):
