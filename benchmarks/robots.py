@@ -169,8 +169,8 @@ def loop_rate(task: str, num_envs: int, args, root: str | None) -> dict:
     init_s, state = _seconds(jax.jit(trainer.init), jax.random.PRNGKey(0))
     # Compiled as the command line compiles its programs (upstream.compile_options).
     options = upstream.compile_options(jax.devices()[0].platform, cfg.matmuls)
+    start = time.perf_counter()  # tracing and compiling, as the first call of a jitted chunk
     lowered = jax.jit(trainer.chunk, donate_argnums=0).lower(state)
-    start = time.perf_counter()
     chunk = lowered.compile(compiler_options=options)
     compile_s = time.perf_counter() - start
     first, (state, _) = _seconds(chunk, state)

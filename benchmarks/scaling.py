@@ -349,6 +349,7 @@ def abstract_inputs(compiled, program) -> tuple[Any, Any]:
 def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     """``(chunk executable, init executable, hyperparams, seconds)``: built, traced and
     compiled ahead, before any state exists."""
+    from td3_jax import upstream
     from td3_jax.build import make_population, members
     from td3_jax.config import validate
     from td3_jax.programs import jitted
@@ -363,9 +364,10 @@ def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     state, iterations = abstract_inputs(compiled, program)
     lowered = compiled.chunk.lower(compiled.hyperparams, state, iterations)
     seconds["trace_chunk_s"], clock = time.perf_counter() - clock, time.perf_counter()
-    chunk = lowered.compile()
+    options = upstream.compile_options(mesh.devices.flat[0].platform, cfg.matmuls)
+    chunk = lowered.compile(compiler_options=options)
     seconds["compile_chunk_s"], clock = time.perf_counter() - clock, time.perf_counter()
-    init = compiled.init.lower().compile()
+    init = compiled.init.lower().compile(compiler_options=options)
     seconds["compile_init_s"] = time.perf_counter() - clock
     return chunk, init, compiled.hyperparams, seconds
 

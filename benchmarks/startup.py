@@ -40,7 +40,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from td3_jax import build, envs, program_cache, programs  # noqa: E402
+from td3_jax import build, envs, program_cache, programs, upstream  # noqa: E402
 from td3_jax.build import make_population, members  # noqa: E402
 from td3_jax.presets import preset  # noqa: E402
 from td3_jax.runtime import enable_compile_cache  # noqa: E402
@@ -111,7 +111,8 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
         env = build.make_env(cfg)
         clock.lap("make_env")
         program = make_population(cfg, population, devices=mesh.size, env=env)
-        compiled = _compile_in_turn(programs.jitted(program, mesh), program, clock)
+        options = upstream.compile_options(mesh.devices.flat[0].platform, cfg.matmuls)
+        compiled = _compile_in_turn(programs.jitted(program, mesh), program, clock, options)
         stored = False
     else:
         source = programs.find(cfg, population, mesh, program_dir)
@@ -152,8 +153,8 @@ def _time_parts(source, clock: Clock) -> None:
     start, compile_flat = time.time(), program_cache.compile_flat
     since = lambda: round(time.time() - start, 2)
 
-    def timed(program, mesh):
-        executable = compile_flat(program, mesh)
+    def timed(program, mesh, options=None):
+        executable = compile_flat(program, mesh, options)
         clock.times[f"compile_all_{len(program.out_specs)}_outputs_done"] = since()
         return executable
 
@@ -161,7 +162,8 @@ def _time_parts(source, clock: Clock) -> None:
     source.trees.add_done_callback(lambda _: clock.times.update(compile_all_trees=since()))
 
 
-def _compile_in_turn(compiled, program, clock: Clock):
+def _compile_in_turn(compiled, program, clock: Clock, options: dict):
+    """Each program traced then compiled (with the run's compile ``options``), one at a time."""
     hp_spec, state_spec, iterations = programs.chunk_argument_specs(program, compiled.shardings)
     done = {}
     steps = (("init", ()), ("chunk", (hp_spec, state_spec, iterations)),
@@ -169,7 +171,7 @@ def _compile_in_turn(compiled, program, clock: Clock):
     for name, args in steps:
         lowered = getattr(compiled, name).lower(*args)
         clock.lap(f"{name}_trace")
-        done[name] = lowered.compile()
+        done[name] = lowered.compile(compiler_options=options)
         clock.lap(f"{name}_compile")
     return compiled._replace(**done)
 

@@ -27,7 +27,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from td3_jax import envs
+from td3_jax import envs, upstream
 from td3_jax.build import make_trainer
 from td3_jax.presets import preset
 from td3_jax.types import Transition
@@ -107,7 +107,8 @@ def loop_rate(cfg, batch_reset: bool = False) -> float:
 
 def loop_rate_of(trainer, cfg) -> float:
     state = jax.device_put(jax.jit(trainer.init)(jax.random.PRNGKey(0)))
-    chunk = jax.jit(trainer.chunk)
+    options = upstream.compile_options(jax.devices()[0].platform, cfg.matmuls)
+    chunk = jax.jit(trainer.chunk).lower(state).compile(compiler_options=options)  # as the CLI
     steps = cfg.iters_per_chunk * cfg.env_steps_per_iter
     return steps / timed(lambda s: chunk(s)[1], state)
 

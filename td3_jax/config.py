@@ -125,10 +125,10 @@ class TrainConfig:
     in float32."""
     matmuls: Literal["auto", "cublas"] = "auto"
     """How a GPU runs the programs' matrix products: auto, as XLA chooses (mostly its Triton
-    kernels); cublas, through cuBLAS (XLA's Triton GEMM emitter off): 1.28x the T1 and G1
-    training loops with FastTD3's C51 networks (the robot presets' choice), about 10% slower
-    with the ant preset's small ones. No effect on a CPU; an XLA_FLAGS that sets
-    xla_gpu_enable_triton_gemm itself wins."""
+    kernels); cublas, through cuBLAS (XLA's Triton GEMM emitter off): 1.23x the update of
+    FastTD3's C51 networks and about 1.12x the T1 and G1 training loops (the robot presets'
+    choice), about 10% slower with the ant preset's small networks. No effect on a CPU; an
+    XLA_FLAGS that sets xla_gpu_enable_triton_gemm itself wins; may change on --resume."""
     critic: Literal["plain", "distributional"] = "plain"
     """Critic type: plain (a Q-value, MSE to the TD target) or distributional (C51: a
     distribution over num_atoms values in [v_min, v_max], cross-entropy to the projected

@@ -81,9 +81,10 @@ _PLAYGROUND_LOCOMOTION = dict(
     target_update="every_update",
     c51_target_head="projected",
     precision="bfloat16",
-    # cuBLAS for the matmuls (XLA's Triton GEMM off): 1.28x the T1 and G1 loops on an H100,
-    # with the C51 projection by run sums (BENCHMARKS.md, 2026-11-25 sixth session). A speed
-    # setting: the same computation, rounded differently.
+    # cuBLAS for the matmuls (XLA's Triton GEMM off): 1.23x the C51 update and, with the C51
+    # projection by run sums, 1.28x the T1 and G1 loops on an H100 (about 1.12x of it from
+    # cuBLAS; BENCHMARKS.md, 2026-11-25 sixth session). A speed setting: the same
+    # computation, rounded differently.
     matmuls="cublas",
     pushes="off",
     domain_randomization=False,

@@ -63,9 +63,11 @@ OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png
 # Settings a resumed run may change; every other one fixes the state layout, the key schedule
 # or what the checkpoint means.
 # (``menagerie``: where the robot meshes lie may differ from one machine to the next; the W&B
-# settings say only where the records are mirrored.)
+# settings say only where the records are mirrored; ``matmuls`` says only which GPU library
+# multiplies, the same computation rounded differently, as on another GPU.)
 SAFE_ON_RESUME = (
     "total_steps",
+    "matmuls",
     "keep_checkpoints",
     "checkpoint_every",
     "eval_envs",

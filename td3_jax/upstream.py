@@ -111,7 +111,8 @@ def compile_options(platform: str, matmuls: str = "auto", xla_flags: str | None 
     added; on other platforms no option is given.
     """
     flags = os.environ.get("XLA_FLAGS", "") if xla_flags is None else xla_flags
-    if matmuls != "cublas" or platform != "gpu" or XLA_TRITON_GEMM in flags:
+    named = {flag.lstrip("-").split("=", 1)[0] for flag in flags.split()}
+    if matmuls != "cublas" or platform != "gpu" or XLA_TRITON_GEMM in named:
         return {}
     return {XLA_TRITON_GEMM: False}
 

@@ -229,3 +229,18 @@ def test_a_run_compiles_with_its_matmul_choice_on_a_gpu_and_plainly_elsewhere(mo
     assert programs.compile_options(source("gpu", "cublas")) == {upstream.XLA_TRITON_GEMM: False}
     assert programs.compile_options(source("gpu", "auto")) == {}
     assert programs.compile_options(source("cpu", "cublas")) == {}
+
+
+def test_every_compile_path_of_a_run_gets_its_compile_options(tmp_path, monkeypatch):
+    """Options no XLA knows make the compile fail on every path (traced in this process and
+    stored nowhere, traced and stored, read back from the store): each one compiles with what
+    ``programs.compile_options`` gives (a CPU rejects unknown option names too)."""
+    from td3_jax import programs
+
+    population, mesh = build.members(TINY), make_mesh(None)
+    compiled(find(TINY, population, mesh, tmp_path / "stored"))  # a stored entry to read back
+    monkeypatch.setattr(programs, "compile_options", lambda source: {"no_such_option": 1})
+    for directory in (None, tmp_path / "fresh", tmp_path / "stored"):
+        source = find(TINY, population, mesh, directory)
+        with pytest.raises(Exception, match="no_such_option"):
+            compiled(source)

@@ -217,11 +217,13 @@ def test_open_run_dir_reports_a_directory_it_cannot_create(tmp_path):
 
 
 def test_safe_settings_may_change_on_resume():
-    changed = dataclasses.replace(SMALL, total_steps=512, keep_checkpoints=5, eval_envs=4)
+    changed = dataclasses.replace(SMALL, total_steps=512, keep_checkpoints=5, eval_envs=4,
+                                  matmuls="cublas")  # fmt: skip
     assert rundir.config_changes(SMALL, changed) == {
         "total_steps": [128, 512],
         "eval_envs": [16, 4],
         "keep_checkpoints": [3, 5],
+        "matmuls": ["auto", "cublas"],
     }
     assert rundir.config_changes(SMALL, SMALL) == {}
     # the value a None stands for is the same value

@@ -44,6 +44,8 @@ def test_cublas_matmuls_turn_triton_gemm_off_on_a_gpu_unless_xla_flags_set_it():
     assert upstream.compile_options("cpu", "cublas", xla_flags="") == {}
     user = f"--{upstream.XLA_TRITON_GEMM}=true"
     assert upstream.compile_options("gpu", "cublas", xla_flags=user) == {}
+    other = f"--{upstream.XLA_TRITON_GEMM}_int4=false --xla_dump_to=x"  # another flag: ours
+    assert upstream.compile_options("gpu", "cublas", xla_flags=other) == off
 
 
 def test_xla_still_accepts_the_triton_gemm_compile_option():
