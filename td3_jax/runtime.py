@@ -17,6 +17,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
@@ -186,8 +187,10 @@ def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iter
     ``stop`` (so the run stops at its next chunk boundary even where Python discards that
     exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a kill) sets
     ``stop`` alone, so the chunk in flight finishes and is checkpointed before the run stops.
-    A second signal of either kind ends the process at once. The signals received are appended
-    to ``received``; ``say``: whether this process prints (several processes: one speaks).
+    A second signal of either kind ends the process at once, except a SIGTERM within
+    :data:`REPEAT_SIGTERM_S` of the first: GNU ``timeout`` signals its child and then its own
+    process group, so one request arrives twice. The signals received are appended to
+    ``received``; ``say``: whether this process prints (several processes: one speaks).
 
     The handlers, and an unraisable-exception hook that drops a Ctrl-C Python discarded, are
     installed only on the main thread, and the previous ones are put back on exit.
@@ -212,10 +215,18 @@ def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iter
         sys.unraisablehook = previous_hook
 
 
+#: Seconds after a SIGTERM in which another SIGTERM is the same request, delivered twice.
+REPEAT_SIGTERM_S = 0.5
+
+
 def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable[..., None]:
     """The SIGINT/SIGTERM handler of :func:`stop_signals`."""
+    first_sigterm: list[float] = []
 
     def on_signal(signum: int, frame: Any) -> None:
+        repeat = signum == signal.SIGTERM and first_sigterm
+        if repeat and time.monotonic() - first_sigterm[0] < REPEAT_SIGTERM_S:
+            return  # the same request delivered twice (timeout: child, then process group)
         if stop.is_set():
             if say:
                 again = "terminated" if signum == signal.SIGTERM else "interrupted"
@@ -224,6 +235,7 @@ def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable
         received.append(signum)
         stop.set()
         if signum == signal.SIGTERM:
+            first_sigterm.append(time.monotonic())
             if say:
                 print(f"td3-jax: terminated (SIGTERM): {_what_stopping_does(stop)} (SIGTERM "
                       "again to stop at once)", file=sys.stderr, flush=True)  # fmt: skip

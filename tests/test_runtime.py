@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import warnings
 
 import pytest
@@ -184,6 +185,9 @@ def test_stop_signals_set_the_token_and_are_put_back(monkeypatch, capsys):
     with runtime.stop_signals(stop, received, say=False):
         signal.raise_signal(signal.SIGTERM)
         assert stop.is_set() and received == [signal.SIGTERM] and exits == []
+        signal.raise_signal(signal.SIGTERM)  # at once: timeout's second delivery, ignored
+        assert exits == [] and received == [signal.SIGTERM]
+        time.sleep(runtime.REPEAT_SIGTERM_S + 0.1)
         signal.raise_signal(signal.SIGTERM)
         assert exits == [128 + signal.SIGTERM]
     assert {s: signal.getsignal(s) for s in handlers} == handlers and sys.unraisablehook is hook
