@@ -548,13 +548,24 @@ def test_brax_terminal_observation_is_the_fallen_pole(brax_rollout):
 # Names ---------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["nope/x", "brax/nope", "gymnax/CartPole-v1", "gymnax"])
-def test_unknown_environment(name):
+@pytest.mark.parametrize(
+    ("name", "source"),
+    [("nope/x", None), ("brax/nope", "brax"), ("gymnax/CartPole-v1", "gymnax"),
+     ("gymnax", "gymnax")],
+)  # fmt: skip
+def test_unknown_environment(name, source):
+    """Nothing close: a known source's own names, else how names look; never all of them."""
     with pytest.raises(UnknownEnvironmentError) as err:
         envs.make(name)
     message = str(err.value)
-    assert repr(name) in message
-    assert "brax/ant" in message and "gymnax/Pendulum-v1" in message  # nothing close: all
+    assert repr(name) in message and "`td3-jax envs` lists all" in message
+    if source is None:
+        assert "SOURCE/NAME" in message and "brax/ant" not in message
+    else:
+        own = [n.split("/", 1)[1] for n in envs.known_names() if n.startswith(source + "/")]
+        assert f"{source} has " in message and all(n in message for n in own)
+        others = [n for n in envs.known_names() if not n.startswith(source + "/")]
+        assert not any(n in message for n in others)
     assert isinstance(err.value, ValueError)
 
 
