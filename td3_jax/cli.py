@@ -376,26 +376,12 @@ def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
             return load_config(Path(out)), None, "resume"
         return TrainConfig(), None, "resume"  # (train() says there is nothing to resume)
     if name:
-        _check_preset_name(name)
-        return preset(name), name, "preset"
+        return preset(name), name, "preset"  # ConfigError naming the closest for an unknown one
     env = _flag_value(args, "--env") or TrainConfig.env
     name = env_preset(env)
     if name:
         return dataclasses.replace(preset(name), env=env), name, "env"
     return device_defaults(env, accelerator=False), None, "device"
-
-
-def _check_preset_name(name: str) -> None:
-    """A ConfigError for an unknown ``--preset``: the closest names, else every one."""
-    import difflib
-
-    if name in PRESETS:
-        return
-    close = difflib.get_close_matches(name, list(PRESETS), n=2, cutoff=0.6)
-    if close:
-        raise ConfigError(f"unknown preset {name!r}; did you mean {' or '.join(close)}? "
-                          "(`td3-jax presets` lists them with their settings)")  # fmt: skip
-    raise ConfigError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
 
 
 def _given_fields(args: list[str]) -> set[str]:

@@ -4,6 +4,8 @@ measurements that chose its values beside it."""
 
 from __future__ import annotations
 
+import difflib
+
 from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.envs import menagerie
 
@@ -292,10 +294,15 @@ def robot_preset(env: str) -> str | None:
 
 
 def preset(name: str | None) -> TrainConfig:
-    """The config of a named preset (the defaults for ``None``)."""
+    """The config of a named preset (the defaults for ``None``); a :class:`ConfigError` for an
+    unknown name gives the closest names, else every one."""
     if name is None:
         return TrainConfig()
     if name not in PRESETS:
+        close = difflib.get_close_matches(name, list(PRESETS), n=2, cutoff=0.6)
+        if close:
+            raise ConfigError(f"unknown preset {name!r}; did you mean {' or '.join(close)}? "
+                              "(`td3-jax presets` lists them with their settings)")  # fmt: skip
         raise ConfigError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
     return TrainConfig(**PRESETS[name])
 
