@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from td3_jax import upstream
 from td3_jax.errors import ConfigError
 
 __all__ = [
@@ -82,31 +83,8 @@ class MetricsLogger:
         try:
             self._tb.close()
         except OSError as err:
-            _abandon(self._tb)
+            upstream.abandon_tensorboard_writer(self._tb)
             raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
-
-
-def _abandon(writer: Any) -> None:
-    """Ends a tensorboardX ``SummaryWriter`` whose flush failed, giving up what it could not
-    write: its thread is stopped, its file closed and it is marked closed (its exit hook then
-    does nothing)."""
-    for file_writer in (writer.all_writers or {}).values():
-        _end_event_writer(file_writer.event_writer)
-    writer.file_writer = writer.all_writers = None
-
-
-def _end_event_writer(events: Any) -> None:
-    """Stops a tensorboardX ``EventFileWriter``'s thread, closes its file and queue (each on
-    its own: one may fail again) and marks it closed."""
-    if getattr(events, "_closed", True):
-        return
-    with contextlib.suppress(Exception):
-        events._worker.stop()
-    with contextlib.suppress(Exception):  # (its buffer, which the disk refused, is dropped)
-        events._ev_writer._py_recordio_writer.close()
-    with contextlib.suppress(Exception):
-        events._event_queue.close()
-    events._closed, events._event_queue, events._worker = True, None, None
 
 
 def write_atomically(path: Path, text: str) -> None:

@@ -8,7 +8,7 @@ silent no-op (an attribute swapped for domain randomisation is checked to exist 
 
 Checked against (``checked`` in each docstring): JAX 0.10.2 and 0.11.2; MuJoCo (``mujoco`` and
 its ``mujoco.mjx``, with the MuJoCo Warp it vendors) 4.0.0; MuJoCo Playground
-(``playground`` on PyPI) 0.2.0; Brax 0.14.2.
+(``playground`` on PyPI) 0.2.0; Brax 0.14.2; tensorboardX 2.6.5.
 
 One module, not ``td3_jax.envs.upstream``: JAX's compilation-cache layout is the CLI's, not an
 environment's. Nothing heavy is imported here; each function imports what it touches.
@@ -40,8 +40,10 @@ __all__ = [
     "PLAYGROUND_MENAGERIE",
     "PLAYGROUND_MJX_ENV",
     "TASK_MODEL",
+    "TENSORBOARD_EVENT_WRITER_PARTS",
     "XLA_TRITON_GEMM",
     "UpstreamChanged",
+    "abandon_tensorboard_writer",
     "brax_env_names",
     "called_jaxpr",
     "compile_options",
@@ -115,6 +117,34 @@ def compile_options(platform: str, matmuls: str = "auto", xla_flags: str | None 
     if matmuls != "cublas" or platform != "gpu" or XLA_TRITON_GEMM in named:
         return {}
     return {XLA_TRITON_GEMM: False}
+
+
+# ---------------------------------------------------------------------------------------------
+# tensorboardX: ending a writer whose flush the disk refused
+# ---------------------------------------------------------------------------------------------
+
+#: The private parts of a tensorboardX ``EventFileWriter`` that :func:`abandon_tensorboard_writer`
+#: ends (checked: tensorboardX 2.6.5).
+TENSORBOARD_EVENT_WRITER_PARTS = ("_closed", "_worker", "_ev_writer", "_event_queue")
+
+
+def abandon_tensorboard_writer(writer: Any) -> None:
+    """Ends a tensorboardX ``SummaryWriter`` whose flush failed, giving up what it could not
+    write: each event writer's thread is stopped, its file and queue closed (each on its own:
+    one may fail again) and it is marked closed, so tensorboardX's exit hook and thread print
+    no tracebacks."""
+    for file_writer in (writer.all_writers or {}).values():
+        events = file_writer.event_writer
+        if getattr(events, "_closed", True):
+            continue
+        with contextlib.suppress(Exception):
+            events._worker.stop()
+        with contextlib.suppress(Exception):  # (its buffer, which the disk refused, is dropped)
+            events._ev_writer._py_recordio_writer.close()
+        with contextlib.suppress(Exception):
+            events._event_queue.close()
+        events._closed, events._event_queue, events._worker = True, None, None
+    writer.file_writer = writer.all_writers = None
 
 
 # ---------------------------------------------------------------------------------------------

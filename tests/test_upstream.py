@@ -33,6 +33,23 @@ def _names(eqns) -> list[str]:
     return [e.primitive.name for e in eqns]
 
 
+# tensorboardX: ending a writer whose flush failed -------------------------------------------
+
+
+def test_tensorboardx_event_writers_still_have_the_parts_td3_jax_ends(tmp_path):
+    from tensorboardX import SummaryWriter
+
+    writer = SummaryWriter(str(tmp_path))
+    writer.add_scalar("x", 1.0, 0)
+    events = next(iter(writer.all_writers.values())).event_writer
+    missing = [n for n in upstream.TENSORBOARD_EVENT_WRITER_PARTS if not hasattr(events, n)]
+    assert not missing, f"tensorboardX's EventFileWriter no longer has {missing}"
+    assert hasattr(events._ev_writer, "_py_recordio_writer"), "tensorboardX's record writer moved"
+    upstream.abandon_tensorboard_writer(writer)
+    assert events._closed and writer.all_writers is None
+    writer.close()  # what its exit hook does: nothing left to flush or fail
+
+
 # XLA: the GPU matmul option -------------------------------------------------------------------
 
 
