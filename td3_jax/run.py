@@ -139,7 +139,7 @@ def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int
                                    enabled=run.writer, mirror=run.tracker)  # fmt: skip
         _loop(run, compiled, state, start_chunk)
     except (OSError, CheckpointWriteError) as err:
-        if isinstance(err, OSError) and err.errno not in WRITE_ERRNOS:
+        if isinstance(err, OSError) and not _refused_write(err):
             raise
         run.failed_write = err
         raise
