@@ -21,6 +21,7 @@ from td3_jax.build import make_population
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.population import Member, Population
+from td3_jax.programs import run_compiled
 from td3_jax.rundir import CHECKPOINTS, check_environment_unchanged, load_config, load_members
 from td3_jax.sharding import make_mesh, state_shardings
 from td3_jax.training import ring_as_saved
@@ -97,4 +98,4 @@ def evaluate_run(
     cfg, population, program = run_program(out_dir, eval_envs=episodes)
     state, meta = restore_on_one_device(program, out_dir)
     keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
-    return cfg, population, meta, np.asarray(jax.jit(program.evaluate)(state, keys))
+    return cfg, population, meta, np.asarray(run_compiled(cfg, program.evaluate, state, keys))

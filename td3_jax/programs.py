@@ -41,6 +41,8 @@ __all__ = [
     "compiled",
     "find",
     "jitted",
+    "options_on",
+    "run_compiled",
 ]
 
 
@@ -184,7 +186,20 @@ class _ExportFailed(RuntimeError):
 def compile_options(source: Source) -> dict:
     """The XLA compile options of the run's programs: ``--matmuls`` on its devices
     (:func:`td3_jax.upstream.compile_options`)."""
-    return upstream.compile_options(source.mesh.devices.flat[0].platform, source.cfg.matmuls)
+    return options_on(source.cfg, source.mesh.devices.flat[0])
+
+
+def options_on(cfg: TrainConfig, device: jax.Device) -> dict:
+    """The XLA compile options of the programs of the run of ``cfg`` on ``device``."""
+    return upstream.compile_options(device.platform, cfg.matmuls)
+
+
+def run_compiled(cfg: TrainConfig, function: Callable, *args: Any) -> Any:
+    """``function(*args)``, jitted and compiled with the compile options of the run of ``cfg``
+    on the default device (as its training programs were, :func:`compile_options`): how a
+    finished run's programs (``td3-jax eval``, ``render``) run."""
+    options = options_on(cfg, jax.devices()[0])
+    return jax.jit(function).lower(*args).compile(compiler_options=options)(*args)
 
 
 def _compile_plain(source: Source, stop: StopToken) -> Programs:

@@ -358,8 +358,9 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
     ``check(env)``, if given, runs once the environment is made, before anything compiles.
     """
     from td3_jax.finished import restore_on_one_device, run_program
+    from td3_jax.programs import run_compiled
 
-    _, population, program = run_program(run_dir, eval_envs=episodes)
+    cfg, population, program = run_program(run_dir, eval_envs=episodes)
     choose_member(run_dir, len(population), member)  # a bad --member fails before compiling
     check_renderable(program.env)
     if check is not None:
@@ -368,8 +369,8 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
     k = choose_member(run_dir, len(population), member, meta.get("env_steps"))
     key = jax.random.split(jax.random.PRNGKey(seed), len(population))[k]
     spec = dataclasses.replace(program.spec, axis_name=None)
-    run = jax.jit(functools.partial(training.evaluate_recorded, spec, record=episodes))
-    returns, recording = run(jax.tree.map(lambda x: x[k], state), key)
+    run = functools.partial(training.evaluate_recorded, spec, record=episodes)
+    returns, recording = run_compiled(cfg, run, jax.tree.map(lambda x: x[k], state), key)
     return Rollout(program.env, k, np.asarray(returns), *split_episodes(recording),
                    env_steps=meta.get("env_steps"))  # fmt: skip
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from support import assert_one_line_error, main
 
-from td3_jax import cli, finished, render, rundir
+from td3_jax import cli, finished, render, rundir, upstream
 from td3_jax.build import make_population, members
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig
@@ -164,6 +164,26 @@ def test_pendulum_gif_has_one_frame_per_step(tmp_path):
     _, _, _, returns = finished.evaluate_run(run, 2, SEED)
     np.testing.assert_allclose(result.returns, returns[0], rtol=1e-6)
     assert np.abs(np.diff(frames.astype(np.int16), axis=0)).max() > 30
+
+
+def test_eval_and_render_compile_with_the_runs_compile_options(tmp_path, monkeypatch):
+    """A finished run's evaluation (``td3-jax eval``) and recorded rollout (``render``) are
+    compiled with the options its training programs get (:func:`upstream.compile_options` of
+    its ``--matmuls`` on this platform): an option the compiler does not know, given for
+    ``cublas``, fails both."""
+    run = make_run(tmp_path / "run", "gymnax/Pendulum-v1", episode_length=12, matmuls="cublas")
+    asked = []
+
+    def options(platform, matmuls="auto", xla_flags=None):
+        asked.append((platform, matmuls))
+        return {"xla_no_such_option": True} if matmuls == "cublas" else {}
+
+    monkeypatch.setattr(upstream, "compile_options", options)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="xla_no_such_option"):
+        finished.evaluate_run(run, 2, SEED)
+    with pytest.raises(jax.errors.JaxRuntimeError, match="xla_no_such_option"):
+        render.rollout(run, episodes=1, seed=SEED)
+    assert asked == [(jax.devices()[0].platform, "cublas")] * 2
 
 
 def test_pendulum_drawing_points_at_the_angle():
