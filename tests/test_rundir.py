@@ -449,6 +449,7 @@ def test_a_last_metrics_line_cut_short_is_left_out_and_the_run_resumes(tmp_path,
         ["train", "--resume", "--total-steps", "256", "--out", str(out), "--quiet"], capsys
     )
     assert code == 0, err
+    assert err.count("warning") == 1 and f"the last line of {metrics} is incomplete" in err
     assert [r["env_steps"] for r in read_records(out)] == [64, 128, 192, 256]
     # A broken line before the last is not guessed at: one line, exit 2.
     lines = metrics.read_text().splitlines()
