@@ -37,7 +37,9 @@ class MetricsLogger:
     holds it, and never raises).
 
     On resume, records beyond the restored checkpoint (written after it, then lost with the
-    stop) are dropped first, so the file never holds an evaluation twice.
+    stop) are dropped first, so the file never holds an evaluation twice; TensorBoard drops
+    their points too (:func:`_purge_step`), and the kept records' points from there on are
+    written again.
     """
 
     def __init__(self, out_dir: Path, resume_env_steps: int | None = None, enabled: bool = True,
@@ -46,16 +48,14 @@ class MetricsLogger:
         self.path = Path(out_dir) / "metrics.jsonl"
         if not enabled:  # another process writes the logs
             return
-        kept = [
-            r
-            for r in read_metrics(self.path)
-            if resume_env_steps is not None and r["env_steps"] <= resume_env_steps
-        ]
+        records = read_metrics(self.path)
+        kept = [r for r in records
+                if resume_env_steps is not None and r["env_steps"] <= resume_env_steps]  # fmt: skip
         write_atomically(self.path, "".join(json.dumps(record) + "\n" for record in kept))
         SummaryWriter = _summary_writer_class()
-        # On resume, points logged after the restored checkpoint are dropped here too.
-        purge = resume_env_steps + 1 if resume_env_steps else None
+        purge = _purge_step(records, resume_env_steps)
         self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"), purge_step=purge)
+        self._to_tensorboard(kept, since=purge or 0)
 
     def write(self, record: dict[str, Any]) -> None:
         """Appends ``record`` to metrics.jsonl (whole, or not at all) and to TensorBoard; a
@@ -63,16 +63,24 @@ class MetricsLogger:
         if not self.enabled:
             return
         append_line(self.path, json.dumps(_jsonable(record)) + "\n")
-        step, evaluated = int(record["env_steps"]), evaluated_steps(record)
+        self._to_tensorboard([record])
+        if self.mirror is not None:
+            self.mirror.log(record)
+
+    def _to_tensorboard(self, records: list[dict[str, Any]], since: int = 0) -> None:
+        """The records' finite numbers at their steps (:func:`evaluated_steps` for returns),
+        those from step ``since`` on, then flushed; a failed write raises ``OSError`` naming
+        TensorBoard's folder."""
         try:
-            for key, value in record.items():
-                if isinstance(value, int | float) and key != "env_steps" and math.isfinite(value):
-                    self._tb.add_scalar(key, value, evaluated if is_return(key) else step)
+            for record in records:
+                step, evaluated = int(record["env_steps"]), evaluated_steps(record)
+                for key, value in record.items():
+                    at = evaluated if is_return(key) else step
+                    if _plotted(key, value) and at >= since:
+                        self._tb.add_scalar(key, value, at)
             self._tb.flush()
         except OSError as err:
             raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
-        if self.mirror is not None:
-            self.mirror.log(record)
 
     def close(self) -> None:
         """Closes the TensorBoard event file; a last flush that the disk refuses raises
@@ -85,6 +93,23 @@ class MetricsLogger:
         except OSError as err:
             upstream.abandon_tensorboard_writer(self._tb)
             raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
+
+
+def _plotted(key: str, value: Any) -> bool:
+    """Whether a record's ``key: value`` is a TensorBoard point (a finite number)."""
+    return isinstance(value, int | float) and key != "env_steps" and math.isfinite(value)
+
+
+def _purge_step(records: list[dict[str, Any]], resume_env_steps: int | None) -> int | None:
+    """The step from which TensorBoard drops the points already logged, on a resume from
+    ``resume_env_steps`` (``None``: a fresh run): past the restored checkpoint, or earlier
+    where a record written after it plotted its returns at an earlier policy's steps (with the
+    evaluation inside the chunk), so that the resumed run's record of them is not a second
+    point there."""
+    if not resume_env_steps:
+        return None
+    dropped = [evaluated_steps(r) for r in records if r["env_steps"] > resume_env_steps]
+    return min([resume_env_steps + 1, *dropped])
 
 
 def write_atomically(path: Path, text: str) -> None:

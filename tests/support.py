@@ -1,5 +1,5 @@
 """What several test files share: the tiny CLI run's flags, the command line run in this process
-or in a child process, and a run directory's records.
+or in a child process, and a run directory's records and TensorBoard events.
 
 One set of tiny flags keeps the programs of the tests' small runs identical, so that the test
 session's compilation cache (tests/conftest.py) compiles them once.
@@ -11,6 +11,7 @@ import contextlib
 import io
 import json
 import os
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -82,3 +83,18 @@ def read_records(run_dir: Path) -> list[dict]:
     """The run's metrics.jsonl, one dict per record."""
     text = (run_dir / "metrics.jsonl").read_text()
     return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def tensorboard_events(run_dir: Path) -> list:
+    """The events of the run's TensorBoard files (``tensorboardX.proto.event_pb2.Event``), the
+    files read in name order, as TensorBoard reads them, each parsed from its TFRecord framing."""
+    from tensorboardX.proto import event_pb2
+
+    events = []
+    for path in sorted((run_dir / "tensorboard").glob("events.out.tfevents.*")):
+        data, pos = path.read_bytes(), 0
+        while pos < len(data):
+            (length,) = struct.unpack("<Q", data[pos : pos + 8])
+            events.append(event_pb2.Event.FromString(data[pos + 12 : pos + 12 + length]))
+            pos += 12 + length + 4
+    return events

@@ -13,13 +13,19 @@ import json
 import math
 import re
 import shutil
-import struct
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from support import TINY_FLAGS, assert_one_line_error, main, read_records, td3_jax
+from support import (
+    TINY_FLAGS,
+    assert_one_line_error,
+    main,
+    read_records,
+    td3_jax,
+    tensorboard_events,
+)
 
 from td3_jax import cli
 from td3_jax import run as run_module
@@ -50,19 +56,11 @@ PENDULUM_WORST_STEP = -16.3  # -(pi^2 + 0.1 * 8^2 + 0.001 * 2^2)
 
 
 def tensorboard_scalars(run_dir: Path) -> dict[str, dict[int, float]]:
-    """Scalars of the run's event files, parsed from the TFRecord framing."""
-    from tensorboardX.proto import event_pb2
-
+    """Scalars of the run's event files."""
     scalars: dict[str, dict[int, float]] = {}
-    for path in sorted((run_dir / "tensorboard").glob("events.out.tfevents.*")):
-        data, pos = path.read_bytes(), 0
-        while pos < len(data):
-            (length,) = struct.unpack("<Q", data[pos : pos + 8])
-            event = event_pb2.Event()
-            event.ParseFromString(data[pos + 12 : pos + 12 + length])
-            pos += 12 + length + 4
-            for value in event.summary.value:
-                scalars.setdefault(value.tag, {})[event.step] = value.simple_value
+    for event in tensorboard_events(run_dir):
+        for value in event.summary.value:
+            scalars.setdefault(value.tag, {})[event.step] = value.simple_value
     return scalars
 
 

@@ -8,6 +8,9 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+from support import tensorboard_events
+
 # A process that logs one record, then finds the disk full: TensorBoard's flush fails.
 _FULL_DISK = textwrap.dedent(
     """
@@ -93,3 +96,43 @@ def test_a_run_stopped_by_a_full_disk_finishes_its_checkpoint_and_says_nothing_m
     err = capsys.readouterr().err.splitlines()
     assert err[0] == "td3-jax: finishing checkpoint 2..."
     assert err[1].startswith("td3-jax: warning: closing the run's logs failed (OSError:")
+
+
+def _tensorboard_points(run_dir) -> dict[str, list[tuple[int, float]]]:
+    """Each tag's points as TensorBoard shows them: a session start at step ``s`` (a writer's
+    ``purge_step``) drops every point read before it at a step ``>= s``, in every tag
+    (``EventAccumulator._CheckForRestartAndMaybePurge``)."""
+    from tensorboardX.proto import event_pb2
+
+    points: dict[str, list[tuple[int, float]]] = {}
+    for event in tensorboard_events(run_dir):
+        if event.session_log.status == event_pb2.SessionLog.START:
+            points = {tag: [p for p in kept if p[0] < event.step] for tag, kept in points.items()}
+        for value in event.summary.value:
+            points.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return points
+
+
+def test_a_resume_shows_each_in_chunk_evaluation_once_in_tensorboard(tmp_path):
+    """With the evaluation inside the chunk, a record plots its returns at its round's policy
+    steps, before its own. A run checkpointed at env step 64 that wrote the record of 96 (its
+    returns at 64) before it stopped is resumed from 64 and writes that record again: TensorBoard
+    shows the resumed run's points once each, as a run that never stopped would."""
+    from td3_jax.logger import MetricsLogger
+
+    record = lambda steps, ret, loss: {"env_steps": steps, "eval_policy_env_steps": steps - 32,
+                                       "eval_return_mean": ret, "critic_loss": loss}  # fmt: skip
+    first = MetricsLogger(tmp_path)
+    for r in (record(32, 1.0, 0.1), record(64, 2.0, 0.2), record(96, -9.0, -9.0)):
+        first.write(r)
+    first.close()
+    for path in (tmp_path / "tensorboard").iterdir():  # (named for its second, as the resume's
+        path.rename(path.with_name("events.out.tfevents.0.first"))  # file is: read first)
+    resumed = MetricsLogger(tmp_path, resume_env_steps=64)
+    for r in (record(96, 3.0, 0.3), record(128, 4.0, 0.4)):
+        resumed.write(r)
+    resumed.close()
+    points = _tensorboard_points(tmp_path)
+    assert points["eval_return_mean"] == [(0, 1.0), (32, 2.0), (64, 3.0), (96, 4.0)]
+    steps, losses = zip(*points["critic_loss"], strict=True)
+    assert steps == (32, 64, 96, 128) and losses == pytest.approx((0.1, 0.2, 0.3, 0.4))
