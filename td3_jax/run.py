@@ -105,17 +105,24 @@ def train(
     try:
         if on_prepared is not None:
             on_prepared()
-        state, start_chunk = _start(run, source, resume)
-        if start_chunk >= cfg.num_chunks:  # a complete run: nothing to compile or rewrite
-            return run.records
-        _say_resuming(run, start_chunk)
-        run.tracker = tracking.start(cfg, out_dir, resume=resume, enabled=writer)
-        compiled, state = _compiled_and_state(run, source, state, say=progress and writer)
-        _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
-                         preset=preset, changes=changes)  # fmt: skip
+        _start_and_train(run, source, resume, progress, preset=preset, changes=changes)
     finally:
         _finish(run, run_lock)
     return run.records
+
+
+def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
+                     preset: str | None, changes: Any) -> None:  # fmt: skip
+    """The run's start (restored, else fresh), its programs compiled and its chunks trained;
+    a run already complete compiles and rewrites nothing."""
+    state, start_chunk = _start(run, source, resume)
+    if start_chunk >= run.cfg.num_chunks:
+        return
+    _say_resuming(run, start_chunk)
+    run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
+    compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
+    _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
+                     preset=preset, changes=changes)  # fmt: skip
 
 
 def _say_resuming(run: _Run, start_chunk: int) -> None:
