@@ -863,9 +863,9 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     from td3_jax.errors import Td3JaxError
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
-    with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
-        _import_mjx()
     try:
+        with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
+            _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported below)
         command(args)
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)

@@ -11,6 +11,7 @@ import dataclasses
 import io
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -296,6 +297,17 @@ def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
     assert capsys.readouterr().out == "kept\n"
     code, _, err = main(["envs", "--menagerie", "/no/such/dir"], capsys)
     assert code == 2 and "--menagerie /no/such/dir is not a directory" in err
+
+
+@pytest.mark.subprocess  # mujoco's import reads MUJOCO_GL once per process
+def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand():
+    """mujoco refuses an unknown MUJOCO_GL when first imported, which the CLI does before any
+    subcommand (MJX's import notes): that is the same one line as in `render`, not a
+    traceback."""
+    command = [sys.executable, "-m", "td3_jax", "presets"]
+    env = {**os.environ, "MUJOCO_GL": "foo"}
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=240, env=env)
+    assert_one_line_error(proc.returncode, proc.stderr, "MUJOCO_GL: foo", "unset it")
 
 
 @pytest.mark.processes
