@@ -1,7 +1,8 @@
-"""``td3-jax``: train, evaluate and plot from the command line.
+"""``td3-jax``: train, evaluate, export, render and plot from the command line.
 
-Subcommands: ``train`` (flags from :class:`~td3_jax.config.TrainConfig`), ``eval``, ``plot``,
-``envs``, ``presets``. Bad settings print one line and exit with code 2.
+Subcommands: ``train`` and ``sweep`` (flags from :class:`~td3_jax.config.TrainConfig`),
+``eval``, ``export``, ``render``, ``plot``, ``envs``, ``presets``. Bad settings print one line
+and exit with code 2.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import functools
 import importlib
 import io
 import itertools
+import math
 import os
 import re
 import signal
@@ -525,6 +527,16 @@ def _sweep_values(command: Any) -> dict[str, list[float]]:
     return sweep
 
 
+def _check_process_flags(command: Any) -> None:
+    """The flags of this process that TrainConfig does not hold: a positive ``--devices`` and
+    a positive, finite ``--time-budget-s`` (a ConfigError otherwise)."""
+    if command.devices is not None and command.devices <= 0:
+        raise ConfigError(f"--devices must be positive, got {command.devices}")
+    budget = command.time_budget_s
+    if budget is not None and not (math.isfinite(budget) and budget > 0):
+        raise ConfigError(f"--time-budget-s must be a positive number of seconds, got {budget}")
+
+
 def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.run import train
     from td3_jax.rundir import interrupted_message
@@ -538,6 +550,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     command = _parse(command_type, args, prog, default=default)
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
     idle_wandb_flags(cfg, _given_fields(args))
+    _check_process_flags(command)
     sweep = _sweep_values(command) if sweeping else None
     from td3_jax import envs
 

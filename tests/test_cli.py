@@ -135,6 +135,10 @@ BAD_TRAIN = {
     "negative-steps": (["--total-steps", "-5"], "--total-steps"),
     "zero-steps": (["--total-steps", "0"], "--total-steps must be positive"),
     "unknown-env": (["--env", "gymnax/NoSuchTask-v0"], "gymnax/NoSuchTask-v0"),
+    # (a negative budget ran one chunk and said "stopped by --time-budget-s -1")
+    "negative-budget": (["--time-budget-s", "-1"], "--time-budget-s must be a positive"),
+    "nan-budget": (["--time-budget-s", "nan"], "--time-budget-s must be a positive"),
+    "no-devices": (["--devices", "0"], "--devices must be positive, got 0"),
 }
 
 
