@@ -79,7 +79,7 @@ class TrainCommand(TrainConfig):
     """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/."""
     resume: bool = False
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
-    --total-steps (to extend or shorten the run; not with --lr-schedule cosine),
+    --total-steps (to extend or shorten the run; not with --lr-schedule cosine), --matmuls,
     --keep-checkpoints, --checkpoint-every, --eval-envs, --early-evaluation, --menagerie and
     the --wandb* flags may differ from the run's config.json; other flags must match. A run
     logged to W&B continues its W&B run."""

@@ -540,6 +540,23 @@ def test_resume_with_a_changed_structural_flag_exits_2(finished_run, case, capsy
     assert {p: (out / p).read_bytes() for p in before} == before
 
 
+def test_the_resume_help_and_readme_name_every_setting_a_resume_may_change(capsys):
+    """`train --help`'s --resume entry and the README's run-directory bullet list exactly the
+    settings that a resume lets change (--matmuls was missing from both)."""
+    from td3_jax.config import WANDB_SETTINGS, flag
+    from td3_jax.rundir import SAFE_ON_RESUME
+
+    help_text = main(["train", "--help"], capsys)[1]
+    entry = re.split(r"\n[│ ]*--preset ", help_text.split("--resume, --no-resume")[1])[0]
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    bullet = readme.split("**A resume keeps the run's identity.**")[1].split("\n* **")[0]
+    for text in (entry, bullet):
+        text = " ".join(re.sub("[│`]", " ", text).split())
+        assert "--wandb* flags may" in text, text
+        for name in set(SAFE_ON_RESUME) - set(WANDB_SETTINGS):
+            assert re.search(rf"{re.escape(flag(name))}\b", text), (name, text)
+
+
 def test_resume_accepts_flags_equal_to_the_saved_ones(finished_run, tmp_path, capsys):
     run_dir = _copy_run(finished_run, tmp_path)
     records = read_records(run_dir)
