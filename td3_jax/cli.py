@@ -50,7 +50,7 @@ subcommands:
   render    write a video of a run's policy:  td3-jax render --run runs/ant [--gif]
   plot      redraw a run's curve.png from its metrics.jsonl
   envs      list the environment names this installation knows
-  presets   list the presets and what they set
+  presets   list the presets (or those named) and what they set:  td3-jax presets ant
 
 `td3-jax SUBCOMMAND --help` lists a subcommand's flags.
 """
@@ -224,6 +224,18 @@ class EnvsCommand:
 
     menagerie: Path | None = None
     """Look for the robots' MuJoCo Menagerie folders here too (as `td3-jax train --menagerie`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PresetsCommand:
+    """List the presets and the flags each sets (flags given to train override them)."""
+
+    names: Annotated[
+        tuple[str, ...],
+        tyro.conf.Positional,
+        tyro.conf.arg(metavar="[NAME ...]", help_behavior_hint="(default: every preset)"),
+    ] = ()
+    """Presets to show."""
 
 
 def _parse(command_type: type, args: list[str], prog: str, default=None):
@@ -791,8 +803,13 @@ def envs_table(rows: list[tuple[str, str, str]]) -> list[str]:
 
 
 def presets_main(args: list[str]) -> None:
-    for name, values in PRESETS.items():
-        settings = " ".join(as_flag(k, v) for k, v in values.items())
+    """One line per preset (the named ones, else all): its name and the flags it sets; an
+    unknown name is :func:`~td3_jax.presets.preset`'s ConfigError (the closest names)."""
+    names = _parse(PresetsCommand, args, "td3-jax presets").names or tuple(PRESETS)
+    for name in names:
+        preset(name)  # (refuses an unknown name before anything is printed)
+    for name in names:
+        settings = " ".join(as_flag(k, v) for k, v in PRESETS[name].items())
         print(f"{name}: {settings}")
 
 

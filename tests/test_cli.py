@@ -443,6 +443,21 @@ def test_envs_and_presets_listings(capsys):
     assert "--batch-size 128" in stdout
 
 
+def test_presets_shows_the_named_ones_and_refuses_unknown_names_and_flags(capsys):
+    """`td3-jax presets NAME ...` shows those presets alone (any argument was ignored, and
+    --help printed the list); a mistyped name or flag is one error line."""
+    code, stdout, _ = main(["presets", "ant", "pendulum"], capsys)
+    assert code == 0
+    assert [line.split(":")[0] for line in stdout.splitlines()] == ["ant", "pendulum"]
+    assert "--num-envs 4096" in stdout.splitlines()[0]
+    code, _, err = main(["presets", "pendulm"], capsys)
+    assert_one_line_error(code, err, "unknown preset 'pendulm'; did you mean pendulum?")
+    code, _, err = main(["presets", "--all"], capsys)
+    assert_one_line_error(code, err, "--all")
+    code, stdout, _ = main(["presets", "--help"], capsys)
+    assert code == 0 and "usage: td3-jax presets" in stdout and "--num-envs" not in stdout
+
+
 def test_envs_says_what_each_task_still_needs(capsys, monkeypatch):
     """Robots whose Menagerie folder is nowhere name the package that ships it; without
     Playground one row says how to install it; ready tasks run here ("yes")."""
