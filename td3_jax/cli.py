@@ -254,22 +254,25 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
 
 
 def _parse_error(text: str, command_type: type, args: list[str], prog: str) -> str:
-    """tyro's error box as one line: the options not known (with the closest known one), the
-    required ones missing, else the box's first part (what went wrong, without help text)."""
+    """tyro's error box as one line: the options not known (with the closest known one), a
+    value that is not a number or not a choice, a flag without its value, the required ones
+    missing, else the box's first part (what went wrong, without help text)."""
     title, sections = _tyro_box(text)
+    first = " ".join(line.strip() for line in sections[0])
     if title == "Unrecognized options":
         return _unrecognized(command_type, args, prog, sections[0])
+    said = None
     if title == "Value error":
-        said = _value_error(command_type, args, " ".join(line.strip() for line in sections[0]))
-        if said:
-            return said
-    if title == "Required options":  # "Missing from PROG:", each flag 4 deeper, its help 8
+        said = _value_error(command_type, args, first)
+    elif title == "Invalid choice":
+        said = _invalid_choice(first)
+    elif title == "Missing argument" and (named := re.search(r"argument '(--[\w-]+)'", first)):
+        said = f"{named.group(1)} needs a value (see {prog} --help)"
+    elif title == "Required options":  # "Missing from PROG:", each flag 4 deeper, its help 8
         flag = " " * (len(sections[0][0]) - len(sections[0][0].lstrip()) + 4) + "-"
         missing = [line.split()[0] for line in sections[0] if line.startswith(flag)]
-        if missing:
-            return f"{prog} needs {', '.join(missing)} (see {prog} --help)"
-    first = " ".join(line.strip() for line in sections[0]) or title
-    return first or f"could not parse {' '.join(args)} (see {prog} --help)"
+        said = missing and f"{prog} needs {', '.join(missing)} (see {prog} --help)"
+    return said or first or title or f"could not parse {' '.join(args)} (see {prog} --help)"
 
 
 def _value_error(command_type: type, args: list[str], text: str) -> str | None:
@@ -287,6 +290,23 @@ def _value_error(command_type: type, args: list[str], text: str) -> str | None:
     what = "whole number" if kind is int else "number"
     what = f"{what}s" if several else f"a {what}"
     return f"{flag} takes {what}, got {' '.join(map(repr, given)) or 'nothing'}"
+
+
+def _invalid_choice(text: str) -> str | None:
+    """``--impl 'cuda' is not one of jax, warp``: tyro's "invalid choice" in one line, with the
+    closest choice, and without the ``None`` that tyro lists for a flag whose default is to
+    leave it out (None for other errors)."""
+    import difflib
+
+    pattern = r"invalid choice '(.*)' for argument '(--[\w-]+)'\. Expected one of \((.*)\)\."
+    match = re.match(pattern, text)
+    if not match:
+        return None
+    given, flag, listed = match.groups()
+    choices = sorted({c.strip(" '") for c in listed.split(",")} - {"None"})  # (tyro's: a set)
+    close = difflib.get_close_matches(given.lower(), choices, n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]}?" if close else ""
+    return f"{flag} {given!r} is not one of {', '.join(choices)}{hint}"
 
 
 def _number_kinds(command_type: type, name: str) -> tuple[type, bool] | None:

@@ -273,6 +273,13 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
         ("eval",): "td3-jax eval needs --run (see td3-jax eval --help)",
         ("train", "--num-envs", "many", "--out", out):
             "--num-envs takes a whole number, got 'many'",
+        # tyro's "Expected one of ('online', 'None', 'offline')" and "Expected 1 values."
+        ("train", "--wandb-mode", "onine", "--out", out):
+            "--wandb-mode 'onine' is not one of offline, online; did you mean online?",
+        ("train", "--algo", "sac", "--out", out): "--algo 'sac' is not one of ddpg, td3",
+        ("train", "--exploration", "OU", "--out", out):
+            "--exploration 'OU' is not one of gaussian, ou; did you mean ou?",
+        ("train", "--out", out, "--seed"): "--seed needs a value (see td3-jax train --help)",
     }  # fmt: skip
     for args, message in cases.items():
         code, _, err = main(list(args), capsys)
