@@ -601,8 +601,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     received: list[int] = []
     started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
+    ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
     try:
-        with runtime.stop_signals(stop, received, say=jax.process_index() == 0):
+        with runtime.stop_signals(stop, received, say=jax.process_index() == 0, aftermath=ended):
             records = train(
                 cfg,
                 command.out,
@@ -618,9 +619,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
             )
     except KeyboardInterrupt:
         if signal.SIGTERM in received:
-            raise Interrupted(interrupted_message(command.out, "terminated (SIGTERM)"),
-                              128 + signal.SIGTERM) from None  # fmt: skip
-        raise Interrupted(interrupted_message(command.out)) from None
+            raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
+        raise Interrupted(ended()) from None
     if not records:
         print(f"nothing to do: the run in {command.out} is complete")
         return

@@ -182,7 +182,12 @@ def enable_compile_cache(directory: str) -> Path | None:
 
 
 @contextlib.contextmanager
-def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iterator[None]:
+def stop_signals(
+    stop: StopToken,
+    received: list[int],
+    say: bool = True,
+    aftermath: Callable[[str], str] | None = None,
+) -> Iterator[None]:
     """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
     ``stop`` (so the run stops at its next chunk boundary even where Python discards that
     exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a kill) sets
@@ -191,6 +196,8 @@ def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iter
     :data:`REPEAT_SIGTERM_S` of the first: GNU ``timeout`` signals its child and then its own
     process group, so one request arrives twice. The signals received are appended to
     ``received``; ``say``: whether this process prints (several processes: one speaks).
+    ``aftermath(cause)``: the line said when a second signal ends the process (what it leaves
+    behind: the newest checkpoint, how to resume); default: ``cause`` alone.
 
     The handlers, and an unraisable-exception hook that drops a Ctrl-C Python discarded, are
     installed only on the main thread, and the previous ones are put back on exit.
@@ -198,7 +205,7 @@ def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iter
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    on_signal = _signal_handler(stop, received, say)
+    on_signal = _signal_handler(stop, received, say, aftermath)
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     previous_hook = sys.unraisablehook
 
@@ -219,7 +226,9 @@ def stop_signals(stop: StopToken, received: list[int], say: bool = True) -> Iter
 REPEAT_SIGTERM_S = 0.5
 
 
-def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable[..., None]:
+def _signal_handler(
+    stop: StopToken, received: list[int], say: bool, aftermath: Callable[[str], str] | None
+) -> Callable[..., None]:
     """The SIGINT/SIGTERM handler of :func:`stop_signals`."""
     first_sigterm: list[float] = []
 
@@ -229,8 +238,7 @@ def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable
             return  # the same request delivered twice (timeout: child, then process group)
         if stop.is_set():
             if say:
-                again = "terminated" if signum == signal.SIGTERM else "interrupted"
-                print(f"td3-jax: {again} again: stopping now", file=sys.stderr, flush=True)
+                print(f"td3-jax: {_last_words(signum, aftermath)}", file=sys.stderr, flush=True)
             os._exit(128 + signum)
         received.append(signum)
         stop.set()
@@ -245,6 +253,16 @@ def _signal_handler(stop: StopToken, received: list[int], say: bool) -> Callable
         raise KeyboardInterrupt
 
     return on_signal
+
+
+def _last_words(signum: int, aftermath: Callable[[str], str] | None) -> str:
+    """What a second signal says as it ends the process (``aftermath`` of its cause, or the
+    cause alone where there is none or it fails: the process stops either way)."""
+    cause = ("terminated" if signum == signal.SIGTERM else "interrupted") + " again: stopping now"
+    try:
+        return cause if aftermath is None else aftermath(cause)
+    except Exception:  # (a directory that cannot be read must not keep the process running)
+        return cause
 
 
 def _what_stopping_does(stop: StopToken) -> str:

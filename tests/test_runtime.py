@@ -199,6 +199,38 @@ def test_stop_signals_set_the_token_and_are_put_back(monkeypatch, capsys):
     assert {s: signal.getsignal(s) for s in handlers} == handlers
 
 
+def test_a_second_signal_says_what_the_stop_leaves(monkeypatch, capsys):
+    """The line a second signal ends the process with is ``aftermath`` of its cause (the run's
+    newest checkpoint and how to resume, in the CLI), or the cause alone if that fails."""
+
+    def exit_now(code: int) -> None:
+        raise SystemExit(code)  # as os._exit would end the process, the handler goes no further
+
+    monkeypatch.setattr(runtime.os, "_exit", exit_now)
+
+    def leaves(cause: str) -> str:
+        return f"{cause}; the newest checkpoint is ckpt/7"
+
+    stop = runtime.StopToken()
+    with pytest.raises(SystemExit) as ended, runtime.stop_signals(stop, [], aftermath=leaves):
+        signal.raise_signal(signal.SIGTERM)
+        time.sleep(runtime.REPEAT_SIGTERM_S + 0.1)
+        signal.raise_signal(signal.SIGTERM)
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert ended.value.code == 128 + signal.SIGTERM
+    assert last == "td3-jax: terminated again: stopping now; the newest checkpoint is ckpt/7"
+
+    def unreadable(cause: str) -> str:
+        raise PermissionError("run directory")
+
+    stop.set()  # a first Ctrl-C was received: the next one ends the process
+    with pytest.raises(SystemExit) as ended, runtime.stop_signals(stop, [], aftermath=unreadable):
+        signal.raise_signal(signal.SIGINT)
+    assert ended.value.code == 128 + signal.SIGINT
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == "td3-jax: interrupted again: stopping now"
+
+
 def test_a_stopped_wait_gives_up_the_compile_thread():
     stop, release = runtime.StopToken(), threading.Event()
     future = runtime.in_background(release.wait, 30)
