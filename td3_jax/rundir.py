@@ -248,7 +248,10 @@ def check_resume(
         check_not_in_use(out_dir)
     steps = checkpoint_steps(out_dir)
     if not steps:
-        raise ConfigError(f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint")
+        raise ConfigError(
+            f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint (its run stopped "
+            "before the first: run without --resume to start it)"
+        )
     changes = config_changes(load_config(out_dir), cfg)
     if "total_steps" in changes and cfg.lr_schedule == "cosine":
         raise ConfigError(
@@ -435,6 +438,11 @@ def _read_config(out_dir: Path) -> dict:
                 f"{out_dir} is being started by a td3-jax run ({lock_holder(out_dir)}) and holds "
                 "no config.json or checkpoint yet; try again after its first evaluation"
             ) from None
+        if (Path(out_dir) / LOCK_FILE).exists():  # a run locked it, then stopped before training
+            raise ConfigError(
+                f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
+                "trained (run its td3-jax train command again to start it)"
+            )
         raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory")
     try:
         raw = json.loads(path.read_text())

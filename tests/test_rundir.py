@@ -159,6 +159,9 @@ def test_reading_a_run_that_is_still_starting_says_so(tmp_path):
             rundir.load_config(tmp_path)
     finally:
         lock.release()
+    with pytest.raises(ConfigError, match=r"holds no config\.json or checkpoint: its run stopped "
+                       r"before it trained"):  # fmt: skip
+        rundir.load_config(tmp_path)  # (its lock file stays behind, released)
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,6 +195,16 @@ def test_resume_of_a_missing_directory_creates_nothing(tmp_path):
         with pytest.raises(ConfigError, match="has no checkpoint"):
             rundir.check_resume(tmp_path, SMALL)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
+    """What such a run leaves (its released lock, an empty checkpoints folder): --resume
+    refuses, saying to start without it, and a fresh start is accepted."""
+    rundir.acquire_lock(tmp_path).release()
+    (tmp_path / "checkpoints").mkdir()
+    with pytest.raises(ConfigError, match="run without --resume to start it"):
+        rundir.check_resume(tmp_path, SMALL)
+    rundir.check_fresh(tmp_path)
 
 
 def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
