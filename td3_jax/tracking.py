@@ -22,6 +22,7 @@ import secrets
 import string
 import sys
 from collections.abc import Callable
+from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -207,8 +208,20 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
         run.define_metric("*", step_metric="env_steps")
     except Exception as err:  # wandb.errors.CommError, AuthenticationError, UsageError, ...
         text = " ".join(str(err).split()) or type(err).__name__
+        _teardown_quietly(wandb)  # (its farewell lines would come after the run's error line)
         raise WandbError(
             f"--wandb: Weights & Biases could not start the run ({text}); check `wandb login` "
             "and the network, or use --wandb-mode offline"
         ) from None
     return Tracker(run, wandb.Image)
+
+
+def _teardown_quietly(wandb: ModuleType) -> None:
+    """Ends W&B's service after a run that did not start, now rather than at exit, so its
+    farewell (where its logs are) comes before the run's error line and that line is the
+    last; what it writes to ``sys.stdout``/``sys.stderr`` meanwhile is dropped."""
+    with open(os.devnull, "w") as sink, redirect_stdout(sink), redirect_stderr(sink):
+        try:
+            wandb.teardown()
+        except Exception:  # (nothing left to end, or a W&B without teardown)
+            pass

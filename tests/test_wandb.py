@@ -215,11 +215,19 @@ def test_a_wandb_run_that_cannot_start_is_one_line(monkeypatch, wandb_module, tm
     def unreachable(**arguments):
         raise ConnectionError("api.wandb.ai:\n  unreachable")
 
+    def teardown():  # W&B's service says where its logs are as it ends
+        torn_down.append(True)
+        print("wandb: Find logs at: run/wandb/logs", file=sys.stderr)
+        print("wandb: ")
+
+    torn_down = []
     monkeypatch.setattr(wandb_module, "init", unreachable)
+    monkeypatch.setattr(wandb_module, "teardown", teardown, raising=False)
     out = tmp_path / "run"
-    code, _, err = main(["train", *FLAGS, "--out", str(out), "--wandb"], capsys)
+    code, stdout, err = main(["train", *FLAGS, "--out", str(out), "--wandb"], capsys)
     assert_one_line_error(code, err, "could not start the run (api.wandb.ai: unreachable)",
                           "--wandb-mode offline")  # fmt: skip
+    assert torn_down == [True] and "wandb" not in stdout  # ended, its lines dropped
     assert not (out / "config.json").exists()
     check_fresh(out)  # the same command can run again there
 
