@@ -249,8 +249,7 @@ def check_resume(
     steps = checkpoint_steps(out_dir)
     if not steps:
         raise ConfigError(
-            f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint (its run stopped "
-            "before the first: run without --resume to start it)"
+            f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint{_start_instead(out_dir)}"
         )
     changes = config_changes(load_config(out_dir), cfg)
     if "total_steps" in changes and cfg.lr_schedule == "cosine":
@@ -293,6 +292,18 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
             lock.release()
             raise
     return lock
+
+
+def _start_instead(out_dir: Path) -> str:
+    """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
+    where a fresh run is accepted there (its run stopped before the first checkpoint), else
+    nothing (the fresh start's own refusal would follow, e.g. a run whose checkpoints were
+    deleted)."""
+    try:
+        check_fresh(out_dir)
+    except ConfigError:
+        return ""
+    return " (its run stopped before the first: run without --resume to start it)"
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:

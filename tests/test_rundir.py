@@ -205,6 +205,11 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
     with pytest.raises(ConfigError, match="run without --resume to start it"):
         rundir.check_resume(tmp_path, SMALL)
     rundir.check_fresh(tmp_path)
+    # A run whose checkpoints were deleted cannot start fresh there: no such advice.
+    (tmp_path / "config.json").write_text("{}")
+    with pytest.raises(ConfigError) as refused:
+        rundir.check_resume(tmp_path, SMALL)
+    assert str(refused.value).endswith("checkpoints has no checkpoint")
 
 
 def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
