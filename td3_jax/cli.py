@@ -14,7 +14,6 @@ import functools
 import importlib
 import io
 import itertools
-import math
 import os
 import re
 import signal
@@ -560,13 +559,14 @@ def _sweep_values(command: Any) -> dict[str, list[float]]:
 
 
 def _check_process_flags(command: Any) -> None:
-    """The flags of this process that TrainConfig does not hold: a positive ``--devices`` and
-    a positive, finite ``--time-budget-s`` (a ConfigError otherwise)."""
-    if command.devices is not None and command.devices <= 0:
-        raise ConfigError(f"--devices must be positive, got {command.devices}")
-    budget = command.time_budget_s
-    if budget is not None and not (math.isfinite(budget) and budget > 0):
-        raise ConfigError(f"--time-budget-s must be a positive number of seconds, got {budget}")
+    """The flags of this process that TrainConfig does not hold, checked before anything is
+    said (:func:`~td3_jax.run.train` checks them too): a positive ``--devices`` and a positive,
+    finite ``--time-budget-s`` (a ConfigError otherwise)."""
+    from td3_jax.run import check_time_budget
+    from td3_jax.sharding import check_devices
+
+    check_devices(command.devices)
+    check_time_budget(command.time_budget_s)
 
 
 def train_main(args: list[str], sweeping: bool = False) -> None:

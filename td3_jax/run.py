@@ -25,7 +25,7 @@ from td3_jax import programs, tracking
 from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
-from td3_jax.errors import NonFiniteError, OutputWriteError, PhysicsOverflowError
+from td3_jax.errors import ConfigError, NonFiniteError, OutputWriteError, PhysicsOverflowError
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, plot_curve
 from td3_jax.population import Member
 from td3_jax.programs import Programs, Source
@@ -96,6 +96,7 @@ def train(
         stops the run as a Ctrl-C would. Default: a fresh one.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
+    check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
     prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir, env)
     cfg, population, changes, source = prepared
@@ -109,6 +110,13 @@ def train(
     finally:
         _finish(run, run_lock)
     return run.records
+
+
+def check_time_budget(seconds: float | None) -> None:
+    """A one-line ConfigError for a time budget (``--time-budget-s``) that is not a positive,
+    finite number of seconds (a negative one trained a chunk, then stopped)."""
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise ConfigError(f"--time-budget-s must be a positive number of seconds, got {seconds}")
 
 
 def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,

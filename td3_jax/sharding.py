@@ -34,10 +34,17 @@ def make_mesh(num_devices: int | None = None) -> Mesh:
     """A 1-D mesh over the first ``num_devices`` devices (default: all, across processes)."""
     devices = jax.devices()
     if num_devices is not None:
-        if not 0 < num_devices <= len(devices):
+        check_devices(num_devices)
+        if num_devices > len(devices):
             raise ConfigError(f"--devices {num_devices} asked, {len(devices)} available")
         devices = devices[:num_devices]
     return Mesh(np.array(devices), (AXIS,))
+
+
+def check_devices(num_devices: int | None) -> None:
+    """A one-line ConfigError for a device count (``--devices``) that is not positive."""
+    if num_devices is not None and num_devices <= 0:
+        raise ConfigError(f"--devices must be positive, got {num_devices}")
 
 
 def memory_of(device: Any) -> tuple[int, str] | None:

@@ -589,6 +589,18 @@ def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path,
     assert len(run_module.train(cfg, out, resume=True, progress=False)) == 2  # 128, 192
 
 
+@pytest.mark.parametrize("limits", [{"time_budget_s": -1.0}, {"time_budget_s": float("inf")},
+                                    {"devices": 0}, {"devices": -2}])  # fmt: skip
+def test_the_library_refuses_a_bad_budget_or_device_count_before_the_run_starts(tmp_path,
+                                                                               limits):  # fmt: skip
+    """run.train (not only the CLI) refuses a time budget or a device count that is not
+    positive: a budget of -1 trained one chunk and stopped; nothing is created."""
+    flag = "--time-budget-s" if "time_budget_s" in limits else "--devices"
+    with pytest.raises(ConfigError, match=f"^{flag} must be positive|^{flag} must be a positive"):
+        run_module.train(SMALL, tmp_path / "run", progress=False, **limits)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_stop_that_comes_with_the_last_chunk_lets_the_run_finish(tmp_path, monkeypatch):
     """Set during the run's last chunk (a SIGTERM as the job ends), the token changes nothing:
     the run is complete, so train returns its records instead of raising."""
