@@ -217,9 +217,9 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
 
 
 def _teardown_quietly(wandb: ModuleType) -> None:
-    """Ends W&B's service after a run that did not start, now rather than at exit, so its
-    farewell (where its logs are) comes before the run's error line and that line is the
-    last; what it writes to ``sys.stdout``/``sys.stderr`` meanwhile is dropped."""
+    """Ends W&B's service after a run that did not start, now rather than at exit, so that its
+    farewell (where its logs are) does not follow the run's error line: what it writes to
+    ``sys.stdout``/``sys.stderr`` meanwhile is dropped, and nothing is left for exit."""
     with open(os.devnull, "w") as sink, redirect_stdout(sink), redirect_stderr(sink):
         try:
             wandb.teardown()
