@@ -569,9 +569,11 @@ def test_the_resume_help_and_readme_name_every_setting_a_resume_may_change(capsy
     from td3_jax.rundir import SAFE_ON_RESUME
 
     help_text = main(["train", "--help"], capsys)[1]
-    entry = re.split(r"\n[│ ]*--preset ", help_text.split("--resume, --no-resume")[1])[0]
+    entry, *after = re.split(r"\n[│ ]*--preset ", help_text.split("--resume, --no-resume")[1])
+    assert after, "no --preset entry after --resume's: the entry would be the rest of the help"
     readme = (Path(__file__).parents[1] / "README.md").read_text()
-    bullet = readme.split("**A resume keeps the run's identity.**")[1].split("\n* **")[0]
+    bullet, *after = readme.split("**A resume keeps the run's identity.**")[1].split("\n* **")
+    assert after, "the bullet would be the rest of the README"
     for text in (entry, bullet):
         text = " ".join(re.sub("[│`]", " ", text).split())
         assert "--wandb* flags may" in text, text
