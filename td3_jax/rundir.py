@@ -449,7 +449,8 @@ def _read_config(out_dir: Path) -> dict:
                 f"{out_dir} is being started by a td3-jax run ({lock_holder(out_dir)}) and holds "
                 "no config.json or checkpoint yet; try again after its first evaluation"
             ) from None
-        if (Path(out_dir) / LOCK_FILE).exists():  # a run locked it, then stopped before training
+        stopped_early = (Path(out_dir) / LOCK_FILE).exists() and not previous_outputs(out_dir)
+        if stopped_early:  # a run locked it, then stopped before it wrote anything
             raise ConfigError(
                 f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
                 "trained (run its td3-jax train command again to start it)"

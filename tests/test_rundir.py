@@ -162,6 +162,9 @@ def test_reading_a_run_that_is_still_starting_says_so(tmp_path):
     with pytest.raises(ConfigError, match=r"holds no config\.json or checkpoint: its run stopped "
                        r"before it trained"):  # fmt: skip
         rundir.load_config(tmp_path)  # (its lock file stays behind, released)
+    (tmp_path / "metrics.jsonl").write_text("{}\n")  # a run's output, config.json lost: not that
+    with pytest.raises(ConfigError, match=r"holds no config\.json: not a td3-jax run directory"):
+        rundir.load_config(tmp_path)
 
 
 # --------------------------------------------------------------------------------------------
