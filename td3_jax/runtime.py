@@ -227,7 +227,10 @@ REPEAT_SIGTERM_S = 0.5
 
 
 def _signal_handler(
-    stop: StopToken, received: list[int], say: bool, aftermath: Callable[[str], str] | None
+    stop: StopToken,
+    received: list[int],
+    say: bool,
+    aftermath: Callable[[str], str] | None = None,
 ) -> Callable[..., None]:
     """The SIGINT/SIGTERM handler of :func:`stop_signals`."""
     first_sigterm: list[float] = []
