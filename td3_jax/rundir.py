@@ -296,14 +296,20 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
 
 def _start_instead(out_dir: Path) -> str:
     """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
-    where a fresh run is accepted there (its run stopped before the first checkpoint), else
-    nothing (the fresh start's own refusal would follow, e.g. a run whose checkpoints were
-    deleted)."""
-    try:
-        check_fresh(out_dir)
-    except ConfigError:
+    where its run stopped before training (a fresh start is accepted there), else nothing
+    (the fresh start's own refusal would follow, e.g. a run whose checkpoints were deleted)."""
+    if not _stopped_before_training(out_dir):
         return ""
     return " (its run stopped before the first: run without --resume to start it)"
+
+
+def _stopped_before_training(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds what a run leaves that stopped before it wrote anything: its
+    lock file (and empty folders), no output and nothing else, so a fresh run may start there."""
+    out_dir = Path(out_dir)
+    return (out_dir / LOCK_FILE).exists() and not (
+        checkpoint_steps(out_dir) or previous_outputs(out_dir) or foreign_entries(out_dir)
+    )
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
@@ -449,8 +455,7 @@ def _read_config(out_dir: Path) -> dict:
                 f"{out_dir} is being started by a td3-jax run ({lock_holder(out_dir)}) and holds "
                 "no config.json or checkpoint yet; try again after its first evaluation"
             ) from None
-        stopped_early = (Path(out_dir) / LOCK_FILE).exists() and not previous_outputs(out_dir)
-        if stopped_early:  # a run locked it, then stopped before it wrote anything
+        if _stopped_before_training(out_dir):
             raise ConfigError(
                 f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
                 "trained (run its td3-jax train command again to start it)"
