@@ -648,13 +648,15 @@ def done_line(last: dict, out: Path, process_s: float | None = None,
     the policy it is of, where evaluated inside the chunk). A run resumed at ``resumed_at`` env
     steps says what this process did in ``process_s`` seconds, then the whole run's time."""
     policy = last.get("eval_policy_env_steps", -1)
-    of = f" (policy of {int(policy)} steps; td3-jax eval for the final one)" if policy >= 0 else ""
+    of = (
+        f" (policy of {int(policy):,} steps; td3-jax eval for the final one)" if policy >= 0 else ""
+    )
     took = f"in {last['wall_time_s']:.0f} s"
     if resumed_at is not None:
         seconds = last["wall_time_s"] if process_s is None else process_s
-        took = (f"({last['env_steps'] - resumed_at} in this process, in {seconds:.0f} s; "
+        took = (f"({last['env_steps'] - resumed_at:,} in this process, in {seconds:.0f} s; "
                 f"{last['wall_time_s']:.0f} s over the whole run)")  # fmt: skip
-    return (f"done: {last['env_steps']} env steps {took}; eval return "
+    return (f"done: {last['env_steps']:,} env steps {took}; eval return "
             f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}{of}; "
             f"outputs in {out}")  # fmt: skip
 
