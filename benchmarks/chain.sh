@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Long GPU jobs across several device commands, without splitting a run by --time-budget-s and
+# --resume: a process started with `setsid nohup` outlives the device command that started it
+# (seen 2026-11-25 on nvidia-h100-x1), as long as the machine stays held (a command in flight,
+# or one started within its idle release). Staged outside the checkout, which each command
+# replaces.
+#   bash benchmarks/chain.sh start NAME CMD...   run CMD in the background; log /root/chains/NAME.log
+#   bash benchmarks/chain.sh wait NAME SECONDS   until NAME ends or SECONDS pass; prints the log's tail
+#   bash benchmarks/chain.sh alive NAME          exit 0 while NAME runs
+# The PID file decides whether a job runs: `pgrep -f NAME` also matches the device command's own
+# shell, whose command line names NAME, and so never reports the job ended.
+set -uo pipefail
+dir=/root/chains
+mkdir -p "$dir"
+what=${1:?start, wait or alive}
+name=${2:?a job name}
+pidfile=$dir/$name.pid
+alive() { [ -f "$pidfile" ] && kill -0 "$(cat "$pidfile")" 2>/dev/null; }
+case $what in
+  start)
+    shift 2
+    if alive; then echo "chain: $name runs already (pid $(cat "$pidfile"))"; exit 2; fi
+    setsid nohup "$@" >"$dir/$name.log" 2>&1 </dev/null &
+    echo $! >"$pidfile"
+    echo "chain: $name started (pid $!), log $dir/$name.log" ;;
+  wait)
+    deadline=$(( $(date +%s) + ${3:?seconds} ))
+    while alive && [ "$(date +%s)" -lt "$deadline" ]; do sleep 2; done
+    if alive; then echo "chain: $name still running"; else echo "chain: $name ended"; fi
+    tail -n 5 "$dir/$name.log" ;;
+  alive) alive ;;
+  *) echo "chain: start, wait or alive, not $what"; exit 2 ;;
+esac
