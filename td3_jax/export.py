@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from td3_jax import normalization
-from td3_jax.errors import ExportError
+from td3_jax.errors import ConfigError, ExportError
 from td3_jax.policy_file import FORMAT_VERSION
 
 #: The export formats (``td3-jax export --format``).
@@ -178,7 +178,7 @@ def _record_return(record: dict, k: int) -> float:
     return -math.inf if value is None or not math.isfinite(value) else float(value)
 
 
-def best_member(records: list[dict], env_steps: int) -> int | None:
+def best_member(records: list[dict], env_steps: int | None) -> int | None:
     """The member with the highest ``eval_return_mean`` in the evaluation at ``env_steps``
     (the checkpoint's; else the last one), or ``None`` without per-member records."""
     with_members = [r for r in records if r.get("per_member")]
@@ -191,16 +191,27 @@ def best_member(records: list[dict], env_steps: int) -> int | None:
     return max(range(count), key=lambda k: (returns[k], -k))  # ties: the lower index
 
 
-def choose_member(requested: int | None, count: int, records: list[dict], env_steps: int) -> int:
-    """``requested`` checked against ``count`` members, else :func:`best_member`, else 0."""
+def member_out_of_range(requested: int, count: int) -> str:
+    """The one line ``export`` and ``render`` give for a ``--member`` a run of ``count``
+    members does not have (a negative one included)."""
+    members = "1 member (0)" if count == 1 else f"{count} members (0 to {count - 1})"
+    return f"--member {requested} is out of range: the run has {members}"
+
+
+def choose_member(
+    requested: int | None,
+    count: int,
+    records: list[dict],
+    env_steps: int | None,
+    error: type[ConfigError] = ExportError,
+) -> int:
+    """``requested`` checked against ``count`` members (else ``error``, the calling
+    command's, saying :func:`member_out_of_range`), else :func:`best_member`, else 0."""
     if requested is None:
         best = best_member(records, env_steps)
         return best if best is not None and best < count else 0
     if not 0 <= requested < count:
-        raise ExportError(
-            f"--member {requested} is out of range: the run has {count} member"
-            f"{'s' if count != 1 else ''} (0 to {count - 1})"
-        )
+        raise error(member_out_of_range(requested, count))
     return requested
 
 

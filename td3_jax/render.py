@@ -327,17 +327,14 @@ def choose_member(
 ) -> int:
     """``member`` checked against the ``count`` members; by default the member ``td3-jax
     export`` picks: the highest return of the evaluation at the checkpoint's ``env_steps``
-    in metrics.jsonl (else of the last one; :func:`td3_jax.export.best_member`), else 0."""
-    if member is None:
-        from td3_jax.export import best_member
-        from td3_jax.logger import read_metrics
+    in metrics.jsonl (else of the last one), else 0: :func:`td3_jax.export.choose_member`,
+    whose out-of-range line it gives as a :class:`RenderError`."""
+    from td3_jax.export import choose_member as export_choose_member
+    from td3_jax.logger import read_metrics
 
-        records = read_metrics(Path(run_dir) / "metrics.jsonl")
-        best = best_member(records, env_steps) if count > 1 else None
-        return best if best is not None and best < count else 0
-    if not 0 <= member < count:
-        raise RenderError(f"--member {member}: the run has members 0..{count - 1}")
-    return member
+    wanted = member is None and count > 1
+    records = read_metrics(Path(run_dir) / "metrics.jsonl") if wanted else []
+    return export_choose_member(member, count, records, env_steps, error=RenderError)
 
 
 def split_episodes(recording: training.Recording) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -13,6 +13,7 @@ import dataclasses
 import io
 import json
 import os
+import re
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 from support import assert_one_line_error, main
 
-from td3_jax import cli, finished, render, rundir, upstream
+from td3_jax import cli, errors, export, finished, render, rundir, upstream
 from td3_jax.build import make_population, members
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import TrainConfig
@@ -209,6 +210,29 @@ def test_errors_exit_2(tmp_path, capsys):
     for flags, needle in ((["--out", "x.avi"], "must end in .mp4 or .gif"),
                           (["--gif", "--out", "x.mp4"], "ends in .gif"),
                           (["--episodes", "0"], "--episodes must be positive"),
-                          (["--member", "3"], "members 0..0")):  # fmt: skip
+                          (["--member", "3"], "--member 3 is out of range")):  # fmt: skip
         code, _, err = main(["render", "--run", str(tmp_path / "empty"), *flags], capsys)
         assert_one_line_error(code, err, needle)
+
+
+@pytest.mark.parametrize(("seeds", "member", "said"), [
+    (1, 3, "--member 3 is out of range: the run has 1 member (0)"),
+    (1, -1, "--member -1 is out of range: the run has 1 member (0)"),
+    (3, 3, "--member 3 is out of range: the run has 3 members (0 to 2)"),
+    (3, -2, "--member -2 is out of range: the run has 3 members (0 to 2)"),
+])  # fmt: skip
+def test_export_and_render_say_a_member_out_of_range_alike(tmp_path, capsys, seeds, member, said):
+    """One line, the same for both commands (a negative --member too), exit code 2, before
+    anything is restored: the run directory holds config.json and members.json alone; each
+    command keeps its own error class."""
+    cfg = TrainConfig(env="gymnax/Pendulum-v1", **{**TINY, "seeds": seeds})
+    rundir.save_config(cfg, members(cfg), tmp_path)
+    for command in (["export", "--format", "npz"], ["render"]):
+        code, _, err = main([*command, "--run", str(tmp_path), f"--member={member}"], capsys)
+        assert_one_line_error(code, err)
+        assert err.strip() == f"td3-jax: error: {said}", command
+    with pytest.raises(export.ExportError, match=re.escape(said)):
+        export.choose_member(member, seeds, [], 0)
+    with pytest.raises(errors.RenderError, match=re.escape(said)) as caught:
+        render.choose_member(tmp_path, seeds, member)
+    assert not isinstance(caught.value, errors.ExportError)
