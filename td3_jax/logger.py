@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import itertools
 import json
 import math
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +29,8 @@ __all__ = [
 
 #: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+#: The TensorBoard writers this process has opened (a part of each event file's name).
+_WRITERS_OPENED = itertools.count()
 
 
 class MetricsLogger:
@@ -52,9 +56,8 @@ class MetricsLogger:
         kept = [r for r in records
                 if resume_env_steps is not None and r["env_steps"] <= resume_env_steps]  # fmt: skip
         write_atomically(self.path, "".join(json.dumps(record) + "\n" for record in kept))
-        SummaryWriter = _summary_writer_class()
         purge = _purge_step(records, resume_env_steps)
-        self._tb = SummaryWriter(str(Path(out_dir) / "tensorboard"), purge_step=purge)
+        self._tb = _tensorboard_writer(Path(out_dir) / "tensorboard", purge)
         self._to_tensorboard(kept, since=purge or 0)
 
     def write(self, record: dict[str, Any]) -> None:
@@ -110,6 +113,26 @@ def _purge_step(records: list[dict[str, Any]], resume_env_steps: int | None) -> 
         return None
     dropped = [evaluated_steps(r) for r in records if r["env_steps"] > resume_env_steps]
     return min([resume_env_steps + 1, *dropped])
+
+
+def _tensorboard_writer(folder: Path, purge_step: int | None) -> Any:
+    """A tensorboardX ``SummaryWriter`` of ``folder`` (dropping the points already there from
+    ``purge_step`` on, where given), writing an event file of its own."""
+    SummaryWriter = _summary_writer_class()
+    return SummaryWriter(str(folder), purge_step=purge_step, filename_suffix=_event_file_suffix())
+
+
+def _event_file_suffix() -> str:
+    """The end of a new TensorBoard event file's name, which no other writer's has.
+
+    tensorboardX names a file ``events.out.tfevents.<second>.<host>``, so a second writer
+    opened in the same second (a resume right after a stop, another process) would open the
+    same file again and overwrite the first's events. The suffix adds the time in nanoseconds
+    (19 digits, so within a second the files sort, and TensorBoard reads them, in the order they
+    were opened: a resume's purge comes after the points it drops), the process id and the
+    number of writers this process opened before.
+    """
+    return f".{time.time_ns()}.{os.getpid()}.{next(_WRITERS_OPENED)}"
 
 
 def write_atomically(path: Path, text: str) -> None:

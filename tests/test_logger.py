@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import types
 
 import pytest
 from support import tensorboard_events
@@ -113,21 +114,30 @@ def _tensorboard_points(run_dir) -> dict[str, list[tuple[int, float]]]:
     return points
 
 
-def test_a_resume_shows_each_in_chunk_evaluation_once_in_tensorboard(tmp_path):
+def _one_second(monkeypatch) -> None:
+    """tensorboardX's clock stopped within one second: each event file it opens is named for
+    the same second."""
+    from tensorboardX import event_file_writer
+
+    clock = types.SimpleNamespace(time=lambda: 1_700_000_000.5)
+    monkeypatch.setattr(event_file_writer, "time", clock)
+
+
+def test_a_resume_shows_each_in_chunk_evaluation_once_in_tensorboard(tmp_path, monkeypatch):
     """With the evaluation inside the chunk, a record plots its returns at its round's policy
     steps, before its own. A run checkpointed at env step 64 that wrote the record of 96 (its
-    returns at 64) before it stopped is resumed from 64 and writes that record again: TensorBoard
-    shows the resumed run's points once each, as a run that never stopped would."""
+    returns at 64) before it stopped is resumed from 64, within the same second, and writes that
+    record again: TensorBoard shows the resumed run's points once each, as a run that never
+    stopped would (the first run's file kept, and read before the resume's)."""
     from td3_jax.logger import MetricsLogger
 
+    _one_second(monkeypatch)
     record = lambda steps, ret, loss: {"env_steps": steps, "eval_policy_env_steps": steps - 32,
                                        "eval_return_mean": ret, "critic_loss": loss}  # fmt: skip
     first = MetricsLogger(tmp_path)
     for r in (record(32, 1.0, 0.1), record(64, 2.0, 0.2), record(96, -9.0, -9.0)):
         first.write(r)
     first.close()
-    for path in (tmp_path / "tensorboard").iterdir():  # (named for its second, as the resume's
-        path.rename(path.with_name("events.out.tfevents.0.first"))  # file is: read first)
     resumed = MetricsLogger(tmp_path, resume_env_steps=64)
     for r in (record(96, 3.0, 0.3), record(128, 4.0, 0.4)):
         resumed.write(r)
@@ -136,3 +146,20 @@ def test_a_resume_shows_each_in_chunk_evaluation_once_in_tensorboard(tmp_path):
     assert points["eval_return_mean"] == [(0, 1.0), (32, 2.0), (64, 3.0), (96, 4.0)]
     steps, losses = zip(*points["critic_loss"], strict=True)
     assert steps == (32, 64, 96, 128) and losses == pytest.approx((0.1, 0.2, 0.3, 0.4))
+
+
+def test_two_writers_open_at_once_in_one_folder_each_keep_their_points(tmp_path, monkeypatch):
+    """Two writers opened in the same second in one folder (two processes' logs, say), writing
+    in turns: each writes a file of its own, and every point of both is there."""
+    from td3_jax.logger import _tensorboard_writer
+
+    _one_second(monkeypatch)
+    writers = [_tensorboard_writer(tmp_path / "tensorboard", None) for _ in range(2)]
+    for steps in (8, 16):
+        for value, writer in enumerate(writers):
+            writer.add_scalar("critic_loss", value, steps)
+            writer.flush()
+    for writer in writers:
+        writer.close()
+    points = _tensorboard_points(tmp_path)["critic_loss"]
+    assert sorted(points) == [(8, 0.0), (8, 1.0), (16, 0.0), (16, 1.0)]
