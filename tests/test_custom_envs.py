@@ -279,6 +279,89 @@ def test_a_factory_is_found_from_the_current_directory_or_said_in_one_line(
     assert needle in str(caught.value) and "\n" not in str(caught.value)
 
 
+TYPO_FACTORIES = """
+import json
+
+def make_arm():
+    return None
+
+def make_leg():
+    return None
+
+class Arms:
+    @staticmethod
+    def make():
+        return None
+
+LINK_COUNT = 3
+"""
+
+
+@pytest.fixture
+def typo_modules(tmp_path, monkeypatch):
+    """``typo_factories`` and ``typo_pkg.envs`` (each of them the module above) on the Python
+    path, not in the current directory; forgotten again afterwards."""
+    (tmp_path / "typo_factories.py").write_text(TYPO_FACTORIES)
+    (tmp_path / "typo_pkg").mkdir()
+    (tmp_path / "typo_pkg" / "__init__.py").write_text("")
+    (tmp_path / "typo_pkg" / "envs.py").write_text(TYPO_FACTORIES)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path.parent)
+    yield
+    for name in [n for n in sys.modules if n.partition(".")[0] in ("typo_factories", "typo_pkg")]:
+        del sys.modules[name]
+
+
+@pytest.mark.parametrize(
+    ("spec", "said"),
+    [
+        ("typo_factories:make_ar", "typo_factories has no 'make_ar'; did you mean 'make_arm'?"),
+        ("typo_factories:MAKE_LEG", "typo_factories has no 'MAKE_LEG'; did you mean 'make_leg'?"),
+        ("typo_pkg.envs:mak_arm", "typo_pkg.envs has no 'mak_arm'; did you mean 'make_arm'?"),
+        ("typo_factories:Arms.mak", "typo_factories:Arms has no 'mak'; did you mean 'make'?"),
+        # a module or a number is no factory: never suggested; the callables are listed
+        ("typo_factories:jsn", "typo_factories has no 'jsn'; its public callables: Arms, "
+                               "make_arm, make_leg"),
+        ("typo_factories:LINK_CONT", "typo_factories has no 'LINK_CONT'; its public callables: "
+                                   "Arms, make_arm, make_leg"),
+    ],
+)  # fmt: skip
+def test_a_mistyped_factory_gets_the_closest_callable(typo_modules, spec, said):
+    with pytest.raises(errors.CustomEnvironmentError) as caught:
+        envs.make(spec)
+    assert str(caught.value) == f"{spec}: {said}"
+
+
+@pytest.mark.parametrize(
+    ("spec", "missing", "close"),
+    [
+        ("typo_factorie:make_arm", "typo_factorie", "typo_factories"),
+        ("typo_pk.envs:make_arm", "typo_pk", "typo_pkg"),
+        ("typo_pkg.env:make_arm", "typo_pkg.env", "typo_pkg.envs"),
+    ],
+)
+def test_a_mistyped_module_gets_the_closest_module(typo_modules, spec, missing, close):
+    """On the Python path, though not in the current directory; in a package, its modules."""
+    with pytest.raises(errors.CustomEnvironmentError) as caught:
+        envs.make(spec)
+    said = str(caught.value)
+    assert said.startswith(f"{spec}: no module {missing!r} in ") and "\n" not in said
+    assert said.endswith(f"; did you mean {close!r}?")
+
+
+def test_a_mistyped_module_with_nothing_close_gets_no_guess(typo_modules):
+    with pytest.raises(errors.CustomEnvironmentError) as caught:
+        envs.make("quite_unlike_anything:make_arm")
+    assert "did you mean" not in str(caught.value)
+    assert str(caught.value).endswith("--resume, eval, render and export)")
+
+
+def test_the_cli_says_a_mistyped_factory_in_one_line(typo_modules, tmp_path, capsys):
+    code, _, err = main(["train", "--env", "typo_factories:make_ar", *TINY_FLAGS, "--out",
+                         str(tmp_path / "run")], capsys)  # fmt: skip
+    assert_one_line_error(code, err, "has no 'make_ar'; did you mean 'make_arm'?")
+
+
 @pytest.mark.mjx
 def test_the_cli_sweeps_a_factory_over_seeds_and_finds_it_again(tmp_path, monkeypatch, capsys):
     """``sweep --env examples.point_mass:make`` over 2 learning rates x 2 seeds: config.json

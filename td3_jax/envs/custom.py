@@ -31,9 +31,11 @@ import dataclasses
 import difflib
 import importlib
 import os
+import pkgutil
 import re
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -191,22 +193,66 @@ def _import(module_name: str, spec: str) -> Any:
                 f"{spec}: no module {name!r} in {os.getcwd()} or on the Python path (run from "
                 "the folder holding it, set PYTHONPATH or install its package; a run made from "
                 "it needs it importable again for --resume, eval, render and export)"
+                f"{_did_you_mean(name, _sibling_modules(name))}"
             ) from err
         raise CustomEnvironmentError(f"{spec}: importing {module_name} raised "
                                      f"{_one_line(err)}") from err  # fmt: skip
 
 
 def _attribute(module: Any, path: str, spec: str) -> Any:
-    """``module.<path>`` (a dotted path), or one line naming what is missing."""
+    """``module.<path>`` (a dotted path), or one line naming what is missing: the closest of
+    its public callables, else those callables."""
     value = module
-    for part in path.split("."):
+    parts = path.split(".")
+    for depth, part in enumerate(parts):
         if not hasattr(value, part):
-            names = [n for n in dir(value) if not n.startswith("_")]
-            close = difflib.get_close_matches(part, names, n=1)
-            hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise CustomEnvironmentError(f"{spec}: {module.__name__} has no {path!r}{hint}")
+            where = module.__name__ + (f":{'.'.join(parts[:depth])}" if depth else "")
+            callables = _public_callables(value)
+            hint = _did_you_mean(part, callables)
+            if not hint:
+                listed = ", ".join(callables[:10]) + (", ..." if len(callables) > 10 else "")
+                hint = f"; its public callables: {listed}" if callables else ""
+            raise CustomEnvironmentError(f"{spec}: {where} has no {part!r}{hint}")
         value = getattr(value, part)
     return value
+
+
+def _public_callables(value: Any) -> list[str]:
+    """The callables a factory could be among ``value``'s public names (its ``__all__`` where
+    it has one, else its names not starting with ``_``), sorted."""
+    names = getattr(value, "__all__", None)
+    if not isinstance(names, list | tuple):
+        names = [name for name in dir(value) if not name.startswith("_")]
+    return sorted(name for name in names if callable(getattr(value, name, None)))
+
+
+def _did_you_mean(word: str, names: Sequence[str]) -> str:
+    """``; did you mean 'name'?`` for the name of ``names`` closest to ``word`` (case aside;
+    dotted names compared by their last part, those of ``word`` and of each name alike), else
+    ``""``."""
+    last = word.rpartition(".")[2]
+    lowered = {name.rpartition(".")[2].lower(): name for name in names}
+    close = difflib.get_close_matches(last.lower(), list(lowered), n=1)
+    return f"; did you mean {lowered[close[0]]!r}?" if close else ""
+
+
+def _sibling_modules(name: str) -> list[str]:
+    """The modules beside the missing module ``name``, by their full names: in its parent
+    package, imported (for ``pkg.modul``), else in :func:`_own_folders` (for ``modul``)."""
+    parent, _, _ = name.rpartition(".")
+    if not parent:
+        return [found.name for found in pkgutil.iter_modules(_own_folders())]
+    where = getattr(sys.modules.get(parent), "__path__", None) or []
+    return [f"{parent}.{found.name}" for found in pkgutil.iter_modules(list(where))]
+
+
+def _own_folders() -> list[str]:
+    """Where a user's own modules are imported from: the current directory and the Python
+    path's folders outside Python's installation and environment (``PYTHONPATH``'s)."""
+    installed = [Path(root) for root in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
+    added = [entry for entry in sys.path if entry and Path(entry).is_dir()
+             and not any(Path(entry).is_relative_to(root) for root in installed)]  # fmt: skip
+    return list(dict.fromkeys([os.getcwd(), *added]))
 
 
 def from_factory(
