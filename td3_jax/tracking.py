@@ -6,8 +6,11 @@ null are left out, as TensorBoard leaves them), plotted against ``env_steps`` (e
 returns against the env steps of the policy evaluated, as in TensorBoard and curve.png);
 ``config.json`` is the W&B run's config and ``curve.png`` is logged as an image when the run
 ends. W&B's files go to ``OUT/wandb/``, which also holds the W&B run's id, so ``--resume``
-continues the same W&B run. ``wandb`` is imported only when a run asks for it: importing this
-module changes no process-wide state.
+continues the same W&B run, and the env steps of the last record W&B was sent: a resume
+rewrites the records past its checkpoint (the same numbers: the resume is exact), and those W&B
+has already are not sent again, so that W&B's history holds one point of each (a W&B run cannot
+take points back, as TensorBoard's purge does). ``wandb`` is imported only when a run asks for
+it: importing this module changes no process-wide state.
 
 metrics.jsonl is written before W&B is told: a W&B failure during a run is one warning, after
 which the run goes on without W&B and loses no record.
@@ -15,6 +18,7 @@ which the run goes on without W&B and loses no record.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -33,6 +37,7 @@ from td3_jax.logger import evaluated_steps, is_return, write_atomically
 
 __all__ = [
     "ID_FILE",
+    "SENT_FILE",
     "WANDB_DIR",
     "Tracker",
     "WandbError",
@@ -48,6 +53,9 @@ __all__ = [
 WANDB_DIR = "wandb"
 #: The file, in :data:`WANDB_DIR`, holding the id of the run directory's W&B run.
 ID_FILE = "td3-jax-run-id"
+#: The file, in :data:`WANDB_DIR`, holding a W&B run's id and the env steps of the last record
+#: it was sent (``"<id> <env steps>"``).
+SENT_FILE = "td3-jax-sent"
 _MISSING = "--wandb needs the wandb package: pip install 'td3-jax[wandb]'"
 _NO_LOGIN = (
     "--wandb: not logged in to Weights & Biases (no API key); run `wandb login` (or set "
@@ -140,6 +148,16 @@ def _run_id(out_dir: Path, resume: bool) -> str:
     return run_id
 
 
+def _sent_through(out_dir: Path, run_id: str) -> int | None:
+    """The env steps of the last record that W&B run ``run_id`` was sent from ``out_dir``
+    (:data:`SENT_FILE`); ``None`` where it was sent none from there (or another run was)."""
+    try:
+        sent_id, steps = (Path(out_dir) / WANDB_DIR / SENT_FILE).read_text().split()
+        return int(steps) if sent_id == run_id else None
+    except (OSError, ValueError):  # none yet, or not this file's form
+        return None
+
+
 @dataclasses.dataclass
 class Tracker:
     """A W&B run that mirrors one training call's records, config and curve.
@@ -156,11 +174,21 @@ class Tracker:
     """The env steps of the last record logged."""
     failed: bool = False
     """Whether a W&B call failed (nothing more is sent)."""
+    sent_through: int | None = None
+    """The env steps of the last record W&B has from before a resume: records up to there are
+    not sent again."""
+    sent_file: tuple[Path, str] | None = None
+    """Where to note each record sent (:data:`SENT_FILE`), and the W&B run's id."""
 
     def log(self, record: dict[str, Any]) -> None:
         """Logs a metrics.jsonl record's numbers (:func:`numbers`) at its env steps, its
         evaluation returns at those of the policy evaluated (as TensorBoard places them;
-        :func:`td3_jax.logger.evaluated_steps`)."""
+        :func:`td3_jax.logger.evaluated_steps`); a record at env steps W&B has already (from
+        before a resume) is not logged a second time."""
+        steps = int(record["env_steps"])
+        if self.sent_through is not None and steps <= self.sent_through:
+            self.env_steps = steps
+            return
         values, evaluated = numbers(record), evaluated_steps(record)
         if evaluated != values["env_steps"]:  # an evaluation inside the chunk: logged apart,
             # first (its env steps are the earlier: W&B's env_steps then never goes back, and
@@ -168,7 +196,18 @@ class Tracker:
             returns = {k: values.pop(k) for k in list(values) if is_return(k)}
             self._guard(lambda: self.run.log({**returns, "env_steps": evaluated}))
         self._guard(lambda: self.run.log(values))
-        self.env_steps = int(record["env_steps"])
+        self.env_steps = steps
+        self._note_sent(steps)
+
+    def _note_sent(self, steps: int) -> None:
+        """Notes in :data:`SENT_FILE` that W&B was sent the record of ``steps`` (unless a W&B
+        call failed; a note the disk refuses is left out: a resume then sends again what W&B
+        has, which is all that a missing note costs)."""
+        if self.sent_file is None or self.failed:
+            return
+        path, run_id = self.sent_file
+        with contextlib.suppress(OSError):
+            write_atomically(path, f"{run_id} {steps}\n")
 
     def set_config(self, config: dict[str, Any]) -> None:
         """Makes ``config`` (config.json's contents) the W&B run's config."""
@@ -201,7 +240,8 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
     if not (cfg.wandb and enabled):
         return None
     wandb = import_wandb()
-    arguments = init_arguments(cfg, out_dir, _run_id(out_dir, resume))
+    run_id = _run_id(out_dir, resume)
+    arguments = init_arguments(cfg, out_dir, run_id)
     try:  # W&B gets the numbers, not the console (the run's own output stays as it is)
         run = wandb.init(**arguments, settings=wandb.Settings(console="off"))
         run.define_metric("env_steps")
@@ -213,7 +253,9 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
             f"--wandb: Weights & Biases could not start the run ({text}); check `wandb login` "
             "and the network, or use --wandb-mode offline"
         ) from None
-    return Tracker(run, wandb.Image)
+    sent = _sent_through(out_dir, run_id) if resume else None
+    return Tracker(run, wandb.Image, sent_through=sent,
+                   sent_file=(Path(out_dir) / WANDB_DIR / SENT_FILE, run_id))  # fmt: skip
 
 
 def _teardown_quietly(wandb: ModuleType) -> None:

@@ -1,0 +1,91 @@
+"""What W&B (``td3_jax.tracking``) is sent across a run's resumes: each record once.
+
+A small fake ``wandb`` module records what each W&B run is sent; no training runs.
+"""
+
+from __future__ import annotations
+
+import sys
+import types
+
+import pytest
+
+from td3_jax import tracking
+from td3_jax.config import TrainConfig
+
+
+class _Run:
+    """What ``wandb.init`` returns: the history it is sent."""
+
+    def __init__(self, arguments: dict):
+        self.arguments, self.history = arguments, []
+        self.config = types.SimpleNamespace(update=lambda values, allow_val_change=False: None)
+
+    def log(self, data: dict) -> None:
+        self.history.append(dict(data))
+
+    def define_metric(self, name: str, step_metric: str | None = None) -> None:
+        pass
+
+    def finish(self) -> None:
+        pass
+
+
+@pytest.fixture
+def runs(monkeypatch) -> list[_Run]:
+    """The W&B runs started, in order (a fake ``wandb`` in ``sys.modules``)."""
+    module, started = types.ModuleType("wandb"), []
+    module.Settings = lambda **settings: settings
+    module.Image = lambda path: ("image", path)
+    module.init = lambda settings=None, **arguments: started.append(_Run(arguments)) or started[-1]
+    monkeypatch.setitem(sys.modules, "wandb", module)
+    return started
+
+
+def _record(steps: int) -> dict:
+    """A record with its evaluation inside the chunk: returns of the policy of 32 steps before."""
+    return {"env_steps": steps, "eval_policy_env_steps": steps - 32,
+            "eval_return_mean": steps / 10, "critic_loss": steps / 100}  # fmt: skip
+
+
+def _points(history: list[dict], key: str) -> list[tuple[int, float]]:
+    """``(env_steps, value)`` of each point of ``key`` that a W&B run was sent."""
+    return [(row["env_steps"], row[key]) for row in history if key in row]
+
+
+def _part(out, steps: list[int], *, resume: bool) -> None:
+    """One process's part of a run: its W&B run started, these records logged, nothing ended
+    (a stop)."""
+    tracker = tracking.start(TrainConfig(wandb=True), out, resume=resume)
+    for step in steps:
+        tracker.log(_record(step))
+
+
+def test_a_resume_sends_wandb_each_record_once(runs, tmp_path):
+    """A run checkpointed at 64 sent the record of 96 before it stopped; resumed from 64, it
+    writes that record again (the same numbers) and goes on to 128. W&B gets each record, and
+    each evaluation's returns, once: no second point at 96 (nor at 64, the returns' steps)."""
+    _part(tmp_path, [32, 64, 96], resume=False)
+    _part(tmp_path, [96, 128], resume=True)
+    first, second = runs
+    assert second.arguments["id"] == first.arguments["id"]
+    history = first.history + second.history
+    assert _points(history, "critic_loss") == [(32, 0.32), (64, 0.64), (96, 0.96), (128, 1.28)]
+    assert _points(history, "eval_return_mean") == [(0, 3.2), (32, 6.4), (64, 9.6), (96, 12.8)]
+    # resumed again from 96, it sends what the second part did not
+    _part(tmp_path, [128, 160], resume=True)
+    assert _points(runs[2].history, "critic_loss") == [(160, 1.6)]
+
+
+def test_records_no_wandb_run_was_sent_are_sent(runs, tmp_path):
+    """A fresh run in a directory that held another W&B run, and a resume whose W&B run's id
+    file was replaced (another W&B run), send every record: what the old run had is not the
+    new one's."""
+    _part(tmp_path, [32, 64], resume=False)
+    _part(tmp_path, [32, 64], resume=False)
+    assert runs[1].arguments["id"] != runs[0].arguments["id"]
+    assert _points(runs[1].history, "critic_loss") == [(32, 0.32), (64, 0.64)]
+    (tmp_path / tracking.WANDB_DIR / tracking.ID_FILE).write_text("another\n")
+    _part(tmp_path, [64, 96], resume=True)
+    assert runs[2].arguments["id"] == "another"
+    assert _points(runs[2].history, "critic_loss") == [(64, 0.64), (96, 0.96)]
