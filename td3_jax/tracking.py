@@ -13,7 +13,9 @@ take points back, as TensorBoard's purge does). ``wandb`` is imported only when 
 it: importing this module changes no process-wide state.
 
 metrics.jsonl is written before W&B is told: a W&B failure during a run is one warning, after
-which the run goes on without W&B and loses no record.
+which the run goes on without W&B and loses no record. W&B's own banners (its version, the
+offline notice, the history and summary at the end) are not printed: td3-jax says in one line
+where the W&B run is; W&B's warnings and errors still show.
 """
 
 from __future__ import annotations
@@ -242,8 +244,9 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
     wandb = import_wandb()
     run_id = _run_id(out_dir, resume)
     arguments = init_arguments(cfg, out_dir, run_id)
-    try:  # W&B gets the numbers, not the console (the run's own output stays as it is)
-        run = wandb.init(**arguments, settings=wandb.Settings(console="off"))
+    try:  # W&B gets the numbers, not the console (the run's own output stays as it is), and
+        # prints none of its banners (silent: its run's printer; its warnings and errors stay)
+        run = wandb.init(**arguments, settings=wandb.Settings(console="off", silent=True))
         run.define_metric("env_steps")
         run.define_metric("*", step_metric="env_steps")
     except Exception as err:  # wandb.errors.CommError, AuthenticationError, UsageError, ...
@@ -253,9 +256,27 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
             f"--wandb: Weights & Biases could not start the run ({text}); check `wandb login` "
             "and the network, or use --wandb-mode offline"
         ) from None
+    _say_where(run)
     sent = _sent_through(out_dir, run_id) if resume else None
     return Tracker(run, wandb.Image, sent_through=sent,
                    sent_file=(Path(out_dir) / WANDB_DIR / SENT_FILE, run_id))  # fmt: skip
+
+
+def _say_where(run: Any) -> None:
+    """Prints where the W&B run is, in the line W&B no longer prints: its page, or offline its
+    folder and the command that uploads it; nothing for a disabled run (or a W&B that does not
+    say)."""
+    try:
+        if run.disabled:
+            return
+        if run.offline:
+            where = f"{run.sync_dir} (offline; upload it with: wandb sync {run.sync_dir})"
+        else:
+            where = run.url
+    except AttributeError:  # a W&B without these properties
+        return
+    if where:
+        print(f"W&B run: {where}", flush=True)
 
 
 def _teardown_quietly(wandb: ModuleType) -> None:

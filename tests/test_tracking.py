@@ -1,11 +1,16 @@
-"""What W&B (``td3_jax.tracking``) is sent across a run's resumes: each record once.
+"""What W&B (``td3_jax.tracking``) is sent across a run's resumes (each record once), and what
+it prints (its banners left out).
 
-A small fake ``wandb`` module records what each W&B run is sent; no training runs.
+A small fake ``wandb`` module records what each W&B run is sent; no training runs. One real
+offline W&B run, in a child process (W&B's service and hooks stay out of the test process).
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
+import textwrap
 import types
 
 import pytest
@@ -89,3 +94,48 @@ def test_records_no_wandb_run_was_sent_are_sent(runs, tmp_path):
     _part(tmp_path, [64, 96], resume=True)
     assert runs[2].arguments["id"] == "another"
     assert _points(runs[2].history, "critic_loss") == [(64, 0.64), (96, 0.96)]
+
+
+# A process that starts an offline W&B run as a training run does, logs a record and ends it;
+# then a warning of W&B's own, which must still show.
+_OFFLINE = textwrap.dedent(
+    """
+    import sys, wandb
+    from td3_jax import tracking
+    from td3_jax.config import TrainConfig
+
+    tracker = tracking.start(TrainConfig(wandb=True), sys.argv[1], resume=False)
+    tracker.log({"env_steps": 64, "eval_return_mean": -3.5})
+    tracker.finish()
+    wandb.termwarn("a warning of W&B's own")
+    """
+)
+
+
+@pytest.mark.processes
+def test_an_offline_wandb_run_prints_one_line_of_td3_jax_and_keeps_its_data(tmp_path):
+    """With W&B offline (``$WANDB_MODE``), starting, logging and ending a W&B run prints one
+    line, td3-jax's, saying where the run is and how to upload it, and none of W&B's banners
+    (version, offline notice, history, summary, logs); W&B's warnings still show, and the
+    offline run holds the record."""
+    pytest.importorskip("wandb")
+    from test_wandb import decoded, wandb_records
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")}
+    home = {"WANDB_DIR": "wandb-dir", "WANDB_CONFIG_DIR": "config", "NETRC": "no-netrc"}
+    env.update(WANDB_MODE="offline", **{name: str(tmp_path / path) for name, path in home.items()})
+    out = tmp_path / "run"
+    out.mkdir()
+    done = subprocess.run([sys.executable, "-c", _OFFLINE, str(out)], env=env,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    (folder,) = (out / "wandb").glob("offline-run-*")
+    assert done.stderr.splitlines() == ["wandb: WARNING a warning of W&B's own"]
+    assert done.stdout.splitlines() == [
+        f"W&B run: {folder} (offline; upload it with: wandb sync {folder})"
+    ]
+    (log,) = folder.glob("run-*.wandb")
+    rows = [decoded(r.history.item) for r in wandb_records(log) if r.HasField("history")]
+    assert [{k: v for k, v in row.items() if not k.startswith("_")} for row in rows] == [
+        {"env_steps": 64, "eval_return_mean": -3.5}
+    ]

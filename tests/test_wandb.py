@@ -111,7 +111,7 @@ def test_a_run_sends_its_records_config_and_curve(wandb_module, tmp_path, capsys
     (run,) = wandb_module.runs
     assert run.arguments == {"project": "td3-jax", "entity": "team", "name": "pendulum-run",
                              "id": stored_id(out), "resume": "allow", "dir": str(out),
-                             "settings": {"console": "off"}}  # fmt: skip
+                             "settings": {"console": "off", "silent": True}}  # fmt: skip
     assert run.metrics == [("env_steps", None), ("*", "env_steps")]
     records = read_records(out)
     assert [r["env_steps"] for r in records] == [64, 128]
