@@ -8,6 +8,9 @@ its evaluations) is :mod:`td3_jax.finished`'s.
   one-line error and writes nothing.
 * **No silent overwrite.** A fresh run refuses a directory that holds a checkpoint (``--resume``
   continues it) or a previous run's outputs without a checkpoint (move them away first).
+* **config.json says what each member trained with.** In a sweep each swept setting is the
+  list of its values, and the ``sweep`` section names the swept settings, each member's values
+  and the configuration's own ones (``base``, which no member trained with).
 * **Resume keeps the run's identity.** On ``--resume`` only :data:`SAFE_ON_RESUME` may differ
   from the saved config.json (``total_steps`` extends or shortens the run); each change is
   recorded in config.json under ``resume_changes``. Any other difference is a one-line error.
@@ -21,6 +24,7 @@ import json
 import os
 import socket
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +41,7 @@ __all__ = [
     "MEMBERS_FILE",
     "OUTPUTS",
     "SAFE_ON_RESUME",
+    "SWEEP",
     "RunLock",
     "check_environment_unchanged",
     "check_fresh",
@@ -52,9 +57,13 @@ __all__ = [
     "previous_outputs",
     "run_info",
     "save_config",
+    "sweep_entries",
+    "swept_values",
 ]
 
 CONFIG_FILE = "config.json"
+#: config.json's section of a sweep (:func:`sweep_entries`).
+SWEEP = "sweep"
 MEMBERS_FILE = "members.json"
 LOCK_FILE = ".lock"
 CHECKPOINTS = "checkpoints"
@@ -251,13 +260,13 @@ def check_resume(
         raise ConfigError(
             f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint{_start_instead(out_dir)}"
         )
-    changes = config_changes(load_config(out_dir), cfg)
+    population = load_members(out_dir, cfg)
+    changes = config_changes(load_config(out_dir), cfg, population)
     if "total_steps" in changes and cfg.lr_schedule == "cosine":
         raise ConfigError(
             "--total-steps cannot change on --resume with --lr-schedule cosine: the schedule's "
             "length is the run's number of updates (start a new run to train longer)"
         )
-    population = load_members(out_dir, cfg)
     if sweep and members(cfg, sweep) != population:
         raise ConfigError(
             f"the --sweep-* values differ from the members of the run in {out_dir} "
@@ -339,16 +348,22 @@ def _complete(out_dir: Path, chunks_done: int) -> bool:
 # --------------------------------------------------------------------------------------------
 
 
-def config_changes(saved: TrainConfig, cfg: TrainConfig) -> dict[str, list]:
-    """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other."""
+def config_changes(
+    saved: TrainConfig, cfg: TrainConfig, population: Sequence[Member] = ()
+) -> dict[str, list]:
+    """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other,
+    naming what the run used: a setting ``population``'s members override as their values
+    (``--sweep-tau 0.01 0.02``), not ``saved``'s, which no member trained with."""
     changes, safe = {}, _safe_on_resume(saved)
+    swept = swept_values(population)
     for field in dataclasses.fields(TrainConfig):
         old, new = getattr(saved, field.name), getattr(cfg, field.name)
         if old == new or _effective(saved, field.name) == _effective(cfg, field.name):
             continue
         if field.name not in safe:
-            raise ConfigError(_mismatch(field.name, _shown(saved, field.name),
-                                        _shown(cfg, field.name), safe))  # fmt: skip
+            used = (as_flag(f"sweep_{field.name}", swept[field.name]) if field.name in swept
+                    else _shown(saved, field.name))  # fmt: skip
+            raise ConfigError(_mismatch(field.name, used, _shown(cfg, field.name), safe))
         changes[field.name] = [old, new]
     return changes
 
@@ -414,12 +429,55 @@ def _mismatch(name: str, saved: str, given: str, safe_names: tuple[str, ...]) ->
 def save_config(
     cfg: TrainConfig, population: list[Member], out_dir: Path, info: dict | None = None
 ) -> None:
-    """Writes config.json (the resolved config, then ``info``: preset, resume_changes, ...) and
-    members.json, each atomically (a temporary file renamed)."""
+    """Writes config.json (the resolved config, then ``info``: preset, resume_changes, ...;
+    for a sweep, :func:`sweep_entries`) and members.json, each atomically (a temporary file
+    renamed)."""
     out_dir = Path(out_dir)
-    _write_json(out_dir / CONFIG_FILE, {**_as_used(cfg), **(info or {})})
+    values = _as_used(cfg)
+    extra = {k: v for k, v in (info or {}).items() if k != SWEEP}  # (made anew: the members')
+    _write_json(out_dir / CONFIG_FILE, {**values, **extra, **sweep_entries(values, population)})
     listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
     _write_json(out_dir / MEMBERS_FILE, listing)
+
+
+def sweep_entries(values: dict[str, Any], population: Sequence[Member]) -> dict[str, Any]:
+    """config.json's entries for ``population``'s swept settings (``{}`` where no member
+    overrides one): each swept setting as the list of its values (in the members' order), in
+    place of ``values``' one value that no member trained with, and :data:`SWEEP`:
+    ``settings`` (their names), ``base`` (their values in ``values``, the run's configuration,
+    which :func:`load_config` reads back) and ``members`` (each member's seed and values, in
+    members.json's order)."""
+    swept = swept_values(population)
+    if not swept:
+        return {}
+    section = {
+        "settings": list(swept),
+        "base": {n: values[n] for n in swept},
+        "members": [{"seed": m.seed, **dict(m.overrides)} for m in population],
+    }
+    return {**swept, SWEEP: section}
+
+
+def swept_values(population: Sequence[Member]) -> dict[str, list[float]]:
+    """``{setting: values}`` of the settings ``population``'s members override, sorted by
+    name, each setting's distinct values in the members' order (``{}``: no member overrides
+    one)."""
+    each = [dict(m.overrides) for m in population]
+    names = sorted({name for overrides in each for name in overrides})
+    return {n: list(dict.fromkeys(o[n] for o in each if n in o)) for n in names}
+
+
+def _sweep_base(raw: dict, path: Path) -> dict[str, Any]:
+    """The swept settings' values in the run's configuration, from config.json's
+    :data:`SWEEP` section (``{}`` without one: not a sweep, or written before sweeps had it)."""
+    if SWEEP not in raw:
+        return {}
+    section = raw[SWEEP]
+    base = section.get("base") if isinstance(section, dict) else None
+    if not isinstance(base, dict):
+        raise ConfigError(f"{path}: its {SWEEP!r} section has no 'base' values of the swept "
+                          "settings (td3-jax writes them there; was the file edited?)")  # fmt: skip
+    return base
 
 
 #: Settings whose ``None`` means "the algorithm's default" (:func:`td3_jax.build.agent_config`).
@@ -472,8 +530,11 @@ def _read_config(out_dir: Path) -> dict:
 
 def load_config(out_dir: Path) -> TrainConfig:
     """The resolved config a run directory was started with (other keys of config.json, such
-    as ``preset`` and ``resume_changes``, are ignored; see :func:`load_run_info`)."""
+    as ``preset`` and ``resume_changes``, are ignored; see :func:`load_run_info`). A sweep's
+    swept settings, listed in config.json with every member's values, come back as the run's
+    configuration had them (its ``sweep`` section's ``base``; the members: :func:`load_members`)."""
     raw = _read_config(out_dir)
+    raw.update(_sweep_base(raw, Path(out_dir) / CONFIG_FILE))  # (the lists are the members')
     for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
         if raw.get(name) is not None:
             raw[name] = tuple(raw[name])

@@ -307,6 +307,89 @@ def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
     assert rundir.run_info(tmp_path, resume=False, preset=None, changes={}, at_env_steps=0) == {}
 
 
+#: SMALL as config.json records it (the settings it leaves to TD3 as TD3's values).
+SMALL_AS_USED = dataclasses.replace(SMALL, actor_lr=1e-3, critic_lr=1e-3, tau=0.005)
+#: A sweep of two actor learning rates and one tau, two seeds each.
+SWEEP = {"actor_lr": [3e-4, 1e-3], "tau": [0.01]}
+
+
+def test_a_sweeps_config_json_states_what_each_member_trained_with(tmp_path):
+    """config.json used to hold SMALL's actor_lr 0.001 and tau 0.005 for a sweep whose members
+    trained with 0.0003/0.001 and 0.01: it now lists the swept values, and a ``sweep`` section
+    names each member's; the run's configuration still loads (and resumes) as it was."""
+    cfg = dataclasses.replace(SMALL, seeds=2)
+    population = members(cfg, SWEEP)
+    rundir.save_config(cfg, population, tmp_path, {"preset": "pendulum"})
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert saved["actor_lr"] == [3e-4, 1e-3] and saved["tau"] == [0.01]
+    assert saved["critic_lr"] == 1e-3  # not swept: the one value every member trained with
+    assert saved["sweep"] == {
+        "settings": ["actor_lr", "tau"],
+        "base": {"actor_lr": 1e-3, "tau": 0.005},
+        "members": [
+            {"seed": 0, "actor_lr": 3e-4, "tau": 0.01},
+            {"seed": 1, "actor_lr": 3e-4, "tau": 0.01},
+            {"seed": 0, "actor_lr": 1e-3, "tau": 0.01},
+            {"seed": 1, "actor_lr": 1e-3, "tau": 0.01},
+        ],
+    }
+    assert saved["preset"] == "pendulum"
+    used = dataclasses.replace(SMALL_AS_USED, seeds=2)
+    assert rundir.load_config(tmp_path) == used
+    assert rundir.load_members(tmp_path, used) == population
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)
+    assert rundir.check_resume(tmp_path, used, SWEEP) == (population, {})
+    longer = dataclasses.replace(used, total_steps=256)
+    info = rundir.run_info(tmp_path, resume=True, preset=None, changes={"total_steps": [128, 256]},
+                           at_env_steps=128)  # fmt: skip
+    rundir.save_config(longer, population, tmp_path, info)  # as a resume writes it again
+    resumed = json.loads((tmp_path / "config.json").read_text())
+    assert {k: v for k, v in resumed.items() if k not in ("total_steps", "resume_changes")} == {
+        k: v for k, v in saved.items() if k != "total_steps"
+    }
+    assert rundir.load_config(tmp_path) == longer
+
+
+def test_a_single_or_seeds_only_run_has_no_sweep_section(tmp_path):
+    rundir.save_config(SMALL, members(dataclasses.replace(SMALL, seeds=3)), tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert "sweep" not in saved and saved["actor_lr"] == 1e-3 and saved["tau"] == 0.005
+
+
+def test_a_sweep_written_before_the_sweep_section_still_loads_and_resumes(tmp_path):
+    """Older sweeps' config.json held the configuration's values of the swept settings."""
+    population = members(SMALL, SWEEP)
+    rundir.save_config(SMALL, population, tmp_path)
+    old = json.loads((tmp_path / "config.json").read_text())
+    old.update(old.pop("sweep")["base"])
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)
+    assert rundir.load_config(tmp_path) == SMALL_AS_USED
+    assert rundir.check_resume(tmp_path, SMALL_AS_USED) == (population, {})
+
+
+def test_a_changed_swept_setting_on_resume_names_the_swept_values(tmp_path):
+    """The refusal said 'the run was started with --tau 0.005', a value no member used."""
+    rundir.save_config(SMALL, members(SMALL, SWEEP), tmp_path)
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)
+    for name, given, used in (("tau", 0.02, "--sweep-tau 0.01"),
+                              ("actor_lr", 0.1, "--sweep-actor-lr 0.0003 0.001")):  # fmt: skip
+        with pytest.raises(ConfigError) as refused:
+            rundir.check_resume(tmp_path, dataclasses.replace(SMALL_AS_USED, **{name: given}))
+        assert f"given but the run was started with {used}: " in str(refused.value)
+    with pytest.raises(ConfigError, match=r"started with --critic-lr 0\.001: "):  # not swept
+        rundir.check_resume(tmp_path, dataclasses.replace(SMALL_AS_USED, critic_lr=0.1))
+
+
+def test_a_sweep_section_without_its_base_values_is_one_line(tmp_path):
+    rundir.save_config(SMALL, members(SMALL, SWEEP), tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    for section in ({"settings": ["tau"]}, [1, 2]):
+        (tmp_path / "config.json").write_text(json.dumps({**saved, "sweep": section}))
+        with pytest.raises(ConfigError, match=r"config\.json: its 'sweep' section has no 'base'"):
+            rundir.load_config(tmp_path)
+
+
 def test_interrupted_message_says_what_is_kept(tmp_path):
     message = rundir.interrupted_message(tmp_path)
     assert "before the first checkpoint" in message and "run the same command again" in message
