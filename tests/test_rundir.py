@@ -17,7 +17,6 @@ import signal
 import socket
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -108,26 +107,19 @@ def test_a_second_run_on_a_directory_in_use_exits_2_and_writes_nothing(tmp_path)
     assert not lock_is_held(out)  # released at the end of the run
 
 
+def lock_holding_process(call: str) -> subprocess.Popen:
+    """A Python child that runs ``call`` (a :mod:`td3_jax.rundir` function that takes a run
+    directory's lock), says ``locked`` and sleeps, holding it until it is killed."""
+    code = f"import time\nfrom td3_jax import rundir\n{call}\nprint('locked', flush=True)\n"
+    holder = subprocess.Popen([sys.executable, "-c", code + "time.sleep(600)\n"],
+                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
+
+
 def test_the_lock_dies_with_its_process(tmp_path):
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            textwrap.dedent(
-                f"""
-                import time
-                from td3_jax import rundir
-                rundir.acquire_lock({str(tmp_path)!r})
-                print("locked", flush=True)
-                time.sleep(600)
-                """
-            ),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    holder = lock_holding_process(f"rundir.acquire_lock({str(tmp_path)!r})")
     try:
-        assert holder.stdout.readline().strip() == "locked"
         with pytest.raises(ConfigError, match=rf"in use .*\(pid {holder.pid} on "):
             rundir.acquire_lock(tmp_path)
     finally:
@@ -136,6 +128,54 @@ def test_the_lock_dies_with_its_process(tmp_path):
     lock = rundir.acquire_lock(tmp_path)  # the kernel dropped the dead process's lock
     assert json.loads((tmp_path / ".lock").read_text())["pid"] == os.getpid()
     lock.release()
+
+
+def test_a_run_killed_while_starting_leaves_a_lock_file_that_stops_nothing(tmp_path):
+    """A run SIGKILLed under its lock before it wrote anything (while compiling) leaves .lock
+    naming its dead pid: the kernel released the lock, so eval says the run stopped before it
+    trained (not that it is being started), and a fresh start takes the directory."""
+    out = tmp_path / "run"
+    holder = lock_holding_process(f"rundir.open_run_dir({str(out)!r}, resume=False)")
+    try:
+        assert lock_is_held(out)
+        with pytest.raises(ConfigError, match="is being started by a td3-jax run"):
+            rundir.load_config(out)
+    finally:
+        holder.kill()  # SIGKILL: no clean-up code runs
+        holder.wait()
+    assert json.loads((out / ".lock").read_text())["pid"] == holder.pid  # the file stays
+    assert not lock_is_held(out)
+    with pytest.raises(ConfigError, match="its run stopped before it trained"):
+        rundir.load_config(out)
+    with pytest.raises(ConfigError, match="run without --resume to start it"):
+        rundir.check_resume(out, SMALL)
+    rundir.check_fresh(out)
+    lock = rundir.open_run_dir(out, resume=False)
+    assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
+    lock.release()
+
+
+@pytest.mark.subprocess
+def test_a_run_killed_after_a_checkpoint_resumes_despite_its_lock_file(tmp_path, capsys):
+    """``td3-jax train`` SIGKILLed (no clean-up) once its first checkpoint is written: its
+    .lock stays, naming the dead pid, and ``--resume`` is not refused as busy but finishes."""
+    out = tmp_path / "run"
+    first = td3_jax_process("train", *TINY_FLAGS, "--total-steps", "640", "--out", str(out))
+    deadline = time.monotonic() + 240
+    try:
+        while not rundir.checkpoint_steps(out):
+            assert first.poll() is None, first.communicate()
+            assert time.monotonic() < deadline, "the run wrote no checkpoint"
+            time.sleep(0.05)
+        assert lock_is_held(out) and first.poll() is None  # killed while holding the lock
+    finally:
+        first.kill()
+        first.communicate()
+    assert json.loads((out / ".lock").read_text())["pid"] == first.pid
+    code, stdout, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
+    assert code == 0, err
+    assert "resuming from checkpoint" in stdout and "done: 640 env steps" in stdout
+    assert read_records(out)[-1]["env_steps"] == 640 and not lock_is_held(out)
 
 
 def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
