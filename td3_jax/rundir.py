@@ -146,8 +146,9 @@ def check_not_in_use(out_dir: Path) -> None:
         fd = os.open(Path(out_dir) / LOCK_FILE, os.O_RDONLY)
     except OSError:  # no lock file: nobody ever locked it
         return
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    try:  # shared: it conflicts with the holder's exclusive lock, and needs no write access
+        # (NFS turns flock into a POSIX lock, whose exclusive form needs a writable file)
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
         raise in_use_error(out_dir) from None
     finally:
