@@ -6,10 +6,12 @@ null are left out, as TensorBoard leaves them), plotted against ``env_steps`` (e
 returns against the env steps of the policy evaluated, as in TensorBoard and curve.png);
 ``config.json`` is the W&B run's config and ``curve.png`` is logged as an image when the run
 ends. W&B's files go to ``OUT/wandb/``, which also holds the W&B run's id, so ``--resume``
-continues the same W&B run, and the env steps of the last record W&B was sent: a resume
-rewrites the records past its checkpoint (the same numbers: the resume is exact), and those W&B
-has already are not sent again, so that W&B's history holds one point of each (a W&B run cannot
-take points back, as TensorBoard's purge does). ``wandb`` is imported only when a run asks for
+continues the same W&B run, and the env steps of the last record sent to each W&B run (or
+offline folder): a resume rewrites the records past its checkpoint, and those that W&B run has
+already are not sent again, so that W&B's history holds one point of each (a W&B run cannot
+take points back, as TensorBoard's purge does). The resume is exact, so they are the same
+numbers, unless it changes how they are computed (``--eval-envs``, ``--matmuls``, another GPU
+model): W&B then keeps the first part's. ``wandb`` is imported only when a run asks for
 it: importing this module changes no process-wide state.
 
 metrics.jsonl is written before W&B is told: a W&B failure during a run is one warning, after
@@ -22,9 +24,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import math
 import os
 import secrets
+import shlex
 import string
 import sys
 from collections.abc import Callable
@@ -55,8 +59,8 @@ __all__ = [
 WANDB_DIR = "wandb"
 #: The file, in :data:`WANDB_DIR`, holding the id of the run directory's W&B run.
 ID_FILE = "td3-jax-run-id"
-#: The file, in :data:`WANDB_DIR`, holding a W&B run's id and the env steps of the last record
-#: it was sent (``"<id> <env steps>"``).
+#: The file, in :data:`WANDB_DIR`, holding the env steps of the last record sent to each place
+#: (:func:`destination`: entity, project, mode and run id), as a JSON object.
 SENT_FILE = "td3-jax-sent"
 _MISSING = "--wandb needs the wandb package: pip install 'td3-jax[wandb]'"
 _NO_LOGIN = (
@@ -150,14 +154,25 @@ def _run_id(out_dir: Path, resume: bool) -> str:
     return run_id
 
 
-def _sent_through(out_dir: Path, run_id: str) -> int | None:
-    """The env steps of the last record that W&B run ``run_id`` was sent from ``out_dir``
-    (:data:`SENT_FILE`); ``None`` where it was sent none from there (or another run was)."""
+def destination(arguments: dict[str, Any]) -> str:
+    """Where ``wandb.init(**arguments)`` sends records, as one word: entity, project, mode (else
+    ``$WANDB_MODE``, else online) and run id. A resume may change ``--wandb-project``,
+    ``--wandb-entity`` and ``--wandb-mode``: the same id is then another W&B run (or an offline
+    folder), which has none of the records sent before."""
+    mode = arguments.get("mode") or os.environ.get("WANDB_MODE") or "online"
+    parts = (arguments.get("entity") or "", arguments["project"] or "", mode, arguments["id"])
+    return "|".join(str(part).replace(" ", "_") for part in parts)
+
+
+def _sent_notes(path: Path) -> dict[str, int]:
+    """:data:`SENT_FILE`'s notes: the env steps of the last record sent to each
+    :func:`destination` from this run directory (none where the file is missing or not of its
+    form)."""
     try:
-        sent_id, steps = (Path(out_dir) / WANDB_DIR / SENT_FILE).read_text().split()
-        return int(steps) if sent_id == run_id else None
-    except (OSError, ValueError):  # none yet, or not this file's form
-        return None
+        notes = json.loads(path.read_text())
+        return {str(to): int(steps) for to, steps in notes.items()}
+    except (OSError, ValueError, AttributeError, TypeError):  # none yet, or not its form
+        return {}
 
 
 @dataclasses.dataclass
@@ -180,7 +195,8 @@ class Tracker:
     """The env steps of the last record W&B has from before a resume: records up to there are
     not sent again."""
     sent_file: tuple[Path, str] | None = None
-    """Where to note each record sent (:data:`SENT_FILE`), and the W&B run's id."""
+    """Where to note each record sent (:data:`SENT_FILE`), and where it went
+    (:func:`destination`)."""
 
     def log(self, record: dict[str, Any]) -> None:
         """Logs a metrics.jsonl record's numbers (:func:`numbers`) at its env steps, its
@@ -207,9 +223,9 @@ class Tracker:
         has, which is all that a missing note costs)."""
         if self.sent_file is None or self.failed:
             return
-        path, run_id = self.sent_file
+        path, to = self.sent_file
         with contextlib.suppress(OSError):
-            write_atomically(path, f"{run_id} {steps}\n")
+            write_atomically(path, json.dumps({**_sent_notes(path), to: steps}) + "\n")
 
     def set_config(self, config: dict[str, Any]) -> None:
         """Makes ``config`` (config.json's contents) the W&B run's config."""
@@ -257,9 +273,9 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
             "and the network, or use --wandb-mode offline"
         ) from None
     _say_where(run)
-    sent = _sent_through(out_dir, run_id) if resume else None
-    return Tracker(run, wandb.Image, sent_through=sent,
-                   sent_file=(Path(out_dir) / WANDB_DIR / SENT_FILE, run_id))  # fmt: skip
+    to, notes = destination(arguments), Path(out_dir) / WANDB_DIR / SENT_FILE
+    sent = _sent_notes(notes).get(to) if resume else None
+    return Tracker(run, wandb.Image, sent_through=sent, sent_file=(notes, to))
 
 
 def _say_where(run: Any) -> None:
@@ -270,7 +286,8 @@ def _say_where(run: Any) -> None:
         if run.disabled:
             return
         if run.offline:
-            where = f"{run.sync_dir} (offline; upload it with: wandb sync {run.sync_dir})"
+            upload = f"wandb sync {shlex.quote(str(run.sync_dir))}"
+            where = f"{run.sync_dir} (offline; upload it with: {upload})"
         else:
             where = run.url
     except AttributeError:  # a W&B without these properties

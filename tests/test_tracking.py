@@ -96,6 +96,29 @@ def test_records_no_wandb_run_was_sent_are_sent(runs, tmp_path):
     assert _points(runs[2].history, "critic_loss") == [(64, 0.64), (96, 0.96)]
 
 
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"wandb_project": "another-project"},
+        {"wandb_entity": "another-team"},
+        {"wandb_mode": "offline"},
+    ],
+)
+def test_a_resume_sending_elsewhere_sends_every_record(runs, tmp_path, monkeypatch, change):
+    """The same W&B run id under another project, entity or mode (``--resume`` may change
+    them) is a W&B run, or an offline folder, that has none of the records: each one the resume
+    writes is sent there, those it redoes included. Back at the first place, only the new."""
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    _part(tmp_path, [32, 64, 96], resume=False)
+    tracker = tracking.start(TrainConfig(wandb=True, **change), tmp_path, resume=True)
+    for step in (96, 128):
+        tracker.log(_record(step))
+    assert runs[1].arguments["id"] == runs[0].arguments["id"]
+    assert _points(runs[1].history, "critic_loss") == [(96, 0.96), (128, 1.28)]
+    _part(tmp_path, [96, 128, 160], resume=True)  # the first place again: it has up to 96
+    assert _points(runs[2].history, "critic_loss") == [(128, 1.28), (160, 1.6)]
+
+
 # A process that starts an offline W&B run as a training run does, logs a record and ends it;
 # then a warning of W&B's own, which must still show.
 _OFFLINE = textwrap.dedent(
