@@ -114,7 +114,12 @@ def acquire_lock(out_dir: Path) -> RunLock:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as err:
         raise ConfigError(f"--out {out_dir}: cannot open {path} ({err.strerror})") from err
-    if not _try_flock(fd):
+    try:
+        locked = _try_flock(fd)
+    except OSError as err:  # e.g. ENOLCK: a network file system without locks
+        os.close(fd)
+        raise _cannot_lock(path, err) from None
+    if not locked:
         os.close(fd)
         raise in_use_error(out_dir)
     holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
@@ -151,8 +156,19 @@ def check_not_in_use(out_dir: Path) -> None:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
         raise in_use_error(out_dir) from None
+    except OSError as err:
+        raise _cannot_lock(Path(out_dir) / LOCK_FILE, err) from None
     finally:
         os.close(fd)  # (also drops this probe's own lock)
+
+
+def _cannot_lock(path: Path, err: OSError) -> ConfigError:
+    """The one line for a lock the file system refuses (``ENOLCK`` on a network file system
+    without locking, ...): no run may go on unlocked, since two could then write one directory."""
+    return ConfigError(
+        f"cannot lock {path} ({err.strerror or err}); a run directory is locked so that two "
+        "runs never write one: use an --out on a local disk"
+    )
 
 
 def in_use_error(out_dir: Path) -> ConfigError:

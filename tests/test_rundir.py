@@ -160,7 +160,8 @@ def test_a_run_killed_after_a_checkpoint_resumes_despite_its_lock_file(tmp_path,
     """``td3-jax train`` SIGKILLed (no clean-up) once its first checkpoint is written: its
     .lock stays, naming the dead pid, and ``--resume`` is not refused as busy but finishes."""
     out = tmp_path / "run"
-    first = td3_jax_process("train", *TINY_FLAGS, "--total-steps", "640", "--out", str(out))
+    # 50 chunks: after its first checkpoint it runs on long enough to be killed holding the lock
+    first = td3_jax_process("train", *TINY_FLAGS, "--total-steps", "3200", "--out", str(out))
     deadline = time.monotonic() + 240
     try:
         while not rundir.checkpoint_steps(out):
@@ -174,8 +175,8 @@ def test_a_run_killed_after_a_checkpoint_resumes_despite_its_lock_file(tmp_path,
     assert json.loads((out / ".lock").read_text())["pid"] == first.pid
     code, stdout, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
     assert code == 0, err
-    assert "resuming from checkpoint" in stdout and "done: 640 env steps" in stdout
-    assert read_records(out)[-1]["env_steps"] == 640 and not lock_is_held(out)
+    assert "resuming from checkpoint" in stdout and "done: 3,200 env steps" in stdout
+    assert read_records(out)[-1]["env_steps"] == 3200 and not lock_is_held(out)
 
 
 def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
@@ -769,3 +770,22 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     assert not list((tmp_path / "run").glob("checkpoints/*"))
     monkeypatch.setattr(sharding, "memory_of", lambda device: (need, "the test's memory is"))
     sharding.check_memory(state, sharding.make_mesh(1))  # exactly enough: accepted
+
+
+def test_a_file_system_that_refuses_locks_is_one_line_for_starting_and_probing(
+    tmp_path, monkeypatch
+):
+    """ENOLCK (an NFS mount without its lock service) was a traceback: taking the lock and the
+    busy probe both say, in one line, that the directory cannot be locked and what to do."""
+    (tmp_path / rundir.LOCK_FILE).write_text("")
+
+    def refuse(fd, operation):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+
+    monkeypatch.setattr(rundir.fcntl, "flock", refuse)
+    expected = f"cannot lock {tmp_path / rundir.LOCK_FILE} (No locks available); "
+    for take in (rundir.acquire_lock, rundir.check_not_in_use):
+        with pytest.raises(ConfigError) as caught:
+            take(tmp_path)
+        assert str(caught.value).startswith(expected)
+        assert str(caught.value).endswith("use an --out on a local disk")
