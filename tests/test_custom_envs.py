@@ -332,6 +332,62 @@ def test_a_mistyped_factory_gets_the_closest_callable(typo_modules, spec, said):
     assert str(caught.value) == f"{spec}: {said}"
 
 
+_LAZY_FACTORIES = """
+import warnings
+__all__ = ["make_arm", "old_make", "broken_make"]
+
+
+def make_arm():
+    pass
+
+
+def __getattr__(name):  # PEP 562: names looked up lazily
+    if name == "old_make":
+        warnings.warn("old_make is deprecated", DeprecationWarning)
+        return make_arm
+    if name == "broken_make":
+        raise ImportError("its optional dependency is missing")
+    raise AttributeError(name)
+"""
+
+
+def test_a_module_whose_lookups_warn_or_fail_still_gets_one_line(tmp_path, monkeypatch, recwarn):
+    """A module's ``__getattr__`` that warns or raises (not AttributeError) while its names are
+    looked at for a suggestion: still the one line, nothing warned; the deprecated name is
+    suggested (it is a callable), the broken one never."""
+    (tmp_path / "lazy_factories.py").write_text(_LAZY_FACTORIES)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "lazy_factories", raising=False)
+    cases = [
+        ("lazy_factories:old_mak", "did you mean 'old_make'?"),
+        ("lazy_factories:zzz", "its public callables: make_arm, old_make"),
+    ]
+    for spec, said in cases:
+        with pytest.raises(errors.CustomEnvironmentError) as caught:
+            envs.make(spec)
+        assert str(caught.value).endswith(said) and "\n" not in str(caught.value)
+    assert not [w for w in recwarn if "deprecated" in str(w.message)]
+    sys.modules.pop("lazy_factories", None)
+
+
+def test_pythonpath_folders_under_pythons_prefix_are_searched_for_a_close_module(
+    tmp_path, monkeypatch
+):
+    """A container's ``PYTHONPATH=/usr/src/app`` under a system Python (prefix ``/usr``): its
+    modules are the user's own, so a mistyped one is told the closest there."""
+    app = tmp_path / "usr" / "src" / "app"
+    app.mkdir(parents=True)
+    (app / "my_robot_envs.py").write_text("def make():\n    pass\n")
+    monkeypatch.setattr(sys, "prefix", str(tmp_path / "usr"))
+    monkeypatch.setattr(sys, "base_prefix", str(tmp_path / "usr"))
+    monkeypatch.setenv("PYTHONPATH", str(app))
+    monkeypatch.syspath_prepend(str(app))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(errors.CustomEnvironmentError) as caught:
+        envs.make("my_robot_env:make")
+    assert str(caught.value).endswith("; did you mean 'my_robot_envs'?")
+
+
 @pytest.mark.parametrize(
     ("spec", "missing", "close"),
     [

@@ -34,6 +34,7 @@ import os
 import pkgutil
 import re
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -223,7 +224,18 @@ def _public_callables(value: Any) -> list[str]:
     names = getattr(value, "__all__", None)
     if not isinstance(names, list | tuple):
         names = [name for name in dir(value) if not name.startswith("_")]
-    return sorted(name for name in names if callable(getattr(value, name, None)))
+    return sorted(name for name in names if _names_a_callable(value, name))
+
+
+def _names_a_callable(value: Any, name: str) -> bool:
+    """Whether ``value.name`` is callable; ``False`` where looking it up fails or warns (a
+    module's ``__getattr__`` may import, warn of a deprecated name or raise anything)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return callable(getattr(value, name))
+        except Exception:  # a suggestion must never turn into a traceback
+            return False
 
 
 def _did_you_mean(word: str, names: Sequence[str]) -> str:
@@ -247,12 +259,15 @@ def _sibling_modules(name: str) -> list[str]:
 
 
 def _own_folders() -> list[str]:
-    """Where a user's own modules are imported from: the current directory and the Python
-    path's folders outside Python's installation and environment (``PYTHONPATH``'s)."""
+    """Where a user's own modules are imported from: the current directory, ``PYTHONPATH``'s
+    folders (wherever they are: a container's ``/usr/src/app`` lies under a system Python's
+    prefix) and the Python path's other folders outside Python's installation and environment."""
     installed = [Path(root) for root in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
+    given = os.environ.get("PYTHONPATH", "").split(os.pathsep)
     added = [entry for entry in sys.path if entry and Path(entry).is_dir()
              and not any(Path(entry).is_relative_to(root) for root in installed)]  # fmt: skip
-    return list(dict.fromkeys([os.getcwd(), *added]))
+    folders = [os.getcwd(), *(entry for entry in given if entry and Path(entry).is_dir()), *added]
+    return list(dict.fromkeys(folders))
 
 
 def from_factory(
