@@ -10,7 +10,7 @@ its evaluations) is :mod:`td3_jax.finished`'s.
   continues it) or a previous run's outputs without a checkpoint (move them away first).
 * **config.json says what each member trained with.** In a sweep each swept setting is the
   list of its values, and the ``sweep`` section names the swept settings, each member's values
-  and the configuration's own ones (``base``, which no member trained with).
+  and the configuration's own ones (``base``, which the members' values override).
 * **Resume keeps the run's identity.** On ``--resume`` only :data:`SAFE_ON_RESUME` may differ
   from the saved config.json (``total_steps`` extends or shortens the run); each change is
   recorded in config.json under ``resume_changes``. Any other difference is a one-line error.
@@ -370,7 +370,7 @@ def config_changes(
 ) -> dict[str, list]:
     """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other,
     naming what the run used: a setting ``population``'s members override as their values
-    (``--sweep-tau 0.01 0.02``), not ``saved``'s, which no member trained with."""
+    (``--sweep-tau 0.01 0.02``), not ``saved``'s, which they override."""
     changes, safe = {}, _safe_on_resume(saved)
     swept = swept_values(population)
     for field in dataclasses.fields(TrainConfig):
@@ -460,7 +460,7 @@ def save_config(
 def sweep_entries(values: dict[str, Any], population: Sequence[Member]) -> dict[str, Any]:
     """config.json's entries for ``population``'s swept settings (``{}`` where no member
     overrides one): each swept setting as the list of its values (in the members' order), in
-    place of ``values``' one value that no member trained with, and :data:`SWEEP`:
+    place of ``values``' one value, which the members' override, and :data:`SWEEP`:
     ``settings`` (their names), ``base`` (their values in ``values``, the run's configuration,
     which :func:`load_config` reads back) and ``members`` (each member's seed and values, in
     members.json's order)."""
