@@ -622,9 +622,23 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
             raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
         raise Interrupted(ended()) from None
     if not records:
-        print(f"nothing to do: the run in {command.out} is complete")
+        print(nothing_to_do(command.out, cfg))
         return
     _print_end(records, cfg, command, time.perf_counter() - started, sweeping)
+
+
+def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
+    """The line of a ``--resume`` that finds its run complete: how far the run went and how to
+    train it further (a larger ``--total-steps``; a new run where a cosine schedule fixed its
+    length)."""
+    done = f"{cfg.run_steps:,}"
+    if cfg.lr_schedule == "cosine":
+        further = ("its cosine learning-rate schedule fixed its length: start a new run with a "
+                   "larger --total-steps to train longer")  # fmt: skip
+    else:
+        more = 2 * cfg.run_steps
+        further = f"td3-jax train --out {out} --resume --total-steps {more} goes on to {more:,}"
+    return f"nothing to do: the run in {out} is complete ({done} env steps); {further}"
 
 
 def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: float,

@@ -429,6 +429,18 @@ def test_resume_of_a_finished_run_adds_nothing(finished_run, capsys):
     assert steps == [1, 2]
 
 
+def test_resume_of_a_finished_run_says_how_to_train_it_further(finished_run, tmp_path, capsys):
+    run_dir = _copy_run(finished_run, tmp_path)
+    code, out, err = main(["train", "--resume", "--out", str(run_dir), "--quiet"], capsys)
+    assert code == 0, err
+    assert "is complete (128 env steps)" in out  # TINY_FLAGS: --total-steps 128
+    command = re.search(r"td3-jax (train .*--resume --total-steps \d+)", out)
+    assert command, out  # the line names the command that goes on
+    code, _, err = main([*command.group(1).split(), "--quiet"], capsys)
+    assert code == 0, err
+    assert read_records(run_dir)[-1]["env_steps"] == 256
+
+
 def test_plot_redraws_the_curve(finished_run, capsys):
     out = finished_run[0]
     (out / "curve.png").unlink()
