@@ -50,6 +50,22 @@ def test_an_unknown_environment_is_the_only_output(capsys, tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_an_out_below_a_file_is_refused_before_the_environment_is_made(
+    capsys, tmp_path, monkeypatch
+):
+    from td3_jax import run as run_module
+
+    made = []
+    monkeypatch.setattr(run_module.programs, "find", lambda *a, **k: made.append(a))
+    (tmp_path / "notes.txt").write_text("mine\n")
+    out = tmp_path / "notes.txt" / "run"
+    code, stdout, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
+    assert_one_line_error(code, err, f"--out {out}: cannot create it (Not a directory)")
+    assert stdout == ""  # (no "using the traced programs stored in ..." before it)
+    assert made == []  # neither a stored program read nor the environment made and traced
+    assert (tmp_path / "notes.txt").read_text() == "mine\n"
+
+
 def test_hidden_sizes_help_shows_the_default_a_run_gets(capsys):
     code, out, _ = main(["train", "--help"], capsys)
     assert code == 0
