@@ -12,6 +12,7 @@ import dataclasses
 import errno
 import functools
 import importlib
+import inspect
 import io
 import itertools
 import os
@@ -27,7 +28,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from td3_jax import runtime
+from td3_jax import runtime, upstream
 from td3_jax.config import ConfigError, TrainConfig, as_flag, idle_wandb_flags, validate
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
@@ -243,13 +244,32 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
 
     captured = io.StringIO()
     try:
-        with contextlib.redirect_stderr(captured):
+        with contextlib.redirect_stderr(captured), upstream.tyro_help_unwrapped_by(help_paragraphs):
             return tyro.cli(command_type, args=args, default=default, prog=prog)
     except SystemExit as exit_:
         if exit_.code in (0, None):
             raise
         message = _parse_error(captured.getvalue(), command_type, args, prog)
         raise ConfigError(message) from None
+
+
+#: A line that starts an item of a list in a docstring (``- x``, ``* x``, ``1. x``, ``2) x``).
+_LIST_ITEM = re.compile(r"\s*([-*]|\d+[.)])\s")
+
+
+def help_paragraphs(docstring: str) -> str:
+    """A docstring as ``--help`` text: its lines joined into paragraphs (blank lines between
+    paragraphs kept; list items each on a line of their own), so the terminal wraps them."""
+    paragraphs = re.split(r"\n\s*\n", inspect.cleandoc(docstring))
+    return "\n\n".join(_joined(paragraph.splitlines()) for paragraph in paragraphs).strip()
+
+
+def _joined(lines: list[str]) -> str:
+    """One paragraph's lines as one line, but a new line for each list item."""
+    text = lines[0].strip() if lines else ""
+    for line in lines[1:]:
+        text += ("\n" if _LIST_ITEM.match(line) else " ") + line.strip()
+    return text
 
 
 def _parse_error(text: str, command_type: type, args: list[str], prog: str) -> str:

@@ -41,6 +41,7 @@ __all__ = [
     "PLAYGROUND_MJX_ENV",
     "TASK_MODEL",
     "TENSORBOARD_EVENT_WRITER_PARTS",
+    "TYRO_UNWRAP",
     "XLA_TRITON_GEMM",
     "UpstreamChanged",
     "abandon_tensorboard_writer",
@@ -62,6 +63,7 @@ __all__ = [
     "simulating",
     "stamp_jax_cache_entries",
     "task_mjx_model",
+    "tyro_help_unwrapped_by",
     "warp_overflow_flags",
     "warp_per_world_model_fields",
 ]
@@ -145,6 +147,29 @@ def abandon_tensorboard_writer(writer: Any) -> None:
             events._event_queue.close()
         events._closed, events._event_queue, events._worker = True, None, None
     writer.file_writer = writer.all_writers = None
+
+
+# ---------------------------------------------------------------------------------------------
+# tyro: how help text is unwrapped
+# ---------------------------------------------------------------------------------------------
+
+#: tyro's function that joins a docstring's lines into help paragraphs
+#: (``tyro._strings.remove_single_line_breaks``; checked: tyro 1.0.17). It runs before the
+#: docstring is dedented, so each indented continuation line of a field's docstring stayed a
+#: line break of its own in ``--help`` (ragged text at any width but the source's).
+TYRO_UNWRAP = ("tyro._strings", "remove_single_line_breaks")
+
+
+@contextlib.contextmanager
+def tyro_help_unwrapped_by(unwrap: Callable[[str], str]) -> Iterator[None]:
+    """Inside, tyro turns docstrings into help text with ``unwrap`` (text -> paragraphs)."""
+    module = _private_module(TYRO_UNWRAP[0])
+    original = _require(module, TYRO_UNWRAP[1], ".".join(TYRO_UNWRAP))
+    setattr(module, TYRO_UNWRAP[1], unwrap)
+    try:
+        yield
+    finally:
+        setattr(module, TYRO_UNWRAP[1], original)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -117,6 +117,36 @@ def test_train_help_lists_the_documented_flags():
     assert "ddpg" in proc.stdout and "seed-ddpg-pendulum" in proc.stdout
 
 
+def test_help_text_is_the_docstrings_paragraphs_with_their_list_items():
+    """Lines of one paragraph join (whatever they start with: ``(``, ``--``, a backquote); a
+    blank line keeps paragraphs apart; list items keep a line each (a wrapped item joins)."""
+    docstring = """Replay capacity (a ring),
+    capped at the run's length; a
+    --resume that extends it grows it
+    (exactly).
+
+    Choices:
+    - first, with
+      more words
+    - second
+    2. third"""
+    assert cli.help_paragraphs(docstring) == (
+        "Replay capacity (a ring), capped at the run's length; a --resume that extends it "
+        "grows it (exactly).\n\nChoices:\n- first, with more words\n- second\n2. third"
+    )
+
+
+def test_train_help_wraps_each_flags_text_to_the_terminal(monkeypatch, capsys):
+    """A flag's docstring lines are not its help's line breaks (tyro kept every indented
+    docstring line as a break of its own: ragged text at any width but the source's): at
+    200 columns --buffer-size's whole text is one line."""
+    monkeypatch.setenv("COLUMNS", "200")
+    with pytest.raises(SystemExit):
+        cli.main(["train", "--help"])
+    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if "--buffer-size INT" in ln]
+    assert "once it is full), capped at the run's own length (a ring never holds more rows" in line
+
+
 # --------------------------------------------------------------------------------------------
 # impossible settings
 # --------------------------------------------------------------------------------------------

@@ -5,9 +5,11 @@ CPU (the cache test runs two small Python processes)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib
 import inspect
+import io
 import subprocess
 import sys
 import time
@@ -48,6 +50,32 @@ def test_tensorboardx_event_writers_still_have_the_parts_td3_jax_ends(tmp_path):
     upstream.abandon_tensorboard_writer(writer)
     assert events._closed and writer.all_writers is None
     writer.close()  # what its exit hook does: nothing left to flush or fail
+
+
+# tyro: help text ------------------------------------------------------------------------------
+
+
+def test_tyro_turns_docstrings_into_help_through_the_replaced_function():
+    """tyro still has the function and calls it for a field's docstring; inside the context it
+    calls ours, and afterwards its own again."""
+    import tyro
+
+    @dataclasses.dataclass
+    class Flags:
+        width: int = 1
+        """A width
+        in units."""
+
+    def help_of(flags: type) -> str:
+        with pytest.raises(SystemExit), contextlib.redirect_stdout(io.StringIO()) as out:
+            tyro.cli(flags, args=["--help"])
+        return out.getvalue()
+
+    module = importlib.import_module(upstream.TYRO_UNWRAP[0])
+    original = getattr(module, upstream.TYRO_UNWRAP[1])
+    with upstream.tyro_help_unwrapped_by(lambda text: "REPLACED " + text):
+        assert "REPLACED A width" in help_of(Flags)
+    assert getattr(module, upstream.TYRO_UNWRAP[1]) is original
 
 
 # XLA: the GPU matmul option -------------------------------------------------------------------
