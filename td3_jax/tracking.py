@@ -27,6 +27,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import secrets
 import shlex
 import string
@@ -260,13 +261,12 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
     wandb = import_wandb()
     run_id = _run_id(out_dir, resume)
     arguments = init_arguments(cfg, out_dir, run_id)
-    try:  # W&B gets the numbers, not the console (the run's own output stays as it is), and
-        # prints none of its banners (silent: its run's printer; its warnings and errors stay)
-        run = wandb.init(**arguments, settings=wandb.Settings(console="off", silent=True))
+    try:
+        run = wandb.init(**arguments, settings=wandb.Settings(**init_settings()))
         run.define_metric("env_steps")
         run.define_metric("*", step_metric="env_steps")
     except Exception as err:  # wandb.errors.CommError, AuthenticationError, UsageError, ...
-        text = " ".join(str(err).split()) or type(err).__name__
+        text = " ".join(_ANSI_CODES.sub("", str(err)).split()) or type(err).__name__
         _teardown_quietly(wandb)  # (its farewell lines would come after the run's error line)
         raise WandbError(
             f"--wandb: Weights & Biases could not start the run ({text}); check `wandb login` "
@@ -276,6 +276,25 @@ def start(cfg: TrainConfig, out_dir: Path, *, resume: bool, enabled: bool = True
     to, notes = destination(arguments), Path(out_dir) / WANDB_DIR / SENT_FILE
     sent = _sent_notes(notes).get(to) if resume else None
     return Tracker(run, wandb.Image, sent_through=sent, sent_file=(notes, to))
+
+
+#: Seconds ``wandb.init`` may take to reach W&B before the run stops with one line (W&B's own
+#: default is 90 s, which a machine without network spent waiting); ``$WANDB_INIT_TIMEOUT``
+#: sets it.
+INIT_TIMEOUT_S = 30.0
+
+#: Terminal colour codes, which W&B's error texts hold (``\x1b[1;34mwandb\x1b[0m: ...``).
+_ANSI_CODES = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+def init_settings() -> dict[str, Any]:
+    """``wandb.Settings``' arguments: W&B gets the numbers, not the console, and prints none
+    of its banners (its warnings and errors stay); it waits :data:`INIT_TIMEOUT_S` to start
+    unless ``$WANDB_INIT_TIMEOUT`` says how long."""
+    settings: dict[str, Any] = {"console": "off", "silent": True}
+    if not os.environ.get("WANDB_INIT_TIMEOUT"):
+        settings["init_timeout"] = INIT_TIMEOUT_S
+    return settings
 
 
 def _say_where(run: Any) -> None:

@@ -119,6 +119,15 @@ def test_a_resume_sending_elsewhere_sends_every_record(runs, tmp_path, monkeypat
     assert _points(runs[2].history, "critic_loss") == [(128, 1.28), (160, 1.6)]
 
 
+def test_wandb_waits_30_s_to_start_unless_wandb_init_timeout_says(monkeypatch):
+    """W&B's own 90 s (a machine without network waited two minutes for the one-line error)
+    become 30; ``$WANDB_INIT_TIMEOUT`` is W&B's to read and wins."""
+    monkeypatch.delenv("WANDB_INIT_TIMEOUT", raising=False)
+    assert tracking.init_settings() == {"console": "off", "silent": True, "init_timeout": 30.0}
+    monkeypatch.setenv("WANDB_INIT_TIMEOUT", "120")
+    assert tracking.init_settings() == {"console": "off", "silent": True}
+
+
 # A process that starts an offline W&B run as a training run does, logs a record and ends it;
 # then a warning of W&B's own, which must still show.
 _OFFLINE = textwrap.dedent(

@@ -111,7 +111,8 @@ def test_a_run_sends_its_records_config_and_curve(wandb_module, tmp_path, capsys
     (run,) = wandb_module.runs
     assert run.arguments == {"project": "td3-jax", "entity": "team", "name": "pendulum-run",
                              "id": stored_id(out), "resume": "allow", "dir": str(out),
-                             "settings": {"console": "off", "silent": True}}  # fmt: skip
+                             "settings": {"console": "off", "silent": True,
+                                          "init_timeout": 30.0}}  # fmt: skip
     assert run.metrics == [("env_steps", None), ("*", "env_steps")]
     records = read_records(out)
     assert [r["env_steps"] for r in records] == [64, 128]
@@ -213,7 +214,7 @@ def test_offline_mode_needs_no_login(monkeypatch, no_wandb_environment):
 
 def test_a_wandb_run_that_cannot_start_is_one_line(monkeypatch, wandb_module, tmp_path, capsys):
     def unreachable(**arguments):
-        raise ConnectionError("api.wandb.ai:\n  unreachable")
+        raise ConnectionError("\x1b[1;34mapi.wandb.ai\x1b[0m:\n  unreachable")  # (colours)
 
     def teardown():  # W&B's service says where its logs are as it ends
         torn_down.append(True)
