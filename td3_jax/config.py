@@ -424,6 +424,10 @@ def _check_floats(cfg: TrainConfig) -> None:
     for name in _SIGNED_FLOATS:
         if not math.isfinite(getattr(cfg, name)):
             raise ConfigError(f"{flag(name)} must be a finite number, got {getattr(cfg, name)}")
+    for name in ("actor_lr", "critic_lr"):
+        if getattr(cfg, name) == 0:
+            network = name.partition("_")[0]
+            raise ConfigError(f"{flag(name)} must be positive: at 0 the {network} never learns")
     if not 0.0 <= cfg.discount <= 1.0:
         raise ConfigError(f"--discount must be in [0, 1], got {cfg.discount}")
     if cfg.tau is not None and not 0.0 < cfg.tau <= 1.0:

@@ -282,6 +282,15 @@ def test_non_finite_float_settings_are_refused(name, value):
         validate(TrainConfig(**{name: value}))
 
 
+@pytest.mark.parametrize(("name", "network"), [("actor_lr", "actor"), ("critic_lr", "critic")])
+def test_a_learning_rate_of_zero_is_refused_and_a_tiny_one_accepted(name, network):
+    """At 0 the network never changes: a run trained and exited 0 having learnt nothing."""
+    flag = "--" + name.replace("_", "-")
+    with pytest.raises(ConfigError, match=rf"^{flag} must be positive: at 0 the {network} never"):
+        validate(TrainConfig(**{name: 0.0}))
+    assert validate(TrainConfig(**{name: 1e-12}))
+
+
 def test_the_replay_ring_never_has_more_rows_than_the_run_collects():
     """A tiny run of a robot preset (8.4M-row ring) used to allocate the whole ring: 26 GB."""
 
