@@ -78,6 +78,23 @@ def test_tyro_turns_docstrings_into_help_through_the_replaced_function():
     assert getattr(module, upstream.TYRO_UNWRAP[1]) is original
 
 
+def test_a_tyro_without_the_function_still_parses_every_command(monkeypatch):
+    """Losing the re-wrapped help must not lose the CLI: with the function renamed away, the
+    context swaps nothing and tyro parses as it does on its own."""
+    import tyro
+
+    renamed = ("tyro._strings", "a_name_a_later_tyro_might_use")  # (tyro calls its new name)
+    monkeypatch.setattr(upstream, "TYRO_UNWRAP", renamed)
+
+    @dataclasses.dataclass
+    class Flags:
+        width: int = 1
+
+    with upstream.tyro_help_unwrapped_by(lambda text: "never used"):
+        assert not hasattr(importlib.import_module(renamed[0]), renamed[1])
+        assert tyro.cli(Flags, args=["--width", "3"]) == Flags(width=3)
+
+
 # XLA: the GPU matmul option -------------------------------------------------------------------
 
 
