@@ -17,6 +17,7 @@ import io
 import itertools
 import os
 import re
+import shlex
 import signal
 import sys
 import time
@@ -657,7 +658,8 @@ def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
                    "larger --total-steps to train longer")  # fmt: skip
     else:
         more = 2 * cfg.run_steps
-        further = f"td3-jax train --out {out} --resume --total-steps {more} goes on to {more:,}"
+        go_on = f"td3-jax train --out {shlex.quote(str(out))} --resume --total-steps {more}"
+        further = f"{go_on} goes on to {more:,}"
     return f"nothing to do: the run in {out} is complete ({done} env steps); {further}"
 
 
@@ -669,8 +671,9 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
     print(done_line(records[-1], command.out, process_s, resumed_at))
     taken = records[-1]["env_steps"]
     if command.time_budget_s is not None and taken < cfg.run_steps:
+        out = shlex.quote(str(command.out))
         print(f"stopped by --time-budget-s {command.time_budget_s:g} at {taken:,} of "
-              f"{cfg.run_steps:,} env steps; td3-jax train --out {command.out} --resume "
+              f"{cfg.run_steps:,} env steps; td3-jax train --out {out} --resume "
               "continues it")  # fmt: skip
     if sweeping and "per_member" in records[-1]:
         print_sweep_ranking(records[-1])

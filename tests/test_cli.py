@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -460,13 +461,15 @@ def test_resume_of_a_finished_run_adds_nothing(finished_run, capsys):
 
 
 def test_resume_of_a_finished_run_says_how_to_train_it_further(finished_run, tmp_path, capsys):
-    run_dir = _copy_run(finished_run, tmp_path)
+    """The command it names runs as printed, in a run directory whose name has a space."""
+    run_dir = tmp_path / "my runs"
+    shutil.copytree(finished_run[0], run_dir)
     code, out, err = main(["train", "--resume", "--out", str(run_dir), "--quiet"], capsys)
     assert code == 0, err
     assert "is complete (128 env steps)" in out  # TINY_FLAGS: --total-steps 128
     command = re.search(r"td3-jax (train .*--resume --total-steps \d+)", out)
     assert command, out  # the line names the command that goes on
-    code, _, err = main([*command.group(1).split(), "--quiet"], capsys)
+    code, _, err = main([*shlex.split(command.group(1)), "--quiet"], capsys)
     assert code == 0, err
     assert read_records(run_dir)[-1]["env_steps"] == 256
 
