@@ -21,6 +21,10 @@ class ConfigError(Td3JaxError, ValueError):
     """A setting that cannot work."""
 
 
+class LockUnavailableError(ConfigError):
+    """A run directory whose lock its file system refuses (not one another run holds)."""
+
+
 class ExportError(ConfigError):
     """A run, member or output that cannot be exported."""
 
@@ -108,6 +112,7 @@ __all__ = [
     "EnvironmentOptionError",
     "ExportError",
     "GLUnavailableError",
+    "LockUnavailableError",
     "MissingAssetsError",
     "NonFiniteError",
     "NotRenderableError",

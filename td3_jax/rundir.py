@@ -31,6 +31,7 @@ from typing import Any
 from td3_jax.build import agent_config, members, ou_params
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
 from td3_jax.envs import Environment, custom
+from td3_jax.errors import LockUnavailableError
 from td3_jax.logger import write_atomically
 from td3_jax.population import Member
 from td3_jax.tracking import WANDB_DIR
@@ -162,12 +163,12 @@ def check_not_in_use(out_dir: Path) -> None:
         os.close(fd)  # (also drops this probe's own lock)
 
 
-def _cannot_lock(path: Path, err: OSError) -> ConfigError:
+def _cannot_lock(path: Path, err: OSError) -> LockUnavailableError:
     """The one line for a lock the file system refuses (``ENOLCK`` on a network file system
     without locking, ...): no run may go on unlocked, since two could then write one directory."""
-    return ConfigError(
+    return LockUnavailableError(
         f"cannot lock {path} ({err.strerror or err}); a run directory is locked so that two "
-        "runs never write one: use an --out on a local disk"
+        "runs never write one: use a run directory on a local disk"
     )
 
 
@@ -525,6 +526,8 @@ def _read_config(out_dir: Path) -> dict:
     if not path.exists():
         try:
             check_not_in_use(Path(out_dir))
+        except LockUnavailableError:
+            raise
         except ConfigError:
             raise ConfigError(
                 f"{out_dir} is being started by a td3-jax run ({lock_holder(out_dir)}) and holds "

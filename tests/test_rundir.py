@@ -784,8 +784,10 @@ def test_a_file_system_that_refuses_locks_is_one_line_for_starting_and_probing(
 
     monkeypatch.setattr(rundir.fcntl, "flock", refuse)
     expected = f"cannot lock {tmp_path / rundir.LOCK_FILE} (No locks available); "
-    for take in (rundir.acquire_lock, rundir.check_not_in_use):
+    # the lock taken, the busy probe, and eval's reading of a directory without config.json
+    # (which said the directory 'is being started by a td3-jax run')
+    for take in (rundir.acquire_lock, rundir.check_not_in_use, rundir.load_config):
         with pytest.raises(ConfigError) as caught:
             take(tmp_path)
         assert str(caught.value).startswith(expected)
-        assert str(caught.value).endswith("use an --out on a local disk")
+        assert str(caught.value).endswith("use a run directory on a local disk")
