@@ -6,13 +6,14 @@ null are left out, as TensorBoard leaves them), plotted against ``env_steps`` (e
 returns against the env steps of the policy evaluated, as in TensorBoard and curve.png);
 ``config.json`` is the W&B run's config and ``curve.png`` is logged as an image when the run
 ends. W&B's files go to ``OUT/wandb/``, which also holds the W&B run's id, so ``--resume``
-continues the same W&B run, and the env steps of the last record sent to each W&B run (or
-offline folder): a resume rewrites the records past its checkpoint, and those that W&B run has
-already are not sent again, so that W&B's history holds one point of each (a W&B run cannot
-take points back, as TensorBoard's purge does). The resume is exact, so they are the same
-numbers, unless it changes how they are computed (``--eval-envs``, ``--matmuls``, another GPU
-model): W&B then keeps the first part's. ``wandb`` is imported only when a run asks for
-it: importing this module changes no process-wide state.
+continues the same W&B run, and the env steps of the last record sent to each W&B run: a
+resume rewrites the records past its checkpoint, and those that W&B run has already are not
+sent again (nor written to an offline part, which is synced into it), so that W&B's history
+holds one point of each (a W&B run cannot take points back, as TensorBoard's purge does).
+The resume is exact, so they are the same numbers, unless it changes how they are computed
+(``--eval-envs``, ``--matmuls``, another GPU model): W&B then keeps the first part's.
+``wandb`` is imported only when a run asks for it: importing this module changes no
+process-wide state.
 
 metrics.jsonl is written before W&B is told: a W&B failure during a run is one warning, after
 which the run goes on without W&B and loses no record. W&B's own banners (its version, the
@@ -60,8 +61,8 @@ __all__ = [
 WANDB_DIR = "wandb"
 #: The file, in :data:`WANDB_DIR`, holding the id of the run directory's W&B run.
 ID_FILE = "td3-jax-run-id"
-#: The file, in :data:`WANDB_DIR`, holding the env steps of the last record sent to each place
-#: (:func:`destination`: entity, project, mode and run id), as a JSON object.
+#: The file, in :data:`WANDB_DIR`, holding the env steps of the last record sent to each W&B
+#: run (:func:`destination`: entity, project and run id), as a JSON object.
 SENT_FILE = "td3-jax-sent"
 _MISSING = "--wandb needs the wandb package: pip install 'td3-jax[wandb]'"
 _NO_LOGIN = (
@@ -156,12 +157,13 @@ def _run_id(out_dir: Path, resume: bool) -> str:
 
 
 def destination(arguments: dict[str, Any]) -> str:
-    """Where ``wandb.init(**arguments)`` sends records, as one word: entity, project, mode (else
-    ``$WANDB_MODE``, else online) and run id. A resume may change ``--wandb-project``,
-    ``--wandb-entity`` and ``--wandb-mode``: the same id is then another W&B run (or an offline
-    folder), which has none of the records sent before."""
-    mode = arguments.get("mode") or os.environ.get("WANDB_MODE") or "online"
-    parts = (arguments.get("entity") or "", arguments["project"] or "", mode, arguments["id"])
+    """The W&B run that ``wandb.init(**arguments)`` sends records to, as one word: entity (else
+    ``$WANDB_ENTITY``), project and run id. A resume may change ``--wandb-project`` and
+    ``--wandb-entity``: the same id there is another W&B run, with none of the records sent
+    before. The mode is not part of it: an offline part is synced into the same W&B run
+    (``wandb sync``), so it must not hold the records the W&B run has already."""
+    entity = arguments.get("entity") or os.environ.get("WANDB_ENTITY") or ""
+    parts = (entity, arguments["project"] or "", arguments["id"])
     return "|".join(str(part).replace(" ", "_") for part in parts)
 
 

@@ -101,22 +101,37 @@ def test_records_no_wandb_run_was_sent_are_sent(runs, tmp_path):
     [
         {"wandb_project": "another-project"},
         {"wandb_entity": "another-team"},
-        {"wandb_mode": "offline"},
+        {"WANDB_ENTITY": "team-of-the-environment"},
     ],
 )
 def test_a_resume_sending_elsewhere_sends_every_record(runs, tmp_path, monkeypatch, change):
-    """The same W&B run id under another project, entity or mode (``--resume`` may change
-    them) is a W&B run, or an offline folder, that has none of the records: each one the resume
+    """The same W&B run id under another project or entity (``--resume`` may change them;
+    ``$WANDB_ENTITY`` too) is a W&B run that has none of the records: each one the resume
     writes is sent there, those it redoes included. Back at the first place, only the new."""
-    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.delenv("WANDB_ENTITY", raising=False)
     _part(tmp_path, [32, 64, 96], resume=False)
-    tracker = tracking.start(TrainConfig(wandb=True, **change), tmp_path, resume=True)
-    for step in (96, 128):
-        tracker.log(_record(step))
+    settings = {k: v for k, v in change.items() if k.startswith("wandb_")}
+    with monkeypatch.context() as environment:
+        for name in set(change) - set(settings):
+            environment.setenv(name, change[name])
+        tracker = tracking.start(TrainConfig(wandb=True, **settings), tmp_path, resume=True)
+        for step in (96, 128):
+            tracker.log(_record(step))
     assert runs[1].arguments["id"] == runs[0].arguments["id"]
     assert _points(runs[1].history, "critic_loss") == [(96, 0.96), (128, 1.28)]
     _part(tmp_path, [96, 128, 160], resume=True)  # the first place again: it has up to 96
     assert _points(runs[2].history, "critic_loss") == [(128, 1.28), (160, 1.6)]
+
+
+def test_an_offline_resume_of_an_online_run_holds_only_what_it_lacks(runs, tmp_path):
+    """Offline parts are synced into the same W&B run (``wandb sync``): one must not hold the
+    records the W&B run has already, or they would show twice there."""
+    _part(tmp_path, [32, 64, 96], resume=False)
+    tracker = tracking.start(TrainConfig(wandb=True, wandb_mode="offline"), tmp_path, resume=True)
+    for step in (96, 128):
+        tracker.log(_record(step))
+    assert runs[1].arguments["mode"] == "offline"
+    assert _points(runs[1].history, "critic_loss") == [(128, 1.28)]
 
 
 def test_wandb_waits_30_s_to_start_unless_wandb_init_timeout_says(monkeypatch):
