@@ -8,13 +8,15 @@
 #   bash benchmarks/chain.sh wait NAME SECONDS   until NAME ends or SECONDS pass; prints its exit
 #                                                status once ended, and the log's tail
 #   bash benchmarks/chain.sh alive NAME          exit 0 while NAME runs
+#   bash benchmarks/chain.sh stop NAME           SIGTERM to NAME's whole process group (its
+#                                                own, from setsid: the command and its children)
 # A job has ended once its exit status is written (NAME.rc), or its process is gone: `pgrep -f
 # NAME` also matches the device command's own shell, whose command line names NAME, and never
 # says the job ended; `kill -0` alone still answers for a zombie nobody reaped.
 set -uo pipefail
 dir=/root/chains
 mkdir -p "$dir"
-what=${1:?start, wait or alive}
+what=${1:?start, wait, alive or stop}
 name=${2:?a job name}
 pidfile=$dir/$name.pid
 rcfile=$dir/$name.rc
@@ -38,5 +40,8 @@ case $what in
     else echo "chain: $name is gone without an exit status (killed?)"; fi
     tail -n 5 "$dir/$name.log" ;;
   alive) alive ;;
-  *) echo "chain: start, wait or alive, not $what"; exit 2 ;;
+  stop)
+    if alive; then kill -TERM -- "-$(cat "$pidfile")" && echo "chain: $name stopped"
+    else echo "chain: $name is not running"; fi ;;
+  *) echo "chain: start, wait, alive or stop, not $what"; exit 2 ;;
 esac
