@@ -291,6 +291,19 @@ def test_a_learning_rate_of_zero_is_refused_and_a_tiny_one_accepted(name, networ
     assert validate(TrainConfig(**{name: 1e-12}))
 
 
+def test_a_sweep_value_of_zero_for_a_learning_rate_is_refused(capsys, tmp_path):
+    """A sweep's members are checked as runs of their own: --sweep-critic-lr 0 1e-3 is refused
+    in one line naming the sweep's flag, before anything is built."""
+    from support import main
+
+    out = tmp_path / "run"
+    args = ["sweep", "--sweep-critic-lr", "0", "1e-3", "--total-steps", "100", "--out", str(out)]
+    code, _, err = main(args, capsys)
+    assert code == 2
+    assert err.strip().endswith("--sweep-critic-lr must be positive: at 0 the critic never learns")
+    assert not out.exists()
+
+
 def test_the_replay_ring_never_has_more_rows_than_the_run_collects():
     """A tiny run of a robot preset (8.4M-row ring) used to allocate the whole ring: 26 GB."""
 
