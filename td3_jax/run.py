@@ -10,7 +10,6 @@ import dataclasses
 import errno
 import json
 import math
-import os
 import re
 import sys
 import time
@@ -33,6 +32,7 @@ from td3_jax.programs import Programs, Source
 from td3_jax.rundir import (
     CHECKPOINTS,
     CONFIG_FILE,
+    check_can_create,
     check_environment_unchanged,
     check_fresh,
     check_resume,
@@ -257,25 +257,6 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     if resume:  # (the environment just made, before anything is compiled)
         check_environment_unchanged(out_dir, cfg.env, source.env)
     return cfg, population, changes, source
-
-
-def check_can_create(out_dir: Path) -> None:
-    """A ConfigError, before the environment is made or anything traced, where a fresh run's
-    ``out_dir`` could not be made (open_run_dir makes it later): its nearest existing parent is
-    a file, or a folder this user may not write in (as open_run_dir would say it)."""
-    given = Path(out_dir).absolute()
-    parent = given
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if parent == given:
-        return  # (it exists: check_fresh has judged it)
-    if not parent.is_dir():
-        code = errno.ENOTDIR
-    elif not os.access(parent, os.W_OK | os.X_OK):
-        code = errno.EACCES
-    else:
-        return
-    raise ConfigError(f"--out {out_dir}: cannot create it ({os.strerror(code)})")
 
 
 @dataclasses.dataclass

@@ -19,6 +19,7 @@ its evaluations) is :mod:`td3_jax.finished`'s.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import fcntl
 import json
 import os
@@ -44,6 +45,7 @@ __all__ = [
     "SAFE_ON_RESUME",
     "SWEEP",
     "RunLock",
+    "check_can_create",
     "check_environment_unchanged",
     "check_fresh",
     "check_resume",
@@ -297,6 +299,25 @@ def check_resume(
             f"{out_dir} has already taken (give more to extend it)"
         )
     return population, changes
+
+
+def check_can_create(out_dir: Path) -> None:
+    """A ConfigError, before the environment is made or anything traced, where a fresh run's
+    ``out_dir`` could not be made (open_run_dir makes it later): its nearest existing parent is
+    a file, or a folder this user may not write in (as open_run_dir would say it)."""
+    given = Path(out_dir).absolute()
+    parent = given
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if parent == given:
+        return  # (it exists: check_fresh has judged it)
+    if not parent.is_dir():
+        code = errno.ENOTDIR
+    elif not os.access(parent, os.W_OK | os.X_OK):
+        code = errno.EACCES
+    else:
+        return
+    raise ConfigError(f"--out {out_dir}: cannot create it ({os.strerror(code)})")
 
 
 def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock:
