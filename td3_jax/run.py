@@ -32,7 +32,6 @@ from td3_jax.programs import Programs, Source
 from td3_jax.rundir import (
     CHECKPOINTS,
     CONFIG_FILE,
-    check_can_create,
     check_environment_unchanged,
     check_fresh,
     check_resume,
@@ -250,8 +249,6 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
         population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
     else:
         check_fresh(out_dir, writer=writer)
-        if writer:
-            check_can_create(out_dir)
         population, changes = members(cfg, sweep), {}
     source = programs.find(cfg, population, mesh, program_dir, with_init=not resume, env=env)
     if resume:  # (the environment just made, before anything is compiled)

@@ -45,7 +45,6 @@ __all__ = [
     "SAFE_ON_RESUME",
     "SWEEP",
     "RunLock",
-    "check_can_create",
     "check_environment_unchanged",
     "check_fresh",
     "check_resume",
@@ -231,6 +230,8 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"--out {out_dir} is a file, not a directory")
     if not out_dir.is_dir():
+        if writer:  # (open_run_dir makes it later)
+            _check_can_create(out_dir)
         return
     if writer and not locked:
         check_not_in_use(out_dir)
@@ -301,16 +302,13 @@ def check_resume(
     return population, changes
 
 
-def check_can_create(out_dir: Path) -> None:
+def _check_can_create(out_dir: Path) -> None:
     """A ConfigError, before the environment is made or anything traced, where a fresh run's
-    ``out_dir`` could not be made (open_run_dir makes it later): its nearest existing parent is
-    a file, or a folder this user may not write in (as open_run_dir would say it)."""
-    given = Path(out_dir).absolute()
-    parent = given
+    missing ``out_dir`` could not be made: its nearest existing parent is a file, or a folder
+    this user may not write in (as :func:`open_run_dir` would say it)."""
+    parent = Path(out_dir).absolute().parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
-    if parent == given:
-        return  # (it exists: check_fresh has judged it)
     if not parent.is_dir():
         code = errno.ENOTDIR
     elif not os.access(parent, os.W_OK | os.X_OK):
