@@ -157,14 +157,13 @@ def _run_id(out_dir: Path, resume: bool) -> str:
 
 
 def destination(arguments: dict[str, Any]) -> str:
-    """The W&B run that ``wandb.init(**arguments)`` sends records to, as one word: entity (else
+    """The W&B run that ``wandb.init(**arguments)`` sends records to, as one key: entity (else
     ``$WANDB_ENTITY``), project and run id. A resume may change ``--wandb-project`` and
     ``--wandb-entity``: the same id there is another W&B run, with none of the records sent
     before. The mode is not part of it: an offline part is synced into the same W&B run
     (``wandb sync``), so it must not hold the records the W&B run has already."""
     entity = arguments.get("entity") or os.environ.get("WANDB_ENTITY") or ""
-    parts = (entity, arguments["project"] or "", arguments["id"])
-    return "|".join(str(part).replace(" ", "_") for part in parts)
+    return f"{entity}|{arguments['project'] or ''}|{arguments['id']}"
 
 
 def _sent_notes(path: Path) -> dict[str, int]:
