@@ -897,10 +897,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     command = COMMANDS.get(argv[0])
     if command is None:
-        import difflib
+        from td3_jax.errors import did_you_mean
 
-        guess = difflib.get_close_matches(argv[0], list(COMMANDS), n=1)
-        hint = f"; did you mean {guess[0]!r}?" if guess else ""
+        hint = did_you_mean(argv[0], list(COMMANDS))
         print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n\n{USAGE}", file=sys.stderr)
         sys.exit(2)
     try:

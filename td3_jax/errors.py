@@ -10,6 +10,9 @@ re-export their own (``td3_jax.config.ConfigError`` is ``td3_jax.errors.ConfigEr
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Sequence
+
 
 class Td3JaxError(Exception):
     """The base of td3-jax's own errors."""
@@ -124,4 +127,15 @@ __all__ = [
     "UnknownEnvironmentError",
     "UpstreamChanged",
     "WandbError",
+    "did_you_mean",
 ]
+
+
+def did_you_mean(word: str, names: Sequence[str]) -> str:
+    """``; did you mean 'name'?``, the end of a one-line error, for the name of ``names``
+    closest to ``word`` (case aside; dotted names compared by their last part, those of
+    ``word`` and of each name alike), else ``""``."""
+    last = word.rpartition(".")[2]
+    lowered = {name.rpartition(".")[2].lower(): name for name in names}
+    close = difflib.get_close_matches(last.lower(), list(lowered), n=1)
+    return f"; did you mean {lowered[close[0]]!r}?" if close else ""

@@ -28,7 +28,6 @@ step are traced abstractly (nothing runs) and a missing or wrong part is one lin
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import importlib
 import os
 import pkgutil
@@ -47,7 +46,7 @@ from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
 from td3_jax.envs.base import Environment, EnvOptions, action_bound, refuse_locomotion_options
-from td3_jax.errors import CustomEnvironmentError, Td3JaxError
+from td3_jax.errors import CustomEnvironmentError, Td3JaxError, did_you_mean
 
 #: The name an environment handed over as an object gets (``object/<its name>``); a run made
 #: from one records it in config.json, where it stands for an object no file can hold.
@@ -194,7 +193,7 @@ def _import(module_name: str, spec: str) -> Any:
                 f"{spec}: no module {name!r} in {os.getcwd()} or on the Python path (run from "
                 "the folder holding it, set PYTHONPATH or install its package; a run made from "
                 "it needs it importable again for --resume, eval, render and export)"
-                f"{_did_you_mean(name, _sibling_modules(name))}"
+                f"{did_you_mean(name, _sibling_modules(name))}"
             ) from err
         raise CustomEnvironmentError(f"{spec}: importing {module_name} raised "
                                      f"{_one_line(err)}") from err  # fmt: skip
@@ -209,7 +208,7 @@ def _attribute(module: Any, path: str, spec: str) -> Any:
         if not hasattr(value, part):
             where = module.__name__ + (f":{'.'.join(parts[:depth])}" if depth else "")
             callables = _public_callables(value)
-            hint = _did_you_mean(part, callables)
+            hint = did_you_mean(part, callables)
             if not hint:
                 listed = ", ".join(callables[:10]) + (", ..." if len(callables) > 10 else "")
                 hint = f"; its public callables: {listed}" if callables else ""
@@ -236,16 +235,6 @@ def _names_a_callable(value: Any, name: str) -> bool:
             return callable(getattr(value, name))
         except Exception:  # a suggestion must never turn into a traceback
             return False
-
-
-def _did_you_mean(word: str, names: Sequence[str]) -> str:
-    """``; did you mean 'name'?`` for the name of ``names`` closest to ``word`` (case aside;
-    dotted names compared by their last part, those of ``word`` and of each name alike), else
-    ``""``."""
-    last = word.rpartition(".")[2]
-    lowered = {name.rpartition(".")[2].lower(): name for name in names}
-    close = difflib.get_close_matches(last.lower(), list(lowered), n=1)
-    return f"; did you mean {lowered[close[0]]!r}?" if close else ""
 
 
 def _sibling_modules(name: str) -> list[str]:
