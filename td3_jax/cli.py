@@ -30,7 +30,14 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from td3_jax import runtime, upstream
-from td3_jax.config import ConfigError, TrainConfig, as_flag, idle_wandb_flags, validate
+from td3_jax.config import (
+    ConfigError,
+    TrainConfig,
+    as_flag,
+    eval_every_within_run,
+    idle_wandb_flags,
+    validate,
+)
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
 __all__ = ["main"]
@@ -482,10 +489,15 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
     )
 
 
-def rounding_note(cfg: TrainConfig) -> str | None:
+def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str | None:
     """The line saying that ``--eval-every`` runs as whole iterations and ``--total-steps`` as
-    whole chunks (None when both already are)."""
+    whole chunks, and that an ``asked_eval_every`` longer than the run was lowered to
+    ``--total-steps`` (:func:`~td3_jax.config.eval_every_within_run`); None when nothing
+    changed."""
     notes = []
+    if asked_eval_every is not None and asked_eval_every != cfg.eval_every:
+        notes.append(f"--eval-every {asked_eval_every} is longer than --total-steps "
+                     f"{cfg.total_steps}: evaluating at its end instead")  # fmt: skip
     if cfg.steps_per_chunk != cfg.eval_every:
         notes.append(f"--eval-every {cfg.eval_every} runs as {cfg.steps_per_chunk} (whole "
                      f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
@@ -520,9 +532,10 @@ def eval_size_warning(cfg: TrainConfig) -> str | None:
     )
 
 
-def _announce(cfg: TrainConfig, preset_name: str | None, source: str) -> None:
+def _announce(cfg: TrainConfig, preset_name: str | None, source: str,
+              asked_eval_every: int | None = None) -> None:  # fmt: skip
     """Prints which settings the run got, before it starts."""
-    for line in (_defaults_note(cfg, preset_name, source), rounding_note(cfg)):
+    for line in (_defaults_note(cfg, preset_name, source), rounding_note(cfg, asked_eval_every)):
         if line:
             print(line, flush=True)
 
@@ -553,15 +566,28 @@ def _choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig,
     return dataclasses.replace(cfg, impl=impl), devices
 
 
-def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str) -> None:
+def no_learning_warning(cfg: TrainConfig) -> str | None:
+    """A warning for ``--updates-per-iter 0``: the run collects and evaluates but never
+    learns (a collection-only run, as a throughput benchmark wants, is the one use)."""
+    if cfg.updates_per_iter:
+        return None
+    return ("--updates-per-iter 0: no gradient updates, so the policy never learns (it "
+            "evaluates its initial networks throughout)")  # fmt: skip
+
+
+def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
+                   asked_eval_every: int | None = None) -> None:  # fmt: skip
     """Once the run's settings, directory and environment are good (a run they stop says
-    nothing else): which settings it got, and a GPU-sized run on a CPU."""
+    nothing else): which settings it got, and warnings (a GPU-sized run on a CPU, an
+    evaluation that dwarfs the training, no updates)."""
     import jax
 
     if jax.process_index() != 0:
         return
-    _announce(cfg, preset_name, source)
-    for warning in (cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg)):
+    _announce(cfg, preset_name, source, asked_eval_every)
+    warnings = (cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg),
+                no_learning_warning(cfg))  # fmt: skip
+    for warning in warnings:
         if warning:
             print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
@@ -590,10 +616,10 @@ def _check_process_flags(command: Any) -> None:
     check_time_budget(command.time_budget_s)
 
 
-def train_main(args: list[str], sweeping: bool = False) -> None:
-    from td3_jax.run import train
-    from td3_jax.rundir import interrupted_message
-
+def _parse_train(args: list[str], sweeping: bool) -> tuple[Any, TrainConfig, str | None, str]:
+    """The train (or sweep) command of ``args`` over its defaults (a preset, the run's own
+    config.json on --resume, the device's), its TrainConfig, the preset's name and where the
+    defaults came from; the flags that need nothing built are checked here."""
     command_type = SweepCommand if sweeping else TrainCommand
     prog = "td3-jax sweep" if sweeping else "td3-jax train"
     base, preset_name, source = _base_config(args)
@@ -604,6 +630,14 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
     idle_wandb_flags(cfg, _given_fields(args))
     _check_process_flags(command)
+    return command, cfg, preset_name, source
+
+
+def train_main(args: list[str], sweeping: bool = False) -> None:
+    from td3_jax.run import train
+    from td3_jax.rundir import interrupted_message
+
+    command, cfg, preset_name, source = _parse_train(args, sweeping)
     sweep = _sweep_values(command) if sweeping else None
     from td3_jax import envs
 
@@ -617,8 +651,11 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if source == "device":
         cfg = _scale_to_device(cfg, args)
     cfg, devices = _choose_physics(cfg, command.devices)
+    asked_eval_every = cfg.eval_every
+    if not command.resume:  # (a resume keeps the chunk its checkpoints were written with)
+        cfg = eval_every_within_run(cfg)
     validate(cfg)  # (said once the directory and the environment are good too)
-    prepared = functools.partial(_when_prepared, cfg, preset_name, source)
+    prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every)
     received: list[int] = []
     started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped

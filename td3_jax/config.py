@@ -38,7 +38,7 @@ class TrainConfig:
     steps_per_iter: int = 1
     """Vectorised environment steps per iteration."""
     updates_per_iter: int = 8
-    """Gradient updates per iteration (after warm-up)."""
+    """Gradient updates per iteration (after warm-up); 0 collects without learning (warned)."""
     batch_size: int = 256
     """Transitions per gradient update."""
     buffer_size: int = 100_000
@@ -52,7 +52,8 @@ class TrainConfig:
     warmup_steps: int = 2_000
     """Environment steps with uniform random actions and no updates at the start."""
     eval_every: int = 4_000
-    """Environment steps between evaluations (one compiled chunk); also the checkpoint period."""
+    """Environment steps between evaluations (one compiled chunk); also the checkpoint period.
+    A fresh run from the command line lowers it to --total-steps where it is longer."""
     eval_envs: int = 16
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False
@@ -313,6 +314,16 @@ def as_flag(name: str, value: Any) -> str:
     return f"{flag(name)} {value}"
 
 
+def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with ``eval_every`` lowered to ``total_steps`` where it is longer, so that a
+    fresh run evaluates at its end instead of training a whole chunk past ``total_steps``
+    (``--total-steps 20000 --eval-every 100000`` trains 20000 steps, not 100000). An in-chunk
+    evaluation keeps its chunk: a round of evaluation episodes must fit in one."""
+    if cfg.eval_in_chunk or cfg.eval_every <= cfg.total_steps:
+        return cfg
+    return dataclasses.replace(cfg, eval_every=cfg.total_steps)
+
+
 def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
     """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work, on
     its own or on ``devices`` devices (the run's mesh: its global sizes split over them);
@@ -471,6 +482,7 @@ __all__ = [
     "WANDB_SETTINGS",
     "TrainConfig",
     "as_flag",
+    "eval_every_within_run",
     "flag",
     "idle_wandb_flags",
     "validate",

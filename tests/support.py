@@ -27,6 +27,14 @@ TINY_FLAGS = [
 ]  # fmt: skip
 
 
+def with_flags(flags: list[str], **values: str) -> list[str]:
+    """``flags`` with the value of each ``--name`` given as ``name=value`` replaced."""
+    changed = list(flags)
+    for name, value in values.items():
+        changed[changed.index(f"--{name.replace('_', '-')}") + 1] = value
+    return changed
+
+
 def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
     """``python -m td3_jax ARGS`` in a child process, its output captured as text."""
     return subprocess.run(

@@ -27,9 +27,10 @@ from support import (
     read_records,
     td3_jax,
     tensorboard_events,
+    with_flags,
 )
 
-from td3_jax import cli
+from td3_jax import cli, config
 from td3_jax import run as run_module
 from td3_jax.config import TrainConfig
 from td3_jax.presets import PRESETS, device_defaults, preset
@@ -867,6 +868,40 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
     assert note == "--eval-every 130 runs as 128 (whole iterations of 4 env steps)"
     note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=2, total_steps=8))
     assert note.startswith("--eval-every 2 runs as 4 (") and "--total-steps" not in note
+
+
+def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
+    lowered = config.eval_every_within_run(TrainConfig(eval_every=100_000, total_steps=20_000))
+    assert (lowered.eval_every, lowered.run_steps) == (20_000, 20_000)  # not 100,000 steps
+    kept = TrainConfig(eval_every=4_000, total_steps=20_000)
+    assert config.eval_every_within_run(kept) is kept
+    in_chunk = TrainConfig(eval_every=100_000, total_steps=20_000, eval_in_chunk=True)
+    assert config.eval_every_within_run(in_chunk) is in_chunk  # a round must fit in a chunk
+    note = cli.rounding_note(lowered, asked_eval_every=100_000)
+    assert (
+        note
+        == "--eval-every 100000 is longer than --total-steps 20000: evaluating at its end instead"
+    )
+    assert cli.rounding_note(kept, asked_eval_every=4_000) is None
+
+
+def test_a_fresh_run_shorter_than_eval_every_trains_its_own_length_and_resumes_on(tmp_path, capsys):
+    flags = with_flags(TINY_FLAGS, total_steps="64", eval_every="1000")
+    out = tmp_path / "run"
+    code, stdout, err = main(["train", *flags, "--out", str(out), "--quiet"], capsys)
+    assert code == 0, err
+    assert "--eval-every 1000 is longer than --total-steps 64: evaluating at its end" in stdout
+    assert [r["env_steps"] for r in read_records(out)] == [64]
+    assert json.loads((out / "config.json").read_text())["eval_every"] == 64
+    code, _, err = main(["train", "--out", str(out), "--resume", "--total-steps", "128",
+                         "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128]  # the recorded chunk
+
+
+def test_a_run_without_updates_is_warned_that_it_never_learns():
+    assert "never learns" in cli.no_learning_warning(TrainConfig(updates_per_iter=0))
+    assert cli.no_learning_warning(TrainConfig(updates_per_iter=1)) is None
 
 
 def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
