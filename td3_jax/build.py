@@ -70,7 +70,7 @@ _ENV_OPTIONS = ("menagerie", "domain_randomization", "actor_obs_key", "critic_ob
 _SPEC_SETTINGS = ("num_envs", "batch_size", "replay_capacity", "replay_shards", "n_step",
                   "steps_per_iter", "updates_per_iter", "iters_per_chunk", "warmup_steps",
                   "eval_envs", "normalize_obs", "exploration", "per_env_noise",
-                  "eval_in_chunk")  # fmt: skip
+                  "scale_rewards", "eval_in_chunk")  # fmt: skip
 
 
 def _as_given(cfg: TrainConfig, names: tuple[str, ...]) -> dict[str, Any]:
@@ -257,6 +257,7 @@ def hyperparams(cfg: TrainConfig) -> training.Hyperparams:
         ou=jax.tree.map(f32, ou_params(cfg)),
         expl_noise_min=f32(cfg.expl_noise_min or 0.0),
         expl_noise_max=f32(cfg.expl_noise_max or 0.0),
+        return_bound=f32(cfg.return_bound or 1.0),
     )
 
 
@@ -373,6 +374,7 @@ def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]])
         "expl_noise_max": not cfg.per_env_noise,
         "max_grad_norm": cfg.max_grad_norm is None,
         "max_weight_norm": cfg.max_weight_norm is None,
+        "return_bound": cfg.return_bound is None,
         "v_min": cfg.critic != "distributional",
         "v_max": cfg.critic != "distributional",
         "ou_sigma": cfg.exploration != "ou",

@@ -162,6 +162,12 @@ class TrainConfig:
     max_weight_norm: float | None = None
     """After every optimiser step, scale each unit's incoming weights (a column of every Dense
     kernel, actor and critics) down to this norm where they exceed it; default: unbounded."""
+    return_bound: float | None = None
+    """Divide the rewards the critics learn from by the running statistics of each training
+    environment's discounted return (FlashSAC's reward normalisation): by max(std of the
+    returns, largest |return| / return_bound), so the targets keep about unit spread and stay
+    within about ±return_bound (FlashSAC: 5, with --v-min -5 --v-max 5). Evaluation returns
+    are the environment's own. Default: off."""
     critic_feature_norm: bool = False
     """Project the critics' hidden features onto the sphere of radius sqrt(width) after every
     ReLU (bounded features, as SimbaV2/FlashSAC); the actor is unchanged."""
@@ -255,6 +261,11 @@ class TrainConfig:
         return max(1, (iters - first + 1) * self.updates_per_iter)
 
     @property
+    def scale_rewards(self) -> bool:
+        """Whether the learner's rewards are scaled by return statistics (return_bound given)."""
+        return self.return_bound is not None
+
+    @property
     def per_env_noise(self) -> bool:
         """Whether exploration stds are drawn per environment (expl_noise_min/max given)."""
         return self.expl_noise_min is not None
@@ -268,7 +279,7 @@ _POSITIVE = (
 _NON_NEGATIVE = ("warmup_steps", "updates_per_iter")
 _FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise", "noise_clip",
            "ou_theta", "ou_sigma", "ou_min_sigma", "expl_noise_min", "expl_noise_max",
-           "weight_decay", "max_grad_norm", "max_weight_norm")  # fmt: skip
+           "weight_decay", "max_grad_norm", "max_weight_norm", "return_bound")  # fmt: skip
 _SIGNED_FLOATS = ("v_min", "v_max")
 _CHOICES = {
     "critic": ("plain", "distributional"),
@@ -287,7 +298,8 @@ WANDB_SETTINGS = ("wandb", "wandb_project", "wandb_entity", "wandb_name", "wandb
 #: inside one compiled program, :func:`td3_jax.build.members`).
 SWEEPABLE = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noise",
              "noise_clip", "ou_sigma", "ou_theta", "expl_noise_min", "expl_noise_max",
-             "weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max")  # fmt: skip
+             "weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max",
+             "return_bound")  # fmt: skip
 
 
 def idle_wandb_flags(cfg: TrainConfig, given: set[str]) -> None:
@@ -315,13 +327,15 @@ def as_flag(name: str, value: Any) -> str:
 
 
 def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
-    """``cfg`` with ``eval_every`` lowered to ``total_steps`` where it is longer, so that a
-    fresh run evaluates at its end instead of training a whole chunk past ``total_steps``
-    (``--total-steps 20000 --eval-every 100000`` trains 20000 steps, not 100000). An in-chunk
-    evaluation keeps its chunk: a round of evaluation episodes must fit in one."""
+    """``cfg`` with ``eval_every`` lowered to ``total_steps`` (rounded up to whole iterations)
+    where it is longer, so that a fresh run evaluates at its end instead of training a whole
+    chunk past ``total_steps`` (``--total-steps 20000 --eval-every 100000`` trains 20000 steps,
+    not 100000). An in-chunk evaluation keeps its chunk: a round of evaluation episodes must
+    fit in one."""
     if cfg.eval_in_chunk or cfg.eval_every <= cfg.total_steps:
         return cfg
-    return dataclasses.replace(cfg, eval_every=cfg.total_steps)
+    per_iter = cfg.env_steps_per_iter  # (a chunk is whole iterations: one of them, here)
+    return dataclasses.replace(cfg, eval_every=-(-cfg.total_steps // per_iter) * per_iter)
 
 
 def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
@@ -401,7 +415,7 @@ def _check_options(cfg: TrainConfig) -> None:
         raise ConfigError(f"--num-atoms must be at least 2, got {cfg.num_atoms}")
     if not cfg.v_min < cfg.v_max:
         raise ConfigError(f"--v-min ({cfg.v_min}) must be below --v-max ({cfg.v_max})")
-    for bound in ("max_grad_norm", "max_weight_norm"):
+    for bound in ("max_grad_norm", "max_weight_norm", "return_bound"):
         if getattr(cfg, bound) is not None and getattr(cfg, bound) <= 0:
             raise ConfigError(f"{flag(bound)} must be positive, got {getattr(cfg, bound)}")
     low, high = cfg.expl_noise_min, cfg.expl_noise_max

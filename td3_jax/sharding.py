@@ -27,7 +27,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from td3_jax.errors import ConfigError
 
 AXIS = "data"
-_SPLIT = (".env_state", ".ou_state", ".expl_draw", ".buffer.data")
+_SPLIT = (".env_state", ".ou_state", ".expl_draw", ".buffer.data", ".returns.returns")
 
 
 def make_mesh(num_devices: int | None = None) -> Mesh:

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from td3_jax import actor_critic as ac
-from td3_jax import envs, eval_worlds, noise, normalization, replay
+from td3_jax import envs, eval_worlds, noise, normalization, replay, return_scale
 from td3_jax.axes import any_member
 from td3_jax.envs.base import reset_from_keys, reset_keys
 from td3_jax.types import AgentState, Metrics, PRNGKey, Transition
@@ -64,6 +64,9 @@ class TrainState:
     # with eval_in_chunk: the evaluation worlds' round (env_state then holds
     # num_envs + eval_envs worlds, laid out by TrainSpec.layout); None without
     evaluator: eval_worlds.EvalRound | None = None
+    # with scale_rewards: the running return statistics that scale the learner's rewards
+    # (:mod:`td3_jax.return_scale`); None without
+    returns: return_scale.ReturnScale | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +87,8 @@ class TrainSpec:
       normalize_obs: observations normalised by running statistics.
       exploration: ``"gaussian"`` or ``"ou"``.
       per_env_noise: Gaussian exploration with a std per environment (:func:`exploration_std`).
+      scale_rewards: the learner's rewards are divided by :func:`reward_scale` (running
+        return statistics in ``TrainState.returns``).
       reset_groups: environments are reset within this many contiguous groups.
       axis_name: the vmapped member axis (seeds, sweeps), or ``None``.
     """
@@ -103,6 +108,7 @@ class TrainSpec:
     normalize_obs: bool
     exploration: str
     per_env_noise: bool = False
+    scale_rewards: bool = False
     reset_groups: int = 1
     axis_name: str | None = None
     eval_in_chunk: bool = False
@@ -132,7 +138,8 @@ class Hyperparams:
     """The run's float settings (scalars; ``[members]`` arrays in a population).
 
     ``expl_noise_min``, ``expl_noise_max``: the range of the per-environment exploration stds
-    (used when the spec's ``per_env_noise``).
+    (used when the spec's ``per_env_noise``). ``return_bound``: the bound of
+    :func:`td3_jax.return_scale.scale` (used when the spec's ``scale_rewards``).
     """
 
     agent: ac.AgentHyperparams
@@ -140,6 +147,7 @@ class Hyperparams:
     ou: noise.OUParams
     expl_noise_min: jax.Array = 0.0
     expl_noise_max: jax.Array = 0.0
+    return_bound: jax.Array = 1.0
 
 
 def key_for_seed(seed: int) -> PRNGKey:
@@ -196,6 +204,7 @@ def init(spec: TrainSpec, key: PRNGKey) -> TrainState:
         env_steps=jnp.zeros((), jnp.int32),
         iteration=jnp.zeros((), jnp.int32),
         evaluator=evaluator,
+        returns=return_scale.init(spec.num_envs) if spec.scale_rewards else None,
     )
 
 
@@ -355,6 +364,9 @@ def collect_step(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[T
         key=key,
         env_steps=state.env_steps + spec.num_envs,
     )
+    if spec.scale_rewards:
+        returns = return_scale.update(state.returns, result.reward, ended, hp.agent.discount)
+        state = state.replace(returns=returns)
     metrics = _episode_metrics(result)
     if evaluated is not None:
         ended = evaluated.terminated | evaluated.truncated
@@ -429,12 +441,15 @@ def gradient_step(
     hp: Hyperparams,
     buffer: replay.ReplayBuffer,
     stats: normalization.RunningStats,
+    scale: jax.Array,
     agent_state: AgentState,
     key: PRNGKey,
 ) -> tuple[AgentState, Metrics]:
-    """One agent update on a fresh, normalised batch."""
+    """One agent update on a fresh, normalised batch whose rewards are divided by ``scale``
+    (:func:`reward_scale`)."""
     sample_key, update_key = jax.random.split(key)
     batch = agent_batch(spec, stats, sample_batch(spec, hp, buffer, sample_key))
+    batch = batch._replace(reward=batch.reward / scale) if spec.scale_rewards else batch
     return ac.update(spec.agent, hp.agent, agent_state, batch, update_key, spec.axis_name)
 
 
@@ -444,11 +459,12 @@ def learn(
     agent_state: AgentState,
     buffer: replay.ReplayBuffer,
     stats: normalization.RunningStats,
+    scale: jax.Array,
     key: PRNGKey,
 ) -> tuple[AgentState, Metrics]:
-    """``updates_per_iter`` gradient steps (the buffer is only read); metrics summed over them,
-    plus ``updates``, the number taken."""
-    step = functools.partial(gradient_step, spec, hp, buffer, stats)
+    """``updates_per_iter`` gradient steps (the buffer is only read; rewards divided by
+    ``scale``); metrics summed over them, plus ``updates``, the number taken."""
+    step = functools.partial(gradient_step, spec, hp, buffer, stats, scale)
     keys = jax.random.split(key, spec.updates_per_iter)
     agent_state, per_update = jax.lax.scan(step, agent_state, keys)
     metrics = {k: jnp.sum(v) for k, v in per_update.items()}
@@ -459,6 +475,14 @@ def learn(
 def skip_learning(agent_state: AgentState, *_) -> tuple[AgentState, Metrics]:
     """The branch of :func:`iteration` before learning starts: the agent's zero metrics."""
     return agent_state, {**ac.zero_metrics(), "updates": jnp.zeros((), jnp.float32)}
+
+
+def reward_scale(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> jax.Array:
+    """What the learner divides rewards by: :func:`td3_jax.return_scale.scale` of the run's
+    return statistics with ``scale_rewards``, else 1."""
+    if not spec.scale_rewards:
+        return jnp.ones((), jnp.float32)
+    return return_scale.scale(state.returns, hp.return_bound)
 
 
 def learning_started(spec: TrainSpec, state: TrainState) -> jax.Array:
@@ -485,6 +509,7 @@ def iteration(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[Trai
             state.agent,
             state.buffer,
             state.obs_stats,
+            reward_scale(spec, hp, state),
             update_key,
         )
     state = state.replace(agent=agent_state, key=key, iteration=state.iteration + 1)
@@ -559,7 +584,10 @@ def chunk(
     state, totals = jax.lax.fori_loop(0, iterations, body, (state, zeros))
     if spec.eval_in_chunk:
         state = state.replace(evaluator=eval_worlds.close(state.evaluator))
-    return state, summarize(totals, jnp.asarray(iterations), state)
+    metrics = summarize(totals, jnp.asarray(iterations), state)
+    if spec.scale_rewards:  # what the last updates divided rewards by
+        metrics["reward_scale"] = reward_scale(spec, hp, state)
+    return state, metrics
 
 
 class Recording(NamedTuple):

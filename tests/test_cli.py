@@ -744,6 +744,7 @@ def test_preset_keeps_its_values_and_flags_override(tmp_path, capsys, monkeypatc
     assert config["total_steps"] == 400
     expected = {**dataclasses.asdict(TrainConfig()), **PRESETS["seed-ddpg-pendulum"]}
     expected["total_steps"] = 400
+    expected["eval_every"] = 400  # the preset's 2000 is longer than the run: evaluated at its end
     assert config == json.loads(json.dumps(expected))  # (tuples as JSON lists)
 
     # A flag given after the preset wins over the preset's value, the others stay.
@@ -875,6 +876,9 @@ def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
     assert (lowered.eval_every, lowered.run_steps) == (20_000, 20_000)  # not 100,000 steps
     kept = TrainConfig(eval_every=4_000, total_steps=20_000)
     assert config.eval_every_within_run(kept) is kept
+    # 100 steps of 16 environments are 7 iterations: one chunk of 112 steps, not two of 96
+    odd = config.eval_every_within_run(TrainConfig(num_envs=16, eval_every=4000, total_steps=100))
+    assert (odd.eval_every, odd.steps_per_chunk, odd.run_steps) == (112, 112, 112)
     in_chunk = TrainConfig(eval_every=100_000, total_steps=20_000, eval_in_chunk=True)
     assert config.eval_every_within_run(in_chunk) is in_chunk  # a round must fit in a chunk
     note = cli.rounding_note(lowered, asked_eval_every=100_000)

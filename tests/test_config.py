@@ -297,7 +297,7 @@ def test_a_sweep_value_of_zero_for_a_learning_rate_is_refused(capsys, tmp_path):
     from support import main
 
     out = tmp_path / "run"
-    args = ["sweep", "--sweep-critic-lr", "0", "1e-3", "--total-steps", "100", "--out", str(out)]
+    args = ["sweep", "--sweep-critic-lr", "0", "1e-3", "--out", str(out)]
     code, _, err = main(args, capsys)
     assert code == 2
     assert err.strip().endswith("--sweep-critic-lr must be positive: at 0 the critic never learns")
