@@ -154,6 +154,8 @@ class AgentHyperparams:
     gradient norm bound (used when :attr:`AgentOptions.clip_grads`). ``max_weight_norm``: the
     bound on each unit's incoming weight norm (used when :attr:`AgentOptions.bound_weights`).
     ``v_min``, ``v_max``: the C51 support (used by distributional critics).
+    ``lr_final_fraction``: where a cosine schedule ends, as a fraction of the learning rate
+    (used with ``AgentOptions.lr_schedule == "cosine"``).
     """
 
     discount: jax.Array
@@ -167,6 +169,7 @@ class AgentHyperparams:
     max_weight_norm: jax.Array = float("inf")
     v_min: jax.Array = -10.0
     v_max: jax.Array = 10.0
+    lr_final_fraction: jax.Array = 0.0
 
 
 def _check_sizes(observation_size: Any, action_size: Any, hidden_sizes: Any) -> None:
@@ -192,6 +195,7 @@ def _check_hyperparams(hp: AgentHyperparams) -> None:
         "max_weight_norm": (0.0, np.inf, False),
         "v_min": (-np.inf, np.inf, False),
         "v_max": (-np.inf, np.inf, False),
+        "lr_final_fraction": (0.0, 1.0, True),
     }
     for name, (low, high, low_ok) in ranges.items():
         value = getattr(hp, name)
@@ -334,12 +338,16 @@ def init(spec: AgentSpec, key: PRNGKey) -> AgentState:
     )
 
 
-def learning_rate(spec: AgentSpec, lr: jax.Array, step: jax.Array) -> jax.Array:
+def learning_rate(
+    spec: AgentSpec, lr: jax.Array, step: jax.Array, final_fraction: jax.Array = 0.0
+) -> jax.Array:
     """The learning rate of the update after ``step`` updates: ``lr`` (constant) or
-    ``lr * 0.5 * (1 + cos(pi * min(step, T) / T))``, ``T = schedule_updates`` (cosine)."""
+    ``lr * (f + (1 - f) * 0.5 * (1 + cos(pi * min(step, T) / T)))``, ``T = schedule_updates``,
+    ``f = final_fraction`` (cosine: from ``lr`` to ``f * lr``)."""
     if spec.options.lr_schedule == "constant":
         return lr
-    return lr * optax.cosine_decay_schedule(1.0, spec.options.schedule_updates)(step)
+    schedule = optax.cosine_decay_schedule(1.0, spec.options.schedule_updates, final_fraction)
+    return lr * schedule(step)
 
 
 def descend(
@@ -413,7 +421,7 @@ def critic_step(
     (loss, out), grads = jax.value_and_grad(loss_fn, has_aux=True)(
         state.critic_params, spec, batch, target
     )
-    lr = learning_rate(spec, hp.critic_lr, state.step)
+    lr = learning_rate(spec, hp.critic_lr, state.step, hp.lr_final_fraction)
     params, opt_state = descend(spec, hp, state.critic_params, grads, state.critic_opt_state, lr)
     state = state.replace(critic_params=params, critic_opt_state=opt_state, step=state.step + 1)
     if spec.options.target_update == "every_update":
@@ -435,7 +443,7 @@ def actor_step(
     loss, grads = jax.value_and_grad(losses.actor_loss)(
         state.actor_params, state.critic_params, spec, hp, batch
     )
-    lr = learning_rate(spec, hp.actor_lr, state.step - 1)
+    lr = learning_rate(spec, hp.actor_lr, state.step - 1, hp.lr_final_fraction)
     params, opt_state = descend(spec, hp, state.actor_params, grads, state.actor_opt_state, lr)
     target_actor = state.target_actor_params
     if spec.options.target_actor:

@@ -64,7 +64,8 @@ __all__ = [
 _AGENT_OPTIONS = ("actor_hidden_sizes", "critic_hidden_sizes", "layer_norm", "precision",
                   "target_actor", "target_update", "c51_target_head", "lr_schedule",
                   "critic_feature_norm")  # fmt: skip
-_AGENT_SETTINGS = ("weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max")
+_AGENT_SETTINGS = ("weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max",
+                   "lr_final_fraction")  # fmt: skip
 _ENV_OPTIONS = ("menagerie", "domain_randomization", "actor_obs_key", "critic_obs_key",
                 "nconmax", "njmax")  # fmt: skip
 _SPEC_SETTINGS = ("num_envs", "batch_size", "replay_capacity", "replay_shards", "n_step",
@@ -374,6 +375,7 @@ def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]])
         "expl_noise_max": not cfg.per_env_noise,
         "max_grad_norm": cfg.max_grad_norm is None,
         "max_weight_norm": cfg.max_weight_norm is None,
+        "lr_final_fraction": cfg.lr_schedule != "cosine",
         "return_bound": cfg.return_bound is None,
         "v_min": cfg.critic != "distributional",
         "v_max": cfg.critic != "distributional",

@@ -155,6 +155,8 @@ class SweepCommand(TrainCommand):
     """Lowest values of the distributional critic's support to try."""
     sweep_v_max: tuple[float, ...] = ()
     """Highest values of the distributional critic's support to try."""
+    sweep_lr_final_fraction: tuple[float, ...] = ()
+    """Ends of the cosine learning-rate schedule to try (needs --lr-schedule cosine)."""
     sweep_return_bound: tuple[float, ...] = ()
     """Return bounds of the reward scaling to try (needs --return-bound)."""
 

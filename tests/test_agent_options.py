@@ -222,6 +222,49 @@ def test_cosine_learning_rate_by_hand():
     assert float(ac.learning_rate(spec_of(), jnp.float32(2.0), jnp.int32(7))) == 2.0
 
 
+def test_cosine_learning_rate_with_a_floor_by_hand():
+    # FlashSAC's schedule: from lr to half of it. Half-way: 0.75 lr; at and past the end: 0.5 lr.
+    spec = spec_of(lr_schedule="cosine", schedule_updates=10)
+    half = jnp.float32(0.5)
+    for step, expected in ((0, 1.0), (5, 0.75), (10, 0.5), (25, 0.5),
+                           (2, 0.5 + 0.5 * 0.5 * (1 + np.cos(0.2 * np.pi)))):  # fmt: skip
+        got = ac.learning_rate(spec, jnp.float32(2.0), jnp.int32(step), half)
+        np.testing.assert_allclose(float(got), 2.0 * expected, atol=1e-6)
+    floors = jnp.asarray([0.0, 0.25, 1.0])  # traced: a sweep's members, one vmap
+    at_end = jax.vmap(lambda f: ac.learning_rate(spec, jnp.float32(2.0), jnp.int32(10), f))
+    np.testing.assert_allclose(at_end(floors), [0.0, 0.5, 2.0], atol=1e-6)
+
+
+def test_updates_past_a_cosine_schedule_with_its_floor_at_one_are_those_of_a_constant_rate():
+    # A schedule of 1 update: from the second update on it sits at its floor, lr * f; with f
+    # = 1 every update (actor and critics) equals the constant schedule's, with f = 0 none
+    # learns past the first.
+    cosine, constant = spec_of(lr_schedule="cosine", schedule_updates=1), spec_of()
+    update = lambda spec, hp, state, seed: jax.jit(ac.update, static_argnums=0)(
+        spec, hp, state, make_batch(seed), jax.random.key(seed)
+    )[0]
+    runs = {}
+    for name, spec, hp in (("floor 1", cosine, hparams(lr_final_fraction=1.0)),
+                           ("constant", constant, hparams()),
+                           ("floor 0", cosine, hparams(lr_final_fraction=0.0))):  # fmt: skip
+        state = update(spec, hp, init(constant), 1)
+        runs[name] = (state, update(spec, hp, state, 2))
+    assert_trees_close(runs["floor 1"][1].critic_params, runs["constant"][1].critic_params)
+    assert_trees_close(runs["floor 1"][1].actor_params, runs["constant"][1].actor_params)
+    first, second = runs["floor 0"]
+    assert_trees_close(first.critic_params, second.critic_params, atol=0, rtol=0)
+
+
+def test_a_floor_outside_zero_to_one_or_without_a_cosine_schedule_is_refused():
+    with pytest.raises(ConfigError, match=r"^--lr-final-fraction must be in \[0, 1\]"):
+        validate(TrainConfig(lr_schedule="cosine", lr_final_fraction=1.5))
+    with pytest.raises(ConfigError, match="--lr-final-fraction must not be negative"):
+        validate(TrainConfig(lr_schedule="cosine", lr_final_fraction=-0.1))
+    with pytest.raises(ConfigError, match="applies to --lr-schedule cosine"):
+        validate(TrainConfig(lr_final_fraction=0.5))
+    assert validate(TrainConfig(lr_schedule="cosine", lr_final_fraction=0.5))
+
+
 # --------------------------------------------------------------------------------------------
 # networks: widths, LayerNorm, bf16
 # --------------------------------------------------------------------------------------------
