@@ -8,8 +8,15 @@
 # "ended" line: a command that polls copies one folder, and a machine that goes back loses at
 # most the run in progress (whose records stay in /root/runs/PRESET-sSEED until then).
 #   bash benchmarks/runs_50m.sh t1:0 t1:2 t1-rough:1      (PRESET:SEED ...)
-# Environment: MEN (the robots' assets, default /tmp/men), DONE (default /root/done),
+# Environment: MEN (the robots' assets, default /tmp/men), DONE (default /root/done), RUNS
+# (the runs' folders, default /root/runs),
 # STEPS (default 53248000: 13 chunks of 4.096M), EXTRA (more `train` flags, e.g. --pushes on).
+# On a machine of two GPUs, two chains run side by side, one a GPU, each with its own DONE:
+#   CUDA_VISIBLE_DEVICES=0 DONE=/root/done0 RUNS=/root/runs0 \
+#     bash benchmarks/chain.sh start a bash benchmarks/runs_50m.sh g1:1
+#   CUDA_VISIBLE_DEVICES=1 DONE=/root/done1 RUNS=/root/runs1 \
+#     EXTRA='--return-bound 5 --v-min -5 --v-max 5' \
+#     bash benchmarks/chain.sh start b bash benchmarks/runs_50m.sh g1:1
 set -uo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 cd "$here/.." || exit 2
@@ -21,7 +28,7 @@ for run in "$@"; do
   preset=${run%%:*}
   seed=${run##*:}
   name=$preset-s$seed
-  out=/root/runs/$name
+  out=${RUNS:-/root/runs}/$name
   mkdir -p "$done_dir/$name"
   # shellcheck disable=SC2086
   bash benchmarks/timed_train.sh --preset "$preset" --impl warp --menagerie "${MEN:-/tmp/men}" \
