@@ -367,7 +367,8 @@ def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
         if last or (index + 1) % cfg.checkpoint_every == 0:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged)}  # fmt: skip
-            run.checkpointer.save(index + 1, state, meta, background=not last)
+            with run.stop.shielded():  # a Ctrl-C now lets the checkpoint be written
+                run.checkpointer.save(index + 1, state, meta, background=not last)
         completed = index + 1
     if completed < cfg.num_chunks:  # a stop that came with the last chunk: the run is done
         run.stop.raise_if_set()  # stopped by its token: as interrupted, once checkpointed

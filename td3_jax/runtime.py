@@ -67,6 +67,7 @@ class StopToken:
     def __init__(self) -> None:
         self._event = threading.Event()
         self._training = threading.Event()
+        self._shielded = threading.Event()
 
     def mark_training(self) -> None:
         """Says the run has compiled and is training (:func:`td3_jax.run.train` calls it before
@@ -77,6 +78,21 @@ class StopToken:
     def training(self) -> bool:
         """Whether the run has started training (:meth:`mark_training`)."""
         return self._training.is_set()
+
+    @contextlib.contextmanager
+    def shielded(self) -> Iterator[None]:
+        """While inside (a checkpoint being written), a first Ctrl-C only sets the token, as a
+        SIGTERM does: the write finishes, and the run stops at its next chunk boundary (a run
+        whose last chunk it was ends as usual). A second Ctrl-C still stops at once."""
+        self._shielded.set()
+        try:
+            yield
+        finally:
+            self._shielded.clear()
+
+    def is_shielded(self) -> bool:
+        """Whether a first Ctrl-C must not raise now (:meth:`shielded`)."""
+        return self._shielded.is_set()
 
     def set(self) -> None:
         """Asks the run to stop."""
@@ -253,7 +269,8 @@ def _signal_handler(
             return
         if say:
             print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
-        raise KeyboardInterrupt
+        if not stop.is_shielded():  # (a checkpoint being written is finished first)
+            raise KeyboardInterrupt
 
     return on_signal
 

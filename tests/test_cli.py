@@ -1078,6 +1078,44 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     assert "td3-jax: interrupted again: stopping now" in err
 
 
+@pytest.mark.parametrize("interrupted_save", [1, 2])
+def test_a_ctrl_c_while_a_checkpoint_is_written_lets_it_be_written(
+    interrupted_save, tmp_path, capsys, monkeypatch
+):
+    """A Ctrl-C that lands in a checkpoint's write (TINY_FLAGS: 2 chunks) finishes that write:
+    in the first chunk's, the run stops with checkpoint 1 kept (exit 130) and resumes to the
+    end; in the last chunk's, the finished run ends as usual with its checkpoint (exit 0).
+    Before, the KeyboardInterrupt abandoned the write: a run interrupted in its last write was
+    left with no checkpoint and a directory that neither --resume nor a fresh start took."""
+    import signal
+
+    from td3_jax.checkpoint import Checkpointer
+
+    real_save = Checkpointer.save
+
+    def save_with_a_ctrl_c(self, step, *args, **kwargs):
+        if step == interrupted_save:
+            signal.raise_signal(signal.SIGINT)  # its handler runs before the write starts
+        return real_save(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(Checkpointer, "save", save_with_a_ctrl_c)
+    out = tmp_path / "run"
+    code, stdout, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
+    steps = sorted(p.name for p in (out / "checkpoints").iterdir())
+    assert steps == [str(s) for s in range(1, interrupted_save + 1)], steps
+    assert err.splitlines()[0] == "td3-jax: stopping (Ctrl-C again to stop at once)"
+    if interrupted_save == 2:
+        assert code == 0, err
+        assert stdout.splitlines()[-1].startswith("done: 128 env steps")
+        return
+    assert code == 130, err
+    assert "checkpoint" in err.splitlines()[-1] and "--resume" in err.splitlines()[-1]
+    monkeypatch.setattr(Checkpointer, "save", real_save)
+    code, _, err = main(["train", "--out", str(out), "--resume", "--quiet"], capsys)
+    assert code == 0, err
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128]
+
+
 def test_sigterm_checkpoints_the_chunk_in_flight_then_exits_143(tmp_path, capsys, monkeypatch):
     """What a batch scheduler sends before killing: the CLI says it is stopping, the chunk
     during which SIGTERM arrived finishes and is checkpointed, the last line names that
