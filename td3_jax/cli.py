@@ -34,6 +34,7 @@ from td3_jax.config import (
     ConfigError,
     TrainConfig,
     as_flag,
+    check_seed,
     eval_every_within_run,
     idle_wandb_flags,
     validate,
@@ -795,6 +796,7 @@ def eval_main(args: list[str]) -> None:
     command = _parse(EvalCommand, args, "td3-jax eval")
     if command.episodes <= 0:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
+    check_seed(command.seed)
     cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
     title = (
         f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
@@ -849,6 +851,7 @@ def render_main(args: list[str]) -> None:
     from td3_jax import render
 
     command = _parse(RenderCommand, args, "td3-jax render")
+    check_seed(command.seed)
     out = render.video_path(command.run, command.out, command.gif)
     rendered = render.render_run(
         command.run, out, episodes=command.episodes, seed=command.seed, member=command.member,

@@ -306,6 +306,22 @@ SWEEPABLE = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_n
              "return_bound", "lr_final_fraction")  # fmt: skip
 
 
+#: The largest seed: JAX's keys hold 32 bits of it (4294967296 gives seed 0's key).
+MAX_SEED = 2**32 - 1
+#: The most env steps (per member) and gradient updates a run may take: both are counted in
+#: int32 inside the compiled program (past it the count would wrap and learning stop).
+MAX_COUNT = 2**31 - 1
+
+
+def check_seed(seed: int, members: int = 1, name: str = "--seed") -> None:
+    """A :class:`ConfigError` unless ``seed .. seed + members - 1`` are all seeds JAX tells
+    apart: in ``[0, MAX_SEED]`` (a larger one silently repeats a smaller one's run)."""
+    if seed < 0 or seed + members - 1 > MAX_SEED:
+        last = f" (and the {members} seeds from it)" if members > 1 else ""
+        raise ConfigError(f"{name} {seed}{last} must be in [0, {MAX_SEED}]: JAX's random "
+                          "keys hold 32 bits of a seed")  # fmt: skip
+
+
 def idle_wandb_flags(cfg: TrainConfig, given: set[str]) -> None:
     """A :class:`ConfigError` when W&B settings were typed (``given``: the fields named on the
     command line) for a run that does not log to W&B: they would do nothing. Settings carried
@@ -440,6 +456,16 @@ def _check_counts(cfg: TrainConfig) -> None:
             raise ConfigError(f"{flag(name)} must not be negative, got {getattr(cfg, name)}")
     if cfg.episode_length is not None and cfg.episode_length <= 0:
         raise ConfigError(f"--episode-length must be positive, got {cfg.episode_length}")
+    check_seed(cfg.seed, cfg.seeds)
+    if cfg.run_steps > MAX_COUNT:
+        runs = f" (run as {cfg.run_steps:,}: whole chunks)" * (cfg.run_steps != cfg.total_steps)
+        raise ConfigError(f"--total-steps {cfg.total_steps:,}{runs} is more than the "
+                          f"{MAX_COUNT:,} env steps a run can count (int32 counters in the "
+                          "compiled program)")  # fmt: skip
+    if cfg.total_updates > MAX_COUNT:
+        raise ConfigError(f"the run would take {cfg.total_updates:,} gradient updates, more than "
+                          f"the {MAX_COUNT:,} it can count: fewer --updates-per-iter or "
+                          "--total-steps")  # fmt: skip
 
 
 def _check_floats(cfg: TrainConfig) -> None:
@@ -500,10 +526,13 @@ def _check_replay(cfg: TrainConfig) -> None:
 
 
 __all__ = [
+    "MAX_COUNT",
+    "MAX_SEED",
     "SWEEPABLE",
     "WANDB_SETTINGS",
     "TrainConfig",
     "as_flag",
+    "check_seed",
     "eval_every_within_run",
     "flag",
     "idle_wandb_flags",

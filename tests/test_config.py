@@ -323,3 +323,26 @@ def test_a_warm_up_as_long_as_the_run_is_refused():
         validate(TrainConfig(total_steps=20_000, warmup_steps=20_000))
     validate(TrainConfig(total_steps=20_000, warmup_steps=19_999))
     validate(TrainConfig(total_steps=64, warmup_steps=100, updates_per_iter=0))  # no learning asked
+
+
+@pytest.mark.parametrize(("seed", "seeds"), [(-1, 1), (2**32, 1), (2**32 - 2, 3), (10**20, 1)])
+def test_a_seed_jax_cannot_tell_apart_is_refused(seed, seeds):
+    """JAX keys hold 32 bits of a seed: --seed 4294967296 trained seed 0's run again, and
+    10**20 ended in an OverflowError traceback."""
+    with pytest.raises(ConfigError, match=rf"^--seed {seed}.* must be in \[0, 4294967295\]"):
+        validate(TrainConfig(seed=seed, seeds=seeds))
+    assert validate(TrainConfig(seed=2**32 - 3, seeds=3))
+
+
+def test_a_run_longer_than_its_int32_counters_is_refused():
+    """The env-step and update counters are int32 in the compiled program: past 2**31 - 1 the
+    env steps wrapped negative and the run went back to its random warm-up, unannounced."""
+    with pytest.raises(ConfigError, match=r"^--total-steps 2,147,483,648 is more than the "
+                                          r"2,147,483,647 env steps"):  # fmt: skip
+        validate(TrainConfig(total_steps=2**31, eval_every=2**31))
+    with pytest.raises(ConfigError, match=r"\(run as 2,147,484,000: whole chunks\)"):
+        validate(TrainConfig(total_steps=2**31 - 100, eval_every=4000))
+    with pytest.raises(ConfigError, match="gradient updates, more than the 2,147,483,647"):
+        validate(TrainConfig(total_steps=2**30, eval_every=2**20, updates_per_iter=64))
+    longest = 2**31 - 1 - (2**31 - 1) % 16  # whole iterations of 16 environments
+    assert validate(TrainConfig(total_steps=longest, eval_every=longest))

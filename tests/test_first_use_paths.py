@@ -288,3 +288,9 @@ def test_a_run_stopped_by_its_time_budget_says_so_and_how_to_go_on(tmp_path, cap
     assert lines[-2].startswith("done: 64 env steps")
     assert lines[-1] == (f"stopped by --time-budget-s 0.001 at 64 of 128 env steps; "
                          f"td3-jax train --out {out} --resume continues it")  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["eval", "render"])
+def test_a_seed_out_of_range_for_eval_and_render_is_one_line(command, tmp_path, capsys):
+    code, _, err = main([command, "--run", str(tmp_path), "--seed", str(10**20)], capsys)
+    assert_one_line_error(code, err, f"--seed {10**20} must be in [0, 4294967295]")
