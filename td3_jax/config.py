@@ -435,9 +435,6 @@ def _check_options(cfg: TrainConfig) -> None:
         raise ConfigError(f"--num-atoms must be at least 2, got {cfg.num_atoms}")
     if not cfg.v_min < cfg.v_max:
         raise ConfigError(f"--v-min ({cfg.v_min}) must be below --v-max ({cfg.v_max})")
-    for bound in ("max_grad_norm", "max_weight_norm", "return_bound"):
-        if getattr(cfg, bound) is not None and getattr(cfg, bound) <= 0:
-            raise ConfigError(f"{flag(bound)} must be positive, got {getattr(cfg, bound)}")
     low, high = cfg.expl_noise_min, cfg.expl_noise_max
     if (low is None) != (high is None):
         raise ConfigError("--expl-noise-min and --expl-noise-max go together: give both or neither")
@@ -469,21 +466,29 @@ def _check_counts(cfg: TrainConfig) -> None:
 
 
 def _check_floats(cfg: TrainConfig) -> None:
-    """Finite floats (NaN and infinities are refused before anything compiles), in range."""
-    for name in _FLOATS:
+    """Finite floats (NaN and infinities are refused before anything compiles), in range: each
+    setting with a range of its own says that range, whichever side a value misses it."""
+    for name in (*_FLOATS, *_SIGNED_FLOATS):
         value = getattr(cfg, name)
         if value is not None and not math.isfinite(value):
             raise ConfigError(f"{flag(name)} must be a finite number, got {value}")
+    _check_ranges(cfg)
+    for name in _FLOATS:
+        value = getattr(cfg, name)
         if value is not None and value < 0:
             raise ConfigError(f"{flag(name)} must not be negative, got {value}")
-    for name in _SIGNED_FLOATS:
-        if not math.isfinite(getattr(cfg, name)):
-            raise ConfigError(f"{flag(name)} must be a finite number, got {getattr(cfg, name)}")
+
+
+def _check_ranges(cfg: TrainConfig) -> None:
+    """The float settings with a range of their own (a bound, a fraction, a rate)."""
     for name in ("actor_lr", "critic_lr"):
         if getattr(cfg, name) == 0:
             network = name.partition("_")[0]
             raise ConfigError(f"{flag(name)} must be positive: at 0 the {network} never learns")
-    if cfg.lr_final_fraction > 1.0:
+    for bound in ("max_grad_norm", "max_weight_norm", "return_bound"):
+        if getattr(cfg, bound) is not None and getattr(cfg, bound) <= 0:
+            raise ConfigError(f"{flag(bound)} must be positive, got {getattr(cfg, bound)}")
+    if not 0.0 <= cfg.lr_final_fraction <= 1.0:
         raise ConfigError(f"--lr-final-fraction must be in [0, 1], got {cfg.lr_final_fraction}")
     if cfg.lr_final_fraction and cfg.lr_schedule != "cosine":
         raise ConfigError("--lr-final-fraction applies to --lr-schedule cosine")

@@ -258,7 +258,7 @@ def test_updates_past_a_cosine_schedule_with_its_floor_at_one_are_those_of_a_con
 def test_a_floor_outside_zero_to_one_or_without_a_cosine_schedule_is_refused():
     with pytest.raises(ConfigError, match=r"^--lr-final-fraction must be in \[0, 1\]"):
         validate(TrainConfig(lr_schedule="cosine", lr_final_fraction=1.5))
-    with pytest.raises(ConfigError, match="--lr-final-fraction must not be negative"):
+    with pytest.raises(ConfigError, match=r"^--lr-final-fraction must be in \[0, 1\], got -0.1"):
         validate(TrainConfig(lr_schedule="cosine", lr_final_fraction=-0.1))
     with pytest.raises(ConfigError, match="applies to --lr-schedule cosine"):
         validate(TrainConfig(lr_final_fraction=0.5))

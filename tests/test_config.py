@@ -346,3 +346,18 @@ def test_a_run_longer_than_its_int32_counters_is_refused():
         validate(TrainConfig(total_steps=2**30, eval_every=2**20, updates_per_iter=64))
     longest = 2**31 - 1 - (2**31 - 1) % 16  # whole iterations of 16 environments
     assert validate(TrainConfig(total_steps=longest, eval_every=longest))
+
+
+@pytest.mark.parametrize(("setting", "value", "says"), [
+    ("tau", -0.5, "--tau must be in (0, 1], got -0.5"),
+    ("tau", 0.0, "--tau must be in (0, 1], got 0.0"),
+    ("return_bound", -1.0, "--return-bound must be positive, got -1.0"),
+    ("return_bound", 0.0, "--return-bound must be positive, got 0.0"),
+    ("max_grad_norm", -1.0, "--max-grad-norm must be positive, got -1.0"),
+    ("discount", -0.1, "--discount must be in [0, 1], got -0.1"),
+])  # fmt: skip
+def test_a_setting_with_a_range_says_it_on_either_side(setting, value, says):
+    """--tau -0.5 said 'must not be negative' where --tau 0 said 'must be in (0, 1]'."""
+    with pytest.raises(ConfigError) as raised:
+        validate(TrainConfig(**{setting: value}))
+    assert str(raised.value) == says
