@@ -279,9 +279,11 @@ def make_train(
     ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
     resumed. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
     keeps the reset and warm-up branches as real branches. ``env``: the environment instead
-    of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`).
+    of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`). ``cfg`` is validated
+    first (:func:`~td3_jax.config.validate`: a setting that cannot work is a ConfigError, as
+    on the command line).
     """
-    spec = make_spec(cfg, env, axis_name)
+    spec = make_spec(validate(cfg), env, axis_name)
     return training.make_train(spec, hyperparams(cfg), cfg.num_chunks)
 
 
@@ -315,8 +317,8 @@ def make_trainer(
     env_groups: int = 1,
 ) -> Trainer:
     """:class:`Trainer` of ``cfg``: :mod:`td3_jax.training`'s steps with ``spec`` and ``hp``
-    bound."""
-    spec = make_spec(cfg, env, axis_name, env_groups)
+    bound (``cfg`` validated first: a setting that cannot work is a ConfigError here too)."""
+    spec = make_spec(validate(cfg), env, axis_name, env_groups)
     hp = hyperparams(cfg)
     return Trainer(
         config=cfg,

@@ -77,7 +77,8 @@ def test_learn_is_the_agents_update_on_sampled_normalised_batches(spec, hp, fres
         state, _ = collect(spec, hp, state)
     key = jax.random.PRNGKey(7)
     learn = jax.jit(training.learn, static_argnums=0)
-    agent, metrics = learn(spec, hp, state.agent, state.buffer, state.obs_stats, key)
+    scale = training.reward_scale(spec, hp, state)  # 1: this run does not scale rewards
+    agent, metrics = learn(spec, hp, state.agent, state.buffer, state.obs_stats, scale, key)
     assert int(agent.step) == 2 and float(metrics["updates"]) == 2.0
     # The same two updates, composed by hand from the agent's own functions (each compiled on
     # its own: run op by op, they took most of this test's time).
