@@ -36,6 +36,8 @@ from td3_jax.config import (
     as_flag,
     check_seed,
     eval_every_within_run,
+    flag,
+    idle_flags,
     idle_wandb_flags,
     validate,
 )
@@ -581,7 +583,8 @@ def no_learning_warning(cfg: TrainConfig) -> str | None:
 
 
 def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
-                   asked_eval_every: int | None = None) -> None:  # fmt: skip
+                   asked_eval_every: int | None = None,
+                   given: frozenset[str] = frozenset()) -> None:  # fmt: skip
     """Once the run's settings, directory and environment are good (a run they stop says
     nothing else): which settings it got, and warnings (a GPU-sized run on a CPU, an
     evaluation that dwarfs the training, no updates)."""
@@ -591,15 +594,16 @@ def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
         return
     _announce(cfg, preset_name, source, asked_eval_every)
     warnings = (cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg),
-                no_learning_warning(cfg))  # fmt: skip
+                no_learning_warning(cfg), *idle_flags(cfg, set(given)))  # fmt: skip
     for warning in warnings:
         if warning:
             print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
-def _sweep_values(command: Any) -> dict[str, list[float]]:
+def _sweep_values(command: Any, given: set[str]) -> dict[str, list[float]]:
     """The ``--sweep-*`` lists of a sweep command (``{"actor_lr": [...], ...}``); none is an
-    error unless the sweep is resumed."""
+    error unless the sweep is resumed, and so are a value listed twice and a swept setting
+    also typed as a flag of its own (``given``: the fields named on the command line)."""
     sweep = {
         f.name.removeprefix("sweep_"): list(getattr(command, f.name))
         for f in dataclasses.fields(SweepCommand)
@@ -607,6 +611,15 @@ def _sweep_values(command: Any) -> dict[str, list[float]]:
     }
     if not sweep and not command.resume:
         raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
+    for name, values in sweep.items():
+        twice = sorted({v for v in values if values.count(v) > 1})
+        if twice:
+            raise ConfigError(f"--sweep-{name.replace('_', '-')} lists {twice[0]:g} more than "
+                              "once: each value trains once (--seeds K repeats them)")  # fmt: skip
+    both = sorted(set(sweep) & given)
+    if both:
+        raise ConfigError(f"{flag(both[0])} and --sweep-{both[0].replace('_', '-')} both given: "
+                          "the swept values replace it in every member; give one")  # fmt: skip
     return sweep
 
 
@@ -643,7 +656,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.rundir import interrupted_message
 
     command, cfg, preset_name, source = _parse_train(args, sweeping)
-    sweep = _sweep_values(command) if sweeping else None
+    sweep = _sweep_values(command, _given_fields(args)) if sweeping else None
     from td3_jax import envs
 
     envs.check_name(cfg.env)  # before anything about the environment is said
@@ -660,7 +673,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if not command.resume:  # (a resume keeps the chunk its checkpoints were written with)
         cfg = eval_every_within_run(cfg)
     validate(cfg)  # (said once the directory and the environment are good too)
-    prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every)
+    prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
+                                 frozenset(_given_fields(args)))  # fmt: skip
     received: list[int] = []
     started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped

@@ -313,6 +313,30 @@ MAX_SEED = 2**32 - 1
 MAX_COUNT = 2**31 - 1
 
 
+def idle_flags(cfg: TrainConfig, given: set[str]) -> list[str]:
+    """Warnings for flags typed (``given``: the fields named on the command line) that change
+    nothing with the rest of ``cfg`` (OU settings of a Gaussian-exploration run, the C51
+    support of plain critics, ...), one per reason: ``--v-min, --v-max do nothing with
+    --critic plain``."""
+    ou = ("ou_theta", "ou_sigma", "ou_min_sigma", "ou_decay_period")
+    reasons = [
+        (ou, cfg.exploration != "ou", f"--exploration {cfg.exploration}"),
+        (("expl_noise",), cfg.exploration != "gaussian", f"--exploration {cfg.exploration}"),
+        (("expl_noise",), cfg.per_env_noise, "--expl-noise-min/--expl-noise-max"),
+        (("num_atoms", "v_min", "v_max", "c51_target_head"), cfg.critic != "distributional",
+         f"--critic {cfg.critic}"),
+        (("policy_noise", "noise_clip", "policy_freq"), cfg.algo == "ddpg", "--algo ddpg"),
+        (("env_backend",), not cfg.env.startswith("brax/"), f"--env {cfg.env}"),
+    ]  # fmt: skip
+    warnings = []
+    for names, idle, because in reasons:
+        typed = [flag(n) for n in names if n in given]
+        if idle and typed:
+            verb = "does" if len(typed) == 1 else "do"
+            warnings.append(f"{', '.join(typed)} {verb} nothing with {because}")
+    return warnings
+
+
 def check_seed(seed: int, members: int = 1, name: str = "--seed") -> None:
     """A :class:`ConfigError` unless ``seed .. seed + members - 1`` are all seeds JAX tells
     apart: in ``[0, MAX_SEED]`` (a larger one silently repeats a smaller one's run)."""
@@ -540,6 +564,7 @@ __all__ = [
     "check_seed",
     "eval_every_within_run",
     "flag",
+    "idle_flags",
     "idle_wandb_flags",
     "validate",
 ]

@@ -361,3 +361,41 @@ def test_a_setting_with_a_range_says_it_on_either_side(setting, value, says):
     with pytest.raises(ConfigError) as raised:
         validate(TrainConfig(**{setting: value}))
     assert str(raised.value) == says
+
+
+def test_typed_flags_that_change_nothing_are_named_with_the_reason():
+    from td3_jax.config import idle_flags
+
+    ou = TrainConfig(exploration="ou")
+    assert idle_flags(ou, {"expl_noise", "ou_sigma"}) == [
+        "--expl-noise does nothing with --exploration ou"
+    ]
+    plain = TrainConfig(critic="plain")
+    assert idle_flags(plain, {"num_atoms", "v_max"}) == [
+        "--num-atoms, --v-max do nothing with --critic plain"
+    ]
+    ddpg = TrainConfig(algo="ddpg", env="brax/ant")
+    assert idle_flags(ddpg, {"policy_noise", "env_backend"}) == [
+        "--policy-noise does nothing with --algo ddpg"
+    ]
+    assert idle_flags(TrainConfig(), {"env_backend"}) == [
+        "--env-backend does nothing with --env gymnax/Pendulum-v1"
+    ]
+    # The same values from a preset (not typed) say nothing; used flags say nothing.
+    assert idle_flags(plain, set()) == []
+    assert idle_flags(TrainConfig(critic="distributional"), {"v_max", "expl_noise"}) == []
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["--sweep-actor-lr", "1e-3", "1e-3"],
+     "--sweep-actor-lr lists 0.001 more than once: each value trains once"),
+    (["--sweep-actor-lr", "1e-3", "3e-4", "--actor-lr", "3e-4"],
+     "--actor-lr and --sweep-actor-lr both given: the swept values replace it"),
+])  # fmt: skip
+def test_a_sweep_that_repeats_a_value_or_a_swept_flag_is_one_line(args, says, tmp_path, capsys):
+    from support import assert_one_line_error, main
+
+    out = tmp_path / "run"
+    code, _, err = main(["sweep", *args, "--out", str(out)], capsys)
+    assert_one_line_error(code, err, says)
+    assert not out.exists()
