@@ -520,10 +520,13 @@ def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
     """A warning when a run sized for an accelerator is about to start on a CPU."""
     if backend != "cpu" or (cfg.num_envs < 1024 and cfg.total_steps < 5_000_000):
         return None
+    sizes = (("--num-envs 16", cfg.num_envs >= 1024),
+             ("--total-steps 20000", cfg.total_steps >= 5_000_000))  # fmt: skip
+    tips = [tip for tip, large in sizes if large]  # (only what is sized for a GPU)
     return (
         f"this run is sized for a GPU ({cfg.num_envs} environments, {cfg.total_steps} steps, "
         f"batch {cfg.batch_size}) and JAX found only a CPU: it will compile for minutes and "
-        "train for hours. For a CPU try --num-envs 16 --total-steps 20000 (or no --preset)"
+        f"train for hours. For a CPU try {' '.join(tips)} (or no --preset)"
     )
 
 

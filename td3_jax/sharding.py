@@ -82,10 +82,14 @@ def check_memory(abstract_state: Any, mesh: Mesh) -> None:
     if need <= limit:
         return
     ring = state_bytes(abstract_state.buffer) // share
+    networks = state_bytes(abstract_state.agent) // share
+    advice = ("smaller --hidden-sizes (or --actor-hidden-sizes, --critic-hidden-sizes)"
+              if networks > ring else "a smaller --buffer-size")  # fmt: skip
     raise ConfigError(
         f"the train state needs {size_text(need)} per device (the replay ring "
-        f"{size_text(ring)}) but {what} {size_text(limit)}; use a smaller --buffer-size "
-        "(or fewer --num-envs, --seeds or sweep values)"
+        f"{size_text(ring)}, the networks and their optimiser states {size_text(networks)}) "
+        f"but {what} {size_text(limit)}; use {advice} (or fewer --num-envs, --seeds or sweep "
+        "values)"
     )
 
 

@@ -914,6 +914,9 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert f"{ant.num_envs} environments" in cli.cpu_size_warning(ant, "cpu")
     assert cli.cpu_size_warning(ant, "gpu") is None
     assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None
+    assert "try --num-envs 16 --total-steps 20000 (" in cli.cpu_size_warning(ant, "cpu")
+    long_run = TrainConfig(num_envs=16, total_steps=10_000_000)  # suggests only what is large
+    assert "try --total-steps 20000 (or no --preset)" in cli.cpu_size_warning(long_run, "cpu")
 
 
 def test_an_evaluation_that_dwarfs_the_training_is_warned_about_and_its_time_shown(capsys):

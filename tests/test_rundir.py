@@ -765,11 +765,21 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     monkeypatch.setattr(sharding, "memory_of", lambda device: (need - 1, "the test's memory is"))
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "run")], capsys)
     line = err.strip().splitlines()[-1]
-    assert code == 2 and "--buffer-size" in line, err
-    assert f"{size_text(need)} per device" in line and f"ring {size_text(ring)})" in line
+    networks = state_bytes(state.agent)
+    assert networks > ring  # 16-wide networks with Adam's moments outweigh 256 ring rows
+    assert code == 2 and "use smaller --hidden-sizes" in line, err
+    assert f"{size_text(need)} per device" in line and f"ring {size_text(ring)}, " in line
+    assert f"optimiser states {size_text(networks)})" in line
     assert not list((tmp_path / "run").glob("checkpoints/*"))
     monkeypatch.setattr(sharding, "memory_of", lambda device: (need, "the test's memory is"))
     sharding.check_memory(state, sharding.make_mesh(1))  # exactly enough: accepted
+    # A ring that outweighs the networks is what to shrink.
+    big = dataclasses.replace(cfg, buffer_size=100_000, total_steps=100_000, eval_every=100_000)
+    state = make_population(big, members(big)).abstract_state
+    assert state_bytes(state.buffer) > state_bytes(state.agent)
+    monkeypatch.setattr(sharding, "memory_of", lambda device: (1, "the test's memory is"))
+    with pytest.raises(ConfigError, match="; use a smaller --buffer-size"):
+        sharding.check_memory(state, sharding.make_mesh(1))
 
 
 def test_a_file_system_that_refuses_locks_is_one_line_for_starting_and_probing(
