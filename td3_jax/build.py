@@ -389,7 +389,9 @@ def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]])
         raise ConfigError(
             f"sweeping {', '.join(idle)} changes nothing with these settings (--algo "
             f"{cfg.algo}, --exploration {cfg.exploration}, --critic {cfg.critic}; per-environment "
-            "exploration needs --expl-noise-min/--expl-noise-max, clipping --max-grad-norm)"
+            "exploration needs --expl-noise-min/--expl-noise-max, clipping --max-grad-norm, "
+            "bounded weights --max-weight-norm, reward scaling --return-bound, a schedule's "
+            "floor --lr-schedule cosine)"
         )
 
 

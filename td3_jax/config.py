@@ -53,7 +53,8 @@ class TrainConfig:
     """Environment steps with uniform random actions and no updates at the start."""
     eval_every: int = 4_000
     """Environment steps between evaluations (one compiled chunk); also the checkpoint period.
-    A fresh run from the command line lowers it to --total-steps where it is longer."""
+    Runs as whole iterations. A fresh run from the command line lowers it to --total-steps
+    where it is longer (not with --eval-in-chunk, whose chunk holds a whole episode)."""
     eval_envs: int = 16
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False
@@ -172,8 +173,9 @@ class TrainConfig:
     """Project the critics' hidden features onto the sphere of radius sqrt(width) after every
     ReLU (bounded features, as SimbaV2/FlashSAC); the actor is unchanged."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
-    """Learning-rate schedule: constant, or cosine from the learning rate to 0 over the run's
-    gradient updates (so --total-steps cannot change on --resume)."""
+    """Learning-rate schedule: constant, or cosine from the learning rate to
+    --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps
+    cannot change on --resume)."""
     lr_final_fraction: float = 0.0
     """Where the cosine schedule ends, as a fraction of the learning rate (FlashSAC: 0.5, from
     3e-4 to 1.5e-4); default 0: to 0."""

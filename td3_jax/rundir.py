@@ -440,11 +440,12 @@ _REASONS = {
     "num_envs": "it fixes the environment and replay state in the checkpoint",
     "buffer_size": "it fixes the replay buffer in the checkpoint",
     "eval_envs": "with --eval-in-chunk the evaluation worlds are in the checkpoint's environments",
+    "return_bound": "its return statistics are part of the checkpoint's state",
 }
 
 
 def _mismatch(name: str, saved: str, given: str, safe_names: tuple[str, ...]) -> str:
-    if name in FLOAT_SETTINGS:
+    if name in FLOAT_SETTINGS and name not in _REASONS:
         why = (
             "learning rates, tau, noise scales and the discount cannot change on --resume yet "
             "(the continued run would not be reproducible)"

@@ -1,7 +1,8 @@
 """Data parallelism over devices with ``jax.sharding`` (GSPMD): nothing hand-written.
 
 The train state is placed on a 1-D device mesh with axis ``"data"``: environment states, OU
-noise states and the replay buffer are split along their environment / slice axis (with
+noise states, per-environment exploration draws, the running return sums of reward scaling
+and the replay buffer are split along their environment / slice axis (with
 ``--replay-shards`` a multiple of the device count each device holds whole slices of the ring,
 so inserts and sampling need no traffic between devices); everything
 else (parameters, targets, optimiser states, normaliser, keys, counters) is replicated. The
@@ -82,7 +83,7 @@ def check_memory(abstract_state: Any, mesh: Mesh) -> None:
     if need <= limit:
         return
     ring = state_bytes(abstract_state.buffer) // share
-    networks = state_bytes(abstract_state.agent) // share
+    networks = state_bytes(abstract_state.agent)  # (replicated: every device holds them all)
     advice = ("smaller --hidden-sizes (or --actor-hidden-sizes, --critic-hidden-sizes)"
               if networks > ring else "a smaller --buffer-size")  # fmt: skip
     raise ConfigError(

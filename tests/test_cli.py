@@ -1167,3 +1167,20 @@ def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(
     assert chosen.impl == "jax"
     said = capsys.readouterr().out
     assert said.startswith("physics: MJX's JAX implementation (--impl jax) (MuJoCo Warp:")
+
+
+def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys, monkeypatch):
+    """--return-bound 5 --sweep-return-bound 1 5: the flag turns reward scaling on, the sweep
+    gives each member its bound (the refusal of a swept setting also typed as a flag must not
+    catch it, nor --max-grad-norm's and --max-weight-norm's sweeps)."""
+    from td3_jax.build import members
+
+    calls = _capture_train(monkeypatch)
+    args = ["sweep", "--return-bound", "5", "--sweep-return-bound", "1", "5", "--max-grad-norm",
+            "1", "--sweep-max-grad-norm", "0.5", "2", "--out", str(tmp_path / "run")]  # fmt: skip
+    code, _, err = main(args, capsys)
+    assert code == 0, err
+    ((cfg, _, kwargs),) = calls
+    assert kwargs["sweep"] == {"return_bound": [1.0, 5.0], "max_grad_norm": [0.5, 2.0]}
+    bounds = sorted(dict(m.overrides)["return_bound"] for m in members(cfg, kwargs["sweep"]))
+    assert bounds == [1.0, 1.0, 5.0, 5.0]

@@ -139,3 +139,24 @@ def test_a_run_without_it_keeps_its_state_layout():
 def test_a_bound_that_is_not_a_positive_number_is_refused(bound):
     with pytest.raises(ConfigError, match="--return-bound"):
         validate(TrainConfig(return_bound=bound))
+
+
+def test_an_iteration_learns_through_the_scale_and_only_through_it(scaled_run, monkeypatch):
+    """After warm-up, one iteration with reward scaling (A) differs from the same iteration
+    whose scale is forced to 1 (B), and B equals the iteration of a run without scaling (C):
+    the scale reaches the updates, and by :func:`training.reward_scale` alone."""
+    trainer, state, _ = scaled_run
+    spec, hp = trainer.spec, trainer.hyperparams
+
+    def step(spec, state):  # a new function each time: traced afresh, patches included
+        return jax.jit(lambda s: training.iteration(spec, hp, s))(state)[0]
+
+    scaled = step(spec, state)
+    assert float(training.reward_scale(spec, hp, state)) > 1.0  # Pendulum's returns: far from 1
+    monkeypatch.setattr(training, "reward_scale", lambda *_: jnp.ones((), jnp.float32))
+    unit = step(spec, state)
+    plain = step(dataclasses.replace(spec, scale_rewards=False), state.replace(returns=None))
+    leaves = lambda s: jax.tree.leaves(s.agent.critic_params)
+    assert any(not np.allclose(a, b) for a, b in zip(leaves(scaled), leaves(unit), strict=True))
+    for a, b in zip(leaves(unit), leaves(plain), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
