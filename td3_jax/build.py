@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from td3_jax import actor_critic as ac
 from td3_jax import envs, replay, training
 from td3_jax import population as pop
-from td3_jax.config import SWEEPABLE, TrainConfig, validate
+from td3_jax.config import SWEEPABLE, TrainConfig, unused_settings, validate
 from td3_jax.errors import ConfigError
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
@@ -367,32 +367,13 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
 
 
 def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]]) -> None:
-    """Refuses sweeping a setting that ``cfg`` does not use (a DDPG run's smoothing noise, an
-    OU run's Gaussian scale, ...)."""
-    unused = {
-        "policy_noise": cfg.algo == "ddpg",
-        "noise_clip": cfg.algo == "ddpg",
-        "expl_noise": cfg.exploration != "gaussian" or cfg.per_env_noise,
-        "expl_noise_min": not cfg.per_env_noise,
-        "expl_noise_max": not cfg.per_env_noise,
-        "max_grad_norm": cfg.max_grad_norm is None,
-        "max_weight_norm": cfg.max_weight_norm is None,
-        "lr_final_fraction": cfg.lr_schedule != "cosine",
-        "return_bound": cfg.return_bound is None,
-        "v_min": cfg.critic != "distributional",
-        "v_max": cfg.critic != "distributional",
-        "ou_sigma": cfg.exploration != "ou",
-        "ou_theta": cfg.exploration != "ou",
-    }
-    idle = sorted(name for name in sweep if unused.get(name, False))
+    """Refuses sweeping a setting that ``cfg`` does not use (:func:`unused_settings`: a DDPG
+    run's smoothing noise, an OU run's Gaussian scale, an option left off, ...)."""
+    unused = unused_settings(cfg)
+    idle = sorted(name for name in sweep if name in unused)
     if idle:
-        raise ConfigError(
-            f"sweeping {', '.join(idle)} changes nothing with these settings (--algo "
-            f"{cfg.algo}, --exploration {cfg.exploration}, --critic {cfg.critic}; per-environment "
-            "exploration needs --expl-noise-min/--expl-noise-max, clipping --max-grad-norm, "
-            "bounded weights --max-weight-norm, reward scaling --return-bound, a schedule's "
-            "floor --lr-schedule cosine)"
-        )
+        raise ConfigError("sweeping " + "; ".join(
+            f"{name} changes nothing with {unused[name]}" for name in idle))  # fmt: skip
 
 
 def _validate_combinations(cfg: TrainConfig, names: list[str], combos: list[tuple]) -> None:

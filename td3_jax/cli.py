@@ -31,6 +31,7 @@ import tyro
 
 from td3_jax import runtime, upstream
 from td3_jax.config import (
+    SWITCHED_ON_BY_THEIR_FLAG,
     ConfigError,
     TrainConfig,
     as_flag,
@@ -603,12 +604,6 @@ def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
             print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
-#: Swept settings whose own flag turns the option on (None: off), so it is given beside the
-#: sweep (``--return-bound 5 --sweep-return-bound 1 5``); the swept values replace its value.
-SWEPT_WITH_ITS_FLAG = ("max_grad_norm", "max_weight_norm", "return_bound", "expl_noise_min",
-                       "expl_noise_max")  # fmt: skip
-
-
 def _sweep_values(command: Any, given: set[str]) -> dict[str, list[float]]:
     """The ``--sweep-*`` lists of a sweep command (``{"actor_lr": [...], ...}``); none is an
     error unless the sweep is resumed, and so are a value listed twice and a swept setting
@@ -625,7 +620,7 @@ def _sweep_values(command: Any, given: set[str]) -> dict[str, list[float]]:
         if twice:
             raise ConfigError(f"--sweep-{name.replace('_', '-')} lists {twice[0]:g} more than "
                               "once: each value trains once (--seeds K repeats them)")  # fmt: skip
-    both = sorted(set(sweep) & given - set(SWEPT_WITH_ITS_FLAG))
+    both = sorted(set(sweep) & given - set(SWITCHED_ON_BY_THEIR_FLAG))
     if both:
         raise ConfigError(f"{flag(both[0])} and --sweep-{both[0].replace('_', '-')} both given: "
                           "the swept values replace it in every member; give one")  # fmt: skip

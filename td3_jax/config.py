@@ -315,36 +315,55 @@ MAX_SEED = 2**32 - 1
 MAX_COUNT = 2**31 - 1
 
 
-def idle_flags(cfg: TrainConfig, given: set[str]) -> list[str]:
-    """Warnings for flags typed (``given``: the fields named on the command line) that change
-    nothing with the rest of ``cfg`` (OU settings of a Gaussian-exploration run, the C51
-    support of plain critics, ...), one per reason: ``--v-min, --v-max do nothing with
-    --critic plain``."""
-    ou = ("ou_theta", "ou_sigma", "ou_min_sigma", "ou_decay_period")
-    reasons = [
-        (ou, cfg.exploration != "ou", f"--exploration {cfg.exploration}"),
+#: Sweepable settings whose own flag turns an option on (None: off), so that flag is given
+#: beside their sweep (``--return-bound 5 --sweep-return-bound 1 5``).
+SWITCHED_ON_BY_THEIR_FLAG = ("max_grad_norm", "max_weight_norm", "return_bound",
+                             "expl_noise_min", "expl_noise_max")  # fmt: skip
+
+
+def unused_settings(cfg: TrainConfig) -> dict[str, str]:
+    """The settings that change nothing with the rest of ``cfg`` (OU settings of a Gaussian
+    exploration run, the C51 support of plain critics, an option left off, ...), each with
+    what makes it so (``{"v_max": "--critic plain", ...}``): what a sweep of them is refused
+    for and a typed flag of them is warned of."""
+    groups = [
+        (("ou_theta", "ou_sigma", "ou_min_sigma", "ou_decay_period"), cfg.exploration != "ou",
+         f"--exploration {cfg.exploration}"),
         (("expl_noise",), cfg.exploration != "gaussian", f"--exploration {cfg.exploration}"),
         (("expl_noise",), cfg.per_env_noise, "--expl-noise-min/--expl-noise-max"),
         (("num_atoms", "v_min", "v_max", "c51_target_head"), cfg.critic != "distributional",
          f"--critic {cfg.critic}"),
         (("policy_noise", "noise_clip", "policy_freq"), cfg.algo == "ddpg", "--algo ddpg"),
         (("env_backend",), not cfg.env.startswith("brax/"), f"--env {cfg.env}"),
+        (("lr_final_fraction",), cfg.lr_schedule != "cosine", f"--lr-schedule {cfg.lr_schedule}"),
+        *(((name,), getattr(cfg, name) is None, f"no {flag(name)} (that flag turns it on)")
+          for name in SWITCHED_ON_BY_THEIR_FLAG),
     ]  # fmt: skip
-    warnings = []
-    for names, idle, because in reasons:
-        typed = [flag(n) for n in names if n in given]
-        if idle and typed:
-            verb = "does" if len(typed) == 1 else "do"
-            warnings.append(f"{', '.join(typed)} {verb} nothing with {because}")
-    return warnings
+    unused: dict[str, str] = {}
+    for names, idle, because in groups:
+        for name in names if idle else ():
+            unused.setdefault(name, because)
+    return unused
 
 
-def check_seed(seed: int, members: int = 1, name: str = "--seed") -> None:
+def idle_flags(cfg: TrainConfig, given: set[str]) -> list[str]:
+    """Warnings for flags typed (``given``: the fields named on the command line) that change
+    nothing with the rest of ``cfg`` (:func:`unused_settings`), one per reason: ``--v-min,
+    --v-max do nothing with --critic plain``."""
+    typed: dict[str, list[str]] = {}
+    for name, because in unused_settings(cfg).items():
+        if name in given:
+            typed.setdefault(because, []).append(flag(name))
+    return [f"{', '.join(flags)} {'does' if len(flags) == 1 else 'do'} nothing with {because}"
+            for because, flags in typed.items()]  # fmt: skip
+
+
+def check_seed(seed: int, members: int = 1) -> None:
     """A :class:`ConfigError` unless ``seed .. seed + members - 1`` are all seeds JAX tells
     apart: in ``[0, MAX_SEED]`` (a larger one silently repeats a smaller one's run)."""
     if seed < 0 or seed + members - 1 > MAX_SEED:
         last = f" (and the {members} seeds from it)" if members > 1 else ""
-        raise ConfigError(f"{name} {seed}{last} must be in [0, {MAX_SEED}]: JAX's random "
+        raise ConfigError(f"--seed {seed}{last} must be in [0, {MAX_SEED}]: JAX's random "
                           "keys hold 32 bits of a seed")  # fmt: skip
 
 
@@ -560,6 +579,7 @@ __all__ = [
     "MAX_COUNT",
     "MAX_SEED",
     "SWEEPABLE",
+    "SWITCHED_ON_BY_THEIR_FLAG",
     "WANDB_SETTINGS",
     "TrainConfig",
     "as_flag",
@@ -568,5 +588,6 @@ __all__ = [
     "flag",
     "idle_flags",
     "idle_wandb_flags",
+    "unused_settings",
     "validate",
 ]
