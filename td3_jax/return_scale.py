@@ -24,8 +24,8 @@ from flax import struct
 
 from td3_jax import normalization
 
-#: The variance floor of :func:`scale`.
-EPSILON = 1e-8
+#: The variance floor of :func:`scale` (the observation normaliser's).
+EPSILON = normalization.EPSILON
 
 
 @struct.dataclass
