@@ -40,12 +40,25 @@ class Final(NamedTuple):
     source: Path
 
 
+#: Options of issue #29 that a run may add to its preset; a run with one set is a row of its own.
+OPTIONS = ("return_bound", "critic_feature_norm", "max_weight_norm", "lr_final_fraction")
+
+
 def settings_of(config: dict[str, Any] | None) -> str:
-    """``pushes P, DR on|off`` from a run's config.json (``unknown`` without one)."""
+    """``pushes P, DR on|off`` from a run's config.json (``unknown`` without one), then each
+    of :data:`OPTIONS` the run set (``return_bound`` with its C51 support)."""
     if config is None:
         return "unknown"
     randomised = "on" if config.get("domain_randomization") else "off"
-    return f"pushes {config.get('pushes', '?')}, DR {randomised}"
+    parts = [f"pushes {config.get('pushes', '?')}, DR {randomised}"]
+    for option in OPTIONS:
+        value = config.get(option)
+        if not value:  # unset (None), off (False) or zero
+            continue
+        parts.append(option if value is True else f"{option} {value:g}")
+        if option == "return_bound":
+            parts[-1] += f" on [{config.get('v_min', 0):g}, {config.get('v_max', 0):g}]"
+    return ", ".join(parts)
 
 
 def final_of(metrics: Path, steps: int) -> Final | None:

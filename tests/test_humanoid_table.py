@@ -20,15 +20,18 @@ def humanoid_table():
     return module
 
 
-def _run(folder: Path, name: str, seed: int, returns: dict[int, float], pushes: str | None):
-    """``NAME-metrics.jsonl`` with a record per ``{env_steps: return}`` (and its config)."""
+def _run(
+    folder: Path, name: str, seed: int, returns: dict[int, float], pushes: str | None, **options
+):
+    """``NAME-metrics.jsonl`` with a record per ``{env_steps: return}`` (and its config, with
+    ``options`` in it)."""
     folder.mkdir(parents=True, exist_ok=True)
     lines = [json.dumps({"env": "playground/T1JoystickFlatTerrain", "seed": seed,
                          "env_steps": steps, "eval_return_mean": value})
              for steps, value in returns.items()]  # fmt: skip
     (folder / f"{name}-metrics.jsonl").write_text("\n".join(lines) + "\n")
     if pushes is not None:
-        config = {"pushes": pushes, "domain_randomization": False}
+        config = {"pushes": pushes, "domain_randomization": False, **options}
         (folder / f"{name}-config.json").write_text(json.dumps(config))
     return folder / f"{name}-metrics.jsonl"
 
@@ -55,3 +58,21 @@ def test_the_table_counts_finished_seeds_once_and_gives_their_iqm(humanoid_table
     assert any("pushes default, DR off | 0: 5.0 | 5.0 (1 seed)" in r for r in rows)
     assert any("| unknown | 0: 4.0 |" in r for r in rows)
     assert len(rows) == 3
+
+
+def test_a_run_with_an_option_is_a_row_of_its_own(humanoid_table, tmp_path):
+    """Seed 0 with --return-bound 5 on [-5, 5] does not replace seed 0 of the preset, and its
+    row names the option; options left at their defaults (None, False, 0.0) name nothing."""
+    off = dict(return_bound=None, critic_feature_norm=False, lr_final_fraction=0.0)
+    rb = dict(off, return_bound=5.0, v_min=-5.0, v_max=5.0)
+    both = dict(off, return_bound=2.5, critic_feature_norm=True, v_min=-2.0, v_max=2.0)
+    files = [_run(tmp_path, "plain", 0, {100: 1.0}, "off", **off),
+             _run(tmp_path, "rb", 0, {100: 3.0}, "off", **rb),
+             _run(tmp_path, "both", 0, {100: 4.0}, "off", **both)]  # fmt: skip
+    finals = [humanoid_table.final_of(path, 100) for path in files]
+    settings = [row.split(" | ")[1:3] for row in humanoid_table.table(finals).splitlines()[2:]]
+    assert sorted(settings) == [
+        ["pushes off, DR off", "0: 1.0"],
+        ["pushes off, DR off, return_bound 2.5 on [-2, 2], critic_feature_norm", "0: 4.0"],
+        ["pushes off, DR off, return_bound 5 on [-5, 5]", "0: 3.0"],
+    ]
