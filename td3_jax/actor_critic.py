@@ -54,6 +54,7 @@ LR_SCHEDULES = ("constant", "cosine")
 #: Choices of :attr:`AgentOptions.target_update` and :attr:`~AgentOptions.c51_target_head`.
 TARGET_UPDATES = ("with_actor", "every_update")
 C51_TARGET_HEADS = ("unprojected", "projected")
+CRITIC_NETWORKS = ("mlp", "residual")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,8 +83,12 @@ class AgentOptions:
         of every Dense kernel, actor and critics) down to the norm ``max_weight_norm`` of
         :class:`AgentHyperparams` where they exceed it (:func:`bound_weight_norms`).
       critic_feature_norm: the critics' hidden features projected onto the sphere of radius
-        ``sqrt(width)`` after every ReLU (:func:`td3_jax.networks.sphere_features`); the actor,
-        which export writes out, is unchanged.
+        ``sqrt(width)`` after every ReLU, or every residual block
+        (:func:`td3_jax.networks.sphere_features`); the actor, which export writes out, is
+        unchanged.
+      critic_network: ``mlp`` (the plain ReLU network) or ``residual``
+        (:class:`td3_jax.networks.ResidualMLP`, FlashSAC's layout: one block per entry of the
+        critics' hidden sizes, which must be equal); the actor is unchanged.
       target_update: when the target critics are Polyak-averaged: ``with_actor`` (in the
         delayed actor step, every ``policy_freq`` updates, the TD3 paper) or ``every_update``
         (after every critic step, FastTD3). A target actor always moves with the actor.
@@ -105,6 +110,7 @@ class AgentOptions:
     clip_grads: bool = False
     bound_weights: bool = False
     critic_feature_norm: bool = False
+    critic_network: str = "mlp"
     target_update: str = "with_actor"
     c51_target_head: str = "unprojected"
 
@@ -224,6 +230,7 @@ def _check_options(options: AgentOptions) -> None:
         "lr_schedule": LR_SCHEDULES,
         "target_update": TARGET_UPDATES,
         "c51_target_head": C51_TARGET_HEADS,
+        "critic_network": CRITIC_NETWORKS,
     }
     for name, allowed in choices.items():
         if getattr(options, name) not in allowed:
@@ -262,6 +269,9 @@ def make_spec(
     if int(policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
     _check_options(options)
+    if options.critic_network == "residual" and len(set(critic_hidden)) > 1:
+        raise ValueError("critic_network residual needs critic hidden sizes of one width (one "
+                         f"block each, e.g. 256 256), not {critic_hidden}")  # fmt: skip
     dtype = PRECISIONS[options.precision]
     return AgentSpec(
         actor=Actor(_ints(actor_hidden), int(action_size), max_action, options.layer_norm, dtype),
@@ -272,6 +282,7 @@ def make_spec(
             dtype,
             int(options.num_atoms),
             options.critic_feature_norm,
+            options.critic_network == "residual",
         ),
         observation_size=int(observation_size),
         action_size=int(action_size),

@@ -171,7 +171,14 @@ class TrainConfig:
     are the environment's own. Default: off."""
     critic_feature_norm: bool = False
     """Project the critics' hidden features onto the sphere of radius sqrt(width) after every
-    ReLU (bounded features, as SimbaV2/FlashSAC); the actor is unchanged."""
+    ReLU (with --critic-network residual: after every block; bounded features, as
+    SimbaV2/FlashSAC); the actor is unchanged."""
+    critic_network: Literal["mlp", "residual"] = "mlp"
+    """The critics' network: mlp (ReLU layers of --critic-hidden-sizes, with --layer-norm if
+    given) or residual (FlashSAC's layout: an input layer, then a residual block per entry of
+    --critic-hidden-sizes, which must be equal (256 256: two blocks of width 256, each
+    width -> 4 x width -> width with LayerNorm and ReLU after each layer), then RMSNorm and the
+    output layer; LayerNorm stands where FlashSAC has BatchNorm). The actor is unchanged."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps
@@ -295,6 +302,7 @@ _CHOICES = {
     "lr_schedule": ("constant", "cosine"),
     "target_update": ("with_actor", "every_update"),
     "c51_target_head": ("unprojected", "projected"),
+    "critic_network": ("mlp", "residual"),
 }
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 #: The settings of Weights & Biases (``--wandb``, ...): where the records are mirrored, never
@@ -419,8 +427,19 @@ def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
         sizes = getattr(cfg, name)
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
             raise ConfigError(f"{flag(name)} must be positive integers, got {sizes}")
+    _check_residual_critic(cfg)
     _check_environment(cfg)
     return cfg
+
+
+def _check_residual_critic(cfg: TrainConfig) -> None:
+    """A residual critic's blocks have one width: its hidden sizes are equal."""
+    name = "critic_hidden_sizes" if cfg.critic_hidden_sizes is not None else "hidden_sizes"
+    sizes = getattr(cfg, name)
+    if cfg.critic_network == "residual" and sizes is not None and len(set(sizes)) > 1:
+        given = " ".join(str(s) for s in sizes)
+        raise ConfigError(f"--critic-network residual needs {flag(name)} of one width, a block "
+                          f"each (e.g. 256 256: two blocks of 256), not {given}")  # fmt: skip
 
 
 def _check_environment(cfg: TrainConfig) -> None:

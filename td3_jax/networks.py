@@ -3,7 +3,8 @@
 Every network takes ``layer_norm`` (LayerNorm after each hidden Dense, before the ReLU, as
 FastTD3 does), the critics also ``feature_norm`` (each hidden layer's output, after the ReLU,
 projected onto the sphere of radius ``sqrt(width)``, as SimbaV2/FlashSAC bound their features;
-:func:`sphere_features`), and ``dtype`` (the computation dtype of the matmuls: ``None``
+:func:`sphere_features`) and ``residual`` (the :class:`ResidualMLP` body, FlashSAC's layout,
+in place of the plain :class:`MLP`), and ``dtype`` (the computation dtype of the matmuls: ``None``
 computes in the inputs' dtype, float32 here; ``jnp.bfloat16`` runs them in bf16). Parameters
 are always float32 and every network's output is float32, so losses and optimiser states stay
 in float32.
@@ -11,6 +12,7 @@ in float32.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -49,6 +51,55 @@ class MLP(nn.Module):
         return out.astype(jnp.float32)
 
 
+class ResidualMLP(nn.Module):
+    """Residual network ``[..., in] -> [..., out_size]`` in FlashSAC's layout, with LayerNorm
+    where FlashSAC has BatchNorm (per sample, so no batch statistics to keep, and evaluation
+    computes what training does)::
+
+        h = Dense(width)(x)
+        h = h + relu(LN(Dense(width)(relu(LN(Dense(expansion * width)(h))))))   # per block
+        out = Dense(out_size)(RMSNorm(h))                          # RMSNorm with a learned scale
+
+    ``feature_norm``: each block's output ``h`` is projected onto the sphere of radius
+    ``sqrt(width)`` (:func:`sphere_features`). Parameters: ``Dense_0`` (input), then per block
+    ``Dense_{2b+1}``, ``LayerNorm_{2b}``, ``Dense_{2b+2}``, ``LayerNorm_{2b+1}``; ``RMSNorm_0``;
+    the last ``Dense`` is the output.
+    """
+
+    width: int
+    blocks: int
+    out_size: int
+    dtype: Any = None
+    feature_norm: bool = False
+    expansion: int = 4
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        dense = functools.partial(nn.Dense, dtype=self.dtype, param_dtype=jnp.float32)
+        norm = functools.partial(nn.LayerNorm, dtype=self.dtype, param_dtype=jnp.float32)
+        h = dense(self.width)(x)
+        for _ in range(self.blocks):
+            y = nn.relu(norm()(dense(self.expansion * self.width)(h)))
+            h = h + nn.relu(norm()(dense(self.width)(y)))
+            if self.feature_norm:
+                h = sphere_features(h)
+        h = nn.RMSNorm(dtype=self.dtype, param_dtype=jnp.float32)(h)
+        return dense(self.out_size)(h).astype(jnp.float32)
+
+
+def critic_body(hidden_sizes: Sequence[int], out_size: int, layer_norm: bool, dtype: Any,
+                feature_norm: bool, residual: bool) -> nn.Module:  # fmt: skip
+    """A critic's network: ``ResidualMLP`` of ``len(hidden_sizes)`` blocks of the (equal)
+    width ``hidden_sizes[0]`` when ``residual`` (its blocks always normalise, so
+    ``layer_norm`` is not used), else the plain ``MLP``."""
+    if residual:
+        if len(set(hidden_sizes)) != 1:
+            raise ValueError("a residual critic has blocks of one width (hidden sizes 256 256: "
+                             f"two blocks of 256), not {tuple(hidden_sizes)}")  # fmt: skip
+        return ResidualMLP(hidden_sizes[0], len(hidden_sizes), out_size, dtype, feature_norm)
+    return MLP(hidden_sizes, out_size, layer_norm, dtype, feature_norm)
+
+
 class Actor(nn.Module):
     """Deterministic policy ``obs[..., obs_size] -> max_action * tanh(.)[..., action_size]``.
 
@@ -76,12 +127,14 @@ class Critic(nn.Module):
     layer_norm: bool = False
     dtype: Any = None
     feature_norm: bool = False
+    residual: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        mlp = MLP(self.hidden_sizes, 1, self.layer_norm, self.dtype, self.feature_norm)
-        return mlp(x)[..., 0]
+        body = critic_body(self.hidden_sizes, 1, self.layer_norm, self.dtype,
+                           self.feature_norm, self.residual)  # fmt: skip
+        return body(x)[..., 0]
 
 
 class DistributionalCritic(nn.Module):
@@ -93,12 +146,14 @@ class DistributionalCritic(nn.Module):
     layer_norm: bool = False
     dtype: Any = None
     feature_norm: bool = False
+    residual: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        mlp = MLP(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype, self.feature_norm)
-        return mlp(x)
+        body = critic_body(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype,
+                           self.feature_norm, self.residual)  # fmt: skip
+        return body(x)
 
 
 def _ensemble(head: type[nn.Module], num_critics: int) -> type[nn.Module]:
@@ -124,10 +179,12 @@ class CriticEnsemble(nn.Module):
     dtype: Any = None
     num_atoms: int = 0
     feature_norm: bool = False
+    residual: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
-        norms = dict(layer_norm=self.layer_norm, dtype=self.dtype, feature_norm=self.feature_norm)
+        norms = dict(layer_norm=self.layer_norm, dtype=self.dtype, feature_norm=self.feature_norm,
+                     residual=self.residual)  # fmt: skip
         if self.num_atoms:
             heads = _ensemble(DistributionalCritic, self.num_critics)
             return heads(self.hidden_sizes, self.num_atoms, **norms)(obs, action)
@@ -140,5 +197,7 @@ __all__ = [
     "Critic",
     "CriticEnsemble",
     "DistributionalCritic",
+    "ResidualMLP",
+    "critic_body",
     "sphere_features",
 ]

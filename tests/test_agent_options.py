@@ -208,6 +208,79 @@ def test_critic_feature_norm_against_numpy():
     assert not np.allclose(np.asarray(plain_q), got)
 
 
+def np_layer_norm(x, scale, bias, eps=1e-6):
+    mean = x.mean(-1, keepdims=True)
+    var = ((x - mean) ** 2).mean(-1, keepdims=True)
+    return (x - mean) / np.sqrt(var + eps) * scale + bias
+
+
+def np_residual_critic(layers, head, x, blocks, feature_norm):
+    """FlashSAC's layout (LayerNorm for its BatchNorm) in NumPy from one head's parameters."""
+    p = lambda kind, i, name: np.asarray(layers[f"{kind}_{i}"][name][head], np.float64)
+    dense = lambda i, z: z @ p("Dense", i, "kernel") + p("Dense", i, "bias")
+    norm = lambda i, z: np_layer_norm(z, p("LayerNorm", i, "scale"), p("LayerNorm", i, "bias"))
+    h = dense(0, x)
+    for b in range(blocks):
+        y = np.maximum(norm(2 * b, dense(2 * b + 1, h)), 0.0)
+        h = h + np.maximum(norm(2 * b + 1, dense(2 * b + 2, y)), 0.0)
+        if feature_norm:
+            h = h * np.sqrt(h.shape[-1]) / np.linalg.norm(h, axis=-1, keepdims=True)
+    rms = np.sqrt((h**2).mean(-1, keepdims=True) + 1e-6)
+    return dense(2 * blocks + 1, h / rms * p("RMSNorm", 0, "scale"))
+
+
+@pytest.mark.parametrize("feature_norm", [False, True])
+def test_residual_critic_against_numpy(feature_norm):
+    """Two residual C51 critics of two blocks of width 8 (8 -> 32 -> 8), every parameter
+    redrawn (LayerNorm and RMSNorm scales and biases too, so each is shown used), against the
+    NumPy forward pass; the layout names what the docstring says; the actor is the plain
+    spec's."""
+    spec = spec_of(critic_network="residual", num_atoms=5, critic_feature_norm=feature_norm)
+    state = init(spec)
+    params = random_grads(state.critic_params, 3, 0.5)  # (any tree of normal draws)
+    layers = params["params"]["VmapDistributionalCritic_0"]["ResidualMLP_0"]
+    shapes = {k: {n: v.shape for n, v in layer.items()} for k, layer in layers.items()}
+    assert shapes == {
+        "Dense_0": {"kernel": (2, OBS + ACT, 8), "bias": (2, 8)},
+        "Dense_1": {"kernel": (2, 8, 32), "bias": (2, 32)},
+        "LayerNorm_0": {"scale": (2, 32), "bias": (2, 32)},
+        "Dense_2": {"kernel": (2, 32, 8), "bias": (2, 8)},
+        "LayerNorm_1": {"scale": (2, 8), "bias": (2, 8)},
+        "Dense_3": {"kernel": (2, 8, 32), "bias": (2, 32)},
+        "LayerNorm_2": {"scale": (2, 32), "bias": (2, 32)},
+        "Dense_4": {"kernel": (2, 32, 8), "bias": (2, 8)},
+        "LayerNorm_3": {"scale": (2, 8), "bias": (2, 8)},
+        "RMSNorm_0": {"scale": (2, 8)},
+        "Dense_5": {"kernel": (2, 8, 5), "bias": (2, 5)},
+    }
+    batch = make_batch(4)
+    got = np.asarray(spec.critic.apply(params, batch.obs, batch.action))
+    x = np.concatenate([batch.obs, batch.action], axis=-1).astype(np.float64)
+    for head in range(2):
+        want = np_residual_critic(layers, head, x, 2, feature_norm)
+        np.testing.assert_allclose(got[head], want, atol=2e-5, rtol=2e-5)
+    assert_trees_close(state.actor_params, init(spec_of(num_atoms=5)).actor_params, atol=0, rtol=0)
+
+
+def test_a_residual_critic_needs_blocks_of_one_width():
+    """Unequal widths are refused by the library (ValueError) and the config (ConfigError
+    naming the flag that set them); a plain critic takes them; the config's option reaches
+    the agent's options."""
+    with pytest.raises(ValueError, match="one width"):
+        ac.make_spec((8, 4), OBS, ACT, num_critics=2, target_smoothing=True, policy_freq=1,
+                     options=ac.AgentOptions(critic_network="residual"))  # fmt: skip
+    with pytest.raises(ConfigError, match=r"--critic-hidden-sizes of one width.*not 64 32"):
+        validate(TrainConfig(critic_network="residual", critic_hidden_sizes=(64, 32)))
+    with pytest.raises(ConfigError, match=r"--hidden-sizes of one width.*not 64 32"):
+        validate(TrainConfig(critic_network="residual", hidden_sizes=(64, 32)))
+    residual = TrainConfig(critic_network="residual", hidden_sizes=(64, 32),
+                           critic_hidden_sizes=(16, 16))  # fmt: skip
+    assert agent_options(validate(residual)).critic_network == "residual"
+    assert agent_options(TrainConfig()).critic_network == "mlp"
+    with pytest.raises(ConfigError, match="critic-network"):
+        validate(TrainConfig(critic_network="resnet"))
+
+
 def test_cosine_learning_rate_by_hand():
     spec = spec_of(lr_schedule="cosine", schedule_updates=10)
     for step, expected in (
