@@ -1,31 +1,48 @@
 #!/usr/bin/env bash
-# The tenth session's 50M-step runs on a four-GPU machine (nvidia-h100-x4), one chain of
+# 50M-step robot runs on a machine of several GPUs (nvidia-h100-x4: four), one chain of
 # benchmarks/runs_50m.sh per GPU, started in the background (benchmarks/chain.sh) from a copy
 # of the checkout in /root/code, after benchmarks/warp_gpu.sh installed Warp and unpacked the
-# robots into /tmp/men. Each chain's finished runs land in /root/done/CHAIN/PRESET-sSEED.
-#   bash benchmarks/four_chains.sh start     start the four chains
-#   bash benchmarks/four_chains.sh collect   $OUT/runs.tgz: every finished run and the
-#                                            metrics of those in progress, the chains' logs
-# Return scaling ("rb") as FlashSAC: --return-bound 5 on a [-5, 5] C51 support.
+# robots into /tmp/men (and exported MEN=/tmp/men). Device time counts a machine's held time,
+# not its GPUs: four chains cost what one does.
+#   bash benchmarks/four_chains.sh start CHAIN...  chain k runs on GPU k; a CHAIN is segments
+#        separated by ';', each 'PRESET:SEED ...' with '@FLAGS' for train flags of its own
+#   bash benchmarks/four_chains.sh collect         $OUT/runs.tgz: every finished run, the
+#        metrics of those in progress, the chains' logs; then each run's last two lines
+# Segment s of chain k lands in /root/done/k-s/PRESET-sSEED (runs in /root/runs/k-s). The
+# tenth session's four chains ("rb": FlashSAC's return scaling):
+#   rb='--return-bound 5 --v-min -5 --v-max 5'
+#   bash benchmarks/four_chains.sh start 't1:2 g1:1' "g1:0 g1:1@$rb" "g1:2; g1:2@$rb" \
+#     't1-rough:1 t1-rough:2'
 set -uo pipefail
-rb='--return-bound 5 --v-min -5 --v-max 5'
-chain() {  # chain GPU NAME CMD: CMD on GPU, its runs in /root/done/NAME and /root/runs/NAME
-  local gpu=$1 name=$2
-  shift 2
-  CUDA_VISIBLE_DEVICES=$gpu bash benchmarks/chain.sh start "$name" bash -c "$*"
+segment_command() {  # segment_command CHAIN SEGMENT TEXT: the shell command of one segment
+  local runs=${3%%@*} flags=""
+  [[ $3 == *@* ]] && flags=${3#*@}
+  printf "DONE=/root/done/%s-%s RUNS=/root/runs/%s-%s EXTRA=%q bash benchmarks/runs_50m.sh %s" \
+    "$1" "$2" "$1" "$2" "$flags" "$runs"
+}
+start() {  # start CHAIN...: chain k in the background on GPU k
+  cd /root/code || { echo "four_chains: copy the checkout to /root/code first"; exit 2; }
+  local k=0 s segments command
+  for chain in "$@"; do
+    IFS=';' read -ra segments <<<"$chain"
+    command=""
+    for s in "${!segments[@]}"; do
+      command+="$(segment_command "$k" "$s" "${segments[$s]}"); "
+    done
+    CUDA_VISIBLE_DEVICES=$k bash benchmarks/chain.sh start "gpu$k" bash -c "$command"
+    k=$((k + 1))
+  done
 }
 case ${1:?start or collect} in
   start)
-    cd /root/code || exit 2
-    chain 0 a "DONE=/root/done/a RUNS=/root/runs/a bash benchmarks/runs_50m.sh t1:2 g1:1"
-    chain 1 b "DONE=/root/done/b RUNS=/root/runs/b EXTRA='$rb' bash benchmarks/runs_50m.sh g1:0 g1:1"
-    chain 2 c "DONE=/root/done/c RUNS=/root/runs/c bash benchmarks/runs_50m.sh g1:2;
-      DONE=/root/done/c-rb RUNS=/root/runs/c-rb EXTRA='$rb' bash benchmarks/runs_50m.sh g1:2"
-    chain 3 d "DONE=/root/done/d RUNS=/root/runs/d bash benchmarks/runs_50m.sh t1-rough:1 t1-rough:2" ;;
+    shift
+    [ $# -gt 0 ] || { echo "four_chains: start needs a chain per GPU"; exit 2; }
+    start "$@" ;;
   collect)
     cd /root || exit 2
+    # shellcheck disable=SC2046
     tar -czf "$OUT/runs.tgz" done chains/*.log $(ls runs/*/*/metrics.jsonl runs/*/*/config.json 2>/dev/null)
     for log in done/*/*/train.log; do echo "== $log"; tail -n 2 "$log"; done
     nvidia-smi --query-gpu=index,name,utilization.gpu,memory.used --format=csv,noheader ;;
-  *) echo "start or collect"; exit 2 ;;
+  *) echo "four_chains: start or collect, not $1"; exit 2 ;;
 esac
