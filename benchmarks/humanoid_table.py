@@ -12,12 +12,15 @@ order). Pushes and domain randomisation come from the config (unknown without on
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
 from typing import Any, NamedTuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from td3_jax.config import TrainConfig
+from td3_jax.presets import preset
 from td3_jax.stats import iqm
 
 #: Final returns at 50M env steps (5 seeds), FlashSAC's paper, and FastTD3's (as FlashSAC
@@ -40,25 +43,47 @@ class Final(NamedTuple):
     source: Path
 
 
-#: Options of issue #29 that a run may add to its preset; a run with one set is a row of its own.
-OPTIONS = ("return_bound", "critic_feature_norm", "max_weight_norm", "lr_final_fraction")
+#: Settings that do not change what a run learns: the seed and length, where it runs and
+#: how fast (physics implementation, matmul kernels), how it is evaluated and recorded.
+NOT_LEARNING = ("seed", "total_steps", "impl", "menagerie", "matmuls", "eval_every",
+                "eval_envs", "eval_in_chunk", "early_evaluation", "keep_checkpoints",
+                "checkpoint_every", "wandb", "wandb_project", "wandb_entity", "wandb_name",
+                "wandb_mode", "pushes", "domain_randomization")  # fmt: skip
+
+
+def changes_from_preset(config: dict[str, Any]) -> list[str]:
+    """``NAME VALUE`` for each setting of a run's config.json that differs from its preset's
+    (settings of :data:`NOT_LEARNING` left out; a setting missing from an older config.json
+    is the default it ran with); ``["preset unknown"]`` without a preset."""
+    name = config.get("preset")
+    if name is None:
+        return ["preset unknown"]
+    base, defaults = preset(name), TrainConfig()
+    changes = []
+    for field in dataclasses.fields(TrainConfig):
+        want = getattr(base, field.name)
+        got = config.get(field.name, getattr(defaults, field.name))
+        if field.name in NOT_LEARNING or _same(got, want):
+            continue
+        shown = " ".join(map(str, got)) if isinstance(got, list | tuple) else f"{got}"
+        changes.append(f"{field.name} {shown}")
+    return changes
+
+
+def _same(got: Any, want: Any) -> bool:
+    if isinstance(want, tuple) and isinstance(got, list):
+        got = tuple(got)
+    return got == want
 
 
 def settings_of(config: dict[str, Any] | None) -> str:
-    """``pushes P, DR on|off`` from a run's config.json (``unknown`` without one), then each
-    of :data:`OPTIONS` the run set (``return_bound`` with its C51 support)."""
+    """``pushes P, DR on|off`` from a run's config.json (``unknown`` without one), then what
+    else differs from its preset (:func:`changes_from_preset`)."""
     if config is None:
         return "unknown"
     randomised = "on" if config.get("domain_randomization") else "off"
-    parts = [f"pushes {config.get('pushes', '?')}, DR {randomised}"]
-    for option in OPTIONS:
-        value = config.get(option)
-        if not value:  # unset (None), off (False) or zero
-            continue
-        parts.append(option if value is True else f"{option} {value:g}")
-        if option == "return_bound":
-            parts[-1] += f" on [{config.get('v_min', 0):g}, {config.get('v_max', 0):g}]"
-    return ", ".join(parts)
+    return ", ".join([f"pushes {config.get('pushes', '?')}, DR {randomised}",
+                      *changes_from_preset(config)])  # fmt: skip
 
 
 def final_of(metrics: Path, steps: int) -> Final | None:

@@ -35,7 +35,7 @@ from flax import struct
 
 from td3_jax import distributional, losses
 from td3_jax.axes import any_member
-from td3_jax.networks import Actor, CriticEnsemble
+from td3_jax.networks import Actor, CriticEnsemble, residual_layout
 from td3_jax.types import Agent, AgentState, Metrics, Params, PRNGKey, Transition
 
 #: The metrics of one :func:`update` (float32 scalars).
@@ -269,9 +269,8 @@ def make_spec(
     if int(policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
     _check_options(options)
-    if options.critic_network == "residual" and len(set(critic_hidden)) > 1:
-        raise ValueError("critic_network residual needs critic hidden sizes of one width (one "
-                         f"block each, e.g. 256 256), not {critic_hidden}")  # fmt: skip
+    if options.critic_network == "residual":
+        residual_layout(critic_hidden)  # (ValueError for sizes of several widths)
     dtype = PRECISIONS[options.precision]
     return AgentSpec(
         actor=Actor(_ints(actor_hidden), int(action_size), max_action, options.layer_norm, dtype),

@@ -121,7 +121,8 @@ class TrainConfig:
     critic_hidden_sizes: tuple[int, ...] | None = None
     """Hidden widths of each critic alone (FastTD3: 1024 512 256); default: hidden_sizes."""
     layer_norm: bool = False
-    """LayerNorm after every hidden layer of actor and critics (before the ReLU)."""
+    """LayerNorm after every hidden layer of actor and critics (before the ReLU); a residual
+    critic (--critic-network residual) has its own in every block either way."""
     precision: Literal["float32", "bfloat16"] = "float32"
     """Matmul precision of the networks; bfloat16 keeps parameters, optimiser states and losses
     in float32."""
@@ -178,7 +179,8 @@ class TrainConfig:
     given) or residual (FlashSAC's layout: an input layer, then a residual block per entry of
     --critic-hidden-sizes, which must be equal (256 256: two blocks of width 256, each
     width -> 4 x width -> width with LayerNorm and ReLU after each layer), then RMSNorm and the
-    output layer; LayerNorm stands where FlashSAC has BatchNorm). The actor is unchanged."""
+    output layer; LayerNorm stands where FlashSAC's blocks have BatchNorm, and the input is not
+    batch-normalised as FlashSAC's is). The actor is unchanged."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps
@@ -433,13 +435,23 @@ def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
 
 
 def _check_residual_critic(cfg: TrainConfig) -> None:
-    """A residual critic's blocks have one width: its hidden sizes are equal."""
+    """A residual critic's hidden sizes are one width, a block each (the sizes that give them:
+    --critic-hidden-sizes, else --hidden-sizes, else the algorithm's default)."""
+    if cfg.critic_network != "residual":
+        return
+    from td3_jax.networks import residual_layout  # (jax and flax: only with the option)
+    from td3_jax.td3 import DDPGConfig, TD3Config
+
     name = "critic_hidden_sizes" if cfg.critic_hidden_sizes is not None else "hidden_sizes"
     sizes = getattr(cfg, name)
-    if cfg.critic_network == "residual" and sizes is not None and len(set(sizes)) > 1:
-        given = " ".join(str(s) for s in sizes)
-        raise ConfigError(f"--critic-network residual needs {flag(name)} of one width, a block "
-                          f"each (e.g. 256 256: two blocks of 256), not {given}")  # fmt: skip
+    if sizes is None:
+        sizes = (DDPGConfig if cfg.algo == "ddpg" else TD3Config)().hidden_sizes
+        name = f"hidden_sizes (--algo {cfg.algo}'s default)"
+    try:
+        residual_layout(sizes)
+    except ValueError as err:
+        raise ConfigError(f"--critic-network residual: {flag(name)}: {err}; give one, e.g. "
+                          "--critic-hidden-sizes 256 256") from err  # fmt: skip
 
 
 def _check_environment(cfg: TrainConfig) -> None:

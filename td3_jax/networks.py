@@ -53,8 +53,10 @@ class MLP(nn.Module):
 
 class ResidualMLP(nn.Module):
     """Residual network ``[..., in] -> [..., out_size]`` in FlashSAC's layout, with LayerNorm
-    where FlashSAC has BatchNorm (per sample, so no batch statistics to keep, and evaluation
-    computes what training does)::
+    where FlashSAC's blocks have BatchNorm (per sample, so no batch statistics to keep, and
+    evaluation computes what training does). FlashSAC also batch-normalises the network's input
+    and its input layer has no bias; here the input (observations normalised by the run's
+    running statistics with --normalize-obs) goes to a plain Dense layer::
 
         h = Dense(width)(x)
         h = h + relu(LN(Dense(width)(relu(LN(Dense(expansion * width)(h))))))   # per block
@@ -87,16 +89,25 @@ class ResidualMLP(nn.Module):
         return dense(self.out_size)(h).astype(jnp.float32)
 
 
+def residual_layout(hidden_sizes: Sequence[int]) -> tuple[int, int]:
+    """``(width, blocks)`` of a :class:`ResidualMLP` given as hidden sizes: one block per
+    entry, every entry the width (``256 256``: two blocks of 256); ``ValueError`` otherwise."""
+    sizes = tuple(int(h) for h in hidden_sizes)
+    if len(set(sizes)) != 1:
+        shown = " ".join(map(str, sizes))
+        raise ValueError("a residual network's hidden sizes are one width, a block each (256 "
+                         f"256: two blocks of 256), not {shown or 'none'}")  # fmt: skip
+    return sizes[0], len(sizes)
+
+
 def critic_body(hidden_sizes: Sequence[int], out_size: int, layer_norm: bool, dtype: Any,
                 feature_norm: bool, residual: bool) -> nn.Module:  # fmt: skip
-    """A critic's network: ``ResidualMLP`` of ``len(hidden_sizes)`` blocks of the (equal)
-    width ``hidden_sizes[0]`` when ``residual`` (its blocks always normalise, so
-    ``layer_norm`` is not used), else the plain ``MLP``."""
+    """A critic's network ``[..., in] -> [..., out_size]``: a :class:`ResidualMLP` laid out
+    by :func:`residual_layout` when ``residual`` (its blocks always normalise, so
+    ``layer_norm`` is not used), else the plain :class:`MLP`."""
     if residual:
-        if len(set(hidden_sizes)) != 1:
-            raise ValueError("a residual critic has blocks of one width (hidden sizes 256 256: "
-                             f"two blocks of 256), not {tuple(hidden_sizes)}")  # fmt: skip
-        return ResidualMLP(hidden_sizes[0], len(hidden_sizes), out_size, dtype, feature_norm)
+        width, blocks = residual_layout(hidden_sizes)
+        return ResidualMLP(width, blocks, out_size, dtype, feature_norm)
     return MLP(hidden_sizes, out_size, layer_norm, dtype, feature_norm)
 
 
@@ -199,5 +210,6 @@ __all__ = [
     "DistributionalCritic",
     "ResidualMLP",
     "critic_body",
+    "residual_layout",
     "sphere_features",
 ]

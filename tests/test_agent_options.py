@@ -269,10 +269,14 @@ def test_a_residual_critic_needs_blocks_of_one_width():
     with pytest.raises(ValueError, match="one width"):
         ac.make_spec((8, 4), OBS, ACT, num_critics=2, target_smoothing=True, policy_freq=1,
                      options=ac.AgentOptions(critic_network="residual"))  # fmt: skip
-    with pytest.raises(ConfigError, match=r"--critic-hidden-sizes of one width.*not 64 32"):
+    with pytest.raises(ConfigError, match=r"--critic-hidden-sizes: .* one width.*not 64 32"):
         validate(TrainConfig(critic_network="residual", critic_hidden_sizes=(64, 32)))
-    with pytest.raises(ConfigError, match=r"--hidden-sizes of one width.*not 64 32"):
+    with pytest.raises(ConfigError, match=r"--hidden-sizes: .* one width.*not 64 32"):
         validate(TrainConfig(critic_network="residual", hidden_sizes=(64, 32)))
+    # None: the algorithm's own sizes (TD3 400 300, DDPG 256 256)
+    with pytest.raises(ConfigError, match=r"--algo td3's default.*not 400 300"):
+        validate(TrainConfig(critic_network="residual", hidden_sizes=None))
+    validate(TrainConfig(critic_network="residual", hidden_sizes=None, algo="ddpg"))
     residual = TrainConfig(critic_network="residual", hidden_sizes=(64, 32),
                            critic_hidden_sizes=(16, 16))  # fmt: skip
     assert agent_options(validate(residual)).critic_network == "residual"

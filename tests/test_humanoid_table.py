@@ -3,11 +3,14 @@ their IQM against a hand-computed one."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+
+from td3_jax.presets import preset
 
 _SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "humanoid_table.py"
 
@@ -18,6 +21,11 @@ def humanoid_table():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+#: Preset t1's whole config as config.json holds it (a run of the preset as it is).
+_T1 = json.loads(json.dumps(dataclasses.asdict(preset("t1"))))
+_ABSENT = object()  # an option so marked is left out of config.json (an older run's file)
 
 
 def _run(
@@ -31,7 +39,9 @@ def _run(
              for steps, value in returns.items()]  # fmt: skip
     (folder / f"{name}-metrics.jsonl").write_text("\n".join(lines) + "\n")
     if pushes is not None:
-        config = {"pushes": pushes, "domain_randomization": False, **options}
+        config = {**_T1, "preset": "t1", "pushes": pushes, **options}
+        for absent in [n for n, v in options.items() if v is _ABSENT]:
+            del config[absent]
         (folder / f"{name}-config.json").write_text(json.dumps(config))
     return folder / f"{name}-metrics.jsonl"
 
@@ -60,19 +70,29 @@ def test_the_table_counts_finished_seeds_once_and_gives_their_iqm(humanoid_table
     assert len(rows) == 3
 
 
-def test_a_run_with_an_option_is_a_row_of_its_own(humanoid_table, tmp_path):
-    """Seed 0 with --return-bound 5 on [-5, 5] does not replace seed 0 of the preset, and its
-    row names the option; options left at their defaults (None, False, 0.0) name nothing."""
-    off = dict(return_bound=None, critic_feature_norm=False, lr_final_fraction=0.0)
-    rb = dict(off, return_bound=5.0, v_min=-5.0, v_max=5.0)
-    both = dict(off, return_bound=2.5, critic_feature_norm=True, v_min=-2.0, v_max=2.0)
-    files = [_run(tmp_path, "plain", 0, {100: 1.0}, "off", **off),
+def test_a_run_that_differs_from_its_preset_is_a_row_of_its_own(humanoid_table, tmp_path):
+    """Seed 0 with --return-bound 5 on [-5, 5], one with a residual critic, one with a cosine
+    schedule to 0 (the fraction at its default), do not replace seed 0 of the preset, and each
+    row names what differs; settings that do not change learning (seed, length, physics
+    implementation, evaluation) and settings at the preset's values name nothing; an older
+    config.json without a setting counts as its default; no preset: 'preset unknown'."""
+    same = dict(
+        total_steps=53_248_000, impl="warp", eval_every=1, critic_hidden_sizes=[1024, 512, 256]
+    )
+    rb = dict(same, return_bound=5.0, v_min=-5.0, v_max=5.0)
+    residual = dict(same, critic_network="residual", critic_hidden_sizes=[256, 256])
+    cosine = dict(same, lr_schedule="cosine", lr_final_fraction=0.0)
+    files = [_run(tmp_path, "plain", 0, {100: 1.0}, "off", **same),
              _run(tmp_path, "rb", 0, {100: 3.0}, "off", **rb),
-             _run(tmp_path, "both", 0, {100: 4.0}, "off", **both)]  # fmt: skip
+             _run(tmp_path, "res", 0, {100: 4.0}, "off", **residual),
+             _run(tmp_path, "cos", 0, {100: 5.0}, "off", **cosine),
+             _run(tmp_path, "old", 1, {100: 6.0}, "off", critic_network=_ABSENT)]  # fmt: skip
     finals = [humanoid_table.final_of(path, 100) for path in files]
     settings = [row.split(" | ")[1:3] for row in humanoid_table.table(finals).splitlines()[2:]]
     assert sorted(settings) == [
-        ["pushes off, DR off", "0: 1.0"],
-        ["pushes off, DR off, return_bound 2.5 on [-2, 2], critic_feature_norm", "0: 4.0"],
-        ["pushes off, DR off, return_bound 5 on [-5, 5]", "0: 3.0"],
+        ["pushes off, DR off", "0: 1.0, 1: 6.0"],
+        ["pushes off, DR off, critic_hidden_sizes 256 256, critic_network residual", "0: 4.0"],
+        ["pushes off, DR off, lr_schedule cosine", "0: 5.0"],
+        ["pushes off, DR off, v_min -5.0, v_max 5.0, return_bound 5.0", "0: 3.0"],
     ]
+    assert humanoid_table.settings_of({"pushes": "off"}) == "pushes off, DR off, preset unknown"
