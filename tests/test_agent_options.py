@@ -262,6 +262,29 @@ def test_residual_critic_against_numpy(feature_norm):
     assert_trees_close(state.actor_params, init(spec_of(num_atoms=5)).actor_params, atol=0, rtol=0)
 
 
+def test_a_plain_residual_critic_in_bfloat16():
+    """Plain (one-value) residual critics: ``q[2, batch]``, the NumPy forward pass's single
+    output in float32; in bfloat16 the matmuls run in bf16, parameters and outputs stay
+    float32 and the values stay close to float32's."""
+    spec32 = spec_of(critic_network="residual")
+    spec16 = spec_of(critic_network="residual", precision="bfloat16")
+    state = init(spec16)
+    params = random_grads(state.critic_params, 5, 0.5)
+    layers = params["params"]["VmapCritic_0"]["ResidualMLP_0"]
+    batch = make_batch(6)
+    q32 = np.asarray(spec32.critic.apply(params, batch.obs, batch.action))
+    x = np.concatenate([batch.obs, batch.action], axis=-1).astype(np.float64)
+    for head in range(2):
+        want = np_residual_critic(layers, head, x, 2, False)[:, 0]
+        np.testing.assert_allclose(q32[head], want, atol=2e-5, rtol=2e-5)
+    q16 = spec16.critic.apply(params, batch.obs, batch.action)
+    assert q16.dtype == jnp.float32 and float_dtypes(state) == {np.dtype(np.float32)}
+    jaxpr = str(jax.make_jaxpr(spec16.critic.apply)(params, batch.obs, batch.action))
+    assert all(":bf16[" in line for line in jaxpr.splitlines() if "dot_general" in line)
+    np.testing.assert_allclose(q16, q32, atol=0.1, rtol=0.05)
+    assert not np.array_equal(q16, q32)
+
+
 def test_a_residual_critic_needs_blocks_of_one_width():
     """Unequal widths are refused by the library (ValueError) and the config (ConfigError
     naming the flag that set them); a plain critic takes them; the config's option reaches
