@@ -825,8 +825,20 @@ def eval_main(args: list[str]) -> None:
              None if i in diverged else returns[i])
             for i, m in enumerate(population)]  # fmt: skip
     alive = [i for i in range(len(population)) if i not in diverged]
-    several = len(alive) > 1
-    print_returns_table(title, rows, population_stats(returns[alive]) if several else None)
+    swept = any(member.overrides for member in population)
+    pooled = population_stats(returns[alive]) if len(alive) > 1 and not swept else None
+    print_returns_table(title, rows, pooled)
+    if swept:  # statistics per setting over its seeds, never pooled over settings
+        print_sweep_ranking(sweep_record(population, returns, diverged, meta["env_steps"]))
+
+
+def sweep_record(population: list, returns: Any, diverged: set[int], env_steps: int) -> dict:
+    """The shape :func:`print_sweep_ranking` reads (``per_member``: each member's settings
+    and mean return, ``None`` where it diverged) from ``returns [members, episodes]``."""
+    per_member = [{"settings": dict(member.overrides),
+                   "eval_return_mean": None if i in diverged else float(returns[i].mean())}
+                  for i, member in enumerate(population)]  # fmt: skip
+    return {"env_steps": env_steps, "per_member": per_member}
 
 
 def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:

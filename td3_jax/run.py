@@ -39,6 +39,7 @@ from td3_jax.rundir import (
     environment_record,
     open_run_dir,
     previous_outputs,
+    resume_command,
     run_info,
     save_config,
 )
@@ -193,7 +194,7 @@ def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
         newest = steps[-1]
         last = f"{out / CHECKPOINTS / str(newest)} (env step {newest * run.cfg.steps_per_chunk})"
         return OutputWriteError(f"{what}; the last good checkpoint is {last}; {fix}, then "
-                                f"continue with: td3-jax train --out {out} --resume")  # fmt: skip
+                                f"continue with: {resume_command(out)}")  # fmt: skip
     if previous_outputs(out):
         return OutputWriteError(f"{what}; no checkpoint was written, so there is nothing to "
                                 f"resume: {fix}, then remove {out} (or choose another --out) "

@@ -358,6 +358,16 @@ def _stopped_before_training(out_dir: Path) -> bool:
     )
 
 
+def resume_command(out_dir: Path) -> str:
+    """``td3-jax sweep --out OUT --resume`` for a sweep's directory (whose config.json has a
+    :data:`SWEEP` section; it then ends with the sweep's ranking), else ``td3-jax train``'s."""
+    try:
+        sweep = SWEEP in json.loads((Path(out_dir) / CONFIG_FILE).read_text())
+    except (OSError, ValueError):
+        sweep = False
+    return f"td3-jax {'sweep' if sweep else 'train'} --out {out_dir} --resume"
+
+
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
     """What a run stopped by ``cause`` (a Ctrl-C, a SIGTERM) leaves behind, in one line."""
     steps = checkpoint_steps(out_dir)
@@ -365,8 +375,8 @@ def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
         newest = Path(out_dir) / CHECKPOINTS / str(steps[-1])
         if _complete(out_dir, steps[-1]):
             return f"{cause} after the run's last chunk: the run is complete ({newest})"
-        return f"{cause}; the newest checkpoint is {newest} (continue with: td3-jax train " \
-               f"--out {out_dir} --resume)"  # fmt: skip
+        return f"{cause}; the newest checkpoint is {newest} (continue with: " \
+               f"{resume_command(out_dir)})"  # fmt: skip
     again = ("remove it or choose another --out to start again" if previous_outputs(out_dir)
              else "run the same command again to start over")  # fmt: skip
     return f"{cause} before the first checkpoint: {out_dir} holds none to resume ({again})"

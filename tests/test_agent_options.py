@@ -306,6 +306,10 @@ def test_a_residual_critic_needs_blocks_of_one_width():
     assert agent_options(TrainConfig()).critic_network == "mlp"
     with pytest.raises(ConfigError, match="critic-network"):
         validate(TrainConfig(critic_network="resnet"))
+    with pytest.raises(ConfigError, match=r"--hidden-sizes must be positive integers, got 0$"):
+        validate(TrainConfig(hidden_sizes=(0,)))
+    with pytest.raises(ConfigError, match=r"--critic-hidden-sizes must be .*, got none$"):
+        validate(TrainConfig(critic_hidden_sizes=()))
 
 
 def test_cosine_learning_rate_by_hand():

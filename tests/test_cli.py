@@ -19,6 +19,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from support import (
     TINY_FLAGS,
@@ -440,6 +441,33 @@ def test_eval_prints_mean_and_std(finished_run, capsys):
     mean, std, low, high = (float(v) for v in values[-4:])
     assert low <= mean <= high and std >= 0
     assert EPISODE * PENDULUM_WORST_STEP <= low and high <= 0
+
+
+def test_eval_of_a_sweep_gives_statistics_per_setting_not_pooled(monkeypatch, capsys):
+    """A sweep's members (two learning rates x two seeds, one diverged): eval prints each
+    member, then per setting the mean over its seeds, never one interval over the settings;
+    a run of seeds alone keeps its pooled line."""
+    from td3_jax import finished
+    from td3_jax.population import Member
+
+    sweep = [Member(s, (("actor_lr", lr),)) for lr in (0.001, 0.0003) for s in (0, 1)]
+    returns = np.asarray([[-100.0, -300.0], [-500.0, -500.0], [-900.0, -700.0], [0.0, 0.0]])
+    meta = {"env_steps": 4096, "diverged_members": [3]}
+    fake = lambda run, episodes, seed: (TrainConfig(), sweep, meta, returns)
+    monkeypatch.setattr(finished, "evaluate_run", fake)
+    code, stdout, stderr = main(["eval", "--run", "x", "--episodes", "2"], capsys)
+    assert code == 0, stderr
+    assert "over 3 members" not in stdout and "95% CI" in stdout
+    rows = {lr: line for line in stdout.splitlines() for lr in ("0.001", "0.0003")
+            if f"actor_lr={lr} " in line and "seed=" not in line}  # fmt: skip
+    assert re.search(r"actor_lr=0.001\W+2\W+0\W+-350.0\W", rows["0.001"])  # (-200 - 500) / 2
+    assert re.search(r"actor_lr=0.0003\W+2\W+1\W+-800.0\W", rows["0.0003"])
+    seeds = [Member(0), Member(1)]
+    monkeypatch.setattr(finished, "evaluate_run",
+                        lambda run, episodes, seed: (TrainConfig(), seeds, {"env_steps": 1},
+                                                     returns[:2]))  # fmt: skip
+    code, stdout, _ = main(["eval", "--run", "x", "--episodes", "2"], capsys)
+    assert code == 0 and "over 2 members: mean -350.0" in stdout
 
 
 def test_second_train_to_the_same_out_exits_2(finished_run, capsys):

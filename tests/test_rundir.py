@@ -449,6 +449,21 @@ def test_interrupted_message_says_what_is_kept(tmp_path):
                        f"({tmp_path / 'checkpoints' / '2'})")  # fmt: skip
 
 
+def test_a_stopped_sweep_is_told_to_resume_as_a_sweep(tmp_path):
+    """A sweep's directory (config.json with its 'sweep' section) is continued with `td3-jax
+    sweep --resume`, which ends with the sweep's ranking; a run of seeds with `td3-jax train`."""
+    cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=2, total_steps=32, eval_every=8)
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)
+    rundir.save_config(cfg, [Member(seed=0), Member(seed=1)], tmp_path)
+    assert rundir.interrupted_message(tmp_path).endswith(
+        f"(continue with: td3-jax train --out {tmp_path} --resume)")  # fmt: skip
+    swept = [Member(0, (("tau", 0.005),)), Member(0, (("tau", 0.01),))]
+    rundir.save_config(cfg, swept, tmp_path)
+    assert rundir.SWEEP in json.loads((tmp_path / "config.json").read_text())
+    assert rundir.interrupted_message(tmp_path).endswith(
+        f"(continue with: td3-jax sweep --out {tmp_path} --resume)")  # fmt: skip
+
+
 # --------------------------------------------------------------------------------------------
 # extending a finished run
 # --------------------------------------------------------------------------------------------
