@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from td3_jax.config import TrainConfig
 from td3_jax.presets import preset
+from td3_jax.program_cache import HOST_ONLY
 from td3_jax.stats import iqm
 
 #: Final returns at 50M env steps (5 seeds), FlashSAC's paper, and FastTD3's (as FlashSAC
@@ -45,10 +46,9 @@ class Final(NamedTuple):
 
 #: Settings that do not change what a run learns: the seed and length, where it runs and
 #: how fast (physics implementation, matmul kernels), how it is evaluated and recorded.
-NOT_LEARNING = ("seed", "total_steps", "impl", "menagerie", "matmuls", "eval_every",
-                "eval_envs", "eval_in_chunk", "early_evaluation", "keep_checkpoints",
-                "checkpoint_every", "wandb", "wandb_project", "wandb_entity", "wandb_name",
-                "wandb_mode", "pushes", "domain_randomization")  # fmt: skip
+#: (The host-only settings, then the rest; pushes and domain randomisation are shown apart.)
+NOT_LEARNING = (*HOST_ONLY, "total_steps", "impl", "matmuls", "eval_every", "eval_envs",
+                "eval_in_chunk", "pushes", "domain_randomization")  # fmt: skip
 
 
 def changes_from_preset(config: dict[str, Any]) -> list[str]:

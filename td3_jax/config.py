@@ -441,13 +441,13 @@ def _check_residual_critic(cfg: TrainConfig) -> None:
     --critic-hidden-sizes, else --hidden-sizes, else the algorithm's default)."""
     if cfg.critic_network != "residual":
         return
-    from td3_jax.networks import residual_layout  # (jax and flax: only with the option)
-    from td3_jax.td3 import DDPGConfig, TD3Config
+    from td3_jax.build import agent_config  # (jax and flax: only with the option)
+    from td3_jax.networks import residual_layout
 
     name = "critic_hidden_sizes" if cfg.critic_hidden_sizes is not None else "hidden_sizes"
     sizes = getattr(cfg, name)
     if sizes is None:
-        sizes = (DDPGConfig if cfg.algo == "ddpg" else TD3Config)().hidden_sizes
+        sizes = agent_config(cfg).hidden_sizes
         name = f"hidden_sizes (--algo {cfg.algo}'s default)"
     try:
         residual_layout(sizes)
