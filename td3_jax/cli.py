@@ -468,6 +468,25 @@ def _given_fields(args: list[str]) -> set[str]:
     return given
 
 
+def preset_source_note(message: str, cfg: TrainConfig, preset_name: str | None,
+                       given: set[str]) -> str:  # fmt: skip
+    """`` (--critic-hidden-sizes 1024 512 256 from preset 'g1')``: the settings that an error
+    ``message`` names by their flag and that came from the preset, not from a flag given (so
+    the user sees where a value they never typed comes from); empty where there is none."""
+    if preset_name is None:
+        return ""
+
+    def names(name: str) -> bool:  # the flag itself, not the start or end of a longer one
+        return re.search(rf"(?<![\w-]){re.escape(flag(name))}(?![\w-])", message) is not None
+
+    named = [name for name in PRESETS.get(preset_name, {}) if name not in given and names(name)]
+    if not named:
+        return ""
+    named.sort(key=lambda name: message.find(flag(name)))  # in the message's order
+    values = ", ".join(as_flag(name, getattr(cfg, name)) for name in named)
+    return f" ({values} from preset {preset_name!r})"
+
+
 def _scale_to_device(cfg: TrainConfig, args: list[str]) -> TrainConfig:
     """An environment without a preset on an accelerator: its defaults, then the given flags."""
     import jax
@@ -676,7 +695,11 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     asked_eval_every = cfg.eval_every
     if not command.resume:  # (a resume keeps the chunk its checkpoints were written with)
         cfg = eval_every_within_run(cfg)
-    validate(cfg)  # (said once the directory and the environment are good too)
+    try:
+        validate(cfg)  # (said once the directory and the environment are good too)
+    except ConfigError as err:
+        note = preset_source_note(str(err), cfg, preset_name, _given_fields(args))
+        raise ConfigError(f"{err}{note}") from err
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(_given_fields(args)))  # fmt: skip
     received: list[int] = []

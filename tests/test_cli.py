@@ -1212,3 +1212,26 @@ def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys
     assert kwargs["sweep"] == {"return_bound": [1.0, 5.0], "max_grad_norm": [0.5, 2.0]}
     bounds = sorted(dict(m.overrides)["return_bound"] for m in members(cfg, kwargs["sweep"]))
     assert bounds == [1.0, 1.0, 5.0, 5.0]
+
+
+def test_preset_source_note_names_the_flags_that_came_from_the_preset():
+    """Only flags the message names, that the preset set and that were not given; a flag that
+    is the start of a longer one (--critic in --critic-network) does not count."""
+    cfg = preset("g1")
+    message = ("--critic-network residual: --critic-hidden-sizes: not 1024 512 256; "
+               "--batch-size too large")  # fmt: skip
+    note = cli.preset_source_note(message, cfg, "g1", given=set())
+    assert note == " (--critic-hidden-sizes 1024 512 256, --batch-size 32768 from preset 'g1')"
+    given = {"critic_hidden_sizes", "batch_size"}
+    assert cli.preset_source_note(message, cfg, "g1", given=given) == ""
+    assert cli.preset_source_note(message, cfg, None, given=set()) == ""
+    assert cli.preset_source_note("--critic-network x", cfg, "g1", given=set()) == ""
+
+
+def test_an_error_about_a_preset_value_says_it_came_from_the_preset(tmp_path, capsys):
+    out = tmp_path / "run"
+    code, _, err = main(["train", "--preset", "pendulum", "--batch-size", "999999",
+                         "--out", str(out)], capsys)  # fmt: skip
+    assert_one_line_error(code, err, "--batch-size 999999", "(--total-steps 20000 from preset "
+                          "'pendulum')")  # fmt: skip
+    assert not out.exists()
