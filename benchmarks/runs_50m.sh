@@ -11,8 +11,9 @@
 # Environment: MEN (the robots' assets, default /tmp/men), DONE (default /root/done), RUNS
 # (the runs' folders, default /root/runs),
 # STEPS (default 53248000: 13 chunks of 4.096M), EXTRA (more `train` flags, e.g. --pushes on),
-# KEEP (1 keeps each run's checkpoints; by default they are removed once the run ends: only
-# the records come back, and four runs' rings, 15-46 GB each, would fill the machine's disk).
+# KEEP (1 keeps each run's checkpoints; by default those of a run that finished are removed:
+# only the records come back, and four runs' rings, 15-46 GB each, would fill the machine's
+# disk; a run that failed or was stopped keeps them for a --resume).
 # On a machine of two GPUs, two chains run side by side, one a GPU, each with its own DONE:
 #   CUDA_VISIBLE_DEVICES=0 DONE=/root/done0 RUNS=/root/runs0 \
 #     bash benchmarks/chain.sh start a bash benchmarks/runs_50m.sh g1:1
@@ -38,6 +39,6 @@ for run in "$@"; do
     >"$done_dir/$name/train.log" 2>&1
   status=$?
   cp "$out/metrics.jsonl" "$out/config.json" "$done_dir/$name/" 2>/dev/null
-  [ "${KEEP:-0}" = 1 ] || rm -rf "$out/checkpoints"
+  [ "${KEEP:-0}" = 1 ] || [ "$status" != 0 ] || rm -rf "$out/checkpoints"
   echo "$name ended with exit status $status: $(tail -n 1 "$done_dir/$name/train.log")"
 done

@@ -33,7 +33,14 @@ import jax.numpy as jnp
 from td3_jax import actor_critic as ac
 from td3_jax import envs, replay, training
 from td3_jax import population as pop
-from td3_jax.config import SWEEPABLE, TrainConfig, unused_settings, validate
+from td3_jax.config import (
+    SWEEPABLE,
+    TrainConfig,
+    flag,
+    flag_pattern,
+    unused_settings,
+    validate,
+)
 from td3_jax.errors import ConfigError
 from td3_jax.noise import OUParams
 from td3_jax.td3 import DDPGConfig, TD3Config
@@ -390,8 +397,7 @@ def _sweep_flags(message: str, names: Sequence[str]) -> str:
     """``message`` with each swept setting's flag (``--actor-lr``) as its sweep flag
     (``--sweep-actor-lr``)."""
     for name in names:
-        flag = f"--{name.replace('_', '-')}"
-        message = re.sub(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", "--sweep-" + flag[2:], message)
+        message = re.sub(flag_pattern(name), "--sweep-" + flag(name)[2:], message)
     return message
 
 

@@ -38,6 +38,7 @@ from td3_jax.config import (
     check_seed,
     eval_every_within_run,
     flag,
+    flag_pattern,
     idle_flags,
     idle_wandb_flags,
     validate,
@@ -476,15 +477,25 @@ def preset_source_note(message: str, cfg: TrainConfig, preset_name: str | None,
     if preset_name is None:
         return ""
 
-    def names(name: str) -> bool:  # the flag itself, not the start or end of a longer one
-        return re.search(rf"(?<![\w-]){re.escape(flag(name))}(?![\w-])", message) is not None
-
-    named = [name for name in PRESETS.get(preset_name, {}) if name not in given and names(name)]
+    found = {name: re.search(flag_pattern(name), message)
+             for name in PRESETS[preset_name] if name not in given}  # fmt: skip
+    named = sorted((match.start(), name) for name, match in found.items() if match)
     if not named:
         return ""
-    named.sort(key=lambda name: message.find(flag(name)))  # in the message's order
-    values = ", ".join(as_flag(name, getattr(cfg, name)) for name in named)
+    values = ", ".join(as_flag(name, getattr(cfg, name)) for _, name in named)
     return f" ({values} from preset {preset_name!r})"
+
+
+@contextlib.contextmanager
+def preset_noted(cfg: TrainConfig, preset_name: str | None, given: set[str]) -> Iterator[None]:
+    """Re-raises a :class:`ConfigError` of its block with :func:`preset_source_note` added."""
+    try:
+        yield
+    except ConfigError as err:
+        note = preset_source_note(str(err), cfg, preset_name, given)
+        if not note:
+            raise
+        raise type(err)(f"{err}{note}") from err
 
 
 def _scale_to_device(cfg: TrainConfig, args: list[str]) -> TrainConfig:
@@ -695,11 +706,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     asked_eval_every = cfg.eval_every
     if not command.resume:  # (a resume keeps the chunk its checkpoints were written with)
         cfg = eval_every_within_run(cfg)
-    try:
+    given = _given_fields(args) | set(sweep or {})  # (a swept setting is every member's own)
+    with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
-    except ConfigError as err:
-        note = preset_source_note(str(err), cfg, preset_name, _given_fields(args))
-        raise ConfigError(f"{err}{note}") from err
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(_given_fields(args)))  # fmt: skip
     received: list[int] = []
@@ -707,7 +716,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
     ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
     try:
-        with runtime.stop_signals(stop, received, say=jax.process_index() == 0, aftermath=ended):
+        signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
+                                       aftermath=ended)  # fmt: skip
+        with preset_noted(cfg, preset_name, given), signals:
             records = train(
                 cfg,
                 command.out,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Any, Literal
 
 from td3_jax.errors import ConfigError
@@ -183,7 +184,8 @@ class TrainConfig:
     batch-normalised as FlashSAC's is). A block has about 8 x width^2 weights: 256 256 is about
     1M per critic, 15x the plain 256 256 (on a CPU try 64 64). The actor is unchanged. On
     G1 flat at 50M steps, 256 256 ended two seeds at 38.2 and 37.3 (the g1 preset: 36.2-36.5)
-    with the loop about 0.73x as fast; not in a preset (a third seed is missing)."""
+    with the loop about 0.73x as fast; a third seed, unfinished, was mostly below the preset's
+    seeds on the way, so no preset uses it."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps
@@ -393,6 +395,12 @@ def idle_wandb_flags(cfg: TrainConfig, given: set[str]) -> None:
 def flag(name: str) -> str:
     """The command-line flag of a config field: ``total_steps -> --total-steps``."""
     return f"--{name.replace('_', '-')}"
+
+
+def flag_pattern(name: str) -> str:
+    """A regular expression of a field's flag as a whole word: ``--critic`` matches in
+    ``--critic c51``, not in ``--critic-network`` or ``--sweep-critic``."""
+    return rf"(?<![\w-]){re.escape(flag(name))}(?![\w-])"
 
 
 def as_flag(name: str, value: Any) -> str:

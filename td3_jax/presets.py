@@ -219,10 +219,10 @@ PRESETS: dict[str, dict] = {
     # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59).
     "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain", njmax=128),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts): the flat presets
-    # unchanged, with 128 constraints per environment as a margin on Warp. One seed each on an
-    # H100 (BENCHMARKS.md, 2026-11-24 third session): T1 29.6 at 16.4M steps (522 s from
-    # launch, Warp kernels cold), G1 18.3 at 12.3M (495 s); FastTD3's final 30.4 and 27.7,
-    # FlashSAC's 34.6 and 34.1 at 50M. Not tuned for rough terrain.
+    # unchanged, with 128 constraints per environment as a margin on Warp. At 53.2M env steps
+    # (BENCHMARKS.md, seventh to eleventh sessions): T1 34.8 IQM over 3 seeds, G1 29.0 on one
+    # seed; FlashSAC's 34.6 and 34.1 at 50M, FastTD3's final 30.4 and 27.7. Not tuned for
+    # rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickRoughTerrain", njmax=128),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in

@@ -1226,6 +1226,28 @@ def test_preset_source_note_names_the_flags_that_came_from_the_preset():
     assert cli.preset_source_note(message, cfg, "g1", given=given) == ""
     assert cli.preset_source_note(message, cfg, None, given=set()) == ""
     assert cli.preset_source_note("--critic-network x", cfg, "g1", given=set()) == ""
+    # neither a sweep flag nor a --no- flag is the preset's setting
+    assert cli.preset_source_note("--sweep-v-max 3; --no-pushes", cfg, "g1", given=set()) == ""
+    # in the message's order, a flag that starts a longer one found where it stands alone
+    message = "--critic-lr 1; --critic-hidden-sizes 2; --critic is c51"
+    assert cli.preset_source_note(message, cfg, "g1", given=set()) == (
+        " (--critic-lr 0.0003, --critic-hidden-sizes 1024 512 256, --critic distributional "
+        "from preset 'g1')"
+    )
+
+
+def test_preset_noted_adds_the_note_and_keeps_the_error_type():
+    from td3_jax.errors import ExportError
+
+    cfg = preset("g1")
+    with pytest.raises(ExportError, match=r"^--batch-size x \(--batch-size 32768 from preset"):
+        with cli.preset_noted(cfg, "g1", given=set()):
+            raise ExportError("--batch-size x")
+    plain = config.ConfigError("--seed x")
+    with pytest.raises(config.ConfigError) as caught:
+        with cli.preset_noted(cfg, "g1", given=set()):
+            raise plain
+    assert caught.value is plain  # nothing the preset set: the error as raised
 
 
 def test_an_error_about_a_preset_value_says_it_came_from_the_preset(tmp_path, capsys):
