@@ -1022,11 +1022,14 @@ _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 def _exit_interrupted(message: str, code: int = 130) -> None:
     """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
-    background thread (it cannot be interrupted) is abandoned rather than waited for."""
+    background thread, or a chunk or evaluation a Ctrl-C left running on the device (neither can
+    be interrupted), is abandoned rather than waited for (the run's outputs are closed by then).
+    Waiting took the rest of the chunk, and tearing down XLA under it could end in SIGSEGV."""
     print(message, file=sys.stderr)
     if runtime.background_work_running():
         sys.stdout.flush()
         sys.stderr.flush()
+        runtime.forget_abandoned_work()  # (for a caller whose os._exit returns: tests)
         os._exit(code)
     sys.exit(code)
 

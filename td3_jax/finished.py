@@ -23,6 +23,7 @@ from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.population import Member, Population
 from td3_jax.programs import run_compiled
 from td3_jax.rundir import CHECKPOINTS, check_environment_unchanged, load_config, load_members
+from td3_jax.runtime import awaiting_device
 from td3_jax.sharding import make_mesh, state_shardings
 from td3_jax.training import ring_as_saved
 
@@ -98,4 +99,6 @@ def evaluate_run(
     cfg, population, program = run_program(out_dir, eval_envs=episodes)
     state, meta = restore_on_one_device(program, out_dir)
     keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
-    return cfg, population, meta, np.asarray(run_compiled(cfg, program.evaluate, state, keys))
+    with awaiting_device():  # (a Ctrl-C leaves the evaluation running on the device)
+        returns = np.asarray(run_compiled(cfg, program.evaluate, state, keys))
+    return cfg, population, meta, returns

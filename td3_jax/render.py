@@ -356,6 +356,7 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
     """
     from td3_jax.finished import restore_on_one_device, run_program
     from td3_jax.programs import run_compiled
+    from td3_jax.runtime import awaiting_device
 
     cfg, population, program = run_program(run_dir, eval_envs=episodes)
     choose_member(run_dir, len(population), member)  # a bad --member fails before compiling
@@ -367,8 +368,10 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
     key = jax.random.split(jax.random.PRNGKey(seed), len(population))[k]
     spec = dataclasses.replace(program.spec, axis_name=None)
     run = functools.partial(training.evaluate_recorded, spec, record=episodes)
-    returns, recording = run_compiled(cfg, run, jax.tree.map(lambda x: x[k], state), key)
-    return Rollout(program.env, k, np.asarray(returns), *split_episodes(recording),
+    with awaiting_device():  # (a Ctrl-C leaves the rollout running on the device)
+        returns, recording = run_compiled(cfg, run, jax.tree.map(lambda x: x[k], state), key)
+        returns, recording = np.asarray(returns), jax.device_get(recording)
+    return Rollout(program.env, k, returns, *split_episodes(recording),
                    env_steps=meta.get("env_steps"))  # fmt: skip
 
 

@@ -43,7 +43,7 @@ from td3_jax.rundir import (
     run_info,
     save_config,
 )
-from td3_jax.runtime import StopToken
+from td3_jax.runtime import StopToken, awaiting_device
 from td3_jax.sharding import (
     check_memory,
     host_value,
@@ -359,7 +359,8 @@ def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
         whole = cfg.iters_per_chunk
         parts = [early, whole - early] if index == 0 and early else [whole]
         for iterations in parts:
-            state, record = _chunk_and_record(run, compiled, state, iterations)
+            with awaiting_device():  # (a Ctrl-C leaves the chunk running on the device)
+                state, record = _chunk_and_record(run, compiled, state, iterations)
             run.logger.write(record)
             run.records.append(record)
             run.display.update(record)

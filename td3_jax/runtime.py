@@ -153,8 +153,31 @@ def in_background(function: Callable[..., Any], *args: Any) -> Future:
 
 
 def background_work_running() -> bool:
-    """Whether a thread of :func:`in_background` is still working (e.g. compiling)."""
-    return any(thread.is_alive() for thread in list(_BACKGROUND))
+    """Whether work that a Ctrl-C cannot stop may still be running: a thread of
+    :func:`in_background` (e.g. compiling), or a device computation whose wait a Ctrl-C broke
+    (:func:`awaiting_device`). Exiting the interpreter under either waits for it, and tearing
+    down the XLA client under a running computation can crash the process (SIGSEGV)."""
+    return _ABANDONED.is_set() or any(thread.is_alive() for thread in list(_BACKGROUND))
+
+
+_ABANDONED = threading.Event()
+
+
+@contextlib.contextmanager
+def awaiting_device() -> Iterator[None]:
+    """Around a wait for a device computation (a chunk, an evaluation): a KeyboardInterrupt
+    that leaves it leaves the computation running, which :func:`background_work_running` then
+    reports (until :func:`forget_abandoned_work`)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        _ABANDONED.set()
+        raise
+
+
+def forget_abandoned_work() -> None:
+    """Clears what :func:`awaiting_device` recorded (once the process has dealt with it)."""
+    _ABANDONED.clear()
 
 
 # --------------------------------------------------------------------------------------------

@@ -1060,6 +1060,15 @@ def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
     code, _, _ = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "b")], capsys)
     assert (code, exits) == (130, [130])  # a plain sys.exit: nothing was compiling
 
+    def interrupted_chunk(cfg, out_dir, **kwargs):  # a Ctrl-C while a chunk runs on the device
+        with runtime.awaiting_device():
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(run_module, "train", interrupted_chunk)
+    code, _, _ = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "c")], capsys)
+    assert (code, exits) == (130, [130, 130])  # abandoned at once, not waited for
+    assert not runtime.background_work_running()  # (forgotten once dealt with)
+
 
 def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
     tmp_path, capsys, monkeypatch

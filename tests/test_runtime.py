@@ -242,6 +242,24 @@ def test_a_stopped_wait_gives_up_the_compile_thread():
     assert runtime.result(future) is True
 
 
+def test_a_ctrl_c_that_leaves_a_device_wait_is_reported_as_uninterruptible_work():
+    """A KeyboardInterrupt out of a device wait leaves the computation running: reported until
+    forgotten; another exception, or a wait that ends, reports nothing."""
+    assert not runtime.background_work_running()
+    with runtime.awaiting_device():
+        pass
+    with pytest.raises(ValueError), runtime.awaiting_device():
+        raise ValueError("not a Ctrl-C")
+    assert not runtime.background_work_running()
+    try:
+        with pytest.raises(KeyboardInterrupt), runtime.awaiting_device():
+            raise KeyboardInterrupt
+        assert runtime.background_work_running()
+    finally:
+        runtime.forget_abandoned_work()
+    assert not runtime.background_work_running()
+
+
 @pytest.fixture
 def restored_logging(monkeypatch):
     """Puts back what :func:`runtime.quiet_library_logs` changes."""
