@@ -31,6 +31,7 @@ import tyro
 
 from td3_jax import runtime, upstream
 from td3_jax.config import (
+    SWEEPABLE,
     SWITCHED_ON_BY_THEIR_FLAG,
     ConfigError,
     TrainConfig,
@@ -402,6 +403,12 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     if sweeps and prog == "td3-jax train":  # a sweep's lists are `td3-jax sweep`'s flags
         return (f"{sweeps[0]}: the --sweep-* lists are flags of td3-jax sweep, which trains "
                 f"every combination of their values: td3-jax sweep {' '.join(args)}")  # fmt: skip
+    not_swept = [name for name in unknown if name.startswith("--sweep-") and
+                 f"--{name[8:]}" in known]  # fmt: skip
+    if not_swept and prog == "td3-jax sweep":
+        return (f"{not_swept[0]}: --{not_swept[0][8:]} cannot be swept (it changes the "
+                "program, not a value in it); run td3-jax train once per value. A sweep "
+                f"varies {', '.join(flag(name)[2:] for name in SWEEPABLE)}")  # fmt: skip
     names = {name.lstrip("-"): name for name in known}
     said = []
     for name in dict.fromkeys(unknown):
@@ -541,21 +548,38 @@ def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str 
                      f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
     runs = cfg.num_chunks * cfg.steps_per_chunk
     if runs != cfg.total_steps:
+        how = "--eval-every sets them"
+        if cfg.eval_in_chunk:  # (eval_every_within_run keeps such a chunk: a round must fit)
+            how += (", with --eval-in-chunk down to one evaluation episode's iterations; "
+                    "--no-eval-in-chunk ends the run at --total-steps")  # fmt: skip
         notes.append(f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
-                     f"{cfg.steps_per_chunk} steps between evaluations; --eval-every sets "
-                     "them)")  # fmt: skip
+                     f"{cfg.steps_per_chunk} steps between evaluations; {how})")  # fmt: skip
     return "; ".join(notes) or None
+
+
+def unnamed_env_warning(cfg: TrainConfig, preset_name: str | None, source: str,
+                        given: frozenset[str] | set[str]) -> str | None:  # fmt: skip
+    """A warning when a named preset that sets no environment (``td3-classic``: a recipe for
+    any) runs without ``--env``: the default environment trains, which nothing else says."""
+    if source != "preset" or preset_name is None or "env" in given:
+        return None
+    if "env" in PRESETS[preset_name]:
+        return None
+    return (f"preset {preset_name!r} sets no environment and no --env was given: training "
+            f"{cfg.env}, the default (--env picks one)")  # fmt: skip
 
 
 def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
     """A warning when a run sized for an accelerator is about to start on a CPU."""
-    if backend != "cpu" or (cfg.num_envs < 1024 and cfg.total_steps < 5_000_000):
+    steps = cfg.num_chunks * cfg.steps_per_chunk  # (what runs: whole chunks)
+    if backend != "cpu" or (cfg.num_envs < 1024 and steps < 5_000_000):
         return None
     sizes = (("--num-envs 16", cfg.num_envs >= 1024),
-             ("--total-steps 20000", cfg.total_steps >= 5_000_000))  # fmt: skip
+             ("--total-steps 20000", steps >= 5_000_000),
+             ("--no-eval-in-chunk", steps >= 5_000_000 and cfg.eval_in_chunk))  # fmt: skip
     tips = [tip for tip, large in sizes if large]  # (only what is sized for a GPU)
     return (
-        f"this run is sized for a GPU ({cfg.num_envs} environments, {cfg.total_steps} steps, "
+        f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
         f"batch {cfg.batch_size}) and JAX found only a CPU: it will compile for minutes and "
         f"train for hours. For a CPU try {' '.join(tips)} (or no --preset)"
     )
@@ -600,7 +624,7 @@ def _choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig,
     if impl == "warp" and devices is None and jax.device_count() > 1:
         devices, note = 1, f" on one GPU (--impl jax spreads a run over all {jax.device_count()})"
     elif impl == "jax" and asked is None:
-        note = f" (MuJoCo Warp: {physics.warp_missing()})"
+        note = f": {physics.warp_missing()}"  # (why not Warp, the default where it runs)
     if jax.process_index() == 0:
         name = "MuJoCo Warp" if impl == "warp" else "MJX's JAX implementation"
         print(f"physics: {name} (--impl {impl}){note}", flush=True)
@@ -627,22 +651,29 @@ def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
     if jax.process_index() != 0:
         return
     _announce(cfg, preset_name, source, asked_eval_every)
-    warnings = (cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg),
+    warnings = (unnamed_env_warning(cfg, preset_name, source, given),
+                cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg),
                 no_learning_warning(cfg), *idle_flags(cfg, set(given)))  # fmt: skip
     for warning in warnings:
         if warning:
             print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
-def _sweep_values(command: Any, given: set[str]) -> dict[str, list[float]]:
-    """The ``--sweep-*`` lists of a sweep command (``{"actor_lr": [...], ...}``); none is an
-    error unless the sweep is resumed, and so are a value listed twice and a swept setting
-    also typed as a flag of its own (``given``: the fields named on the command line)."""
+def _sweep_values(command: Any, args: list[str]) -> dict[str, list[float]]:
+    """The ``--sweep-*`` lists of a sweep command (``{"actor_lr": [...], ...}``) from its
+    ``args``; none is an error unless the sweep is resumed, and so are a list without values, a
+    value listed twice and a swept setting also typed as a flag of its own."""
     sweep = {
         f.name.removeprefix("sweep_"): list(getattr(command, f.name))
         for f in dataclasses.fields(SweepCommand)
         if f.name.startswith("sweep_") and getattr(command, f.name)
     }
+    typed = [arg.split("=", 1)[0] for arg in args if arg.startswith("--sweep-")]
+    empty = [name for name in typed if name[8:].replace("-", "_") not in sweep]
+    if empty:
+        raise ConfigError(f"{empty[0]} was given no values: list those to try, e.g. "
+                          f"{empty[0]} 1e-3 3e-4")  # fmt: skip
+    given = _given_fields(args)
     if not sweep and not command.resume:
         raise ConfigError("td3-jax sweep needs at least one --sweep-* list of values")
     for name, values in sweep.items():
@@ -690,7 +721,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.rundir import interrupted_message
 
     command, cfg, preset_name, source = _parse_train(args, sweeping)
-    sweep = _sweep_values(command, _given_fields(args)) if sweeping else None
+    sweep = _sweep_values(command, args) if sweeping else None
     from td3_jax import envs
 
     envs.check_name(cfg.env)  # before anything about the environment is said
@@ -762,7 +793,9 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
     """The lines that end a run this process trained: :func:`done_line`, a note when
     ``--time-budget-s`` stopped it before its last step (and how to go on), a sweep's ranking."""
     resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
-    print(done_line(records[-1], command.out, process_s, resumed_at))
+    members = records[-1].get("members", 1)
+    pooled = f" over all {members} members (per setting below)" if sweeping else ""
+    print(done_line(records[-1], command.out, process_s, resumed_at, pooled))
     taken = records[-1]["env_steps"]
     if command.time_budget_s is not None and taken < cfg.run_steps:
         out = shlex.quote(str(command.out))
@@ -774,10 +807,11 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
 
 
 def done_line(last: dict, out: Path, process_s: float | None = None,
-              resumed_at: int | None = None) -> str:  # fmt: skip
+              resumed_at: int | None = None, pooled: str = "") -> str:  # fmt: skip
     """The line that ends a run: its steps, time and last evaluation (with the env steps of
-    the policy it is of, where evaluated inside the chunk). A run resumed at ``resumed_at`` env
-    steps says what this process did in ``process_s`` seconds, then the whole run's time."""
+    the policy it is of, where evaluated inside the chunk; ``pooled`` says over what, for a
+    sweep's members of different settings). A run resumed at ``resumed_at`` env steps says
+    what this process did in ``process_s`` seconds, then the whole run's time."""
     policy = last.get("eval_policy_env_steps", -1)
     of = (
         f" (policy of {int(policy):,} steps; td3-jax eval for the final one)" if policy >= 0 else ""
@@ -788,7 +822,7 @@ def done_line(last: dict, out: Path, process_s: float | None = None,
         took = (f"({last['env_steps'] - resumed_at:,} in this process, in {seconds:.0f} s; "
                 f"{last['wall_time_s']:.0f} s over the whole run)")  # fmt: skip
     return (f"done: {last['env_steps']:,} env steps {took}; eval return "
-            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}{of}; "
+            f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}{pooled}{of}; "
             f"outputs in {out}")  # fmt: skip
 
 

@@ -252,6 +252,11 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
         )
 
 
+def _names(out_dir: Path) -> set[str]:
+    """The names of the entries of ``out_dir``."""
+    return {p.name for p in Path(out_dir).iterdir()}
+
+
 def foreign_entries(out_dir: Path) -> list[str]:
     """Names in ``out_dir`` that no run writes (sorted), e.g. for ``--out ~`` or ``--out /``.
 
@@ -277,6 +282,10 @@ def check_resume(
     if writer:
         check_not_in_use(out_dir)
     steps = checkpoint_steps(out_dir)
+    if not steps and not ({LOCK_FILE, *previous_outputs(out_dir)} & _names(out_dir)):
+        raise ConfigError(f"--resume given but {out_dir} is not a td3-jax run directory "
+                          "(it holds none of a run's files); --out names the run to "
+                          "resume")  # fmt: skip
     if not steps:
         raise ConfigError(
             f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint{_start_instead(out_dir)}"

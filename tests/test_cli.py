@@ -897,6 +897,12 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
     assert note == "--eval-every 130 runs as 128 (whole iterations of 4 env steps)"
     note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=2, total_steps=8))
     assert note.startswith("--eval-every 2 runs as 4 (") and "--total-steps" not in note
+    # an in-chunk evaluation keeps its chunk: the note says how to shorten the run
+    in_chunk = TrainConfig(num_envs=16, eval_every=4000, total_steps=100, eval_in_chunk=True)
+    note = cli.rounding_note(in_chunk)
+    assert note.startswith("--total-steps 100 runs as 4000 (")
+    assert "down to one evaluation episode" in note and "--no-eval-in-chunk ends" in note
+    assert "--no-eval-in-chunk" not in cli.rounding_note(cfg)
 
 
 def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
@@ -945,6 +951,23 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert "try --num-envs 16 --total-steps 20000 (" in cli.cpu_size_warning(ant, "cpu")
     long_run = TrainConfig(num_envs=16, total_steps=10_000_000)  # suggests only what is large
     assert "try --total-steps 20000 (or no --preset)" in cli.cpu_size_warning(long_run, "cpu")
+    # the steps that run (whole chunks of an in-chunk evaluation), not those asked for
+    short = dataclasses.replace(preset("g1"), total_steps=2000)
+    warning = cli.cpu_size_warning(short, "cpu")
+    assert "4096 environments, 4096000 steps" in warning
+    assert warning.endswith("try --num-envs 16 (or no --preset)")
+    long_g1 = cli.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
+    assert "try --total-steps 20000 --no-eval-in-chunk (" in long_g1
+
+
+def test_a_preset_without_an_environment_says_which_one_trains():
+    classic = preset("td3-classic")
+    warning = cli.unnamed_env_warning(classic, "td3-classic", "preset", given=set())
+    assert warning == ("preset 'td3-classic' sets no environment and no --env was given: "
+                       "training gymnax/Pendulum-v1, the default (--env picks one)")  # fmt: skip
+    assert cli.unnamed_env_warning(classic, "td3-classic", "preset", given={"env"}) is None
+    assert cli.unnamed_env_warning(preset("ant"), "ant", "preset", given=set()) is None
+    assert cli.unnamed_env_warning(classic, None, "resume", given=set()) is None
 
 
 def test_an_evaluation_that_dwarfs_the_training_is_warned_about_and_its_time_shown(capsys):
@@ -1203,7 +1226,8 @@ def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(
     chosen, _ = cli._choose_physics(cli.TrainConfig(env="playground/CheetahRun"), None)
     assert chosen.impl == "jax"
     said = capsys.readouterr().out
-    assert said.startswith("physics: MJX's JAX implementation (--impl jax) (MuJoCo Warp:")
+    assert said.startswith("physics: MJX's JAX implementation (--impl jax): MuJoCo Warp ")
+    assert said.count("MuJoCo Warp") == 1  # (the reason says it once)
 
 
 def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys, monkeypatch):
@@ -1266,3 +1290,23 @@ def test_an_error_about_a_preset_value_says_it_came_from_the_preset(tmp_path, ca
     assert_one_line_error(code, err, "--batch-size 999999", "(--total-steps 20000 from preset "
                           "'pendulum')")  # fmt: skip
     assert not out.exists()
+
+
+def test_sweep_flag_mistakes_say_what_is_wrong(tmp_path, capsys):
+    """A setting that cannot be swept is named as such, with the ones that can; a --sweep-*
+    flag without values is named, not called missing."""
+    out = tmp_path / "sweep"
+    code, _, err = main(["sweep", "--sweep-batch-size", "128", "256", "--out", str(out)], capsys)
+    assert_one_line_error(code, err, "--sweep-batch-size: --batch-size cannot be swept",
+                          "A sweep varies actor-lr, critic-lr, tau")  # fmt: skip
+    for flags in (["--sweep-actor-lr"], ["--sweep-actor-lr", "--sweep-tau", "0.1", "0.2"]):
+        code, _, err = main(["sweep", *flags, "--out", str(out)], capsys)
+        assert_one_line_error(code, err, "--sweep-actor-lr was given no values")
+    assert not out.exists()
+
+
+def test_resume_of_a_directory_that_is_no_run_says_so(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("a user's file")
+    code, _, err = main(["train", "--resume", "--out", str(tmp_path)], capsys)
+    assert_one_line_error(code, err, f"{tmp_path} is not a td3-jax run directory")
+    assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]

@@ -116,6 +116,9 @@ def test_sweep_command_prints_a_ranked_table(tmp_path, capsys):
     ])  # fmt: skip
     out = capsys.readouterr().out
     assert "rank" in out and "95% CI" in out
+    # the done line's return is of all four members (two settings): said so, not as one run's
+    assert re.search(r"done: .* eval return \S+ ± \S+ over all 4 members \(per setting below\)",
+                     out)  # fmt: skip
     assert "actor_lr=0.001" in out and "actor_lr=0.01" in out
     table = out[out.index("rank") :]
     assert table.index("1 ") < table.index("2 ")

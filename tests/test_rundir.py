@@ -236,9 +236,12 @@ def test_resume_of_a_missing_directory_creates_nothing(tmp_path):
     for out in (tmp_path / "missing", tmp_path / "missing" / "deeper"):
         with pytest.raises(ConfigError, match="does not exist"):
             rundir.check_resume(out, SMALL)
-        with pytest.raises(ConfigError, match="has no checkpoint"):
+        with pytest.raises(ConfigError, match="is not a td3-jax run directory"):
             rundir.check_resume(tmp_path, SMALL)
     assert list(tmp_path.iterdir()) == []
+    (tmp_path / "notes.txt").write_text("a user's file")  # files of its own: not a run either
+    with pytest.raises(ConfigError, match=r"is not a td3-jax run directory \(it holds none"):
+        rundir.check_resume(tmp_path, SMALL)
 
 
 def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
