@@ -251,7 +251,7 @@ def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(
 
 def test_resume_of_an_empty_dir_exits_2(tmp_path, capsys):
     code, _, err = main(["train", "--resume", "--out", str(tmp_path), "--quiet"], capsys)
-    assert_one_line_error(code, err, "--resume", "no checkpoint")
+    assert_one_line_error(code, err, "--resume", "is not a td3-jax run directory")
     assert list(tmp_path.iterdir()) == []  # nothing created (no checkpoints/, no .lock)
 
 
