@@ -403,12 +403,12 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     if sweeps and prog == "td3-jax train":  # a sweep's lists are `td3-jax sweep`'s flags
         return (f"{sweeps[0]}: the --sweep-* lists are flags of td3-jax sweep, which trains "
                 f"every combination of their values: td3-jax sweep {' '.join(args)}")  # fmt: skip
-    not_swept = [name for name in unknown if name.startswith("--sweep-") and
-                 f"--{name[8:]}" in known]  # fmt: skip
+    settings = {name: "--" + name.removeprefix("--sweep-") for name in sweeps}
+    not_swept = [name for name in sweeps if settings[name] in known]  # (a setting, not a typo)
     if not_swept and prog == "td3-jax sweep":
-        return (f"{not_swept[0]}: --{not_swept[0][8:]} cannot be swept (it changes the "
+        return (f"{not_swept[0]}: {settings[not_swept[0]]} cannot be swept (it changes the "
                 "program, not a value in it); run td3-jax train once per value. A sweep "
-                f"varies {', '.join(flag(name)[2:] for name in SWEEPABLE)}")  # fmt: skip
+                f"varies {', '.join(flag(s)[2:] for s in SWEEPABLE)}")  # fmt: skip
     names = {name.lstrip("-"): name for name in known}
     said = []
     for name in dict.fromkeys(unknown):
@@ -546,7 +546,7 @@ def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str 
     if cfg.steps_per_chunk != cfg.eval_every:
         notes.append(f"--eval-every {cfg.eval_every} runs as {cfg.steps_per_chunk} (whole "
                      f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
-    runs = cfg.num_chunks * cfg.steps_per_chunk
+    runs = cfg.run_steps
     if runs != cfg.total_steps:
         how = "--eval-every sets them"
         if cfg.eval_in_chunk:  # (eval_every_within_run keeps such a chunk: a round must fit)
@@ -571,7 +571,7 @@ def unnamed_env_warning(cfg: TrainConfig, preset_name: str | None, source: str,
 
 def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
     """A warning when a run sized for an accelerator is about to start on a CPU."""
-    steps = cfg.num_chunks * cfg.steps_per_chunk  # (what runs: whole chunks)
+    steps = cfg.run_steps  # (what runs: whole chunks)
     if backend != "cpu" or (cfg.num_envs < 1024 and steps < 5_000_000):
         return None
     sizes = (("--num-envs 16", cfg.num_envs >= 1024),
@@ -669,7 +669,7 @@ def _sweep_values(command: Any, args: list[str]) -> dict[str, list[float]]:
         if f.name.startswith("sweep_") and getattr(command, f.name)
     }
     typed = [arg.split("=", 1)[0] for arg in args if arg.startswith("--sweep-")]
-    empty = [name for name in typed if name[8:].replace("-", "_") not in sweep]
+    empty = [name for name in typed if name.removeprefix("--sweep-").replace("-", "_") not in sweep]
     if empty:
         raise ConfigError(f"{empty[0]} was given no values: list those to try, e.g. "
                           f"{empty[0]} 1e-3 3e-4")  # fmt: skip
@@ -737,11 +737,12 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     asked_eval_every = cfg.eval_every
     if not command.resume:  # (a resume keeps the chunk its checkpoints were written with)
         cfg = eval_every_within_run(cfg)
-    given = _given_fields(args) | set(sweep or {})  # (a swept setting is every member's own)
+    typed = _given_fields(args)
+    given = typed | set(sweep or {})  # (a swept setting is every member's own)
     with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
-                                 frozenset(_given_fields(args)))  # fmt: skip
+                                 frozenset(typed))  # fmt: skip
     received: list[int] = []
     started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
