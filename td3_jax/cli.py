@@ -478,7 +478,7 @@ def _given_fields(args: list[str]) -> set[str]:
 
 def preset_source_note(message: str, cfg: TrainConfig, preset_name: str | None,
                        given: set[str]) -> str:  # fmt: skip
-    """`` (--critic-hidden-sizes 1024 512 256 from preset 'g1')``: the settings that an error
+    """`` (--critic-hidden-sizes 1024 512 256 from preset 't1')``: the settings that an error
     ``message`` names by their flag and that came from the preset, not from a flag given (so
     the user sees where a value they never typed comes from); empty where there is none."""
     if preset_name is None:
@@ -1091,6 +1091,13 @@ def _import_mjx() -> None:
         pass
 
 
+def _steps_physics(command, args: list[str]) -> bool:
+    """Whether a subcommand may make environments, so MuJoCo MJX is imported before it (MJX
+    takes seconds to import): not ``presets`` or ``plot``, which read settings and files, nor
+    any subcommand's ``--help``."""
+    return command not in (presets_main, plot_main) and not {"-h", "--help"} & set(args)
+
+
 def _run_reporting_errors(command, args: list[str]) -> None:
     """Runs a subcommand; a known failure becomes one message and its exit code
     (:mod:`td3_jax.errors`: 2 bad input, 3 a run stopped by what it computed; 130 interrupted)."""
@@ -1098,8 +1105,9 @@ def _run_reporting_errors(command, args: list[str]) -> None:
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
-        with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
-            _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported below)
+        if _steps_physics(command, args):
+            with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
+                _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported below)
         command(args)
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)

@@ -217,9 +217,24 @@ PRESETS: dict[str, dict] = {
     "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
     # G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
     # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59).
-    "g1": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickFlatTerrain", njmax=128),
+    # G1 flat: FlashSAC's critic layout (two residual blocks of width 256, --critic-network
+    # residual), the one change that lifted G1 at 53.2M env steps over 3 seeds: 38.2, 37.3, 38.1
+    # (IQM 38.0) against the plain 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4; FlashSAC
+    # 39.9), every seed above every plain one (BENCHMARKS.md, eleventh and twelfth sessions). It
+    # costs speed: the loop runs at 73-78K env steps/s against 102-108K on an H200, so it reaches
+    # a return like FastTD3's 30-minute 27.9 later (366-543 s from launch, against 275-415 s),
+    # and it dips on the way (seed 0 to -6.2, seed 2 to 20.8) before it settles. The plain critics
+    # (`--critic-network mlp --critic-hidden-sizes 1024 512 256`) are the faster start.
+    "g1": dict(
+        _HUMANOID_JOYSTICK,
+        env="playground/G1JoystickFlatTerrain",
+        njmax=128,
+        critic_network="residual",
+        critic_hidden_sizes=(256, 256),
+    ),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts): the flat presets
-    # unchanged, with 128 constraints per environment as a margin on Warp. At 53.2M env steps
+    # unchanged (G1 rough keeps the plain critics: the residual ones were not run on rough
+    # terrain), with 128 constraints per environment as a margin on Warp. At 53.2M env steps
     # (BENCHMARKS.md, seventh to eleventh sessions): T1 34.8 IQM over 3 seeds, G1 29.0 on one
     # seed; FlashSAC's 34.6 and 34.1 at 50M, FastTD3's final 30.4 and 27.7. Not tuned for
     # rough terrain.

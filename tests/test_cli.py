@@ -344,14 +344,31 @@ def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
 
 
 @pytest.mark.subprocess  # mujoco's import reads MUJOCO_GL once per process
-def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand():
-    """mujoco refuses an unknown MUJOCO_GL when first imported, which the CLI does before any
-    subcommand (MJX's import notes): that is the same one line as in `render`, not a
-    traceback."""
-    command = [sys.executable, "-m", "td3_jax", "presets"]
+def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_environments():
+    """mujoco refuses an unknown MUJOCO_GL when first imported, which the CLI does before a
+    subcommand that makes environments (MJX's import notes): that is the same one line as in
+    `render`, not a traceback. `presets` never imports MuJoCo, so it is not in the way there."""
     env = {**os.environ, "MUJOCO_GL": "foo"}
+    command = [sys.executable, "-m", "td3_jax", "envs"]
     proc = subprocess.run(command, capture_output=True, text=True, timeout=240, env=env)
     assert_one_line_error(proc.returncode, proc.stderr, "MUJOCO_GL: foo", "unset it")
+    code = (
+        "import sys; from td3_jax import cli; cli.main(['presets', 'g1'])\n"
+        "print('mujoco' in sys.modules)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=240, env=env)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("g1: ") and proc.stdout.endswith("False\n")
+
+
+def test_only_subcommands_that_make_environments_import_mjx_first():
+    assert cli._steps_physics(cli.train_main, ["--env", "brax/ant"])
+    assert cli._steps_physics(cli.envs_main, [])
+    assert not cli._steps_physics(cli.presets_main, ["g1"])
+    assert not cli._steps_physics(cli.plot_main, ["runs/x"])
+    assert not cli._steps_physics(cli.train_main, ["--preset", "t1", "--help"])
+    assert not cli._steps_physics(cli.eval_main, ["-h"])
 
 
 @pytest.mark.processes
@@ -1250,35 +1267,35 @@ def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys
 def test_preset_source_note_names_the_flags_that_came_from_the_preset():
     """Only flags the message names, that the preset set and that were not given; a flag that
     is the start of a longer one (--critic in --critic-network) does not count."""
-    cfg = preset("g1")
+    cfg = preset("t1")
     message = ("--critic-network residual: --critic-hidden-sizes: not 1024 512 256; "
                "--batch-size too large")  # fmt: skip
-    note = cli.preset_source_note(message, cfg, "g1", given=set())
-    assert note == " (--critic-hidden-sizes 1024 512 256, --batch-size 32768 from preset 'g1')"
+    note = cli.preset_source_note(message, cfg, "t1", given=set())
+    assert note == " (--critic-hidden-sizes 1024 512 256, --batch-size 32768 from preset 't1')"
     given = {"critic_hidden_sizes", "batch_size"}
-    assert cli.preset_source_note(message, cfg, "g1", given=given) == ""
+    assert cli.preset_source_note(message, cfg, "t1", given=given) == ""
     assert cli.preset_source_note(message, cfg, None, given=set()) == ""
-    assert cli.preset_source_note("--critic-network x", cfg, "g1", given=set()) == ""
+    assert cli.preset_source_note("--critic-network x", cfg, "t1", given=set()) == ""
     # neither a sweep flag nor a --no- flag is the preset's setting
-    assert cli.preset_source_note("--sweep-v-max 3; --no-pushes", cfg, "g1", given=set()) == ""
+    assert cli.preset_source_note("--sweep-v-max 3; --no-pushes", cfg, "t1", given=set()) == ""
     # in the message's order, a flag that starts a longer one found where it stands alone
     message = "--critic-lr 1; --critic-hidden-sizes 2; --critic is c51"
-    assert cli.preset_source_note(message, cfg, "g1", given=set()) == (
+    assert cli.preset_source_note(message, cfg, "t1", given=set()) == (
         " (--critic-lr 0.0003, --critic-hidden-sizes 1024 512 256, --critic distributional "
-        "from preset 'g1')"
+        "from preset 't1')"
     )
 
 
 def test_preset_noted_adds_the_note_and_keeps_the_error_type():
     from td3_jax.errors import ExportError
 
-    cfg = preset("g1")
+    cfg = preset("t1")
     with pytest.raises(ExportError, match=r"^--batch-size x \(--batch-size 32768 from preset"):
-        with cli.preset_noted(cfg, "g1", given=set()):
+        with cli.preset_noted(cfg, "t1", given=set()):
             raise ExportError("--batch-size x")
     plain = config.ConfigError("--seed x")
     with pytest.raises(config.ConfigError) as caught:
-        with cli.preset_noted(cfg, "g1", given=set()):
+        with cli.preset_noted(cfg, "t1", given=set()):
             raise plain
     assert caught.value is plain  # nothing the preset set: the error as raised
 

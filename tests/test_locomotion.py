@@ -397,12 +397,23 @@ def test_presets_follow_fasttd3():
     assert preset("t1").pushes == "off"
     assert (preset("go1").num_envs, preset("go1").updates_per_iter) == (1024, 8)
     assert set(PRESETS) >= {"t1", "g1", "go1"}
-    # Rough terrain: the flat humanoid settings with a constraint margin on Warp.
-    for flat, rough in (("t1", "t1-rough"), ("g1", "g1-rough")):
-        assert preset(rough).env == preset(flat).env.replace("Flat", "Rough")
+    # G1 flat alone has FlashSAC's residual critics (two blocks of 256; 3 seeds measured).
+    assert (preset("g1").critic_network, preset("g1").critic_hidden_sizes) == (
+        "residual",
+        (256, 256),
+    )
+    assert {preset(name).critic_network for name in ("t1", "go1", "t1-rough", "g1-rough")} == {
+        "mlp"
+    }
+    # Rough terrain: the flat humanoid settings (G1's plain critics) with a constraint margin.
+    plain_g1 = dataclasses.replace(
+        preset("g1"), critic_network="mlp", critic_hidden_sizes=(1024, 512, 256)
+    )
+    for flat, rough in ((preset("t1"), "t1-rough"), (plain_g1, "g1-rough")):
+        assert preset(rough).env == flat.env.replace("Flat", "Rough")
         assert preset(rough).njmax == 128
-        assert dataclasses.replace(preset(rough), env=preset(flat).env, njmax=None) == \
-            dataclasses.replace(preset(flat), njmax=None)  # fmt: skip
+        assert dataclasses.replace(preset(rough), env=flat.env, njmax=None) == \
+            dataclasses.replace(flat, njmax=None)  # fmt: skip
     # Robots without a preset of their own start from their kind's on an accelerator.
     assert device_defaults("playground/SpotGetup", accelerator=True).updates_per_iter == 8
     h1 = "playground/H1JoystickGaitTracking"
