@@ -1091,7 +1091,7 @@ def _import_mjx() -> None:
         pass
 
 
-def _steps_physics(command, args: list[str]) -> bool:
+def _makes_environments(command, args: list[str]) -> bool:
     """Whether a subcommand may make environments, so MuJoCo MJX is imported before it (MJX
     takes seconds to import): not ``presets`` or ``plot``, which read settings and files, nor
     any subcommand's ``--help``."""
@@ -1105,7 +1105,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
-        if _steps_physics(command, args):
+        if _makes_environments(command, args):
             with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
                 _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported below)
         command(args)

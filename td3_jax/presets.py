@@ -220,7 +220,8 @@ PRESETS: dict[str, dict] = {
     # G1 flat: FlashSAC's critic layout (two residual blocks of width 256, --critic-network
     # residual), the one change that lifted G1 at 53.2M env steps over 3 seeds: 38.2, 37.3, 38.1
     # (IQM 38.0) against the plain 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4; FlashSAC
-    # 39.9), every seed above every plain one (BENCHMARKS.md, eleventh and twelfth sessions). It
+    # 39.9), every finished run above every plain one (a first run of seed 2, stopped at 49.2M
+    # steps, had 32.8 with the policy of 45.1M; BENCHMARKS.md, seventh to twelfth sessions). It
     # costs speed: the loop runs at 73-78K env steps/s against 102-108K on an H200, so it reaches
     # a return like FastTD3's 30-minute 27.9 later (366-543 s from launch, against 275-415 s),
     # and it dips on the way (seed 0 to -6.2, seed 2 to 20.8) before it settles. The plain critics

@@ -363,12 +363,12 @@ def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_enviro
 
 
 def test_only_subcommands_that_make_environments_import_mjx_first():
-    assert cli._steps_physics(cli.train_main, ["--env", "brax/ant"])
-    assert cli._steps_physics(cli.envs_main, [])
-    assert not cli._steps_physics(cli.presets_main, ["g1"])
-    assert not cli._steps_physics(cli.plot_main, ["runs/x"])
-    assert not cli._steps_physics(cli.train_main, ["--preset", "t1", "--help"])
-    assert not cli._steps_physics(cli.eval_main, ["-h"])
+    assert cli._makes_environments(cli.train_main, ["--env", "brax/ant"])
+    assert cli._makes_environments(cli.envs_main, [])
+    assert not cli._makes_environments(cli.presets_main, ["g1"])
+    assert not cli._makes_environments(cli.plot_main, ["runs/x"])
+    assert not cli._makes_environments(cli.train_main, ["--preset", "t1", "--help"])
+    assert not cli._makes_environments(cli.eval_main, ["-h"])
 
 
 @pytest.mark.processes
