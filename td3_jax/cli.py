@@ -569,20 +569,42 @@ def unnamed_env_warning(cfg: TrainConfig, preset_name: str | None, source: str,
             f"{cfg.env}, the default (--env picks one)")  # fmt: skip
 
 
-def cpu_size_warning(cfg: TrainConfig, backend: str) -> str | None:
-    """A warning when a run sized for an accelerator is about to start on a CPU."""
+def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> str | None:
+    """A warning when a run sized for an accelerator is about to start on a CPU, with the flags
+    that size it for one (together they make a valid run: a batch and a warm-up within the
+    steps);
+    ``source`` is where the settings came from (:func:`_base_config`): only a ``--preset``
+    given can be left out."""
     steps = cfg.run_steps  # (what runs: whole chunks)
     if backend != "cpu" or (cfg.num_envs < 1024 and steps < 5_000_000):
         return None
     sizes = (("--num-envs 16", cfg.num_envs >= 1024),
              ("--total-steps 20000", steps >= 5_000_000),
+             ("--batch-size 256", cfg.batch_size > 4096),
+             ("--warmup-steps 1000", cfg.warmup_steps > 10_000),
              ("--no-eval-in-chunk", steps >= 5_000_000 and cfg.eval_in_chunk))  # fmt: skip
     tips = [tip for tip, large in sizes if large]  # (only what is sized for a GPU)
+    alternative = " (or no --preset)" if source == "preset" else ""
     return (
         f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
         f"batch {cfg.batch_size}) and JAX found only a CPU: it will compile for minutes and "
-        f"train for hours. For a CPU try {' '.join(tips)} (or no --preset)"
+        f"train for hours. For a CPU try {' '.join(tips)}{alternative}"
     )
+
+
+def critic_network_note(cfg: TrainConfig, preset_name: str | None, given: set[str]) -> str | None:
+    """A note when ``--critic-network`` is given and differs from the preset's, while the
+    critics' sizes are still the preset's (made for the other network): ``--preset g1
+    --critic-network mlp`` gets plain critics of 256 256, not the 1024 512 256 of the others."""
+    if preset_name is None or "critic_network" not in given or "critic_hidden_sizes" in given:
+        return None
+    base = preset(preset_name)
+    if base.critic_network == cfg.critic_network or base.critic_hidden_sizes is None:
+        return None
+    sizes = " ".join(map(str, base.critic_hidden_sizes))
+    return (f"--critic-network {cfg.critic_network} keeps the --critic-hidden-sizes {sizes} of "
+            f"preset {preset_name!r} (set for its {base.critic_network} critics); give "
+            "--critic-hidden-sizes to choose others")  # fmt: skip
 
 
 def eval_size_warning(cfg: TrainConfig) -> str | None:
@@ -652,7 +674,8 @@ def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
         return
     _announce(cfg, preset_name, source, asked_eval_every)
     warnings = (unnamed_env_warning(cfg, preset_name, source, given),
-                cpu_size_warning(cfg, jax.default_backend()), eval_size_warning(cfg),
+                cpu_size_warning(cfg, jax.default_backend(), source),
+                critic_network_note(cfg, preset_name, set(given)), eval_size_warning(cfg),
                 no_learning_warning(cfg), *idle_flags(cfg, set(given)))  # fmt: skip
     for warning in warnings:
         if warning:

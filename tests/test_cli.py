@@ -965,16 +965,59 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert f"{ant.num_envs} environments" in cli.cpu_size_warning(ant, "cpu")
     assert cli.cpu_size_warning(ant, "gpu") is None
     assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None
-    assert "try --num-envs 16 --total-steps 20000 (" in cli.cpu_size_warning(ant, "cpu")
+    assert (
+        "try --num-envs 16 --total-steps 20000 --batch-size 256 --warmup-steps 1000 ("
+        in cli.cpu_size_warning(ant, "cpu")
+    )
     long_run = TrainConfig(num_envs=16, total_steps=10_000_000)  # suggests only what is large
     assert "try --total-steps 20000 (or no --preset)" in cli.cpu_size_warning(long_run, "cpu")
+    # a preset picked for the environment cannot be left out by leaving out --preset
+    assert cli.cpu_size_warning(long_run, "cpu", "env").endswith("try --total-steps 20000")
     # the steps that run (whole chunks of an in-chunk evaluation), not those asked for
     short = dataclasses.replace(preset("g1"), total_steps=2000)
     warning = cli.cpu_size_warning(short, "cpu")
     assert "4096 environments, 4096000 steps" in warning
-    assert warning.endswith("try --num-envs 16 (or no --preset)")
+    assert warning.endswith(
+        "try --num-envs 16 --batch-size 256 --warmup-steps 1000 (or no --preset)"
+    )
     long_g1 = cli.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
-    assert "try --total-steps 20000 --no-eval-in-chunk (" in long_g1
+    assert (
+        "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk ("
+        in long_g1
+    )
+
+
+@pytest.mark.parametrize("name", ["g1", "t1", "ant", "go1"])
+def test_the_cpu_tips_make_a_valid_run_of_the_preset(name):
+    """Following the warning's advice is a run that starts: its flags pass the checks a run
+    makes before it compiles (g1's batch of 32768 and ant's warm-up of 409600 steps are
+    larger than 20000)."""
+    _, cfg, _, _ = cli._parse_train(["--preset", name], sweeping=False)
+    tips = cli.cpu_size_warning(cfg, "cpu").split("try ")[1].removesuffix(" (or no --preset)")
+    _, small, _, _ = cli._parse_train(["--preset", name, *tips.split()], sweeping=False)
+    small = config.eval_every_within_run(small)  # (as train_main does before validating)
+    config.validate(small)
+    assert cli.cpu_size_warning(small, "cpu") is None
+    for field in ("batch_size", "warmup_steps"):  # a tip not followed: the run cannot start
+        if getattr(cfg, field) >= small.run_steps:
+            with pytest.raises(config.ConfigError, match=config.flag(field)):
+                config.validate(dataclasses.replace(small, **{field: getattr(cfg, field)}))
+
+
+def test_a_critic_network_given_against_the_preset_names_the_sizes_it_keeps():
+    plain = dataclasses.replace(preset("g1"), critic_network="mlp")
+    note = cli.critic_network_note(plain, "g1", given={"critic_network"})
+    assert note == (
+        "--critic-network mlp keeps the --critic-hidden-sizes 256 256 of preset 'g1' (set for "
+        "its residual critics); give --critic-hidden-sizes to choose others"
+    )
+    assert (
+        cli.critic_network_note(plain, "g1", given={"critic_network", "critic_hidden_sizes"})
+        is None
+    )
+    assert cli.critic_network_note(preset("g1"), "g1", given={"critic_network"}) is None  # same
+    assert cli.critic_network_note(plain, None, given={"critic_network"}) is None
+    assert cli.critic_network_note(plain, "g1", given=set()) is None
 
 
 def test_a_preset_without_an_environment_says_which_one_trains():
