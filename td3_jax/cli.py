@@ -572,9 +572,8 @@ def unnamed_env_warning(cfg: TrainConfig, preset_name: str | None, source: str,
 def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> str | None:
     """A warning when a run sized for an accelerator is about to start on a CPU, with the flags
     that size it for one (together they make a valid run: a batch and a warm-up within the
-    steps);
-    ``source`` is where the settings came from (:func:`_base_config`): only a ``--preset``
-    given can be left out."""
+    steps). ``source`` is where the settings came from (:func:`_base_config`): only a
+    ``--preset`` given can be left out."""
     steps = cfg.run_steps  # (what runs: whole chunks)
     if backend != "cpu" or (cfg.num_envs < 1024 and steps < 5_000_000):
         return None
