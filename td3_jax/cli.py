@@ -600,9 +600,9 @@ def critic_network_note(cfg: TrainConfig, preset_name: str | None, given: set[st
     base = preset(preset_name)
     if base.critic_network == cfg.critic_network or base.critic_hidden_sizes is None:
         return None
-    sizes = " ".join(map(str, base.critic_hidden_sizes))
-    return (f"--critic-network {cfg.critic_network} keeps the --critic-hidden-sizes {sizes} of "
-            f"preset {preset_name!r} (set for its {base.critic_network} critics); give "
+    sizes = as_flag("critic_hidden_sizes", base.critic_hidden_sizes)
+    return (f"--critic-network {cfg.critic_network} keeps the {sizes} of preset "
+            f"{preset_name!r} (set for its {base.critic_network} critics); give "
             "--critic-hidden-sizes to choose others")  # fmt: skip
 
 
@@ -816,8 +816,7 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
     """The lines that end a run this process trained: :func:`done_line`, a note when
     ``--time-budget-s`` stopped it before its last step (and how to go on), a sweep's ranking."""
     resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
-    members = records[-1].get("members", 1)
-    pooled = f" over all {members} members (per setting below)" if sweeping else ""
+    pooled = f" over all {records[-1]['members']} members (per setting below)" if sweeping else ""
     print(done_line(records[-1], command.out, process_s, resumed_at, pooled))
     taken = records[-1]["env_steps"]
     if command.time_budget_s is not None and taken < cfg.run_steps:

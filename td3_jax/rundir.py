@@ -252,11 +252,6 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
         )
 
 
-def _names(out_dir: Path) -> set[str]:
-    """The names of the entries of ``out_dir``."""
-    return {p.name for p in Path(out_dir).iterdir()}
-
-
 def foreign_entries(out_dir: Path) -> list[str]:
     """Names in ``out_dir`` that no run writes (sorted), e.g. for ``--out ~`` or ``--out /``.
 
@@ -282,7 +277,7 @@ def check_resume(
     if writer:
         check_not_in_use(out_dir)
     steps = checkpoint_steps(out_dir)
-    if not steps and not ({LOCK_FILE, *previous_outputs(out_dir)} & _names(out_dir)):
+    if not steps and not previous_outputs(out_dir) and not (out_dir / LOCK_FILE).exists():
         raise ConfigError(f"--resume given but {out_dir} is not a td3-jax run directory "
                           "(it holds none of a run's files); --out names the run to "
                           "resume")  # fmt: skip
