@@ -234,11 +234,11 @@ PRESETS: dict[str, dict] = {
         critic_hidden_sizes=(256, 256),
     ),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts): the flat presets
-    # unchanged (G1 rough keeps the plain critics: the residual ones were not run on rough
-    # terrain), with 128 constraints per environment as a margin on Warp. At 53.2M env steps
-    # (BENCHMARKS.md, seventh to eleventh sessions): T1 34.8 IQM over 3 seeds, G1 29.0 on one
-    # seed; FlashSAC's 34.6 and 34.1 at 50M, FastTD3's final 30.4 and 27.7. Not tuned for
-    # rough terrain.
+    # unchanged (G1 rough keeps the plain critics: the residual ones have one seed on rough
+    # terrain, 34.1 against the plain critics' 29.0-30.9), with 128 constraints per environment
+    # as a margin on Warp. At 53.2M env steps (BENCHMARKS.md, seventh to thirteenth sessions):
+    # T1 34.8 and G1 30.3 IQM over 3 seeds; FlashSAC's 34.6 and 34.1 at 50M, FastTD3's final
+    # 30.4 and 27.7. Not tuned for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickRoughTerrain", njmax=128),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
