@@ -15,6 +15,7 @@ import importlib
 import inspect
 import io
 import itertools
+import json
 import os
 import re
 import shlex
@@ -263,12 +264,16 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured), upstream.tyro_help_unwrapped_by(help_paragraphs):
-            return tyro.cli(command_type, args=args, default=default, prog=prog)
+            command = tyro.cli(command_type, args=args, default=default, prog=prog)
     except SystemExit as exit_:
         if exit_.code in (0, None):
             raise
         message = _parse_error(captured.getvalue(), command_type, args, prog)
         raise ConfigError(message) from None
+    if _imports_mjx(command):
+        with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
+            _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported by main)
+    return command
 
 
 #: A line that starts an item of a list in a docstring (``- x``, ``* x``, ``1. x``, ``2) x``).
@@ -412,8 +417,11 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     names = {name.lstrip("-"): name for name in known}
     said = []
     for name in dict.fromkeys(unknown):
-        close = difflib.get_close_matches(name.lstrip("-"), names, n=1, cutoff=0.7)
-        said.append(f"{name} (did you mean {names[close[0]]}?)" if close else name)
+        bare = name.lstrip("-")
+        ends = sorted(n for n in names if n.endswith("-" + bare))  # --lr: --actor-lr, ...
+        close = ends[:3] or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
+        guesses = " or ".join(names[c] for c in close)
+        said.append(f"{name} (did you mean {guesses}?)" if close else name)
     hint = "" if len(said) == sum("did you mean" in s for s in said) else f" (see {prog} --help)"
     return f"unrecognized option{'s' if len(said) > 1 else ''} {', '.join(said)}{hint}"
 
@@ -1051,9 +1059,12 @@ COMMANDS = {
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``td3-jax`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help"):
+    if argv[:1] in (["-h"], ["--help"]):
         print(USAGE)
         return
+    if not argv:  # (as argparse's required subcommands: the usage, and exit 2)
+        print(f"{USAGE}\ntd3-jax: error: a subcommand is required", file=sys.stderr)
+        sys.exit(2)
     if argv[0] in ("-V", "--version"):
         from td3_jax import __version__
 
@@ -1112,11 +1123,30 @@ def _import_mjx() -> None:
         pass
 
 
-def _makes_environments(command, args: list[str]) -> bool:
-    """Whether a subcommand may make environments, so MuJoCo MJX is imported before it (MJX
-    takes seconds to import): not ``presets`` or ``plot``, which read settings and files, nor
-    any subcommand's ``--help``."""
-    return command not in (presets_main, plot_main) and not {"-h", "--help"} & set(args)
+#: The subcommands that may make MuJoCo environments (Brax's, Playground's, your own).
+_MAKE_ENVIRONMENTS = (TrainCommand, EvalCommand, ExportCommand, RenderCommand, EnvsCommand)
+
+
+def _env_of(command: Any) -> str | None:
+    """The environment a parsed subcommand makes: ``--env`` (a resumed run's own), or the
+    one in the config.json of the run it reads (``None`` where there is none to read)."""
+    if isinstance(command, TrainCommand):
+        return command.env
+    run = getattr(command, "run", None)
+    try:
+        return str(json.loads((Path(run) / "config.json").read_text())["env"])
+    except (TypeError, OSError, ValueError, KeyError):  # no run, no file, not JSON, no env
+        return None
+
+
+def _imports_mjx(command: Any) -> bool:
+    """Whether MuJoCo MJX is imported once a subcommand's flags parse (its first import prints
+    notes where Warp is missing, dropped then): where the subcommand may make MuJoCo
+    environments, not gymnax's. Not before parsing: MJX takes seconds to import, and a
+    mistyped flag, ``--help``, ``presets``, ``plot`` or a gymnax run need none of it."""
+    if not isinstance(command, _MAKE_ENVIRONMENTS):
+        return False
+    return not (_env_of(command) or "").startswith("gymnax/")
 
 
 def _run_reporting_errors(command, args: list[str]) -> None:
@@ -1126,9 +1156,6 @@ def _run_reporting_errors(command, args: list[str]) -> None:
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
-        if _makes_environments(command, args):
-            with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
-                _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported below)
         command(args)
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)

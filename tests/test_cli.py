@@ -300,6 +300,8 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
         ("train", "--no-normalise-obs", "--frobnicate=3", "--out", out):
             "unrecognized options --no-normalise-obs (did you mean --no-normalize-obs?), "
             "--frobnicate (see td3-jax train --help)",
+        ("train", "--lr", "1e-3", "--out", out):  # no close spelling: the flags it ends
+            "unrecognized option --lr (did you mean --actor-lr or --critic-lr?)",
         ("eval", "--run", out, "--episode", "3"):
             "unrecognized option --episode (did you mean --episodes?)",
         ("eval", "--run", out, "extra"): "unexpected argument extra (see td3-jax eval --help)",
@@ -326,6 +328,15 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
     ), proc.stderr
 
 
+def test_no_subcommand_prints_the_usage_and_exits_2_and_help_exits_0(capsys):
+    code, out, err = main([], capsys)
+    assert code == 2 and out == ""
+    assert err.startswith("usage: td3-jax {train,")
+    assert err.endswith("td3-jax: error: a subcommand is required\n")
+    code, out, err = main(["--help"], capsys)
+    assert code == 0 and out.startswith("usage: td3-jax {train,") and err == ""
+
+
 def test_unknown_subcommand_exits_2(capsys):
     code, _, err = main(["fly"], capsys)
     assert code == 2
@@ -345,9 +356,10 @@ def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
 
 @pytest.mark.subprocess  # mujoco's import reads MUJOCO_GL once per process
 def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_environments():
-    """mujoco refuses an unknown MUJOCO_GL when first imported, which the CLI does before a
-    subcommand that makes environments (MJX's import notes): that is the same one line as in
-    `render`, not a traceback. `presets` never imports MuJoCo, so it is not in the way there."""
+    """mujoco refuses an unknown MUJOCO_GL when first imported, which the CLI does once the
+    flags of a subcommand that makes environments parse (MJX's import notes): that is the
+    same one line as in `render`, not a traceback. `presets` never imports MuJoCo, so it is
+    not in the way there."""
     env = {**os.environ, "MUJOCO_GL": "foo"}
     command = [sys.executable, "-m", "td3_jax", "envs"]
     proc = subprocess.run(command, capture_output=True, text=True, timeout=240, env=env)
@@ -362,13 +374,45 @@ def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_enviro
     assert proc.stdout.startswith("g1: ") and proc.stdout.endswith("False\n")
 
 
-def test_only_subcommands_that_make_environments_import_mjx_first():
-    assert cli._makes_environments(cli.train_main, ["--env", "brax/ant"])
-    assert cli._makes_environments(cli.envs_main, [])
-    assert not cli._makes_environments(cli.presets_main, ["g1"])
-    assert not cli._makes_environments(cli.plot_main, ["runs/x"])
-    assert not cli._makes_environments(cli.train_main, ["--preset", "t1", "--help"])
-    assert not cli._makes_environments(cli.eval_main, ["-h"])
+def test_mjx_is_imported_only_where_a_subcommand_makes_mujoco_environments(tmp_path):
+    """MJX (seconds to import) is imported once the flags parse, where the environments may
+    be MuJoCo's: train's --env, or the env in the config.json of the run eval, export and
+    render read (imported where that cannot be read)."""
+    assert cli._imports_mjx(cli.TrainCommand(env="brax/ant"))
+    assert cli._imports_mjx(cli.SweepCommand(env="playground/CartpoleBalance"))
+    assert cli._imports_mjx(cli.TrainCommand(env="my_envs:make"))  # your own may be MuJoCo's
+    assert not cli._imports_mjx(cli.TrainCommand(env="gymnax/Pendulum-v1"))
+    assert cli._imports_mjx(cli.EnvsCommand())
+    assert not cli._imports_mjx(cli.PresetsCommand())
+    assert not cli._imports_mjx(cli.PlotCommand(run=tmp_path))
+    (tmp_path / "config.json").write_text(json.dumps({"env": "gymnax/Pendulum-v1"}))
+    assert not cli._imports_mjx(cli.EvalCommand(run=tmp_path))
+    assert not cli._imports_mjx(cli.ExportCommand(run=tmp_path, format="npz"))
+    (tmp_path / "config.json").write_text(json.dumps({"env": "brax/ant"}))
+    assert cli._imports_mjx(cli.RenderCommand(run=tmp_path))
+    (tmp_path / "config.json").write_text("{not json")
+    assert cli._imports_mjx(cli.EvalCommand(run=tmp_path))
+    assert cli._imports_mjx(cli.EvalCommand(run=tmp_path / "missing"))
+
+
+@pytest.mark.subprocess  # a fresh process: whether mujoco was imported
+def test_a_mistyped_flag_or_a_gymnax_run_never_imports_mujoco():
+    """A flag error comes before MJX's import (6-7 s on a CPU), and a gymnax run makes no
+    MuJoCo environment; a Brax run imports it once its flags parse."""
+    code = (
+        "import sys; from td3_jax import cli\n"
+        "for argv in (['train', '--num-envz', '3'], ['train', '--total-steps', '0'],\n"
+        "             ['train', '--env', 'brax/ant', '--total-steps', '0']):\n"
+        "    try:\n"
+        "        cli.main(argv)\n"
+        "    except SystemExit as exit_:\n"
+        "        print(exit_.code, 'mujoco' in sys.modules)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=240)  # fmt: skip
+    assert proc.stdout.splitlines() == ["2 False", "2 False", "2 True"], proc.stderr
+    assert "--num-envz (did you mean --num-envs?)" in proc.stderr
+    assert proc.stderr.count("--total-steps must be positive, got 0") == 2
 
 
 @pytest.mark.processes
