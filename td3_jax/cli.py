@@ -11,7 +11,6 @@ import contextlib
 import dataclasses
 import errno
 import functools
-import importlib
 import inspect
 import io
 import itertools
@@ -259,7 +258,6 @@ class PresetsCommand:
 
 def _parse(command_type: type, args: list[str], prog: str, default=None):
     """``tyro.cli`` whose parse errors become one ``ConfigError`` line (tyro draws a box)."""
-    import io
 
     captured = io.StringIO()
     try:
@@ -271,8 +269,9 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
         message = _parse_error(captured.getvalue(), command_type, args, prog)
         raise ConfigError(message) from None
     if _imports_mjx(command):
-        with _without_warp_import_notes():  # MJX prints them on import where Warp is absent
-            _import_mjx()  # (mujoco's import refuses a bad MUJOCO_GL: reported by main)
+        from td3_jax.envs.physics import import_mjx_quietly
+
+        import_mjx_quietly()  # (mujoco's import refuses a bad MUJOCO_GL: reported by main)
     return command
 
 
@@ -1101,28 +1100,6 @@ def _exit_interrupted(message: str, code: int = 130) -> None:
     sys.exit(code)
 
 
-@contextlib.contextmanager
-def _without_warp_import_notes() -> Iterator[None]:
-    """Drops MJX's ``Failed to import warp`` / ``mujoco_warp`` lines (printed when MuJoCo Warp
-    is not installed: JAX physics is used then, nothing failed); other output passes."""
-    caught = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(caught):
-            yield
-    finally:
-        notes = ("Failed to import warp:", "Failed to import mujoco_warp:")
-        kept = [line for line in caught.getvalue().splitlines(True) if not line.startswith(notes)]
-        sys.stdout.write("".join(kept))
-
-
-def _import_mjx() -> None:
-    """Imports MuJoCo MJX now (it prints its notes once, when first imported), if installed."""
-    try:
-        importlib.import_module("mujoco.mjx")
-    except ImportError:  # no MuJoCo: the environments that need it say so when made
-        pass
-
-
 #: The subcommands that may make MuJoCo environments (Brax's, Playground's, your own).
 _MAKE_ENVIRONMENTS = (TrainCommand, EvalCommand, ExportCommand, RenderCommand, EnvsCommand)
 
@@ -1140,8 +1117,8 @@ def _env_of(command: Any) -> str | None:
 
 
 def _imports_mjx(command: Any) -> bool:
-    """Whether MuJoCo MJX is imported once a subcommand's flags parse (its first import prints
-    notes where Warp is missing, dropped then): where the subcommand may make MuJoCo
+    """Whether MuJoCo MJX is imported once a subcommand's flags parse (quietly: its first
+    import prints notes where Warp is missing): where the subcommand may make MuJoCo
     environments, not gymnax's. Not before parsing: MJX takes seconds to import, and a
     mistyped flag, ``--help``, ``presets``, ``plot`` or a gymnax run need none of it."""
     if not isinstance(command, _MAKE_ENVIRONMENTS):

@@ -34,6 +34,7 @@ from support import (
 from td3_jax import cli, config
 from td3_jax import run as run_module
 from td3_jax.config import TrainConfig
+from td3_jax.envs import physics
 from td3_jax.presets import PRESETS, device_defaults, preset
 
 DOCUMENTED_FLAGS = [
@@ -345,7 +346,7 @@ def test_unknown_subcommand_exits_2(capsys):
 
 
 def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
-    with cli._without_warp_import_notes():
+    with physics.without_warp_import_notes():
         print("Failed to import warp: No module named 'warp'")
         print("kept")
         print("Failed to import mujoco_warp: No module named 'warp'")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from types import SimpleNamespace
 
 import jax
@@ -55,3 +57,17 @@ def test_patching_mjx_is_idempotent_and_keeps_one_process_unchanged(monkeypatch)
     assert io._resolve_impl_and_device is patched  # not wrapped twice
     _impl, device = io._resolve_impl_and_device("jax")
     assert device == jax.devices()[0]  # one process: MJX's own choice
+
+
+@pytest.mark.subprocess  # a fresh process, where MJX is first imported here (a gymnax run's)
+def test_placing_on_local_devices_drops_mjx_notes_on_a_missing_warp():
+    pytest.importorskip("mujoco.mjx")
+    code = (
+        "import sys; sys.modules['warp'] = None; sys.modules['mujoco_warp'] = None\n"
+        "from td3_jax.envs import mjx_devices\n"
+        "print(mjx_devices.place_on_local_devices())\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=240)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "True\n"  # without "Failed to import warp: ..." before it

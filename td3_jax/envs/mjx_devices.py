@@ -53,6 +53,9 @@ def place_on_local_devices() -> bool:
     found and adjusted (``False``: MJX is not installed); call it after
     ``jax.distributed.initialize`` and before making environments. An MJX without the function
     wrapped raises :class:`td3_jax.upstream.UpstreamChanged` rather than leaving it alone."""
+    from td3_jax.envs.physics import import_mjx_quietly
+
+    import_mjx_quietly()  # (first here in a gymnax run: without MJX's notes on a missing Warp)
     resolve = upstream.mjx_device_resolver()
     if resolve is None:  # MJX not installed: gymnax environments only
         return False

@@ -2,8 +2,9 @@
 
 MuJoCo Warp (MJX's ``impl="warp"``, Playground's default since 0.2.0) runs the robots several
 times faster than the JAX implementation on an NVIDIA GPU and compiles far less XLA. It needs
-the ``warp`` package (``pip install 'td3-jax[warp]'``) and an NVIDIA GPU (CUDA). Nothing here
-imports Warp: :func:`warp_missing` only looks for it.
+the ``warp`` package (``pip install 'td3-jax[warp]'``) and an NVIDIA GPU (CUDA).
+:func:`warp_missing` only looks for it; :func:`import_mjx_quietly` imports MJX (and with it
+Warp, where installed) without the notes MJX prints where Warp is missing.
 
 Warp keeps some of its data once for all the environments stepped together (contacts,
 counters): those leaves carry no batch axis (:func:`td3_jax.envs.base.reset_ended` leaves them
@@ -12,8 +13,13 @@ alone), and its contact buffer is sized for all of them (:func:`contact_capacity
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import importlib.util
+import io
 import os
+import sys
+from collections.abc import Iterator
 from typing import Any
 
 from td3_jax import upstream
@@ -25,9 +31,11 @@ __all__ = [
     "WRONG_PHYSICS",
     "contact_capacity",
     "default_impl",
+    "import_mjx_quietly",
     "quiet_solver_limits",
     "resolve",
     "warp_missing",
+    "without_warp_import_notes",
 ]
 
 IMPLS = ("warp", "jax")
@@ -98,3 +106,33 @@ def contact_capacity(task_naconmax: int, worlds: int, per_world: int | None) -> 
     if per_world:
         return per_world * max(worlds, 1)
     return max(task_naconmax, max(1, task_naconmax // PLAYGROUND_WORLDS) * max(worlds, 1))
+
+
+#: The lines MJX prints when first imported where MuJoCo Warp is not installed (JAX physics is
+#: used then: nothing failed).
+WARP_IMPORT_NOTES = ("Failed to import warp:", "Failed to import mujoco_warp:")
+
+
+@contextlib.contextmanager
+def without_warp_import_notes() -> Iterator[None]:
+    """Drops MJX's :data:`WARP_IMPORT_NOTES` from what is printed inside; other output passes
+    (at the end)."""
+    caught = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(caught):
+            yield
+    finally:
+        kept = [line for line in caught.getvalue().splitlines(True)
+                if not line.startswith(WARP_IMPORT_NOTES)]  # fmt: skip
+        sys.stdout.write("".join(kept))
+
+
+def import_mjx_quietly() -> bool:
+    """Imports MuJoCo MJX (seconds, the first time) without its notes about a missing Warp;
+    whether it is installed. Call it before anything else imports MJX (Brax, Playground)."""
+    with without_warp_import_notes():
+        try:
+            importlib.import_module("mujoco.mjx")
+        except ImportError:  # no MuJoCo: the environments that need it say so when made
+            return False
+    return True
