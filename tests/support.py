@@ -45,6 +45,13 @@ def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
     )
 
 
+def python(code: str, timeout: float = 240, env: dict[str, str] | None = None):
+    """``python -c CODE`` in a child process (a fresh interpreter: nothing imported yet), its
+    output captured as text."""
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=timeout, env=env)  # fmt: skip
+
+
 def optimised_env() -> dict[str, str]:
     """This process's environment without the XLA flag that tests/conftest.py adds (programs
     compiled unoptimised): for child processes that train long enough for optimised code to

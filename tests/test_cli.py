@@ -25,6 +25,7 @@ from support import (
     TINY_FLAGS,
     assert_one_line_error,
     main,
+    python,
     read_records,
     td3_jax,
     tensorboard_events,
@@ -369,8 +370,7 @@ def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_enviro
         "import sys; from td3_jax import cli; cli.main(['presets', 'g1'])\n"
         "print('mujoco' in sys.modules)"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=240, env=env)  # fmt: skip
+    proc = python(code, env=env)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("g1: ") and proc.stdout.endswith("False\n")
 
@@ -409,8 +409,7 @@ def test_a_mistyped_flag_or_a_gymnax_run_never_imports_mujoco():
         "    except SystemExit as exit_:\n"
         "        print(exit_.code, 'mujoco' in sys.modules)\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=240)  # fmt: skip
+    proc = python(code)
     assert proc.stdout.splitlines() == ["2 False", "2 False", "2 True"], proc.stderr
     assert "--num-envz (did you mean --num-envs?)" in proc.stderr
     assert proc.stderr.count("--total-steps must be positive, got 0") == 2
@@ -425,8 +424,7 @@ def test_no_warp_notes_reach_stdout_where_warp_is_missing():
         "from td3_jax import cli\n"
         "cli.main(['envs'])\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=300)  # fmt: skip
+    proc = python(code, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "gymnax/Pendulum-v1" in proc.stdout and "Failed to import" not in proc.stdout
 

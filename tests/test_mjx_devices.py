@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from types import SimpleNamespace
 
 import jax
 import pytest
+from support import python
 
 from td3_jax.envs import mjx_devices
 
@@ -67,7 +66,6 @@ def test_placing_on_local_devices_drops_mjx_notes_on_a_missing_warp():
         "from td3_jax.envs import mjx_devices\n"
         "print(mjx_devices.place_on_local_devices())\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=240)  # fmt: skip
+    proc = python(code)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "True\n"  # without "Failed to import warp: ..." before it
