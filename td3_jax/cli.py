@@ -258,7 +258,6 @@ class PresetsCommand:
 
 def _parse(command_type: type, args: list[str], prog: str, default=None):
     """``tyro.cli`` whose parse errors become one ``ConfigError`` line (tyro draws a box)."""
-
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured), upstream.tyro_help_unwrapped_by(help_paragraphs):
@@ -390,7 +389,9 @@ def _tyro_box(text: str) -> tuple[str, list[list[str]]]:
 
 def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[str]) -> str:
     """``unrecognized option --totl-steps (did you mean --total-steps?)``, for each option in
-    ``args`` that ``command_type`` does not have; else tyro's list of leftover arguments."""
+    ``args`` that ``command_type`` does not have: the flags that end with it (``--lr``:
+    ``--actor-lr or --critic-lr``), else the closest spelling; else tyro's list of leftover
+    arguments."""
     import difflib
 
     known = {"--help", "-h"}
@@ -417,9 +418,9 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     said = []
     for name in dict.fromkeys(unknown):
         bare = name.lstrip("-")
-        ends = sorted(n for n in names if n.endswith("-" + bare))  # --lr: --actor-lr, ...
-        close = ends[:3] or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
-        guesses = " or ".join(names[c] for c in close)
+        ends = sorted(n for n in names if n.endswith("-" + bare) and not n.startswith("no-"))
+        close = ends or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
+        guesses = " or ".join(names[c] for c in close[:4]) + (" or ..." if len(close) > 4 else "")
         said.append(f"{name} (did you mean {guesses}?)" if close else name)
     hint = "" if len(said) == sum("did you mean" in s for s in said) else f" (see {prog} --help)"
     return f"unrecognized option{'s' if len(said) > 1 else ''} {', '.join(said)}{hint}"

@@ -45,7 +45,9 @@ def td3_jax(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
     )
 
 
-def python(code: str, timeout: float = 240, env: dict[str, str] | None = None):
+def python(
+    code: str, timeout: float = 240, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
     """``python -c CODE`` in a child process (a fresh interpreter: nothing imported yet), its
     output captured as text."""
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

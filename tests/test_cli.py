@@ -363,9 +363,10 @@ def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_enviro
     same one line as in `render`, not a traceback. `presets` never imports MuJoCo, so it is
     not in the way there."""
     env = {**os.environ, "MUJOCO_GL": "foo"}
-    command = [sys.executable, "-m", "td3_jax", "envs"]
-    proc = subprocess.run(command, capture_output=True, text=True, timeout=240, env=env)
-    assert_one_line_error(proc.returncode, proc.stderr, "MUJOCO_GL: foo", "unset it")
+    for args in (["envs"], ["train", "--env", "brax/ant", "--out", "/nonexistent/run"]):
+        command = [sys.executable, "-m", "td3_jax", *args]
+        proc = subprocess.run(command, capture_output=True, text=True, timeout=240, env=env)
+        assert_one_line_error(proc.returncode, proc.stderr, "MUJOCO_GL: foo", "unset it")
     code = (
         "import sys; from td3_jax import cli; cli.main(['presets', 'g1'])\n"
         "print('mujoco' in sys.modules)"
@@ -399,10 +400,13 @@ def test_mjx_is_imported_only_where_a_subcommand_makes_mujoco_environments(tmp_p
 @pytest.mark.subprocess  # a fresh process: whether mujoco was imported
 def test_a_mistyped_flag_or_a_gymnax_run_never_imports_mujoco():
     """A flag error comes before MJX's import (6-7 s on a CPU), and a gymnax run makes no
-    MuJoCo environment; a Brax run imports it once its flags parse."""
+    MuJoCo environment; where MJX is imported (a Brax run, the list of names a mistyped
+    environment is compared with) its notes on the missing Warp never reach stdout."""
     code = (
-        "import sys; from td3_jax import cli\n"
+        "import sys; sys.modules['warp'] = None; sys.modules['mujoco_warp'] = None\n"
+        "from td3_jax import cli\n"
         "for argv in (['train', '--num-envz', '3'], ['train', '--total-steps', '0'],\n"
+        "             ['train', '--env', 'gymnax/Pendulm-v1'],\n"
         "             ['train', '--env', 'brax/ant', '--total-steps', '0']):\n"
         "    try:\n"
         "        cli.main(argv)\n"
@@ -410,9 +414,10 @@ def test_a_mistyped_flag_or_a_gymnax_run_never_imports_mujoco():
         "        print(exit_.code, 'mujoco' in sys.modules)\n"
     )
     proc = python(code)
-    assert proc.stdout.splitlines() == ["2 False", "2 False", "2 True"], proc.stderr
+    assert proc.stdout.splitlines() == ["2 False", "2 False", "2 True", "2 True"], proc.stdout
     assert "--num-envz (did you mean --num-envs?)" in proc.stderr
     assert proc.stderr.count("--total-steps must be positive, got 0") == 2
+    assert "did you mean gymnax/Pendulum-v1?" in proc.stderr
 
 
 @pytest.mark.processes

@@ -321,6 +321,9 @@ def test_a_warm_up_as_long_as_the_run_is_refused():
     """A run whose random warm-up covers all its steps would exit 0 having learnt nothing."""
     with pytest.raises(ConfigError, match=r"--warmup-steps 20000 is not below the 20000 env"):
         validate(TrainConfig(total_steps=20_000, warmup_steps=20_000))
+    with pytest.raises(ConfigError, match=r"learns; try --warmup-steps 10000 or a longer"):
+        validate(TrainConfig(total_steps=20_000, warmup_steps=30_000))
+    validate(TrainConfig(total_steps=20_000, warmup_steps=10_000))  # as the tip says
     validate(TrainConfig(total_steps=20_000, warmup_steps=19_999))
     validate(TrainConfig(total_steps=64, warmup_steps=100, updates_per_iter=0))  # no learning asked
 

@@ -8,12 +8,14 @@ import jax
 
 from td3_jax import upstream
 from td3_jax.envs.base import Environment, from_mjx_style
+from td3_jax.envs.physics import import_mjx_quietly
 
 __all__ = ["from_env", "make", "names", "pipeline_qpos"]
 
 
 def names() -> list[str]:
     """The Brax environment names this installation knows."""
+    import_mjx_quietly()  # (Brax imports MJX, which prints notes where Warp is missing)
     return upstream.brax_env_names()
 
 
@@ -41,6 +43,7 @@ def make(
     name: str, *, backend: str = "mjx", episode_length: int | None = None, **kwargs
 ) -> Environment:
     """The Brax environment ``name`` on ``backend`` (:func:`from_env`)."""
+    import_mjx_quietly()
     from brax import envs
 
     env = envs.get_environment(name, backend=backend, **kwargs)

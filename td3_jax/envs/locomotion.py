@@ -59,6 +59,7 @@ __all__ = [
 
 def names() -> list[str]:
     """Playground's locomotion task names, or an empty list without Playground."""
+    physics.import_mjx_quietly()  # (Playground imports MJX, which prints notes without Warp)
     try:
         return sorted(upstream.playground_locomotion().ALL_ENVS)
     except ImportError:
@@ -248,6 +249,7 @@ def load(task: str, *, impl: str = "jax", options: EnvOptions = EnvOptions()) ->
     """``(task object, its config)``: the Playground task built offline from the robot folder
     found for it (:class:`~td3_jax.envs.menagerie.MissingAssetsError` when there is none)."""
     root = menagerie.find_root(task, options.menagerie)
+    physics.import_mjx_quietly()
     registry = upstream.playground_locomotion()
     config = registry.get_default_config(task)
     overrides = {"impl": impl, **push_overrides(task, config, options.pushes),

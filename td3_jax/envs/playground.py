@@ -19,6 +19,7 @@ __all__ = ["data_qpos", "from_env", "make", "names"]
 
 
 def _suite():
+    physics.import_mjx_quietly()  # (Playground imports MJX, which prints notes without Warp)
     try:
         from mujoco_playground import dm_control_suite
     except ImportError as err:  # pragma: no cover - depends on the optional extra
