@@ -283,6 +283,28 @@ def call_soon_threadsafe() -> RuntimeError:
         return err
 
 
+def test_a_ctrl_c_discarded_before_training_is_raised_again(monkeypatch):
+    """A Ctrl-C raised inside a finalizer (a garbage collection while JAX traces) is discarded
+    by Python: before training it is raised again (the trace stops within a bytecode, not at
+    its end); while training it is dropped, as the run stops through its token. Neither
+    counts as a second Ctrl-C (which ends the process)."""
+    exits = []
+    monkeypatch.setattr(runtime.os, "_exit", lambda code: exits.append(code))
+    discarded = type("Args", (), {"exc_value": KeyboardInterrupt(), "exc_traceback": None,
+                                  "object": None})()  # fmt: skip
+    stop = runtime.StopToken()
+    with runtime.stop_signals(stop, [], say=False):
+        stop.set()  # (by the first Ctrl-C, whose KeyboardInterrupt reached the hook)
+        with pytest.raises(KeyboardInterrupt):
+            sys.unraisablehook(discarded)
+            for _ in range(100):  # the handler runs between two bytecodes
+                time.sleep(0.001)
+        stop.mark_training()
+        sys.unraisablehook(discarded)
+        time.sleep(0.05)
+    assert exits == []
+
+
 def test_quiet_library_logs_drops_only_what_td3_jax_says_better(restored_logging, monkeypatch):
     seen = []
     monkeypatch.setattr(sys, "unraisablehook", seen.append)
