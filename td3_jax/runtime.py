@@ -242,31 +242,67 @@ def stop_signals(
     The handlers, and an unraisable-exception hook for a Ctrl-C Python discarded (raised
     inside a finalizer, as during a garbage collection), are installed only on the main thread,
     and the previous ones are put back on exit. Such a Ctrl-C is raised again before training
-    (tracing the programs, seconds of Python with frequent collections, would otherwise go on
-    to its end: 16 s for G1 on a CPU); while training the run stops through ``stop``.
+    (:class:`_Rearm`: tracing the programs, seconds of Python with frequent collections, went
+    on to its end otherwise, 16 s for G1 on a CPU); while training the run stops through
+    ``stop``.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    again: list[bool] = []  # a discarded Ctrl-C to raise again, outside the finalizer
-    on_signal = _signal_handler(stop, received, say, aftermath, again)
+    rearm = _Rearm()
+    on_signal = _signal_handler(stop, received, say, aftermath, rearm)
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     previous_hook = sys.unraisablehook
 
     def unraisable(args: Any) -> None:
         if not isinstance(args.exc_value, KeyboardInterrupt):
             previous_hook(args)
-        elif not stop.training() and not again:
-            again.append(True)
-            _thread.interrupt_main()  # (calls on_signal at the next bytecode, which raises)
+        elif not stop.training():
+            rearm.request()
 
     sys.unraisablehook = unraisable
     try:
         yield
     finally:
+        rearm.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         sys.unraisablehook = previous_hook
+
+
+class _Rearm:
+    """A Ctrl-C that Python discarded (its KeyboardInterrupt raised inside a finalizer), to be
+    raised again in the main thread's own code: another thread trips SIGINT once the
+    finalizer has returned (tripped from the finalizer itself, the handler would run and raise
+    inside it again), and the handler then raises (:meth:`take`) instead of taking it for a
+    second Ctrl-C."""
+
+    def __init__(self) -> None:
+        self.pending = False
+        self.closed = False
+        self._lock = threading.Lock()
+
+    def request(self) -> None:
+        """Raises the discarded Ctrl-C again, soon, from the main thread's code."""
+        if not self.pending:
+            self.pending = True
+            _thread.start_new_thread(self._trip, ())
+
+    def _trip(self) -> None:
+        with self._lock:
+            if self.pending and not self.closed:
+                _thread.interrupt_main()  # the main thread's SIGINT handler runs next
+
+    def take(self) -> bool:
+        """Whether the SIGINT being handled is this re-raise (then no longer pending)."""
+        pending, self.pending = self.pending, False
+        return pending
+
+    def close(self) -> None:
+        """No re-raise from now on (the handlers are put back next)."""
+        self.closed = True
+        with self._lock:  # a trip in flight has tripped by now, and is handled as a re-raise
+            pass
 
 
 #: Seconds after a SIGTERM in which another SIGTERM is the same request, delivered twice.
@@ -278,17 +314,18 @@ def _signal_handler(
     received: list[int],
     say: bool,
     aftermath: Callable[[str], str] | None = None,
-    again: list[bool] | None = None,
+    rearm: _Rearm | None = None,
 ) -> Callable[..., None]:
-    """The SIGINT/SIGTERM handler of :func:`stop_signals`; ``again`` holds a Ctrl-C that was
-    discarded and is raised again by the handler's next SIGINT."""
+    """The SIGINT/SIGTERM handler of :func:`stop_signals`; ``rearm``: a discarded Ctrl-C that
+    its next SIGINT raises again (:class:`_Rearm`)."""
     first_sigterm: list[float] = []
-    again = [] if again is None else again
+    rearm = _Rearm() if rearm is None else rearm
 
     def on_signal(signum: int, frame: Any) -> None:
-        if again and signum == signal.SIGINT:
-            again.clear()
-            raise KeyboardInterrupt
+        if signum == signal.SIGINT and rearm.take():
+            if not rearm.closed:
+                raise KeyboardInterrupt
+            return
         repeat = signum == signal.SIGTERM and first_sigterm
         if repeat and time.monotonic() - first_sigterm[0] < REPEAT_SIGTERM_S:
             return  # the same request delivered twice (timeout: child, then process group)
