@@ -130,6 +130,8 @@ def without_warp_import_notes() -> Iterator[None]:
 def import_mjx_quietly() -> bool:
     """Imports MuJoCo MJX (seconds, the first time) without its notes about a missing Warp;
     whether it is installed. Call it before anything else imports MJX (Brax, Playground)."""
+    if "mujoco.mjx" in sys.modules:  # (imported: no need to catch the output of other threads)
+        return True
     with without_warp_import_notes():
         try:
             importlib.import_module("mujoco.mjx")
