@@ -14,7 +14,6 @@ import functools
 import inspect
 import io
 import itertools
-import json
 import os
 import re
 import shlex
@@ -267,10 +266,6 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
             raise
         message = _parse_error(captured.getvalue(), command_type, args, prog)
         raise ConfigError(message) from None
-    if _imports_mjx(command):
-        from td3_jax.envs.physics import import_mjx_quietly
-
-        import_mjx_quietly()  # (mujoco's import refuses a bad MUJOCO_GL: reported by main)
     return command
 
 
@@ -1099,32 +1094,6 @@ def _exit_interrupted(message: str, code: int = 130) -> None:
         runtime.forget_abandoned_work()  # (for a caller whose os._exit returns: tests)
         os._exit(code)
     sys.exit(code)
-
-
-#: The subcommands that may make MuJoCo environments (Brax's, Playground's, your own).
-_MAKE_ENVIRONMENTS = (TrainCommand, EvalCommand, ExportCommand, RenderCommand, EnvsCommand)
-
-
-def _env_of(command: Any) -> str | None:
-    """The environment a parsed subcommand makes: ``--env`` (a resumed run's own), or the
-    one in the config.json of the run it reads (``None`` where there is none to read)."""
-    if isinstance(command, TrainCommand):
-        return command.env
-    run = getattr(command, "run", None)
-    try:
-        return str(json.loads((Path(run) / "config.json").read_text())["env"])
-    except (TypeError, OSError, ValueError, KeyError):  # no run, no file, not JSON, no env
-        return None
-
-
-def _imports_mjx(command: Any) -> bool:
-    """Whether MuJoCo MJX is imported once a subcommand's flags parse (quietly: its first
-    import prints notes where Warp is missing): where the subcommand may make MuJoCo
-    environments, not gymnax's. Not before parsing: MJX takes seconds to import, and a
-    mistyped flag, ``--help``, ``presets``, ``plot`` or a gymnax run need none of it."""
-    if not isinstance(command, _MAKE_ENVIRONMENTS):
-        return False
-    return not (_env_of(command) or "").startswith("gymnax/")
 
 
 def _run_reporting_errors(command, args: list[str]) -> None:

@@ -358,9 +358,9 @@ def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
 
 @pytest.mark.subprocess  # mujoco's import reads MUJOCO_GL once per process
 def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_environments():
-    """mujoco refuses an unknown MUJOCO_GL when first imported, which the CLI does once the
-    flags of a subcommand that makes environments parse (MJX's import notes): that is the
-    same one line as in `render`, not a traceback. `presets` never imports MuJoCo, so it is
+    """mujoco refuses an unknown MUJOCO_GL when first imported, where an environment source
+    first needs it (listing or making Brax's and Playground's): that is the same one line as
+    in `render`, not a traceback. `presets` never imports MuJoCo, so it is
     not in the way there."""
     env = {**os.environ, "MUJOCO_GL": "foo"}
     for args in (["envs"], ["train", "--env", "brax/ant", "--out", "/nonexistent/run"]):
@@ -376,25 +376,22 @@ def test_an_invalid_mujoco_gl_is_one_line_for_every_subcommand_that_makes_enviro
     assert proc.stdout.startswith("g1: ") and proc.stdout.endswith("False\n")
 
 
-def test_mjx_is_imported_only_where_a_subcommand_makes_mujoco_environments(tmp_path):
-    """MJX (seconds to import) is imported once the flags parse, where the environments may
-    be MuJoCo's: train's --env, or the env in the config.json of the run eval, export and
-    render read (imported where that cannot be read)."""
-    assert cli._imports_mjx(cli.TrainCommand(env="brax/ant"))
-    assert cli._imports_mjx(cli.SweepCommand(env="playground/CartpoleBalance"))
-    assert cli._imports_mjx(cli.TrainCommand(env="my_envs:make"))  # your own may be MuJoCo's
-    assert not cli._imports_mjx(cli.TrainCommand(env="gymnax/Pendulum-v1"))
-    assert cli._imports_mjx(cli.EnvsCommand())
-    assert not cli._imports_mjx(cli.PresetsCommand())
-    assert not cli._imports_mjx(cli.PlotCommand(run=tmp_path))
-    (tmp_path / "config.json").write_text(json.dumps({"env": "gymnax/Pendulum-v1"}))
-    assert not cli._imports_mjx(cli.EvalCommand(run=tmp_path))
-    assert not cli._imports_mjx(cli.ExportCommand(run=tmp_path, format="npz"))
-    (tmp_path / "config.json").write_text(json.dumps({"env": "brax/ant"}))
-    assert cli._imports_mjx(cli.RenderCommand(run=tmp_path))
-    (tmp_path / "config.json").write_text("{not json")
-    assert cli._imports_mjx(cli.EvalCommand(run=tmp_path))
-    assert cli._imports_mjx(cli.EvalCommand(run=tmp_path / "missing"))
+@pytest.mark.subprocess  # a fresh process, where the module imports MJX first
+def test_your_own_module_importing_mjx_prints_no_warp_notes(tmp_path):
+    """MJX is imported where an environment source first needs it, its notes on a missing
+    Warp dropped there: for your own environment, around the import of its module."""
+    (tmp_path / "my_mjx_env.py").write_text("import mujoco.mjx\n\ndef make():\n    return 3\n")
+    code = (
+        "import sys; sys.modules['warp'] = None; sys.modules['mujoco_warp'] = None\n"
+        f"sys.path.insert(0, {str(tmp_path)!r})\n"
+        "from td3_jax import envs\n"
+        "try:\n"
+        "    envs.make('my_mjx_env:make')\n"
+        "except Exception as err:\n"
+        "    print(type(err).__name__, 'mujoco.mjx' in sys.modules)\n"
+    )
+    proc = python(code)
+    assert proc.stdout == "CustomEnvironmentError True\n", proc.stdout + proc.stderr
 
 
 @pytest.mark.subprocess  # a fresh process: whether mujoco was imported

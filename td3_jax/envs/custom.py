@@ -46,6 +46,7 @@ from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
 from td3_jax.envs.base import Environment, EnvOptions, action_bound, refuse_locomotion_options
+from td3_jax.envs.physics import without_warp_import_notes
 from td3_jax.errors import CustomEnvironmentError, Td3JaxError, did_you_mean
 
 #: The name an environment handed over as an object gets (``object/<its name>``); a run made
@@ -185,7 +186,8 @@ def _import(module_name: str, spec: str) -> Any:
     if "" not in sys.path and os.getcwd() not in sys.path:
         sys.path.insert(0, os.getcwd())
     try:
-        return importlib.import_module(module_name)
+        with without_warp_import_notes():  # (a module importing MJX first: its notes dropped)
+            return importlib.import_module(module_name)
     except Exception as err:  # not found; a SyntaxError or an error of the module's own code
         name = getattr(err, "name", None) if isinstance(err, ModuleNotFoundError) else None
         if name and (module_name + ".").startswith(name + "."):
