@@ -989,11 +989,17 @@ def render_main(args: list[str]) -> None:
 
 def plot_main(args: list[str]) -> None:
     from td3_jax.logger import plot_curve
+    from td3_jax.rundir import load_config, require_run_dir
 
     command = _parse(PlotCommand, args, "td3-jax plot")
+    require_run_dir(command.run)
     path = plot_curve(command.run)
     if path is None:
-        raise ConfigError(f"{command.run} has no metrics.jsonl to plot")
+        load_config(command.run)  # (not a run directory, or one still starting: it says)
+        raise ConfigError(
+            f"{command.run} has no evaluation yet (a run records one after each chunk; "
+            "plot again once metrics.jsonl has a record)"
+        )
     print(path)
 
 

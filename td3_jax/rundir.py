@@ -552,11 +552,16 @@ def _write_json(path: Path, value: Any) -> None:
     write_atomically(path, json.dumps(value, indent=2) + "\n")
 
 
-def _read_config(out_dir: Path) -> dict:
-    path = Path(out_dir) / CONFIG_FILE
+def require_run_dir(out_dir: Path) -> None:
+    """Raises ConfigError where ``out_dir`` is not a directory (missing, or a file)."""
     if not Path(out_dir).is_dir():
         what = "is a file, not a run directory" if Path(out_dir).exists() else "does not exist"
         raise ConfigError(f"{out_dir} {what} (give the directory td3-jax train wrote to)")
+
+
+def _read_config(out_dir: Path) -> dict:
+    path = Path(out_dir) / CONFIG_FILE
+    require_run_dir(out_dir)
     if not path.exists():
         try:
             check_not_in_use(Path(out_dir))

@@ -396,14 +396,16 @@ def test_your_own_module_importing_mjx_prints_no_warp_notes(tmp_path):
 
 @pytest.mark.subprocess  # a fresh process: whether mujoco was imported
 def test_a_mistyped_flag_or_a_gymnax_run_never_imports_mujoco():
-    """A flag error comes before MJX's import (6-7 s on a CPU), and a gymnax run makes no
-    MuJoCo environment; where MJX is imported (a Brax run, the list of names a mistyped
-    environment is compared with) its notes on the missing Warp never reach stdout."""
+    """A flag error comes before MJX's import (6-7 s on a CPU), a gymnax run makes no
+    MuJoCo environment, and a gymnax name mistyped close to a gymnax one is compared with
+    gymnax's names alone; where MJX is imported (a Brax run, the list of every source's names
+    that a name like no gymnax one is compared with) its notes on the missing Warp never
+    reach stdout."""
     code = (
         "import sys; sys.modules['warp'] = None; sys.modules['mujoco_warp'] = None\n"
         "from td3_jax import cli\n"
         "for argv in (['train', '--num-envz', '3'], ['train', '--total-steps', '0'],\n"
-        "             ['train', '--env', 'gymnax/Pendulm-v1'],\n"
+        "             ['train', '--env', 'gymnax/Pendulm-v1'], ['train', '--env', 'gymnax/ant'],\n"
         "             ['train', '--env', 'brax/ant', '--total-steps', '0']):\n"
         "    try:\n"
         "        cli.main(argv)\n"
@@ -411,10 +413,12 @@ def test_a_mistyped_flag_or_a_gymnax_run_never_imports_mujoco():
         "        print(exit_.code, 'mujoco' in sys.modules)\n"
     )
     proc = python(code)
-    assert proc.stdout.splitlines() == ["2 False", "2 False", "2 True", "2 True"], proc.stdout
+    expected = ["2 False", "2 False", "2 False", "2 True", "2 True"]
+    assert proc.stdout.splitlines() == expected, proc.stdout
     assert "--num-envz (did you mean --num-envs?)" in proc.stderr
     assert proc.stderr.count("--total-steps must be positive, got 0") == 2
     assert "did you mean gymnax/Pendulum-v1?" in proc.stderr
+    assert "'gymnax/ant'; did you mean brax/ant?" in proc.stderr
 
 
 @pytest.mark.processes
@@ -572,6 +576,20 @@ def test_plot_redraws_the_curve(finished_run, capsys):
     assert code == 0
     assert stdout.strip().endswith("curve.png")
     assert (out / "curve.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
+    """A missing directory, a directory that is no run, and a run without an evaluation yet
+    each get their own one-line reason (all three once read "has no metrics.jsonl")."""
+    code, _, err = main(["plot", "--run", str(tmp_path / "nope")], capsys)
+    assert_one_line_error(code, err, "nope does not exist")
+    code, _, err = main(["plot", "--run", str(tmp_path)], capsys)
+    assert_one_line_error(code, err, "holds no config.json: not a td3-jax run directory")
+    started = tmp_path / "started"
+    shutil.copytree(finished_run[0], started)
+    (started / "metrics.jsonl").unlink()
+    code, _, err = main(["plot", "--run", str(started)], capsys)
+    assert_one_line_error(code, err, "has no evaluation yet")
 
 
 def test_envs_and_presets_listings(capsys):

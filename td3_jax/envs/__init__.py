@@ -62,12 +62,14 @@ def closest_names(name: str, names: list[str], limit: int = 3) -> list[str]:
 
 
 def _unknown_message(name: str, source: str) -> str:
-    names = known_names()
+    module = _SOURCES.get(source)
+    # Its own source's names first: a gymnax typo imports neither Brax nor Playground (MJX)
+    guesses = closest_names(name, [f"{source}/{n}" for n in module.names()] if module else [])
+    guesses = guesses or closest_names(name, known_names())
     hint = ""
     if source == "playground" and not _playground.names():
         hint = " (playground tasks need: pip install 'td3-jax[playground]')"
-    guesses = closest_names(name, names)
-    every = f"`td3-jax envs` lists all {len(names)}"
+    every = "`td3-jax envs` lists all of them"
     if guesses:
         return f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? ({every})"
     if "/" not in name and "." in name:  # a module path without its function
