@@ -226,11 +226,10 @@ def restore_checkpoint(run_dir: Path) -> tuple[Any, Any, Any, dict]:
     restored onto one device (as :func:`td3_jax.finished.evaluate_run` does)."""
     from td3_jax import finished, rundir
 
-    run_dir = Path(run_dir)
     rundir.load_config(run_dir)  # one line for a directory without config.json
-    if not rundir.checkpoint_steps(run_dir):
-        raise ExportError(f"{run_dir / rundir.CHECKPOINTS} holds no checkpoint to export")
-    cfg, _, program = finished.run_program(run_dir)
+    if not rundir.checkpoint_steps(run_dir):  # (before the environment is made)
+        raise rundir.no_checkpoint_error(run_dir)
+    cfg, _, program = finished.run_program(Path(run_dir))
     state, meta = finished.restore_on_one_device(program, run_dir)
     return cfg, program, state, meta
 

@@ -22,7 +22,14 @@ from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig
 from td3_jax.population import Member, Population
 from td3_jax.programs import run_compiled
-from td3_jax.rundir import CHECKPOINTS, check_environment_unchanged, load_config, load_members
+from td3_jax.rundir import (
+    CHECKPOINTS,
+    check_environment_unchanged,
+    checkpoint_steps,
+    load_config,
+    load_members,
+    no_checkpoint_error,
+)
 from td3_jax.runtime import awaiting_device
 from td3_jax.sharding import make_mesh, state_shardings
 from td3_jax.training import ring_as_saved
@@ -81,7 +88,10 @@ def _physics_here(cfg: TrainConfig) -> TrainConfig:
 
 def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict]:
     """``(state, meta)`` of the newest good checkpoint of ``out_dir`` on one device, whatever
-    device count wrote it (every leaf ``[members, ...]``)."""
+    device count wrote it (every leaf ``[members, ...]``); where it has none, a ConfigError
+    that says why (:func:`~td3_jax.rundir.no_checkpoint_error`)."""
+    if not checkpoint_steps(out_dir):
+        raise no_checkpoint_error(out_dir)
     shardings = state_shardings(program.abstract_state, make_mesh(1))
     state, meta, _ = restore_state(program, out_dir, shardings=shardings)
     return state, meta

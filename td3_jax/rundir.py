@@ -362,6 +362,22 @@ def _stopped_before_training(out_dir: Path) -> bool:
     )
 
 
+def no_checkpoint_error(out_dir: Path) -> ConfigError:
+    """Why a run directory with a config.json has no checkpoint to read (``eval``, ``render``,
+    ``export``): a run training it has not written its first, or its run stopped before."""
+    try:
+        check_not_in_use(out_dir)
+    except LockUnavailableError:
+        raise
+    except ConfigError:
+        holder = lock_holder(out_dir)
+        return ConfigError(f"{out_dir} has no checkpoint yet: a td3-jax run ({holder}) is "
+                           "training it and writes its first after its first chunk; try again "
+                           "then")  # fmt: skip
+    return ConfigError(f"{out_dir} holds no checkpoint: its run stopped before the first "
+                       "(run its td3-jax train command again to start it over)")  # fmt: skip
+
+
 def resume_command(out_dir: Path) -> str:
     """``td3-jax sweep --out OUT --resume`` for a sweep's directory (whose config.json has a
     :data:`SWEEP` section; it then ends with the sweep's ranking), else ``td3-jax train``'s."""

@@ -208,6 +208,24 @@ def test_reading_a_run_that_is_still_starting_says_so(tmp_path):
         rundir.load_config(tmp_path)
 
 
+def test_reading_a_run_without_a_checkpoint_says_why(tmp_path):
+    """eval, render and export of a run with its config.json but no checkpoint: one that a
+    run is training (it writes its first after its first chunk), or one whose run stopped
+    before it (it once read "no checkpoint found")."""
+    cfg = TrainConfig(env="gymnax/Pendulum-v1")
+    (tmp_path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    program = finished.run_program(tmp_path)[2]
+    lock = rundir.acquire_lock(tmp_path)  # a run training, before its first checkpoint
+    try:
+        with pytest.raises(ConfigError, match=r"has no checkpoint yet: a td3-jax run \(pid "
+                           r"\d+ on .+\) is training it"):  # fmt: skip
+            finished.restore_on_one_device(program, tmp_path)
+    finally:
+        lock.release()
+    with pytest.raises(ConfigError, match="holds no checkpoint: its run stopped before the first"):
+        finished.restore_on_one_device(program, tmp_path)
+
+
 # --------------------------------------------------------------------------------------------
 # what a fresh or resumed run accepts
 # --------------------------------------------------------------------------------------------
