@@ -325,16 +325,12 @@ def _warn_on_failure(action: Any, what: str, hint: str = "",
 
 
 def _start(run: _Run, source: Source, resume: bool) -> tuple[Any, int]:
-    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run and
-    ``(None, newest chunk)`` for a resumed run its newest checkpoint completes; the run's
+    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run; the run's
     checkpointer is opened here."""
     run.checkpointer = Checkpointer(run.out_dir / CHECKPOINTS, run.cfg.keep_checkpoints)
     run.clock_start = time.perf_counter()
     if not resume:
         return None, 0
-    newest = run.checkpointer.latest_step()
-    if newest is not None and newest >= run.cfg.num_chunks:  # complete: nothing to restore
-        return None, newest  # (a robot's ring alone is 15 GB; corrupt or not, it is not read)
     abstract = programs.abstract_state(source)
     check_memory(abstract, source.mesh)
     shardings = state_shardings(abstract, source.mesh)

@@ -746,31 +746,6 @@ def test_resume_accepts_flags_equal_to_the_saved_ones(finished_run, tmp_path, ca
     assert "resume_changes" not in json.loads((run_dir / "config.json").read_text())
 
 
-def test_resume_of_a_complete_run_reads_no_checkpoint(finished_run, tmp_path, capsys, monkeypatch):
-    """A complete run's --resume says so without restoring its newest checkpoint (15-19 GB on
-    the robots, most of the seconds it took to say nothing was left to do); one that goes on
-    (a larger --total-steps) still restores it."""
-    from td3_jax.checkpoint import Checkpointer
-
-    run_dir = _copy_run(finished_run, tmp_path)
-    restored = []
-    real_restore = Checkpointer.restore
-
-    def counted_restore(self, *args, **kwargs):
-        restored.append(1)
-        return real_restore(self, *args, **kwargs)
-
-    monkeypatch.setattr(Checkpointer, "restore", counted_restore)
-    code, out, err = main(["train", "--resume", "--out", str(run_dir), "--quiet"], capsys)
-    assert code == 0, err
-    assert "nothing to do" in out and restored == []
-    code, out, err = main(
-        ["train", "--resume", "--total-steps", "256", "--out", str(run_dir), "--quiet"], capsys
-    )
-    assert code == 0, err
-    assert restored == [1] and read_records(run_dir)[-1]["env_steps"] == 256
-
-
 def test_fresh_run_on_a_previous_runs_outputs_exits_2(finished_run, tmp_path, capsys):
     """No checkpoint left (deleted, or Ctrl-C before the first): the records are not erased."""
     run_dir = _copy_run(finished_run, tmp_path)
