@@ -989,17 +989,19 @@ def render_main(args: list[str]) -> None:
 
 def plot_main(args: list[str]) -> None:
     from td3_jax.logger import plot_curve
-    from td3_jax.rundir import load_config, require_run_dir
+    from td3_jax.rundir import holder_for_reader, load_config, require_run_dir
 
     command = _parse(PlotCommand, args, "td3-jax plot")
     require_run_dir(command.run)
     path = plot_curve(command.run)
     if path is None:
         load_config(command.run)  # (not a run directory, or one still starting: it says)
-        raise ConfigError(
-            f"{command.run} has no evaluation yet (a run records one after each chunk; "
-            "plot again once metrics.jsonl has a record)"
-        )
+        holder = holder_for_reader(command.run)
+        if holder is None:
+            raise ConfigError(f"{command.run} has no evaluation to plot: its run stopped "
+                              "before its first")  # fmt: skip
+        raise ConfigError(f"{command.run} has no evaluation yet: a td3-jax run ({holder}) is "
+                          "training it; plot again after its first evaluation")  # fmt: skip
     print(path)
 
 

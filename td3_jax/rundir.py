@@ -362,20 +362,38 @@ def _stopped_before_training(out_dir: Path) -> bool:
     )
 
 
-def no_checkpoint_error(out_dir: Path) -> ConfigError:
-    """Why a run directory with a config.json has no checkpoint to read (``eval``, ``render``,
-    ``export``): a run training it has not written its first, or its run stopped before."""
+def training_holder(out_dir: Path) -> str | None:
+    """``pid N on HOST`` of a td3-jax run that holds ``out_dir``'s lock now, else None; a
+    file system that refuses locks is :class:`LockUnavailableError`."""
     try:
         check_not_in_use(out_dir)
     except LockUnavailableError:
         raise
     except ConfigError:
-        holder = lock_holder(out_dir)
+        return lock_holder(out_dir)
+    return None
+
+
+def holder_for_reader(out_dir: Path) -> str | None:
+    """:func:`training_holder` for a command that only reads ``out_dir`` (``eval``, ``plot``):
+    None also where the file system refuses locks, since a reader takes none."""
+    try:
+        return training_holder(out_dir)
+    except LockUnavailableError:
+        return None
+
+
+def no_checkpoint_error(out_dir: Path) -> ConfigError:
+    """Why a run directory with a config.json has no checkpoint to read (``eval``, ``render``,
+    ``export``): a run training it has not written its first, or there is none to wait for."""
+    holder = holder_for_reader(out_dir)
+    if holder is not None:
         return ConfigError(f"{out_dir} has no checkpoint yet: a td3-jax run ({holder}) is "
-                           "training it and writes its first after its first chunk; try again "
-                           "then")  # fmt: skip
-    return ConfigError(f"{out_dir} holds no checkpoint: its run stopped before the first "
-                       "(run its td3-jax train command again to start it over)")  # fmt: skip
+                           "training it and has not written its first; try again "
+                           "later")  # fmt: skip
+    return ConfigError(f"{out_dir} holds no checkpoint (its run stopped before writing one, or "
+                       "they were removed): move it away or choose another --out to train "
+                       "again")  # fmt: skip
 
 
 def resume_command(out_dir: Path) -> str:
@@ -579,15 +597,12 @@ def _read_config(out_dir: Path) -> dict:
     path = Path(out_dir) / CONFIG_FILE
     require_run_dir(out_dir)
     if not path.exists():
-        try:
-            check_not_in_use(Path(out_dir))
-        except LockUnavailableError:
-            raise
-        except ConfigError:
+        holder = training_holder(out_dir)
+        if holder is not None:
             raise ConfigError(
-                f"{out_dir} is being started by a td3-jax run ({lock_holder(out_dir)}) and holds "
+                f"{out_dir} is being started by a td3-jax run ({holder}) and holds "
                 "no config.json or checkpoint yet; try again after its first evaluation"
-            ) from None
+            )
         if _stopped_before_training(out_dir):
             raise ConfigError(
                 f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "

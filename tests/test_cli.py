@@ -32,7 +32,7 @@ from support import (
     with_flags,
 )
 
-from td3_jax import cli, config
+from td3_jax import cli, config, rundir
 from td3_jax import run as run_module
 from td3_jax.config import TrainConfig
 from td3_jax.envs import physics
@@ -579,8 +579,9 @@ def test_plot_redraws_the_curve(finished_run, capsys):
 
 
 def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
-    """A missing directory, a directory that is no run, and a run without an evaluation yet
-    each get their own one-line reason (all three once read "has no metrics.jsonl")."""
+    """A missing directory, a directory that is no run, a run that stopped before its first
+    evaluation and one being trained before it each get their own one-line reason (all once
+    read "has no metrics.jsonl")."""
     code, _, err = main(["plot", "--run", str(tmp_path / "nope")], capsys)
     assert_one_line_error(code, err, "nope does not exist")
     code, _, err = main(["plot", "--run", str(tmp_path)], capsys)
@@ -589,7 +590,13 @@ def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
     shutil.copytree(finished_run[0], started)
     (started / "metrics.jsonl").unlink()
     code, _, err = main(["plot", "--run", str(started)], capsys)
-    assert_one_line_error(code, err, "has no evaluation yet")
+    assert_one_line_error(code, err, "has no evaluation to plot: its run stopped before its first")
+    lock = rundir.acquire_lock(started)  # a run training it, before its first evaluation
+    try:
+        code, _, err = main(["plot", "--run", str(started)], capsys)
+    finally:
+        lock.release()
+    assert_one_line_error(code, err, f"has no evaluation yet: a td3-jax run (pid {os.getpid()}")
 
 
 def test_envs_and_presets_listings(capsys):

@@ -582,6 +582,18 @@ def test_a_mistyped_environment_gets_the_name_it_meant(name, meant):
     assert "brax/inverted_pendulum" not in message  # no full listing when a guess exists
 
 
+def test_a_task_under_another_source_gets_its_own_name_first():
+    """A task given under the wrong source is named under its own first, also where the
+    wrong source has a close spelling (brax/humanoid for brax/HumanoidRun)."""
+    pytest.importorskip("mujoco_playground")
+    cases = {"brax/HumanoidRun": "playground/HumanoidRun",
+             "playground/humanoid": "brax/humanoid", "gymnax/ant": "brax/ant"}  # fmt: skip
+    for name, meant in cases.items():
+        with pytest.raises(UnknownEnvironmentError) as err:
+            envs.make(name)
+        assert f"did you mean {meant}" in str(err.value), str(err.value)
+
+
 def test_known_names():
     names = envs.known_names()
     assert "brax/inverted_pendulum" in names and "gymnax/MountainCarContinuous-v0" in names

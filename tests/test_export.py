@@ -394,7 +394,7 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
     shutil.copy(tiny_run / "config.json", no_checkpoint / "config.json")
     cases = {
         ("--run", str(tmp_path), "--format", "npz"): "not a td3-jax run directory",
-        ("--run", str(no_checkpoint), "--format", "npz"): "holds no checkpoint: its run stopped",
+        ("--run", str(no_checkpoint), "--format", "npz"): "holds no checkpoint (its run stopped",
         ("--run", str(tiny_run), "--format", "tflite"): "--format 'tflite' is not one of onnx",
         ("--run", str(tiny_run), "--format", "npz", "--member", "2"): "out of range",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "a" / "b")):

@@ -217,12 +217,15 @@ def test_reading_a_run_without_a_checkpoint_says_why(tmp_path):
     program = finished.run_program(tmp_path)[2]
     lock = rundir.acquire_lock(tmp_path)  # a run training, before its first checkpoint
     try:
-        with pytest.raises(ConfigError, match=r"has no checkpoint yet: a td3-jax run \(pid "
-                           r"\d+ on .+\) is training it"):  # fmt: skip
+        written = "is training it and has not written its first"
+        with pytest.raises(ConfigError, match=rf"has no checkpoint yet: a td3-jax run \(pid "
+                           rf"\d+ on .+\) {written}"):  # fmt: skip
             finished.restore_on_one_device(program, tmp_path)
     finally:
         lock.release()
-    with pytest.raises(ConfigError, match="holds no checkpoint: its run stopped before the first"):
+    with pytest.raises(ConfigError, match=r"holds no checkpoint \(its run stopped before "
+                       r"writing one, or they were removed\): move it away or choose another "
+                       "--out to train again"):  # fmt: skip
         finished.restore_on_one_device(program, tmp_path)
 
 
@@ -837,3 +840,5 @@ def test_a_file_system_that_refuses_locks_is_one_line_for_starting_and_probing(
             take(tmp_path)
         assert str(caught.value).startswith(expected)
         assert str(caught.value).endswith("use a run directory on a local disk")
+    # eval, render and export of a run without a checkpoint only read it: no lock needed
+    assert "holds no checkpoint (its run stopped" in str(rundir.no_checkpoint_error(tmp_path))

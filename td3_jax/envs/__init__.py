@@ -62,10 +62,11 @@ def closest_names(name: str, names: list[str], limit: int = 3) -> list[str]:
 
 
 def _unknown_message(name: str, source: str) -> str:
-    module = _SOURCES.get(source)
-    # Its own source's names first: a gymnax typo imports neither Brax nor Playground (MJX)
-    guesses = closest_names(name, [f"{source}/{n}" for n in module.names()] if module else [])
-    guesses = guesses or closest_names(name, known_names())
+    # gymnax's own names first: a gymnax typo imports neither Brax nor Playground (MJX, 3-7 s
+    # on a CPU). Brax's and Playground's names import MJX anyway, and each has tasks that the
+    # other has under a close name (brax/humanoid, playground/HumanoidRun): both are searched.
+    own = [f"gymnax/{n}" for n in _gymnax.names()] if source == "gymnax" else []
+    guesses = closest_names(name, own) or closest_names(name, known_names())
     hint = ""
     if source == "playground" and not _playground.names():
         hint = " (playground tasks need: pip install 'td3-jax[playground]')"
