@@ -158,7 +158,8 @@ class Checkpointer:
         if free >= need:
             return
         there = f", less the {existing} already there" if existing else ""
-        fixes = ["--keep-checkpoints 1"] if self._keep > 1 else []
+        one_kept = (max(1 - existing, 0) + 1) * size  # (offered only where it would fit)
+        fixes = ["--keep-checkpoints 1"] if self._keep > 1 and free >= one_kept else []
         if existing:  # a resume: sizes and --out are the run's own
             fixes.append("free space on that disk or move the run directory to a larger one")
         else:

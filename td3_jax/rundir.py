@@ -315,6 +315,8 @@ def _check_can_create(out_dir: Path) -> None:
         parent = parent.parent
     if not parent.is_dir():
         code = errno.ENOTDIR
+    elif os.statvfs(parent).f_flag & os.ST_RDONLY:
+        code = errno.EROFS
     elif not os.access(parent, os.W_OK | os.X_OK):
         code = errno.EACCES
     else:
@@ -346,10 +348,13 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
 
 def _start_instead(out_dir: Path) -> str:
     """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
-    where its run stopped before training (a fresh start is accepted there), else nothing
-    (the fresh start's own refusal would follow, e.g. a run whose checkpoints were deleted)."""
+    where its run stopped before training (a fresh start is accepted there), else move it
+    away (a fresh start there is refused while a run's outputs stay, e.g. a run stopped
+    after its first evaluation but before its first checkpoint, or one whose checkpoints were
+    deleted)."""
     if not _stopped_before_training(out_dir):
-        return ""
+        return (" (it holds a run's outputs but no checkpoint: move it away or choose another "
+                "--out to train again)")  # fmt: skip
     return " (its run stopped before the first: run without --resume to start it)"
 
 

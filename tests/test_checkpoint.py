@@ -608,12 +608,14 @@ def test_check_raises_a_failed_background_write_without_waiting(tmp_path, state,
 @pytest.mark.parametrize(
     ("keep", "existing", "free_checkpoints", "fits"),
     [(3, 0, 4, True), (3, 0, 3.9, False), (1, 0, 2, True), (1, 0, 1.9, False),
-     (3, 2, 2, True), (3, 2, 1.9, False), (2, 3, 1, True), (2, 3, 0.9, False)],
+     (3, 2, 2, True), (3, 2, 1.9, False), (2, 3, 1, True), (2, 3, 0.9, False),
+     (3, 0, 1.5, False)],
 )  # fmt: skip
 def test_check_space_asks_for_the_kept_checkpoints_and_one_being_written(
     tmp_path, state, monkeypatch, keep, existing, free_checkpoints, fits
 ):
-    """Free space needed: (keep - checkpoints already there, at least 0, + 1) checkpoints."""
+    """Free space needed: (keep - checkpoints already there, at least 0, + 1) checkpoints;
+    --keep-checkpoints 1 is suggested only where it would fit (1.5 checkpoints free for 2)."""
     import shutil
 
     from td3_jax import checkpoint
@@ -634,7 +636,9 @@ def test_check_space_asks_for_the_kept_checkpoints_and_one_being_written(
         with pytest.raises(CheckpointWriteError, match="checkpoints need") as err:
             ckpt.check_space(state)
         message = str(err.value)
-        assert ("--keep-checkpoints 1" in message) == (keep > 1)
+        # offered where one kept checkpoint (and one being written) would fit
+        one_kept_fits = free_checkpoints >= max(1 - existing, 0) + 1
+        assert ("--keep-checkpoints 1" in message) == (keep > 1 and one_kept_fits)
         # On resume (checkpoints already there) the sizes and --out are the run's own.
         assert (f"less the {existing} already there" in message) == (existing > 0)
         assert ("--buffer-size" in message) == (existing == 0)

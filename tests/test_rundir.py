@@ -19,6 +19,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -273,11 +274,17 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
     with pytest.raises(ConfigError, match="run without --resume to start it"):
         rundir.check_resume(tmp_path, SMALL)
     rundir.check_fresh(tmp_path)
-    # A run whose checkpoints were deleted cannot start fresh there: no such advice.
+    # A run with outputs but no checkpoint (stopped after its first evaluation, or its
+    # checkpoints deleted) cannot start fresh there either: move it away.
     (tmp_path / "config.json").write_text("{}")
     with pytest.raises(ConfigError) as refused:
         rundir.check_resume(tmp_path, SMALL)
-    assert str(refused.value).endswith("checkpoints has no checkpoint")
+    assert str(refused.value).endswith(
+        "checkpoints has no checkpoint (it holds a run's outputs but no checkpoint: move it "
+        "away or choose another --out to train again)"
+    )
+    with pytest.raises(ConfigError, match="previous run's outputs"):
+        rundir.check_fresh(tmp_path)
 
 
 def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
@@ -295,11 +302,16 @@ def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
         rundir.check_resume(tmp_path, dataclasses.replace(SMALL, total_steps=64))
 
 
-def test_open_run_dir_reports_a_directory_it_cannot_create(tmp_path):
+def test_open_run_dir_reports_a_directory_it_cannot_create(tmp_path, monkeypatch):
     (tmp_path / "file").write_text("x")
     for out in (tmp_path / "file" / "run", Path("/proc/td3-jax-run")):
         with pytest.raises(ConfigError, match=r"^--out .*: cannot create it"):
             rundir.open_run_dir(out, resume=False)
+    # the check before the environment is made: a read-only file system says so (it read
+    # "Permission denied", where mkdir says "Read-only file system")
+    monkeypatch.setattr(rundir.os, "statvfs", lambda path: SimpleNamespace(f_flag=os.ST_RDONLY))
+    with pytest.raises(ConfigError, match=r"cannot create it \(Read-only file system\)"):
+        rundir.check_fresh(tmp_path / "run")
 
 
 def test_safe_settings_may_change_on_resume():
