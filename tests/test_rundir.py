@@ -624,7 +624,8 @@ def test_a_run_whose_checkpoints_cannot_fit_is_refused_before_training(
     assert code == 2
     line = error_line(err)
     assert f"the disk holding {out / 'checkpoints'} has 0.0 MB free" in line
-    assert "(3 kept and one being written" in line and "--keep-checkpoints 1" in line
+    assert "(3 kept and one being written" in line and "a smaller --buffer-size" in line
+    assert "--keep-checkpoints 1" not in line  # (1000 bytes hold no checkpoint of this run)
     assert not (out / "metrics.jsonl").exists()
 
 
