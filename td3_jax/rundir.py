@@ -315,13 +315,21 @@ def _check_can_create(out_dir: Path) -> None:
         parent = parent.parent
     if not parent.is_dir():
         code = errno.ENOTDIR
-    elif os.statvfs(parent).f_flag & os.ST_RDONLY:
+    elif _read_only(parent):
         code = errno.EROFS
     elif not os.access(parent, os.W_OK | os.X_OK):
         code = errno.EACCES
     else:
         return
     raise ConfigError(f"--out {out_dir}: cannot create it ({os.strerror(code)})")
+
+
+def _read_only(folder: Path) -> bool:
+    """Whether ``folder``'s file system is mounted read-only (False where it cannot tell)."""
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
 
 
 def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock:
