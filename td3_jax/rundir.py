@@ -354,6 +354,11 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
     return lock
 
 
+#: What to do with a directory that holds a run's outputs but no checkpoint: a fresh run is
+#: refused there while they stay (:func:`check_fresh`), and there is nothing to resume.
+_MOVE_AWAY = "move it away or choose another --out to train again"
+
+
 def _start_instead(out_dir: Path) -> str:
     """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
     where its run stopped before training (a fresh start is accepted there), else move it
@@ -361,8 +366,7 @@ def _start_instead(out_dir: Path) -> str:
     after its first evaluation but before its first checkpoint, or one whose checkpoints were
     deleted)."""
     if not _stopped_before_training(out_dir):
-        return (" (it holds a run's outputs but no checkpoint: move it away or choose another "
-                "--out to train again)")  # fmt: skip
+        return f" (it holds a run's outputs but no checkpoint: {_MOVE_AWAY})"
     return " (its run stopped before the first: run without --resume to start it)"
 
 
@@ -405,8 +409,7 @@ def no_checkpoint_error(out_dir: Path) -> ConfigError:
                            "training it and has not written its first; try again "
                            "later")  # fmt: skip
     return ConfigError(f"{out_dir} holds no checkpoint (its run stopped before writing one, or "
-                       "they were removed): move it away or choose another --out to train "
-                       "again")  # fmt: skip
+                       f"they were removed): {_MOVE_AWAY}")  # fmt: skip
 
 
 def resume_command(out_dir: Path) -> str:
