@@ -127,6 +127,11 @@ _HUMANOID_JOYSTICK = dict(
     buffer_size=8_388_608,
 )
 
+# G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
+# reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59), and
+# FlashSAC's critic layout (two residual blocks of width 256; see the g1 and g1-rough presets).
+_G1 = dict(_HUMANOID_JOYSTICK, njmax=128, critic_network="residual", critic_hidden_sizes=(256, 256))
+
 PRESETS: dict[str, dict] = {
     # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
     # 200 steps, one update per step from the moment the buffer holds a batch.
@@ -215,33 +220,26 @@ PRESETS: dict[str, dict] = {
     "cheetah-run": dict(_GPU_LOCOMOTION, env="playground/CheetahRun"),
     # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
     "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
-    # G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
-    # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59).
     # G1 flat: FlashSAC's critic layout (two residual blocks of width 256, --critic-network
-    # residual), the one change that lifted G1 at 53.2M env steps over 3 seeds: 38.2, 37.3, 38.1
-    # (IQM 38.0) against the plain 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4; FlashSAC
-    # 39.9), every finished run above every plain one (a first run of seed 2, stopped at 49.2M
-    # steps, had 32.8 with the policy of 45.1M; BENCHMARKS.md, seventh to twelfth sessions). It
-    # costs speed: the loop runs at 73-78K env steps/s against 102-108K on an H200, so it reaches
-    # a return like FastTD3's 30-minute 27.9 later (366-543 s from launch, against 275-415 s),
-    # and it dips on the way (seed 0 to -6.2, seed 2 to 20.8) before it settles. The plain critics
-    # (`--critic-network mlp --critic-hidden-sizes 1024 512 256`) are the faster start. Without
-    # weight decay (`--weight-decay 0`) seed 0 ended at 39.1 (fourteenth session): one seed.
-    "g1": dict(
-        _HUMANOID_JOYSTICK,
-        env="playground/G1JoystickFlatTerrain",
-        njmax=128,
-        critic_network="residual",
-        critic_hidden_sizes=(256, 256),
-    ),
-    # Rough terrain (Playground's heightfield scenes, feet-only contacts): the flat presets
-    # unchanged (G1 rough keeps the plain critics: the residual ones have one seed on rough
-    # terrain, 34.1 against the plain critics' 29.0-30.9), with 128 constraints per environment
-    # as a margin on Warp. At 53.2M env steps (BENCHMARKS.md, seventh to thirteenth sessions):
-    # T1 34.8 and G1 30.3 IQM over 3 seeds; FlashSAC's 34.6 and 34.1 at 50M, FastTD3's final
-    # 30.4 and 27.7. Not tuned for rough terrain.
+    # residual) and no weight decay (AdamW's decay 0, not 0.1), the two changes that lifted G1
+    # at 53.2M env steps over 3 seeds each. The residual critics with decay 0.1: 38.2, 37.3, 38.1
+    # (IQM 38.0) against the plain 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4); then decay
+    # 0: 39.1, 38.8, 39.5 (IQM 39.1; FlashSAC 39.9), every seed above its decay-0.1 run
+    # (BENCHMARKS.md, seventh to fifteenth sessions). The residual critics cost speed: the loop
+    # runs at 73-78K env steps/s against 102-108K on an H200, so FastTD3's final 31.4 comes at
+    # 525-630 s from launch on fresh hosts (fourteenth and fifteenth sessions), and the curve
+    # may dip before it settles. The plain critics (`--critic-network mlp
+    # --critic-hidden-sizes 1024 512 256`) are the faster start.
+    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain", weight_decay=0.0),
+    # Rough terrain (Playground's heightfield scenes, feet-only contacts), with 128 constraints
+    # per environment as a margin on Warp. T1 rough is the flat preset unchanged: 34.8, 35.2,
+    # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough takes the residual
+    # critics (AdamW's decay kept at 0.1, the setting its seeds ran with): 34.1, 33.2, 33.1
+    # (IQM 33.4) against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3; FlashSAC 34.1), at 47-50K
+    # env steps/s against 57K (BENCHMARKS.md, seventh to fifteenth sessions). Not tuned further
+    # for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
-    "g1-rough": dict(_HUMANOID_JOYSTICK, env="playground/G1JoystickRoughTerrain", njmax=128),
+    "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
     # [0.2, 0.8], smoothing noise 0.2, 50k steps per environment; its kicks keep the task's
     # default (off).
