@@ -594,7 +594,8 @@ def _check_replay(cfg: TrainConfig) -> None:
     if cfg.batch_size > cfg.run_steps:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
-            f"run collects (--total-steps {cfg.total_steps}): it would never update"
+            f"run collects (--total-steps {cfg.total_steps}): it would never update; try "
+            f"--batch-size {min(256, cfg.run_steps)} or --total-steps {cfg.batch_size} or more"
         )
     if cfg.updates_per_iter and cfg.warmup_steps >= cfg.run_steps:
         raise ConfigError(

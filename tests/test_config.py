@@ -43,7 +43,10 @@ def test_small_config_validates():
         # batch larger than the buffer
         (dict(buffer_size=16, batch_size=32), "batch"),
         # a batch larger than all the run collects (1 chunk = 8 steps): it would never update
-        (dict(num_envs=1, eval_every=8, total_steps=8, batch_size=16), "never update"),
+        (
+            dict(num_envs=1, eval_every=8, total_steps=8, batch_size=16),
+            "never update; try --batch-size 8 or --total-steps 16 or more",
+        ),
         (dict(num_envs=0), "num-envs"),
         (dict(num_envs=-3), "num-envs"),
         (dict(total_steps=-1), "total-steps"),
