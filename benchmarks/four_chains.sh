@@ -12,7 +12,7 @@
 # that would reuse such a folder is refused, as are more chains than GPUs. FLAGS are split at
 # spaces as runs_50m.sh's EXTRA is (no value with a space in it). The tenth session's four
 # chains ("rb": FlashSAC's return scaling; `g1` had the plain critics then: today add
-# --critic-network mlp --critic-hidden-sizes 1024 512 256 to repeat them):
+# --critic-network mlp --critic-hidden-sizes 1024 512 256 --weight-decay 0.1 to repeat them):
 #   rb='--return-bound 5 --v-min -5 --v-max 5'
 #   bash benchmarks/four_chains.sh start 't1:2 g1:1' "g1:0 g1:1@$rb" "g1:2; g1:2@$rb" \
 #     't1-rough:1 t1-rough:2'

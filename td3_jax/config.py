@@ -183,9 +183,9 @@ class TrainConfig:
     output layer; LayerNorm stands where FlashSAC's blocks have BatchNorm, and the input is not
     batch-normalised as FlashSAC's is). A block has about 8 x width^2 weights: 256 256 is about
     1M per critic, 15x the plain 256 256 (on a CPU try 64 64). The actor is unchanged. On
-    G1 flat at 50M steps, 256 256 ended 3 seeds at 38.2, 37.3 and 38.1 (plain 1024 512 256
-    critics: 36.2-36.5) with the loop about 0.73x as fast; on G1 rough 3 seeds at 34.1, 33.2
-    and 33.1 (plain: 29.0-30.9); so the g1 and g1-rough presets use it."""
+    G1 flat at 50M steps (weight decay 0.1), 256 256 ended 3 seeds at 38.2, 37.3 and 38.1
+    (plain 1024 512 256 critics: 36.2-36.5) with the loop about 0.73x as fast; on G1 rough 3
+    seeds at 34.1, 33.2 and 33.1 (plain: 29.0-30.9); so the g1 and g1-rough presets use it."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps
@@ -586,6 +586,16 @@ def _check_ranges(cfg: TrainConfig) -> None:
         raise ConfigError(f"--tau must be in (0, 1], got {cfg.tau}")
 
 
+def _batch_advice(cfg: TrainConfig, longer_run: str) -> str:
+    """``try --batch-size B or ...``: a batch that the run's ring holds (at most 256, a
+    multiple of --replay-shards), or ``longer_run`` (empty: none) with a ring of one batch."""
+    shards = cfg.replay_shards
+    fitting = max(shards, min(256, cfg.replay_capacity) // shards * shards)
+    ring = "" if cfg.buffer_size >= cfg.batch_size else f"--buffer-size {cfg.batch_size} or more"
+    bigger = " with ".join(part for part in (longer_run, ring) if part)
+    return f"try --batch-size {fitting}" + (f", or {bigger}" if bigger else "")
+
+
 def _check_replay(cfg: TrainConfig) -> None:
     capacity = cfg.replay_capacity
     if cfg.env_steps_per_iter > capacity:
@@ -594,8 +604,8 @@ def _check_replay(cfg: TrainConfig) -> None:
     if cfg.batch_size > cfg.run_steps:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
-            f"run collects (--total-steps {cfg.total_steps}): it would never update; try "
-            f"--batch-size {min(256, cfg.run_steps)} or --total-steps {cfg.batch_size} or more"
+            f"run collects (--total-steps {cfg.total_steps}): it would never update; "
+            f"{_batch_advice(cfg, f'--total-steps {cfg.batch_size} or more')}"
         )
     if cfg.updates_per_iter and cfg.warmup_steps >= cfg.run_steps:
         raise ConfigError(
@@ -605,7 +615,7 @@ def _check_replay(cfg: TrainConfig) -> None:
         )
     if cfg.batch_size > capacity:
         raise ConfigError(f"--batch-size {cfg.batch_size} is larger than the replay buffer "
-                          f"({capacity} transitions)")  # fmt: skip
+                          f"({capacity} transitions); {_batch_advice(cfg, '')}")  # fmt: skip
     for name, value in (("--num-envs", cfg.num_envs), ("--batch-size", cfg.batch_size),
                         ("the replay capacity", capacity)):  # fmt: skip
         if value % cfg.replay_shards:

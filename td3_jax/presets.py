@@ -235,8 +235,8 @@ PRESETS: dict[str, dict] = {
     # per environment as a margin on Warp. T1 rough is the flat preset unchanged: 34.8, 35.2,
     # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough takes the residual
     # critics (AdamW's decay kept at 0.1, the setting its seeds ran with): 34.1, 33.2, 33.1
-    # (IQM 33.4) against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3; FlashSAC 34.1), at 47-50K
-    # env steps/s against 57K (BENCHMARKS.md, seventh to fifteenth sessions). Not tuned further
+    # (IQM 33.4) against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3; FlashSAC 34.1), at 47-51K
+    # env steps/s against 56-62K (BENCHMARKS.md, seventh to fifteenth sessions). Not tuned further
     # for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),

@@ -40,12 +40,25 @@ def test_small_config_validates():
 @pytest.mark.parametrize(
     "changes, match",
     [
-        # batch larger than the buffer
-        (dict(buffer_size=16, batch_size=32), "batch"),
+        # batch larger than the buffer: a batch the 16-row ring holds, or a ring of one batch
+        (
+            dict(buffer_size=16, batch_size=32),
+            "replay buffer \\(16 transitions\\); try --batch-size 16, or --buffer-size 32 or more$",
+        ),
+        # ... the batch offered a multiple of the 3 shards (the 8-row ring holds 6 of it)
+        (
+            dict(num_envs=3, eval_every=210, buffer_size=8, batch_size=15, replay_shards=3),
+            "try --batch-size 6, or --buffer-size 15 or more$",
+        ),
         # a batch larger than all the run collects (1 chunk = 8 steps): it would never update
         (
             dict(num_envs=1, eval_every=8, total_steps=8, batch_size=16),
-            "never update; try --batch-size 8 or --total-steps 16 or more",
+            "never update; try --batch-size 8, or --total-steps 16 or more$",
+        ),
+        # ... where the ring is also smaller than the batch, a longer run needs a larger ring
+        (
+            dict(num_envs=1, eval_every=8, total_steps=8, batch_size=32, buffer_size=16),
+            "try --batch-size 8, or --total-steps 32 or more with --buffer-size 32 or more$",
         ),
         (dict(num_envs=0), "num-envs"),
         (dict(num_envs=-3), "num-envs"),

@@ -406,7 +406,7 @@ def test_presets_follow_fasttd3():
         )
     assert {preset(name).critic_network for name in ("t1", "go1", "t1-rough")} == {"mlp"}
     assert preset("g1").weight_decay == 0.0
-    assert {preset(name).weight_decay for name in ("t1", "t1-rough", "g1-rough")} == {0.1}
+    assert {preset(name).weight_decay for name in ("t1", "go1", "t1-rough", "g1-rough")} == {0.1}
     # Rough terrain: the flat humanoid settings with a constraint margin (G1 rough with
     # AdamW's decay of 0.1, which its seeds ran with).
     g1_decayed = dataclasses.replace(preset("g1"), weight_decay=0.1)
