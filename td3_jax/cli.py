@@ -543,11 +543,12 @@ def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str 
     ``--total-steps`` (:func:`~td3_jax.config.eval_every_within_run`); None when nothing
     changed."""
     notes = []
-    if asked_eval_every is not None and asked_eval_every != cfg.eval_every:
-        notes.append(f"--eval-every {asked_eval_every} is longer than --total-steps "
+    asked = cfg.eval_every if asked_eval_every is None else asked_eval_every
+    if asked != cfg.eval_every and asked > cfg.total_steps:
+        notes.append(f"--eval-every {asked} is longer than --total-steps "
                      f"{cfg.total_steps}: evaluating at its end instead")  # fmt: skip
-    if cfg.steps_per_chunk != cfg.eval_every:
-        notes.append(f"--eval-every {cfg.eval_every} runs as {cfg.steps_per_chunk} (whole "
+    elif cfg.steps_per_chunk != asked:
+        notes.append(f"--eval-every {asked} runs as {cfg.steps_per_chunk} (whole "
                      f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
     runs = cfg.run_steps
     if runs != cfg.total_steps:

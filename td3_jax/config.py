@@ -54,8 +54,10 @@ class TrainConfig:
     """Environment steps with uniform random actions and no updates at the start."""
     eval_every: int = 4_000
     """Environment steps between evaluations (one compiled chunk); also the checkpoint period.
-    Runs as whole iterations. A fresh run from the command line lowers it to --total-steps
-    where it is longer (not with --eval-in-chunk, whose chunk holds a whole episode)."""
+    Runs as whole iterations (those below it; a fresh run from the command line takes those
+    above it where that trains fewer steps past --total-steps). A fresh run from the command
+    line lowers it to --total-steps where it is longer (not with --eval-in-chunk, whose chunk
+    holds a whole episode)."""
     eval_envs: int = 16
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False
@@ -417,11 +419,17 @@ def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     where it is longer, so that a fresh run evaluates at its end instead of training a whole
     chunk past ``total_steps`` (``--total-steps 20000 --eval-every 100000`` trains 20000 steps,
     not 100000). An in-chunk evaluation keeps its chunk: a round of evaluation episodes must
-    fit in one."""
-    if cfg.eval_in_chunk or cfg.eval_every <= cfg.total_steps:
+    fit in one. An ``eval_every`` that is not whole iterations runs as the whole iterations
+    below it, or above it where that trains fewer steps past ``total_steps`` (16 environments,
+    ``--eval-every 3000 --total-steps 6000``: chunks of 3008 steps, 6016 in all, not 3 of
+    2992)."""
+    per_iter = cfg.env_steps_per_iter  # (a chunk is whole iterations)
+    if not cfg.eval_in_chunk and cfg.eval_every > cfg.total_steps:
+        return dataclasses.replace(cfg, eval_every=-(-cfg.total_steps // per_iter) * per_iter)
+    if cfg.eval_every % per_iter == 0 or cfg.eval_every < per_iter:
         return cfg
-    per_iter = cfg.env_steps_per_iter  # (a chunk is whole iterations: one of them, here)
-    return dataclasses.replace(cfg, eval_every=-(-cfg.total_steps // per_iter) * per_iter)
+    up = dataclasses.replace(cfg, eval_every=(cfg.eval_every // per_iter + 1) * per_iter)
+    return up if up.run_steps < cfg.run_steps else cfg
 
 
 def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:

@@ -1002,6 +1002,18 @@ def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
     assert (odd.eval_every, odd.steps_per_chunk, odd.run_steps) == (112, 112, 112)
     in_chunk = TrainConfig(eval_every=100_000, total_steps=20_000, eval_in_chunk=True)
     assert config.eval_every_within_run(in_chunk) is in_chunk  # a round must fit in a chunk
+    # 3000 steps of 16 environments are not whole iterations: 187 of them (2992 steps) would
+    # need 3 chunks, 8976 steps, for 6000; 188 (3008) need 2, 6016 steps, so the chunk grows
+    grown = config.eval_every_within_run(TrainConfig(eval_every=3000, total_steps=6000))
+    assert (grown.eval_every, grown.steps_per_chunk, grown.run_steps) == (3008, 3008, 6016)
+    note = cli.rounding_note(grown, asked_eval_every=3000)
+    assert note.startswith("--eval-every 3000 runs as 3008 (whole iterations of 16 env steps); ")
+    assert note.endswith("--total-steps 6000 runs as 6016 (whole chunks of 3008 steps between "
+                         "evaluations; --eval-every sets them)")  # fmt: skip
+    # ... and stays 187 iterations where 188 would not train fewer steps: 5984 steps are two
+    # chunks of 2992 exactly (two of 3008 would be 6016)
+    low = TrainConfig(eval_every=3000, total_steps=5984)
+    assert config.eval_every_within_run(low) is low and low.run_steps == 5984
     note = cli.rounding_note(lowered, asked_eval_every=100_000)
     assert (
         note
