@@ -438,6 +438,16 @@ def _flag_value(args: list[str], flag: str) -> str | None:
     return None
 
 
+def _resumable_settings(cfg: TrainConfig, out: Path) -> None:
+    """On --resume of a run with a checkpoint, a flag that the resume may not change is refused
+    before the settings' own checks, whose advice (``try --batch-size 256``) would name a
+    change that the resume then refuses (:func:`td3_jax.rundir.config_changes`)."""
+    from td3_jax import rundir
+
+    if (out / rundir.CONFIG_FILE).exists() and rundir.checkpoint_steps(out):
+        rundir.config_changes(rundir.load_config(out), cfg, rundir.load_members(out, cfg))
+
+
 def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     """``(defaults, preset, source)`` for the train flags, ``source`` saying where they come
     from: ``resume`` (the run's saved config.json), ``preset`` (--preset), ``env`` (the preset
@@ -765,6 +775,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         cfg = eval_every_within_run(cfg)
     typed = _given_fields(args)
     given = typed | set(sweep or {})  # (a swept setting is every member's own)
+    if command.resume:
+        _resumable_settings(cfg, command.out)
     with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,

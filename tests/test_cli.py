@@ -210,6 +210,20 @@ def test_unknown_algo_message_is_one_line(tmp_path, capsys):
     assert_one_line_error(code, err, "foo")
 
 
+def test_a_resume_refuses_a_fixed_setting_before_advising_on_its_value(tmp_path, capsys):
+    """`--resume --batch-size 100000` advised `try --batch-size 256, or --total-steps 100000 or
+    more` (the settings' own check), advice the resume then refused: the batch is fixed."""
+    out = tmp_path / "run"
+    saved = TrainConfig(total_steps=4_000, eval_every=2_000)
+    (out / "checkpoints" / "1").mkdir(parents=True)
+    rundir.save_config(saved, rundir.members(saved), out)
+    flags = ["--out", str(out), "--resume", "--batch-size", "100000"]
+    code, _, err = main(["train", *flags], capsys)
+    assert_one_line_error(code, err, "--batch-size 100000 given but the run was started with "
+                                     "--batch-size 256: ")  # fmt: skip
+    assert "try --batch-size" not in err
+
+
 def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
     calls = []
     # Guard: never start the real (minutes-long) default run if the preset is accepted.
