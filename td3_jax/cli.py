@@ -595,7 +595,9 @@ def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> 
              ("--total-steps 20000", steps >= 5_000_000),
              ("--batch-size 256", cfg.batch_size > 4096),
              ("--warmup-steps 1000", cfg.warmup_steps > 10_000),
-             ("--no-eval-in-chunk", steps >= 5_000_000 and cfg.eval_in_chunk))  # fmt: skip
+             ("--no-eval-in-chunk", steps >= 5_000_000 and cfg.eval_in_chunk),
+             # (evaluations, and checkpoints, in the 20000 steps: else one chunk, all or nothing)
+             ("--eval-every 4000", steps >= 5_000_000 and cfg.eval_every > 20_000))  # fmt: skip
     tips = [tip for tip, large in sizes if large]  # (only what is sized for a GPU)
     alternative = " (or no --preset)" if source == "preset" else ""
     return (

@@ -1062,8 +1062,8 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert cli.cpu_size_warning(ant, "gpu") is None
     assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None
     assert (
-        "try --num-envs 16 --total-steps 20000 --batch-size 256 --warmup-steps 1000 ("
-        in cli.cpu_size_warning(ant, "cpu")
+        "try --num-envs 16 --total-steps 20000 --batch-size 256 --warmup-steps 1000 "
+        "--eval-every 4000 (" in cli.cpu_size_warning(ant, "cpu")
     )
     long_run = TrainConfig(num_envs=16, total_steps=10_000_000)  # suggests only what is large
     assert "try --total-steps 20000 (or no --preset)" in cli.cpu_size_warning(long_run, "cpu")
@@ -1078,8 +1078,8 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     )
     long_g1 = cli.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
     assert (
-        "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk ("
-        in long_g1
+        "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
+        "--eval-every 4000 (" in long_g1
     )
 
 
@@ -1093,6 +1093,7 @@ def test_the_cpu_tips_make_a_valid_run_of_the_preset(name):
     _, small, _, _ = cli._parse_train(["--preset", name, *tips.split()], sweeping=False)
     small = config.eval_every_within_run(small)  # (as train_main does before validating)
     config.validate(small)
+    assert small.num_chunks == 5  # an evaluation and a checkpoint every 4000 of 20000 steps
     assert cli.cpu_size_warning(small, "cpu") is None
     for field in ("batch_size", "warmup_steps"):  # a tip not followed: the run cannot start
         if getattr(cfg, field) >= small.run_steps:
