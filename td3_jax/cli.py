@@ -382,6 +382,33 @@ def _tyro_box(text: str) -> tuple[str, list[list[str]]]:
     return lines[0].strip("╭─╮ "), [part for part in sections if part] or [[]]
 
 
+#: Other libraries' names for td3-jax's flags (CleanRL, Stable-Baselines3, FastTD3), offered
+#: for an unknown flag of that name: ``--gamma`` (did you mean --discount?).
+_OTHER_NAMES = {
+    "gamma": ("discount",),
+    "learning-starts": ("warmup-steps",),
+    "learning-rate": ("actor-lr", "critic-lr"),
+    "total-timesteps": ("total-steps",),
+    "n-envs": ("num-envs",),
+    "env-id": ("env",),
+    "policy-frequency": ("policy-freq",),
+    "policy-delay": ("policy-freq",),
+    "target-policy-noise": ("policy-noise",),
+    "target-noise-clip": ("noise-clip",),
+    "exploration-noise": ("expl-noise",),
+    "action-noise": ("expl-noise",),
+    "gradient-steps": ("updates-per-iter",),
+    "num-updates": ("updates-per-iter",),
+    "std-min": ("expl-noise-min",),
+    "std-max": ("expl-noise-max",),
+    "num-eval-envs": ("eval-envs",),
+    "eval-freq": ("eval-every",),
+    "eval-interval": ("eval-every",),
+    "track": ("wandb",),
+    "wandb-project-name": ("wandb-project",),
+}
+
+
 def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[str]) -> str:
     """``unrecognized option --totl-steps (did you mean --total-steps?)``, for each option in
     ``args`` that ``command_type`` does not have: the flags that end with it (``--lr``:
@@ -414,7 +441,8 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     for name in dict.fromkeys(unknown):
         bare = name.lstrip("-")
         ends = sorted(n for n in names if n.endswith("-" + bare) and not n.startswith("no-"))
-        close = ends or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
+        ours = [n for n in _OTHER_NAMES.get(bare, ()) if n in names]  # (another library's name)
+        close = ours or ends or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
         guesses = " or ".join(names[c] for c in close[:4]) + (" or ..." if len(close) > 4 else "")
         said.append(f"{name} (did you mean {guesses}?)" if close else name)
     hint = "" if len(said) == sum("did you mean" in s for s in said) else f" (see {prog} --help)"

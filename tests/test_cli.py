@@ -318,6 +318,12 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "--frobnicate (see td3-jax train --help)",
         ("train", "--lr", "1e-3", "--out", out):  # no close spelling: the flags it ends
             "unrecognized option --lr (did you mean --actor-lr or --critic-lr?)",
+        # other libraries' names (CleanRL, Stable-Baselines3) for flags named otherwise here
+        ("train", "--gamma", "0.99", "--learning-starts", "1000", "--out", out):
+            "unrecognized options --gamma (did you mean --discount?), --learning-starts (did "
+            "you mean --warmup-steps?)",
+        ("train", "--learning-rate", "3e-4", "--out", out):
+            "unrecognized option --learning-rate (did you mean --actor-lr or --critic-lr?)",
         ("eval", "--run", out, "--episode", "3"):
             "unrecognized option --episode (did you mean --episodes?)",
         ("eval", "--run", out, "extra"): "unexpected argument extra (see td3-jax eval --help)",
