@@ -434,8 +434,9 @@ def export_run(
         raise ExportError(f"--format {fmt!r} is not one of {', '.join(FORMATS)}")
     if fmt == "onnx":
         require_onnx()  # before the (slower) restore
-    if not Path(run_dir).is_dir():
-        raise ExportError(f"--run {run_dir}: no such directory")
+    from td3_jax.rundir import require_run_dir
+
+    require_run_dir(run_dir)  # (the line eval and plot give)
     out = Path(out) if out is not None else default_output(run_dir, fmt)
     other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower(), fmt)
     if other != fmt:

@@ -481,8 +481,9 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     :func:`rollout_frames`) one after the other into the video ``out``."""
     check_settings(episodes, width, height, fps)
     check_writer(out)
-    if not Path(run_dir).is_dir():
-        raise RenderError(f"--run {run_dir}: no such directory")
+    from td3_jax.rundir import require_run_dir
+
+    require_run_dir(run_dir)  # (the line eval and plot give)
     result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
                      check=functools.partial(check_scene, camera=camera))  # fmt: skip
     frames = rollout_frames(result, camera=camera, width=width, height=height)

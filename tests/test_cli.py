@@ -300,6 +300,12 @@ def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
     assert "config.json" not in err
     code, _, err = main(["eval", "--run", str(tmp_path / "notes.txt")], capsys)
     assert_one_line_error(code, err, f"{tmp_path / 'notes.txt'} is a file, not a run directory")
+    # every command that reads a run says it in the same words (render and export had their own)
+    missing = tmp_path / "missing"
+    for command in (["plot"], ["render"], ["export", "--format", "npz"]):
+        code, _, err = main([*command, "--run", str(missing)], capsys)
+        assert_one_line_error(code, err, f"{missing} does not exist (give the directory td3-jax "
+                                          "train wrote to)")  # fmt: skip
 
 
 @pytest.mark.subprocess  # a child process that imports JAX: 4 s
