@@ -209,7 +209,9 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
     (:func:`td3_jax.programs.compiled`), and its state: ``state`` restored, else initialised.
     ``say``: print that it compiles first (a log then shows where the time goes)."""
     if say:
-        print("compiling the training program...", flush=True)
+        # (a stored program ran before: XLA's persistent cache likely holds it compiled)
+        cached = " (or loading it from the cache)" if source.stored is not None else ""
+        print(f"compiling the training program{cached}...", flush=True)
     compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
     return compiled, compiled.init() if state is None else state
 

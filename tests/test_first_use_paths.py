@@ -263,7 +263,8 @@ def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     code, out, err = main(["train", *flags, "--total-steps", "256"], capsys)
     assert code == 0, err
     lines = out.splitlines()
-    compiling = lines.index("compiling the training program...")
+    # (" (or loading it from the cache)" where this session's tests ran these settings before)
+    compiling = next(i for i, x in enumerate(lines) if x.startswith("compiling the training "))
     early, whole = (line for line in lines if line.startswith("td3 gymnax/Pendulum-v1: "))
     assert lines.index(early) > compiling
     assert early.startswith("td3 gymnax/Pendulum-v1: 32/256 env steps, warm-up, eval ")
@@ -275,6 +276,12 @@ def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     done = re.fullmatch(r"done: 512 env steps \(256 in this process, in (\d+) s; (\d+) s over the "
                         r"whole run\); eval return .*", out.splitlines()[-1])  # fmt: skip
     assert done and int(done[1]) <= int(done[2]), out
+    # a second run of these settings finds its programs stored (traced before): it says that
+    # XLA may load them from its cache rather than compile them
+    code, out, err = main(["train", *flags[:-1], str(tmp_path / "again"), "--total-steps", "256"],
+                          capsys)  # fmt: skip
+    assert code == 0, err
+    assert "compiling the training program (or loading it from the cache)..." in out.splitlines()
 
 
 def test_a_run_stopped_by_its_time_budget_says_so_and_how_to_go_on(tmp_path, capsys):
