@@ -386,6 +386,11 @@ def _tyro_box(text: str) -> tuple[str, list[list[str]]]:
 #: for an unknown flag of that name: ``--gamma`` (did you mean --discount?).
 _OTHER_NAMES = {
     "gamma": ("discount",),
+    "env-name": ("env",),
+    "actor-learning-rate": ("actor-lr",),
+    "critic-learning-rate": ("critic-lr",),
+    "num-steps": ("n-step",),
+    "use-wandb": ("wandb",),
     "learning-starts": ("warmup-steps",),
     "learning-rate": ("actor-lr", "critic-lr"),
     "total-timesteps": ("total-steps",),
@@ -441,7 +446,8 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     for name in dict.fromkeys(unknown):
         bare = name.lstrip("-")
         ends = sorted(n for n in names if n.endswith("-" + bare) and not n.startswith("no-"))
-        ours = [n for n in _OTHER_NAMES.get(bare, ()) if n in names]  # (another library's name)
+        other = _OTHER_NAMES.get(bare.replace("_", "-"), ())  # (another library's name)
+        ours = [n for n in other if n in names]
         close = ours or ends or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
         guesses = " or ".join(names[c] for c in close[:4]) + (" or ..." if len(close) > 4 else "")
         said.append(f"{name} (did you mean {guesses}?)" if close else name)
@@ -466,14 +472,28 @@ def _flag_value(args: list[str], flag: str) -> str | None:
     return None
 
 
-def _resumable_settings(cfg: TrainConfig, out: Path) -> None:
-    """On --resume of a run with a checkpoint, a flag that the resume may not change is refused
+def _resumed_settings(cfg: TrainConfig, out: Path) -> TrainConfig:
+    """``cfg`` for a --resume of ``out``: an --eval-every given as the run was started (3000,
+    which the fresh run took as the whole iterations of 3008) is the saved one; and, where the
+    run is not in use and has a checkpoint, a flag that the resume may not change is refused
     before the settings' own checks, whose advice (``try --batch-size 256``) would name a
     change that the resume then refuses (:func:`td3_jax.rundir.config_changes`)."""
     from td3_jax import rundir
 
-    if (out / rundir.CONFIG_FILE).exists() and rundir.checkpoint_steps(out):
-        rundir.config_changes(rundir.load_config(out), cfg, rundir.load_members(out, cfg))
+    if not (out / rundir.CONFIG_FILE).exists():
+        return cfg  # (the run says there is nothing to resume)
+    saved = rundir.load_config(out)
+    per_iter = cfg.env_steps_per_iter
+    whole = {cfg.eval_every // per_iter * per_iter, -(-cfg.eval_every // per_iter) * per_iter}
+    if saved.steps_per_chunk in whole:
+        cfg = dataclasses.replace(cfg, eval_every=saved.eval_every)
+    import jax
+
+    if jax.process_index() == 0:  # (as the resume itself checks first, in its writer only)
+        rundir.check_not_in_use(out)
+    if rundir.checkpoint_steps(out):
+        rundir.config_changes(saved, cfg, rundir.load_members(out, cfg))
+    return cfg
 
 
 def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
@@ -626,6 +646,10 @@ def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> 
              ("--no-eval-in-chunk", steps >= 5_000_000 and cfg.eval_in_chunk),
              # (evaluations, and checkpoints, in the 20000 steps: else one chunk, all or nothing)
              ("--eval-every 4000", steps >= 5_000_000 and cfg.eval_every > 20_000))  # fmt: skip
+    if source == "resume":  # (its sizes cannot change)
+        return (f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
+                f"batch {cfg.batch_size}) and JAX found only a CPU: it will train for hours; "
+                "a resume keeps its sizes, so resume it where a GPU is")  # fmt: skip
     tips = [tip for tip, large in sizes if large]  # (only what is sized for a GPU)
     alternative = " (or no --preset)" if source == "preset" else ""
     return (
@@ -806,7 +830,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     typed = _given_fields(args)
     given = typed | set(sweep or {})  # (a swept setting is every member's own)
     if command.resume:
-        _resumable_settings(cfg, command.out)
+        cfg = _resumed_settings(cfg, command.out)
     with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,

@@ -224,6 +224,21 @@ def test_a_resume_refuses_a_fixed_setting_before_advising_on_its_value(tmp_path,
     assert "try --batch-size" not in err
 
 
+def test_a_resume_given_the_eval_every_the_run_was_started_with_keeps_its_chunk(tmp_path):
+    """A fresh run takes --eval-every 3000 of 16 environments as 188 iterations (3008 steps,
+    config.json's value); the same flags with --resume are that chunk, not a change."""
+    out = tmp_path / "run"
+    (out / "checkpoints" / "1").mkdir(parents=True)
+    started = config.eval_every_within_run(TrainConfig(eval_every=3000, total_steps=6000))
+    rundir.save_config(started, rundir.members(started), out)
+    again = dataclasses.replace(started, eval_every=3000, total_steps=12_000)
+    assert cli._resumed_settings(again, out).eval_every == 3008
+    for other in (4000, 2992):  # another chunk (187 iterations) is still refused
+        refused = f"--eval-every {other} given but the run was started with --eval-every 3008: "
+        with pytest.raises(config.ConfigError, match=refused):
+            cli._resumed_settings(dataclasses.replace(again, eval_every=other), out)
+
+
 def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
     calls = []
     # Guard: never start the real (minutes-long) default run if the preset is accepted.
@@ -330,6 +345,9 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "you mean --warmup-steps?)",
         ("train", "--learning-rate", "3e-4", "--out", out):
             "unrecognized option --learning-rate (did you mean --actor-lr or --critic-lr?)",
+        ("train", "--env_name", "T1", "--actor_learning_rate", "3e-4", "--out", out):  # FastTD3's
+            "unrecognized options --env_name (did you mean --env?), --actor_learning_rate (did "
+            "you mean --actor-lr?)",
         ("eval", "--run", out, "--episode", "3"):
             "unrecognized option --episode (did you mean --episodes?)",
         ("eval", "--run", out, "extra"): "unexpected argument extra (see td3-jax eval --help)",
@@ -1088,6 +1106,10 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert warning.endswith(
         "try --num-envs 16 --batch-size 256 --warmup-steps 1000 (or no --preset)"
     )
+    # a resume keeps the run's sizes: no flag to change them is offered
+    resumed = cli.cpu_size_warning(ant, "cpu", "resume")
+    assert "sized for a GPU" in resumed and "try" not in resumed
+    assert resumed.endswith("a resume keeps its sizes, so resume it where a GPU is")
     long_g1 = cli.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
     assert (
         "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
