@@ -424,6 +424,8 @@ def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     ``--eval-every 3000 --total-steps 6000``: chunks of 3008 steps, 6016 in all, not 3 of
     2992)."""
     per_iter = cfg.env_steps_per_iter  # (a chunk is whole iterations)
+    if per_iter <= 0 or cfg.eval_every <= 0:
+        return cfg  # (validate names the impossible setting)
     if not cfg.eval_in_chunk and cfg.eval_every > cfg.total_steps:
         return dataclasses.replace(cfg, eval_every=-(-cfg.total_steps // per_iter) * per_iter)
     if cfg.eval_every % per_iter == 0 or cfg.eval_every < per_iter:
