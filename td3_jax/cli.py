@@ -42,6 +42,7 @@ from td3_jax.config import (
     idle_flags,
     idle_wandb_flags,
     validate,
+    whole_iterations,
 )
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
@@ -483,9 +484,9 @@ def _resumed_settings(cfg: TrainConfig, out: Path) -> TrainConfig:
     if not (out / rundir.CONFIG_FILE).exists():
         return cfg  # (the run says there is nothing to resume)
     saved = rundir.load_config(out)
-    per_iter = cfg.env_steps_per_iter
-    whole = {cfg.eval_every // per_iter * per_iter, -(-cfg.eval_every // per_iter) * per_iter}
-    if saved.steps_per_chunk in whole:
+    if cfg.env_steps_per_iter > 0 and saved.steps_per_chunk in whole_iterations(
+        cfg.eval_every, cfg.env_steps_per_iter
+    ):
         cfg = dataclasses.replace(cfg, eval_every=saved.eval_every)
     import jax
 

@@ -414,6 +414,11 @@ def as_flag(name: str, value: Any) -> str:
     return f"{flag(name)} {value}"
 
 
+def whole_iterations(steps: int, per_iter: int) -> tuple[int, int]:
+    """``steps`` rounded down and up to whole iterations of ``per_iter`` env steps."""
+    return steps // per_iter * per_iter, -(-steps // per_iter) * per_iter
+
+
 def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     """``cfg`` with ``eval_every`` lowered to ``total_steps`` (rounded up to whole iterations)
     where it is longer, so that a fresh run evaluates at its end instead of training a whole
@@ -427,11 +432,12 @@ def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     if per_iter <= 0 or cfg.eval_every <= 0:
         return cfg  # (validate names the impossible setting)
     if not cfg.eval_in_chunk and cfg.eval_every > cfg.total_steps:
-        return dataclasses.replace(cfg, eval_every=-(-cfg.total_steps // per_iter) * per_iter)
-    if cfg.eval_every % per_iter == 0 or cfg.eval_every < per_iter:
+        return dataclasses.replace(cfg, eval_every=whole_iterations(cfg.total_steps, per_iter)[1])
+    down, up = whole_iterations(cfg.eval_every, per_iter)
+    if down in (0, up):  # (whole iterations already, or fewer steps than one: runs as one)
         return cfg
-    up = dataclasses.replace(cfg, eval_every=(cfg.eval_every // per_iter + 1) * per_iter)
-    return up if up.run_steps < cfg.run_steps else cfg
+    rounded_up = dataclasses.replace(cfg, eval_every=up)
+    return rounded_up if rounded_up.run_steps < cfg.run_steps else cfg
 
 
 def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
@@ -655,4 +661,5 @@ __all__ = [
     "idle_wandb_flags",
     "unused_settings",
     "validate",
+    "whole_iterations",
 ]
