@@ -187,7 +187,8 @@ class TrainConfig:
     1M per critic, 15x the plain 256 256 (on a CPU try 64 64). The actor is unchanged. On
     G1 flat at 50M steps (weight decay 0.1), 256 256 ended 3 seeds at 38.2, 37.3 and 38.1
     (plain 1024 512 256 critics: 36.2-36.5) with the loop about 0.73x as fast; on G1 rough 3
-    seeds at 34.1, 33.2 and 33.1 (plain: 29.0-30.9); so the g1 and g1-rough presets use it."""
+    seeds at 34.1, 33.2 and 33.1 (plain: 29.0-30.9); so the g1 and g1-rough presets use it
+    (with weight decay 0, which lifted both further)."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps

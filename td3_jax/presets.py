@@ -129,8 +129,15 @@ _HUMANOID_JOYSTICK = dict(
 
 # G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
 # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59), and
-# FlashSAC's critic layout (two residual blocks of width 256; see the g1 and g1-rough presets).
-_G1 = dict(_HUMANOID_JOYSTICK, njmax=128, critic_network="residual", critic_hidden_sizes=(256, 256))
+# FlashSAC's critic layout (two residual blocks of width 256) with no AdamW decay (see the g1
+# and g1-rough presets).
+_G1 = dict(
+    _HUMANOID_JOYSTICK,
+    njmax=128,
+    critic_network="residual",
+    critic_hidden_sizes=(256, 256),
+    weight_decay=0.0,
+)
 
 PRESETS: dict[str, dict] = {
     # The seed DDPG tutorial's experiment: one Pendulum, OU noise, batch 128, 100 episodes of
@@ -230,14 +237,15 @@ PRESETS: dict[str, dict] = {
     # 525-630 s from launch on fresh hosts (fourteenth and fifteenth sessions), and the curve
     # may dip before it settles. The plain critics (`--critic-network mlp
     # --critic-hidden-sizes 1024 512 256`) are the faster start.
-    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain", weight_decay=0.0),
+    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain"),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts), with 128 constraints
     # per environment as a margin on Warp. T1 rough is the flat preset unchanged: 34.8, 35.2,
-    # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough takes the residual
-    # critics (AdamW's decay kept at 0.1, the setting its seeds ran with): 34.1, 33.2, 33.1
-    # (IQM 33.4) against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3; FlashSAC 34.1), at 47-51K
-    # env steps/s against 56-62K (BENCHMARKS.md, seventh to fifteenth sessions). Not tuned further
-    # for rough terrain.
+    # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough is the `g1` preset
+    # on rough terrain. Its residual critics with decay 0.1 ended 34.1, 33.2, 33.1 (IQM 33.4)
+    # against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3); decay 0 then ended 35.0, 34.0,
+    # 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at 47-51K env
+    # steps/s against the plain critics' 56-62K (BENCHMARKS.md, seventh to sixteenth
+    # sessions). Not tuned further for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
