@@ -59,3 +59,69 @@ def test_a_constraint_buffer_too_small_stops_the_run_naming_the_flag(warp_on_cpu
     assert "48 environment steps of the chunk ending at env step 32" in last
     assert "raise --nconmax or --njmax" in last
     assert not (out / "metrics.jsonl").exists() or not (out / "metrics.jsonl").read_text()
+
+
+def _modules_loaded_by(run) -> set[str]:
+    """The names of the Warp modules that ``run`` loads (or finds loaded) as it launches."""
+    from warp._src.context import Module
+
+    names: set[str] = set()
+    load = Module.load
+
+    def recording(self, *args, **kwargs):
+        names.add(self.name)
+        return load(self, *args, **kwargs)
+
+    Module.load = recording
+    try:
+        run()
+    finally:
+        Module.load = load
+    return names
+
+
+def test_the_precompile_lists_every_module_a_robot_step_launches(warp_on_cpu, monkeypatch):
+    """MuJoCo Warp's step listed without running a kernel (:func:`listed_modules`) names every
+    module that a real reset and step of T1 through MJX launches (MJX's own glue apart), and
+    the task made on Warp is handed to the precompile with its buffers' sizes."""
+    import jax
+    import jax.numpy as jnp
+
+    from td3_jax import upstream
+    from td3_jax.envs import locomotion, warp_kernels
+    from td3_jax.envs.base import EnvOptions
+
+    handed = []
+    monkeypatch.setattr(warp_kernels, "precompile_task", lambda task, **sizes: handed.append(sizes))
+    env, config = locomotion.load("T1JoystickFlatTerrain", impl="warp",
+                                  options=EnvOptions(impl="warp", worlds=3))  # fmt: skip
+    assert handed == [{"njmax": int(config.njmax), "naconmax": int(config.naconmax) // 8192}]
+    task = env.unwrapped
+    options = warp_kernels.static_options(upstream.task_mjx_model(task).opt._impl)
+    assert options["warn_overflow"] & (1 << 9) == 0  # (td3-jax quiets the iteration limits)
+    step = warp_kernels._mujoco_warp_step(task.mj_model, options, **handed[0])
+    listed = {m.name for group in warp_kernels.listed_modules(step).values() for m in group}
+
+    def real_steps():  # (3 environments: a batch no other test captured, so Python launches)
+        state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 3))
+        jax.block_until_ready(jax.jit(jax.vmap(env.step))(state, jnp.zeros((3, env.action_size))))
+
+    launched = _modules_loaded_by(real_steps)
+    assert len(launched) >= 20
+    assert {name for name in launched if not name.startswith("mujoco.mjx.warp")} <= listed
+
+
+def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkeypatch, capsys):
+    from td3_jax.envs import warp_kernels
+
+    class NotATask:
+        mj_model = None
+
+    monkeypatch.setenv(warp_kernels.PRECOMPILE, "0")
+    assert warp_kernels.precompile_task(NotATask(), njmax=8, naconmax=8) is None
+    assert capsys.readouterr().err == ""
+    monkeypatch.delenv(warp_kernels.PRECOMPILE)
+    assert warp_kernels.precompile_task(NotATask(), njmax=8, naconmax=8) is None
+    err = capsys.readouterr().err
+    assert err.startswith("td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead (")
+    assert err.rstrip().endswith("each compiles at its first use instead")

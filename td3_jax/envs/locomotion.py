@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from td3_jax import upstream
-from td3_jax.envs import menagerie, physics
+from td3_jax.envs import menagerie, physics, warp_kernels
 from td3_jax.envs.base import Environment, EnvironmentOptionError, EnvOptions
 
 __all__ = [
@@ -257,8 +257,24 @@ def load(task: str, *, impl: str = "jax", options: EnvOptions = EnvOptions()) ->
     with upstream.playground_menagerie_at(root):
         env = registry.load(task, config=config, config_overrides=overrides)
     if impl == "warp":
-        physics.quiet_solver_limits(env.unwrapped)
+        prepare_warp(env.unwrapped, config, options)
     return env, config
+
+
+def prepare_warp(task: Any, config: Any, options: EnvOptions) -> None:
+    """Readies a Playground ``task`` made on Warp (``config``: its default config): quiets its
+    solver's iteration-limit warnings, then compiles Warp's kernels for its model ahead, on
+    several threads (:func:`td3_jax.envs.warp_kernels.precompile_task`), sized as the run's
+    buffers are (:func:`warp_overrides`)."""
+    physics.quiet_solver_limits(task)
+    njmax = options.njmax if options.njmax is not None else config.get("njmax")
+    naconmax = config.get("naconmax")  # (for all of Playground's worlds: one world's share)
+    one_world = options.nconmax or max(1, int(naconmax or 0) // physics.PLAYGROUND_WORLDS)
+    warp_kernels.precompile_task(
+        task,
+        njmax=None if njmax is None else int(njmax),
+        naconmax=None if naconmax is None else one_world,
+    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -64,7 +64,7 @@ def make(
     overrides = {"impl": impl, **locomotion.warp_overrides(config, impl, options)}
     env = suite.load(name, config=config, config_overrides=overrides)
     if impl == "warp":
-        physics.quiet_solver_limits(env)
+        locomotion.prepare_warp(env, config, options)
     length = int(episode_length or config.episode_length)
     overflow = locomotion.warp_overflow if impl == "warp" else None
     return from_mjx_style(f"playground/{name}", env, length, mj_model=env.mj_model,

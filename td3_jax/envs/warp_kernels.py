@@ -1,0 +1,157 @@
+"""MuJoCo Warp's kernels compiled in parallel before the first physics step.
+
+On a machine whose Warp kernel cache is cold, a Playground robot's first step compiles MuJoCo
+Warp's kernels one module at a time, as each is first launched: T1's first reset and step
+compiled 39 modules in 99 s on an H100, one CPU core busy. Most of those modules are made for
+the model by MuJoCo Warp's kernel factories, so they cannot be listed before the model is known.
+:func:`precompile` lists them by running MuJoCo Warp's step once in Python with every
+module load recorded instead of done (no kernel runs: every launch returns before it starts
+one), then has Warp compile and load them on several threads (``warp.force_load``). The
+compiled modules land in Warp's kernel cache as they would have, and the first real step finds
+them loaded. A module the listing misses is compiled at its first launch, as without it (MJX's
+own glue is one: its module is made at MJX's first call).
+
+:func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
+call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator
+from typing import Any, NamedTuple
+
+__all__ = [
+    "PRECOMPILE",
+    "Precompiled",
+    "listed_modules",
+    "precompile",
+    "precompile_task",
+    "static_options",
+]
+
+#: Set to 0, Warp compiles each kernel module at its first launch (one at a time), as it does
+#: on its own.
+PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
+
+
+class Precompiled(NamedTuple):
+    """What :func:`precompile` did: the modules it loaded and how long that took."""
+
+    modules: int
+    seconds: float
+
+
+@contextlib.contextmanager
+def _loads_recorded(seen: dict[tuple[Any, Any], None]) -> Iterator[None]:
+    """Inside, a Warp module load is recorded in ``seen`` as ``(module, block_dim)`` and
+    returns nothing, so each launch stops before it runs a kernel; a conditional loop runs its
+    body once and a conditional runs both branches (no kernel sets their conditions)."""
+    import warp
+    from warp._src.context import Module
+
+    def load(module: Any, device: Any, block_dim: Any = None, *args: Any, **kwargs: Any) -> None:
+        seen[(module, block_dim)] = None
+
+    def capture_while(condition: Any, while_body: Callable, stream: Any = None, **kwargs: Any):
+        while_body(**kwargs)
+
+    def capture_if(condition: Any, on_true: Any = None, on_false: Any = None, stream: Any = None,
+                   **kwargs: Any) -> None:  # fmt: skip
+        for branch in (on_true, on_false):
+            if callable(branch):
+                branch(**kwargs)
+
+    saved = (Module.load, warp.capture_while, warp.capture_if)
+    Module.load, warp.capture_while, warp.capture_if = load, capture_while, capture_if
+    try:
+        yield
+    finally:
+        Module.load, warp.capture_while, warp.capture_if = saved
+
+
+def listed_modules(run: Callable[[], Any]) -> dict[Any, list[Any]]:
+    """The Warp modules that ``run`` (MuJoCo Warp's functions) would load, grouped by the
+    block size each is launched with (``None``: the module's own), without running a kernel."""
+    seen: dict[tuple[Any, Any], None] = {}
+    with _loads_recorded(seen):
+        run()
+    groups: dict[Any, list[Any]] = {}
+    for module, block_dim in seen:
+        groups.setdefault(block_dim, []).append(module)
+    return groups
+
+
+def static_options(warp_option: Any) -> dict[str, Any]:
+    """The plain (int and bool) fields of MJX's Warp options (``mjx.Model.opt._impl``), which
+    can decide the kernels MuJoCo Warp makes (its iteration-limit warnings, for one)."""
+    fields = getattr(warp_option, "__dataclass_fields__", {})
+    return {name: value for name in fields
+            if isinstance(value := getattr(warp_option, name), bool | int)}  # fmt: skip
+
+
+def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
+                      naconmax: int | None) -> Callable[[], Any]:  # fmt: skip
+    """MuJoCo Warp's forward and step of ``mj_model`` for one world, as MJX calls them, with
+    ``options`` (:func:`static_options`) set on the model's options where it has them."""
+    import mujoco
+    from mujoco.mjx.third_party import mujoco_warp as mjwarp
+
+    model = mjwarp.put_model(mj_model)
+    for name, value in options.items():
+        if hasattr(model.opt, name):
+            setattr(model.opt, name, type(getattr(model.opt, name))(value))
+    data = mjwarp.put_data(mj_model, mujoco.MjData(mj_model), nworld=1, njmax=njmax,
+                           naconmax=naconmax)  # fmt: skip
+
+    def run() -> None:
+        mjwarp.forward(model, data)
+        mjwarp.step(model, data)
+
+    return run
+
+
+def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: int | None = None,
+               naconmax: int | None = None, workers: int | None = None) -> Precompiled:  # fmt: skip
+    """Compiles and loads the Warp modules of MuJoCo Warp's forward and step of ``mj_model``
+    (a ``mujoco.MjModel``) on Warp's default device, ``workers`` at a time (default: one per
+    CPU core). ``njmax``/``naconmax``: the constraint and contact buffers the run uses (they
+    decide which kernels some steps launch); ``options``: MJX's (:func:`static_options`)."""
+    import warp
+
+    start = time.perf_counter()
+    groups = listed_modules(_mujoco_warp_step(mj_model, options or {}, njmax, naconmax))
+    workers = workers or os.cpu_count() or 1
+    device = warp.get_device()
+    for block_dim, modules in groups.items():
+        warp.force_load(device, modules=modules, block_dim=block_dim, max_workers=workers)
+    return Precompiled(sum(map(len, groups.values())), time.perf_counter() - start)
+
+
+def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:
+    """:func:`precompile` for the Playground ``task`` (an ``MjxEnv`` on Warp), with the options
+    of the MJX model it simulates; ``njmax``: its constraints per environment, ``naconmax``:
+    contacts for one environment. Says how long it took where that was a second or more. Off
+    (``None``) where :data:`PRECOMPILE` is 0; a failure is a warning (``None``): each module is
+    then compiled at its first launch, as without it."""
+    if os.environ.get(PRECOMPILE) == "0":
+        return None
+    from td3_jax import upstream
+
+    try:
+        options = static_options(upstream.task_mjx_model(task).opt._impl)
+        done = precompile(task.mj_model, options=options, njmax=njmax, naconmax=naconmax)
+    except Exception as err:  # (an optimisation: the run goes on without it)
+        print(f"td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead ({err}); each "
+              "compiles at its first use instead", file=sys.stderr)  # fmt: skip
+        return None
+    if done.seconds >= 1.0:
+        print(
+            f"MuJoCo Warp: {done.modules} kernel modules ready in {done.seconds:.0f} s "
+            f"(compiled on {os.cpu_count() or 1} threads, or loaded from its cache)",
+            flush=True,
+        )
+    return done
