@@ -7,11 +7,11 @@ Each process uses its own empty kernel cache. On the GPU machine, two at once, o
     python benchmarks/warp_precompile.py --task T1JoystickFlatTerrain --menagerie $MEN \\
         --workers 0 --out $OUT/serial.json &
     python benchmarks/warp_precompile.py --task T1JoystickFlatTerrain --menagerie $MEN \\
-        --workers 12 --out $OUT/parallel.json; wait
+        --workers 8 --out $OUT/parallel.json; wait
 
 ``--workers 0``: no precompile (each module compiles at its first launch, one at a time), as
 with ``TD3_JAX_WARP_PRECOMPILE=0``; ``--workers N``: td3-jax's precompile on N threads (its
-default is one per CPU core).
+default is one per CPU core, at most 8).
 """
 
 from __future__ import annotations

@@ -27,6 +27,7 @@ from typing import Any, NamedTuple
 __all__ = [
     "PRECOMPILE",
     "Precompiled",
+    "default_workers",
     "listed_modules",
     "precompile",
     "precompile_task",
@@ -36,6 +37,8 @@ __all__ = [
 #: Set to 0, Warp compiles each kernel module at its first launch (one at a time), as it does
 #: on its own.
 PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
+#: At most this many modules compile at once (each compile holds its own compiler's memory).
+MAX_WORKERS = 8
 
 
 class Precompiled(NamedTuple):
@@ -114,17 +117,23 @@ def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
     return run
 
 
+def default_workers() -> int:
+    """One thread per CPU core, at most :data:`MAX_WORKERS`."""
+    return max(1, min(os.cpu_count() or 1, MAX_WORKERS))
+
+
 def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: int | None = None,
                naconmax: int | None = None, workers: int | None = None) -> Precompiled:  # fmt: skip
     """Compiles and loads the Warp modules of MuJoCo Warp's forward and step of ``mj_model``
-    (a ``mujoco.MjModel``) on Warp's default device, ``workers`` at a time (default: one per
-    CPU core). ``njmax``/``naconmax``: the constraint and contact buffers the run uses (they
-    decide which kernels some steps launch); ``options``: MJX's (:func:`static_options`)."""
+    (a ``mujoco.MjModel``) on Warp's default device, ``workers`` at a time (default:
+    :func:`default_workers`). ``njmax``/``naconmax``: the constraint and contact buffers the
+    run uses (they decide which kernels some steps launch); ``options``: MJX's
+    (:func:`static_options`)."""
     import warp
 
     start = time.perf_counter()
     groups = listed_modules(_mujoco_warp_step(mj_model, options or {}, njmax, naconmax))
-    workers = workers or os.cpu_count() or 1
+    workers = workers or default_workers()
     device = warp.get_device()
     for block_dim, modules in groups.items():
         warp.force_load(device, modules=modules, block_dim=block_dim, max_workers=workers)
@@ -151,7 +160,7 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     if done.seconds >= 1.0:
         print(
             f"MuJoCo Warp: {done.modules} kernel modules ready in {done.seconds:.0f} s "
-            f"(compiled on {os.cpu_count() or 1} threads, or loaded from its cache)",
+            f"(compiled on {default_workers()} threads, or loaded from its cache)",
             flush=True,
         )
     return done
