@@ -31,8 +31,8 @@ kernels spent compiling (``warp_compile_s``, modules compiled: ``warp_modules``;
 cost nothing here) are counted apart from the compile seconds that include them. Since the
 sixteenth session td3-jax compiles Warp's modules when it makes the task
 (``td3_jax.envs.warp_kernels``, on several threads), so the raw compile seconds no longer
-include them (``warp_compile_s`` still sums every module's compile, now over threads that
-overlap); set ``TD3_JAX_WARP_PRECOMPILE=0`` to measure as earlier sessions did.
+include the modules it lists (``warp_compile_s`` still sums every module's compile, now over
+threads that overlap); set ``TD3_JAX_WARP_PRECOMPILE=0`` to measure as earlier sessions did.
 """
 
 from __future__ import annotations

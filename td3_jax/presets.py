@@ -243,9 +243,10 @@ PRESETS: dict[str, dict] = {
     # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough is the `g1` preset
     # on rough terrain. Its residual critics with decay 0.1 ended 34.1, 33.2, 33.1 (IQM 33.4)
     # against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3); decay 0 then ended 35.0, 34.0,
-    # 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at 47-51K env
-    # steps/s against the plain critics' 56-62K (BENCHMARKS.md, seventh to sixteenth
-    # sessions). Not tuned further for rough terrain.
+    # 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at 46-51K env
+    # steps/s against the plain critics' 56-62K; it is slower early, so FastTD3's final 27.7
+    # came at 784-1065 s from launch against 691-787 s with decay 0.1 (BENCHMARKS.md, seventh
+    # to sixteenth sessions). Not tuned further for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in

@@ -321,12 +321,37 @@ def warp_overflow_flags(data: Any) -> Any:
     return _require(impl, "overflow", "mujoco.mjx.warp.types.DataWarp.overflow")
 
 
+#: MJX's copy of MuJoCo Warp (``put_model``, ``put_data``, ``forward``, ``step``) and Warp's
+#: module class, whose ``load(device, block_dim)`` compiles or loads a module (checked: MuJoCo
+#: 4.0.0, warp-lang 1.19.0).
+MJX_MUJOCO_WARP = "mujoco.mjx.third_party.mujoco_warp"
+WARP_CONTEXT = "warp._src.context"
+
+
+def mjx_mujoco_warp() -> Any:
+    """The MuJoCo Warp package that MJX steps (:data:`MJX_MUJOCO_WARP`)."""
+    return _private_module(MJX_MUJOCO_WARP)
+
+
+def warp_module_class() -> Any:
+    """Warp's ``Module`` class (:data:`WARP_CONTEXT`), whose ``load`` method every kernel
+    launch calls before it runs the kernel."""
+    return _require(_private_module(WARP_CONTEXT), "Module", f"{WARP_CONTEXT}.Module")
+
+
+def mjx_warp_options(model: Any) -> Any:
+    """MuJoCo Warp's own options of an MJX model made on Warp: ``model.opt._impl``
+    (``mujoco.mjx.Option._impl``, a ``mujoco.mjx.warp.types.OptionWarp``; checked: MuJoCo
+    4.0.0)."""
+    return _require(model.opt, "_impl", "mujoco.mjx.Option._impl")
+
+
 def quiet_warp_overflow_warnings(task: Any, bits: int) -> None:
     """Clears ``bits`` from MuJoCo Warp's ``warn_overflow`` option of the Playground ``task``'s
     model: ``model.opt._impl.warn_overflow`` (``mujoco.mjx.Option._impl``, a
     ``mujoco.mjx.warp.types.OptionWarp``; checked: MuJoCo 4.0.0)."""
     model = task_mjx_model(task)
-    option = _require(model.opt, "_impl", "mujoco.mjx.Option._impl")
+    option = mjx_warp_options(model)
     warn = _require(option, "warn_overflow", "mujoco.mjx.warp.types.OptionWarp.warn_overflow")
     quieter = option.replace(warn_overflow=int(warn) & ~bits)
     set_task_mjx_model(task, model.replace(opt=model.opt.replace(_impl=quieter)))

@@ -342,6 +342,24 @@ def test_warp_overflow_bits_match_what_td3_jax_counts_as_wrong_physics():
     )
 
 
+def test_warp_precompile_finds_mujoco_warp_and_warps_module_load(warp_model):
+    """What :mod:`td3_jax.envs.warp_kernels` relies on: MJX's MuJoCo Warp with the functions
+    it runs, Warp's ``Module.load(device, block_dim)``, and MJX's Warp options."""
+    import inspect
+
+    import warp
+
+    mjwarp = upstream.mjx_mujoco_warp()
+    for name in ("put_model", "put_data", "forward", "step"):
+        assert callable(getattr(mjwarp, name, None)), f"{upstream.MJX_MUJOCO_WARP}.{name} is gone"
+    load = upstream.warp_module_class().load
+    assert list(inspect.signature(load).parameters)[:3] == ["self", "device", "block_dim"]
+    for name in ("force_load", "capture_while", "capture_if", "get_suggested_block_size"):
+        assert callable(getattr(warp, name, None)), f"warp.{name} is gone"
+    model, _ = warp_model
+    assert isinstance(upstream.mjx_warp_options(model).warn_overflow, int)
+
+
 def test_missing_warp_fields_raise_naming_them():
     with pytest.raises(upstream.UpstreamChanged, match=r"mujoco\.mjx\.Data\._impl is gone"):
         upstream.warp_overflow_flags(SimpleNamespace(qpos=0))

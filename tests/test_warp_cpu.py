@@ -39,6 +39,7 @@ def test_a_tiny_robot_run_trains_on_warp_and_records_it(warp_on_cpu, tmp_path, c
     code, stdout, err = main([*TINY_T1, "--out", str(out)], capsys)
     assert code == 0, err
     assert "physics: MuJoCo Warp (--impl warp)" in stdout
+    assert "not compiled ahead" not in err  # (the kernels' precompile worked)
     saved = json.loads((out / "config.json").read_text())
     assert saved["impl"] == "warp" and saved["njmax"] is None
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
@@ -109,6 +110,26 @@ def test_the_precompile_lists_every_module_a_robot_step_launches(warp_on_cpu, mo
     launched = _modules_loaded_by(real_steps)
     assert len(launched) >= 20
     assert {name for name in launched if not name.startswith("mujoco.mjx.warp")} <= listed
+
+    # On a GPU, Warp answers a block-size query by loading the module's default variant (on a
+    # CPU it answers (1, 1) unasked): the listing lets that load happen, and goes on.
+    import warp
+
+    queried = []
+
+    def cuda_like_query(kernel, device=None):
+        exec_ = kernel.module.load(warp.get_device(device))
+        if exec_ is None:
+            raise RuntimeError(f"Failed to load module for kernel '{kernel.key}'")
+        queried.append(kernel.module)
+        return 64, 2
+
+    monkeypatch.setattr(warp, "get_suggested_block_size", cuda_like_query)
+    step = warp_kernels._mujoco_warp_step(task.mj_model, options, **handed[0])
+    again = {m.name for group in warp_kernels.listed_modules(step).values() for m in group}
+    assert any("broadphase" in module.name for module in queried)
+    assert again == listed
+    assert warp.get_suggested_block_size is cuda_like_query  # (put back after the listing)
 
 
 def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkeypatch, capsys):

@@ -47,6 +47,8 @@ __all__ = [
     "load",
     "make",
     "names",
+    "precompile_sizes",
+    "prepare_warp",
     "push_overrides",
     "randomization",
     "randomized_field_names",
@@ -265,16 +267,20 @@ def prepare_warp(task: Any, config: Any, options: EnvOptions) -> None:
     """Readies a Playground ``task`` made on Warp (``config``: its default config): quiets its
     solver's iteration-limit warnings, then compiles Warp's kernels for its model ahead, on
     several threads (:func:`td3_jax.envs.warp_kernels.precompile_task`), sized as the run's
-    buffers are (:func:`warp_overrides`)."""
+    buffers are (:func:`precompile_sizes`)."""
     physics.quiet_solver_limits(task)
+    warp_kernels.precompile_task(task, **precompile_sizes(config, options))
+
+
+def precompile_sizes(config: Any, options: EnvOptions) -> dict[str, int | None]:
+    """``njmax`` (constraints per environment, as :func:`warp_overrides` sets them) and
+    ``naconmax`` (one environment's contacts) of the task's ``config`` for the precompile's one
+    world; ``None`` where the config has no such size."""
     njmax = options.njmax if options.njmax is not None else config.get("njmax")
     naconmax = config.get("naconmax")  # (for all of Playground's worlds: one world's share)
     one_world = options.nconmax or max(1, int(naconmax or 0) // physics.PLAYGROUND_WORLDS)
-    warp_kernels.precompile_task(
-        task,
-        njmax=None if njmax is None else int(njmax),
-        naconmax=None if naconmax is None else one_world,
-    )
+    return {"njmax": None if njmax is None else int(njmax),
+            "naconmax": None if naconmax is None else int(one_world)}  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------

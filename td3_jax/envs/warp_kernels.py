@@ -20,11 +20,15 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
+from td3_jax import upstream
+
 __all__ = [
+    "MAX_WORKERS",
     "PRECOMPILE",
     "Precompiled",
     "default_workers",
@@ -42,38 +46,65 @@ MAX_WORKERS = 8
 
 
 class Precompiled(NamedTuple):
-    """What :func:`precompile` did: the modules it loaded and how long that took."""
+    """What :func:`precompile` did: the modules it loaded (a module launched with two block
+    sizes counts twice: each is compiled) and how long that took."""
 
     modules: int
     seconds: float
 
 
+#: One listing at a time: its patches are the process's.
+_LISTING = threading.Lock()
+
+
 @contextlib.contextmanager
 def _loads_recorded(seen: dict[tuple[Any, Any], None]) -> Iterator[None]:
-    """Inside, a Warp module load is recorded in ``seen`` as ``(module, block_dim)`` and
-    returns nothing, so each launch stops before it runs a kernel; a conditional loop runs its
-    body once and a conditional runs both branches (no kernel sets their conditions)."""
+    """Inside, a Warp module load on this thread is recorded in ``seen`` as ``(module,
+    block_dim)`` and returns nothing, so each launch stops before it runs a kernel; a
+    conditional loop runs its body once and a conditional runs both branches (no kernel sets
+    their conditions). Other threads load and branch as usual. A block-size query (which loads
+    the module's default variant on a GPU to ask it) is answered for real."""
     import warp
-    from warp._src.context import Module
 
-    def load(module: Any, device: Any, block_dim: Any = None, *args: Any, **kwargs: Any) -> None:
+    module_class, owner = upstream.warp_module_class(), threading.get_ident()
+    real = (module_class.load, warp.capture_while, warp.capture_if, warp.get_suggested_block_size)
+    mine = threading.get_ident
+
+    def load(module: Any, device: Any, block_dim: Any = None, *args: Any, **kwargs: Any):
+        if mine() != owner:
+            return real[0](module, device, block_dim, *args, **kwargs)
         seen[(module, block_dim)] = None
+        return None
 
     def capture_while(condition: Any, while_body: Callable, stream: Any = None, **kwargs: Any):
-        while_body(**kwargs)
+        if mine() != owner:
+            return real[1](condition, while_body, stream, **kwargs)
+        return while_body(**kwargs)
 
     def capture_if(condition: Any, on_true: Any = None, on_false: Any = None, stream: Any = None,
                    **kwargs: Any) -> None:  # fmt: skip
+        if mine() != owner:
+            return real[2](condition, on_true, on_false, stream, **kwargs)
         for branch in (on_true, on_false):
             if callable(branch):
                 branch(**kwargs)
+        return None
 
-    saved = (Module.load, warp.capture_while, warp.capture_if)
-    Module.load, warp.capture_while, warp.capture_if = load, capture_while, capture_if
-    try:
-        yield
-    finally:
-        Module.load, warp.capture_while, warp.capture_if = saved
+    def suggested_block_size(kernel: Any, device: Any = None) -> tuple[int, int]:
+        module_class.load = real[0]
+        try:
+            return real[3](kernel, device)
+        finally:
+            module_class.load = load
+
+    with _LISTING:
+        module_class.load, warp.capture_while, warp.capture_if = load, capture_while, capture_if
+        warp.get_suggested_block_size = suggested_block_size
+        try:
+            yield
+        finally:
+            module_class.load, warp.capture_while, warp.capture_if = real[:3]
+            warp.get_suggested_block_size = real[3]
 
 
 def listed_modules(run: Callable[[], Any]) -> dict[Any, list[Any]]:
@@ -101,8 +132,8 @@ def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
     """MuJoCo Warp's forward and step of ``mj_model`` for one world, as MJX calls them, with
     ``options`` (:func:`static_options`) set on the model's options where it has them."""
     import mujoco
-    from mujoco.mjx.third_party import mujoco_warp as mjwarp
 
+    mjwarp = upstream.mjx_mujoco_warp()
     model = mjwarp.put_model(mj_model)
     for name, value in options.items():
         if hasattr(model.opt, name):
@@ -118,8 +149,9 @@ def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
 
 
 def default_workers() -> int:
-    """One thread per CPU core, at most :data:`MAX_WORKERS`."""
-    return max(1, min(os.cpu_count() or 1, MAX_WORKERS))
+    """One thread per CPU core this process may use, at most :data:`MAX_WORKERS`."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(cores or 1, MAX_WORKERS))
 
 
 def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: int | None = None,
@@ -148,10 +180,8 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     then compiled at its first launch, as without it."""
     if os.environ.get(PRECOMPILE) == "0":
         return None
-    from td3_jax import upstream
-
     try:
-        options = static_options(upstream.task_mjx_model(task).opt._impl)
+        options = static_options(upstream.mjx_warp_options(upstream.task_mjx_model(task)))
         done = precompile(task.mj_model, options=options, njmax=njmax, naconmax=naconmax)
     except Exception as err:  # (an optimisation: the run goes on without it)
         print(f"td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead ({err}); each "
