@@ -508,9 +508,7 @@ def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     name = _flag_value(args, "--preset")
     if "--resume" in args:
         if name:
-            raise ConfigError(
-                "--preset cannot be combined with --resume (the run keeps its config)"
-            )
+            _check_resumed_preset(name, Path(out))
         if (Path(out) / CONFIG_FILE).exists():
             return load_config(Path(out)), None, "resume"
         return TrainConfig(), None, "resume"  # (train() says there is nothing to resume)
@@ -521,6 +519,21 @@ def _base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     if name:
         return dataclasses.replace(preset(name), env=env), name, "env"
     return device_defaults(env, accelerator=False), None, "device"
+
+
+def _check_resumed_preset(name: str, out: Path) -> None:
+    """A resume keeps its run's config: ``--preset`` may only name the preset the run was
+    started from (so the command that started it, plus ``--resume``, resumes it)."""
+    from td3_jax.rundir import load_run_info
+
+    try:
+        started = load_run_info(out).get("preset")
+    except Exception:  # (no or an unreadable config.json: train() says what is wrong)
+        return
+    if started != name:
+        was = f"--preset {started}" if started else "no preset"
+        raise ConfigError(f"--preset {name} given but the run was started with {was}; a resume "
+                          "keeps its run's config (leave --preset out)")  # fmt: skip
 
 
 def _given_fields(args: list[str]) -> set[str]:

@@ -489,6 +489,10 @@ def _check_environment(cfg: TrainConfig) -> None:
     if cfg.env_backend not in _BACKENDS:
         raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; "
                           f"choose one of {', '.join(_BACKENDS)}")  # fmt: skip
+    if cfg.env.startswith("brax/") and cfg.env_backend in ("jax", "warp"):
+        raise ConfigError(f"--env-backend {cfg.env_backend} is Playground's physics (--impl); "
+                          "Brax's backends are generalized, mjx, positional and "
+                          "spring")  # fmt: skip
     if cfg.impl not in (None, "warp", "jax"):
         raise ConfigError(f"unknown --impl {cfg.impl!r}; choose warp or jax")
     physics_flags = [flag(n) for n in ("impl", "nconmax", "njmax") if getattr(cfg, n) is not None]

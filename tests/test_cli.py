@@ -224,6 +224,21 @@ def test_a_resume_refuses_a_fixed_setting_before_advising_on_its_value(tmp_path,
     assert "try --batch-size" not in err
 
 
+def test_a_resume_may_repeat_the_preset_it_was_started_from(tmp_path):
+    """The command that started a run, plus --resume, resumes it (a requeued job's pattern):
+    its own --preset is kept; another preset is refused, naming both."""
+    out = tmp_path / "run"
+    (out / "checkpoints" / "1").mkdir(parents=True)
+    saved = preset("pendulum")
+    rundir.save_config(saved, rundir.members(saved), out, {"preset": "pendulum"})
+    same = ["train", "--preset", "pendulum", "--out", str(out), "--resume"]
+    assert cli._base_config(same) == (rundir.load_config(out), None, "resume")
+    other = ["train", "--preset", "ant", "--out", str(out), "--resume"]
+    with pytest.raises(config.ConfigError, match="--preset ant given but the run was started "
+                                                 "with --preset pendulum; "):  # fmt: skip
+        cli._base_config(other)
+
+
 def test_a_resume_given_the_eval_every_the_run_was_started_with_keeps_its_chunk(tmp_path):
     """A fresh run takes --eval-every 3000 of 16 environments as 188 iterations (3008 steps,
     config.json's value); the same flags with --resume are that chunk, not a change."""

@@ -418,3 +418,15 @@ def test_a_sweep_that_repeats_a_value_or_a_swept_flag_is_one_line(args, says, tm
     code, _, err = main(["sweep", *args, "--out", str(out)], capsys)
     assert_one_line_error(code, err, says)
     assert not out.exists()
+
+
+def test_playgrounds_physics_names_as_a_brax_backend_are_one_clear_error():
+    """--env-backend jax/warp name Playground's physics (an alias of --impl): with a Brax
+    environment they were Brax's own traceback; now one line naming Brax's backends."""
+    for backend in ("jax", "warp"):
+        cfg = TrainConfig(env="brax/inverted_pendulum", env_backend=backend)
+        with pytest.raises(ConfigError, match=f"--env-backend {backend} is Playground's physics"
+                                              r" \(--impl\); Brax's backends are generalized, "
+                                              "mjx, positional and spring"):  # fmt: skip
+            validate(cfg)
+    validate(TrainConfig(env="brax/inverted_pendulum", env_backend="spring"))
