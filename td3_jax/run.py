@@ -25,6 +25,7 @@ from td3_jax import programs, tracking
 from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, validate
+from td3_jax.envs import warp_kernels
 from td3_jax.errors import ConfigError, NonFiniteError, OutputWriteError, PhysicsOverflowError
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, plot_curve
 from td3_jax.population import Member
@@ -99,7 +100,9 @@ def train(
     """
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
-    prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir, env)
+    with warp_kernels.beside_compile():  # (Warp's kernels compile while XLA's programs do)
+        prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir,
+                            env)  # fmt: skip
     cfg, population, changes, source = prepared
     run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
@@ -213,6 +216,7 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
         cached = " (or loading it from the cache)" if source.stored is not None else ""
         print(f"compiling the training program{cached}...", flush=True)
     compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
+    warp_kernels.wait_ready()  # (before the first physics step)
     return compiled, compiled.init() if state is None else state
 
 

@@ -146,3 +146,69 @@ def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkey
     err = capsys.readouterr().err
     assert err.startswith("td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead (")
     assert err.rstrip().endswith("each compiles at its first use instead")
+
+
+def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
+    monkeypatch, capsys
+):
+    """Inside ``beside_compile`` the task's precompile starts on another thread and the caller
+    goes on at once; ``wait_ready`` waits for it and says so; a failure there is the usual
+    warning. Outside, it runs on the caller's thread."""
+    import threading
+
+    from td3_jax.envs import warp_kernels
+
+    release, ran_on = threading.Event(), []
+
+    def slow(task, njmax, naconmax):
+        ran_on.append(threading.get_ident())
+        assert release.wait(10)
+        if task == "broken":
+            raise RuntimeError("no such kernel")
+        return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
+
+    monkeypatch.setattr(warp_kernels, "_task_precompile", slow)
+    with warp_kernels.beside_compile():
+        assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
+    assert warp_kernels._PENDING and not warp_kernels._PENDING[0].outcome  # (still running)
+    release.set()
+    assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
+    assert ran_on[0] != threading.get_ident()
+    out = capsys.readouterr().out
+    assert "MuJoCo Warp: 37 kernel modules ready in 2 s" in out and "waited" in out
+    assert warp_kernels.wait_ready() == [] and capsys.readouterr().out == ""  # (nothing left)
+
+    with warp_kernels.beside_compile():
+        warp_kernels.precompile_task("broken", njmax=1, naconmax=1)
+    assert warp_kernels.wait_ready() == []
+    assert "not compiled ahead (no such kernel)" in capsys.readouterr().err
+
+    assert warp_kernels.precompile_task("t1", njmax=5, naconmax=1) == (5, 2.0)
+    assert ran_on[-1] == threading.get_ident() and not warp_kernels._PENDING
+
+
+def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops_them(
+    monkeypatch,
+):
+    import warp
+
+    from td3_jax.envs import warp_kernels
+
+    loaded = []
+
+    def force_load(device, modules, block_dim, max_workers):
+        assert max_workers == 0 and len(modules) == 1
+        if modules[0] == "bad":
+            raise RuntimeError("nvrtc: error")
+        loaded.append((modules[0], block_dim))
+
+    monkeypatch.setattr(warp, "force_load", force_load)
+    groups = {None: [f"m{i}" for i in range(20)], 64: ["m0", "x"]}
+    warp_kernels._compile_modules(groups, workers=3)
+    assert sorted(loaded, key=str) == sorted(
+        [(f"m{i}", None) for i in range(20)] + [("m0", 64), ("x", 64)], key=str
+    )
+    loaded.clear()
+    with pytest.raises(RuntimeError, match="nvrtc"):
+        warp_kernels._compile_modules({None: ["bad", *(f"m{i}" for i in range(50))]}, workers=1)
+    assert loaded == []  # (one thread: nothing taken after the failure)

@@ -12,13 +12,17 @@ them loaded. A module the listing misses is compiled at its first launch, as wit
 own glue is one: its module is made at MJX's first call).
 
 :func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
-call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off.
+call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compile` (a training
+run's environment is made there) it runs on a thread of its own while the caller goes on to
+trace and compile its XLA programs, and :func:`wait_ready` waits for it before the first
+physics step: Warp's compile then costs the run only what XLA's does not cover.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import queue
 import sys
 import threading
 import time
@@ -31,11 +35,13 @@ __all__ = [
     "MAX_WORKERS",
     "PRECOMPILE",
     "Precompiled",
+    "beside_compile",
     "default_workers",
     "listed_modules",
     "precompile",
     "precompile_task",
     "static_options",
+    "wait_ready",
 ]
 
 #: Set to 0, Warp compiles each kernel module at its first launch (one at a time), as it does
@@ -91,6 +97,8 @@ def _loads_recorded(seen: dict[tuple[Any, Any], None]) -> Iterator[None]:
         return None
 
     def suggested_block_size(kernel: Any, device: Any = None) -> tuple[int, int]:
+        if mine() != owner:  # (swapping the load here could leave the recording one installed)
+            return real[3](kernel, device)
         module_class.load = real[0]
         try:
             return real[3](kernel, device)
@@ -154,6 +162,40 @@ def default_workers() -> int:
     return max(1, min(cores or 1, MAX_WORKERS))
 
 
+def _compile_modules(groups: dict[Any, list[Any]], workers: int) -> None:
+    """Compiles and loads every module of ``groups`` (block size -> modules) on Warp's default
+    device, ``workers`` threads taking one module at a time. A thread takes no new module once
+    the main thread has ended (a process that stops waits for the modules in hand only); the
+    first failure stops them all and is raised."""
+    import warp
+
+    device, jobs = warp.get_device(), queue.SimpleQueue()
+    for block_dim, modules in groups.items():
+        for module in modules:
+            jobs.put((module, block_dim))
+    failures: list[BaseException] = []
+
+    def work() -> None:
+        while not failures and threading.main_thread().is_alive():
+            try:
+                module, block_dim = jobs.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                warp.force_load(device, modules=[module], block_dim=block_dim, max_workers=0)
+            except Exception as err:  # (raised below, on the calling thread)
+                failures.append(err)
+
+    threads = [threading.Thread(target=work, name=f"td3-jax-warp-compile-{i}")
+               for i in range(max(1, workers))]  # fmt: skip
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    if failures:
+        raise failures[0]
+
+
 def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: int | None = None,
                naconmax: int | None = None, workers: int | None = None) -> Precompiled:  # fmt: skip
     """Compiles and loads the Warp modules of MuJoCo Warp's forward and step of ``mj_model``
@@ -161,15 +203,87 @@ def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: i
     :func:`default_workers`). ``njmax``/``naconmax``: the constraint and contact buffers the
     run uses (they decide which kernels some steps launch); ``options``: MJX's
     (:func:`static_options`)."""
-    import warp
-
     start = time.perf_counter()
     groups = listed_modules(_mujoco_warp_step(mj_model, options or {}, njmax, naconmax))
-    workers = workers or default_workers()
-    device = warp.get_device()
-    for block_dim, modules in groups.items():
-        warp.force_load(device, modules=modules, block_dim=block_dim, max_workers=workers)
+    _compile_modules(groups, workers or default_workers())
     return Precompiled(sum(map(len, groups.values())), time.perf_counter() - start)
+
+
+class _Pending(NamedTuple):
+    """A precompile running on its own thread (:func:`beside_compile`); ``outcome`` holds its
+    :class:`Precompiled` or its exception once the thread ends."""
+
+    thread: threading.Thread
+    outcome: list[Precompiled | BaseException]
+
+
+#: Where precompile_task runs its precompile on a thread: set inside beside_compile, per thread.
+_BESIDE = threading.local()
+#: The precompiles started beside a compile and not yet waited for (wait_ready).
+_PENDING: list[_Pending] = []
+
+
+@contextlib.contextmanager
+def beside_compile() -> Iterator[None]:
+    """Inside, :func:`precompile_task` (called by this thread) starts the precompile on a
+    thread of its own and returns at once; :func:`wait_ready` waits for it. A training run
+    makes its environment inside, then traces and compiles its programs while Warp's kernels
+    compile."""
+    before = getattr(_BESIDE, "on", False)
+    _BESIDE.on = True
+    try:
+        yield
+    finally:
+        _BESIDE.on = before
+
+
+def wait_ready() -> list[Precompiled]:
+    """Waits for every precompile started beside a compile, says for each how long it took and
+    how long this waited (a failure: the warning :func:`precompile_task` gives), and returns
+    those that finished. Nothing started: ``[]`` at once."""
+    done = []
+    while _PENDING:
+        pending = _PENDING.pop(0)
+        start = time.perf_counter()
+        pending.thread.join()
+        outcome = pending.outcome[0]
+        if isinstance(outcome, BaseException):
+            _warn_failed(outcome)
+            continue
+        _say_ready(outcome, f"; waited {time.perf_counter() - start:.0f} s for them")
+        done.append(outcome)
+    return done
+
+
+def _warn_failed(err: BaseException) -> None:
+    print(f"td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead ({err}); each "
+          "compiles at its first use instead", file=sys.stderr)  # fmt: skip
+
+
+def _say_ready(done: Precompiled, waited: str = "") -> None:
+    if done.seconds >= 1.0:
+        print(f"MuJoCo Warp: {done.modules} kernel modules ready in {done.seconds:.0f} s "
+              f"(compiled on {default_workers()} threads, or loaded from its cache{waited})",
+              flush=True)  # fmt: skip
+
+
+def _task_precompile(task: Any, njmax: int | None, naconmax: int | None) -> Precompiled:
+    options = static_options(upstream.mjx_warp_options(upstream.task_mjx_model(task)))
+    return precompile(task.mj_model, options=options, njmax=njmax, naconmax=naconmax)
+
+
+def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
+    outcome: list[Precompiled | BaseException] = []
+
+    def run() -> None:
+        try:
+            outcome.append(_task_precompile(task, njmax, naconmax))
+        except BaseException as err:  # (reported by wait_ready, on the caller's thread)
+            outcome.append(err)
+
+    thread = threading.Thread(target=run, name="td3-jax-warp-precompile")
+    _PENDING.append(_Pending(thread, outcome))
+    thread.start()
 
 
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:
@@ -177,20 +291,17 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     of the MJX model it simulates; ``njmax``: its constraints per environment, ``naconmax``:
     contacts for one environment. Says how long it took where that was a second or more. Off
     (``None``) where :data:`PRECOMPILE` is 0; a failure is a warning (``None``): each module is
-    then compiled at its first launch, as without it."""
+    then compiled at its first launch, as without it. Inside :func:`beside_compile`: started on
+    a thread of its own (``None`` at once; :func:`wait_ready` reports it)."""
     if os.environ.get(PRECOMPILE) == "0":
         return None
-    try:
-        options = static_options(upstream.mjx_warp_options(upstream.task_mjx_model(task)))
-        done = precompile(task.mj_model, options=options, njmax=njmax, naconmax=naconmax)
-    except Exception as err:  # (an optimisation: the run goes on without it)
-        print(f"td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead ({err}); each "
-              "compiles at its first use instead", file=sys.stderr)  # fmt: skip
+    if getattr(_BESIDE, "on", False):
+        _start_beside(task, njmax, naconmax)
         return None
-    if done.seconds >= 1.0:
-        print(
-            f"MuJoCo Warp: {done.modules} kernel modules ready in {done.seconds:.0f} s "
-            f"(compiled on {default_workers()} threads, or loaded from its cache)",
-            flush=True,
-        )
+    try:
+        done = _task_precompile(task, njmax, naconmax)
+    except Exception as err:  # (an optimisation: the run goes on without it)
+        _warn_failed(err)
+        return None
+    _say_ready(done)
     return done
