@@ -35,6 +35,7 @@ from td3_jax import envs, replay, training
 from td3_jax import population as pop
 from td3_jax.config import (
     SWEEPABLE,
+    SWITCHED_ON_BY_THEIR_FLAG,
     TrainConfig,
     flag,
     flag_pattern,
@@ -380,7 +381,19 @@ def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]])
     idle = sorted(name for name in sweep if name in unused)
     if idle:
         raise ConfigError("sweeping " + "; ".join(
-            f"{name} changes nothing with {unused[name]}" for name in idle))  # fmt: skip
+            f"{name} changes nothing with {unused[name]}{_switch_on_hint(name, sweep, cfg)}"
+            for name in idle))  # fmt: skip
+
+
+def _switch_on_hint(name: str, sweep: dict[str, list[float]], cfg: TrainConfig) -> str:
+    """For a swept option left off that its own flag turns on: which flag to add, and that its
+    value does not matter (each member takes the sweep's)."""
+    if name not in SWITCHED_ON_BY_THEIR_FLAG or getattr(cfg, name) is not None:
+        return ""
+    return (
+        f": add {flag(name)} with any value, e.g. {flag(name)} {sweep[name][0]:g} (each "
+        "member takes its swept value)"
+    )
 
 
 def _validate_combinations(cfg: TrainConfig, names: list[str], combos: list[tuple]) -> None:

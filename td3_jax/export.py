@@ -221,29 +221,31 @@ def _member(tree: Any, k: int) -> Any:
     return jax.tree.map(lambda x: np.asarray(x[k]), tree)
 
 
-def restore_checkpoint(run_dir: Path) -> tuple[Any, Any, Any, dict]:
+def restore_checkpoint(run_dir: Path, env: Any = None) -> tuple[Any, Any, Any, dict]:
     """``(config, population program, state, meta)`` of a run's newest good checkpoint,
-    restored onto one device (as :func:`td3_jax.finished.evaluate_run` does)."""
+    restored onto one device (as :func:`td3_jax.finished.evaluate_run` does; ``env``: the
+    environment object of a run trained on one)."""
     from td3_jax import finished, rundir
 
     rundir.load_config(run_dir)  # one line for a directory without config.json
     if not rundir.checkpoint_steps(run_dir):  # (before the environment is made)
         raise rundir.no_checkpoint_error(run_dir)
-    cfg, _, program = finished.run_program(Path(run_dir))
+    cfg, _, program = finished.run_program(Path(run_dir), env=env)
     state, meta = finished.restore_on_one_device(program, run_dir)
     return cfg, program, state, meta
 
 
-def load_run_policy(run_dir: Path, member: int | None = None) -> PolicyArrays:
+def load_run_policy(run_dir: Path, member: int | None = None, env: Any = None) -> PolicyArrays:
     """The :class:`PolicyArrays` of member ``member`` of the run in ``run_dir`` (default: the
-    best by the checkpoint's evaluation in metrics.jsonl, else member 0)."""
+    best by the checkpoint's evaluation in metrics.jsonl, else member 0; ``env``: the
+    environment object of a run trained on one)."""
     from td3_jax import rundir
     from td3_jax.logger import read_metrics
 
     if member is not None:  # a bad --member fails before the (slower) restore
         cfg = rundir.load_config(run_dir)
         choose_member(member, len(rundir.load_members(run_dir, cfg)), [], 0)
-    cfg, program, state, meta = restore_checkpoint(run_dir)
+    cfg, program, state, meta = restore_checkpoint(run_dir, env)
     env_steps = int(meta.get("env_steps", 0))
     records = read_metrics(Path(run_dir) / "metrics.jsonl")
     k = choose_member(member, len(program.members), records, env_steps)
@@ -426,10 +428,11 @@ def summary(policy: PolicyArrays) -> str:
 
 
 def export_run(
-    run_dir: Path, fmt: str, out: Path | None = None, member: int | None = None
+    run_dir: Path, fmt: str, out: Path | None = None, member: int | None = None, env: Any = None
 ) -> tuple[Path, PolicyArrays]:
     """Exports a run's policy (:func:`load_run_policy`) as ``fmt`` to ``out`` (default
-    :func:`default_output`); returns ``(path written, policy)``."""
+    :func:`default_output`); returns ``(path written, policy)``. ``env``: the environment
+    object of a run trained on one."""
     if fmt not in FORMATS:
         raise ExportError(f"--format {fmt!r} is not one of {', '.join(FORMATS)}")
     if fmt == "onnx":
@@ -444,7 +447,7 @@ def export_run(
     if out.is_dir() or not out.parent.is_dir():
         why = "is a directory" if out.is_dir() else f"has no folder {out.parent}"
         raise ExportError(f"--out {out} {why}")
-    policy = load_run_policy(Path(run_dir), member)
+    policy = load_run_policy(Path(run_dir), member, env)
     try:
         return (save_onnx if fmt == "onnx" else save_npz)(policy, out), policy
     except OSError as err:

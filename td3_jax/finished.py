@@ -17,9 +17,10 @@ import jax
 import numpy as np
 
 from td3_jax import population as pop
-from td3_jax.build import make_population
+from td3_jax.build import bind_environment, make_population
 from td3_jax.checkpoint import Checkpointer
 from td3_jax.config import ConfigError, TrainConfig
+from td3_jax.envs.custom import OBJECT_PREFIX
 from td3_jax.population import Member, Population
 from td3_jax.programs import run_compiled
 from td3_jax.rundir import (
@@ -55,16 +56,19 @@ def restore_state(population: Population, out_dir: Path, keep: int = 3, sharding
 
 
 def run_program(
-    out_dir: Path, eval_envs: int | None = None
+    out_dir: Path, eval_envs: int | None = None, env: Any = None
 ) -> tuple[TrainConfig, list[Member], Population]:
     """``(config, members, program)`` of a run directory; nothing is compiled or restored yet.
     The program's state is the run's own (its checkpoints restore into it); with ``eval_envs``
     its evaluation runs that many episodes after the chunk, also for a run that evaluated
-    inside its chunks (whose checkpoints hold its own evaluation worlds). A factory's
-    environment must be the one the run trained on (:func:`check_environment_unchanged`)."""
+    inside its chunks (whose checkpoints hold its own evaluation worlds). ``env``: the
+    environment object of a run trained on one (``object/<name>``: none can be made from
+    config.json). A factory's or object's environment must be the one the run trained on
+    (:func:`check_environment_unchanged`)."""
     cfg = _physics_here(load_config(out_dir))
     population = load_members(out_dir, cfg)
-    program = make_population(cfg, population)
+    made = _handed_environment(cfg, env)
+    program = make_population(cfg, population, env=made)
     check_environment_unchanged(out_dir, cfg.env, program.spec.env)
     if eval_envs is None:
         return cfg, population, program
@@ -72,6 +76,23 @@ def run_program(
     evaluating = pop.make_population(spec, program.hyperparams, population)
     evaluating = evaluating._replace(abstract_state=program.abstract_state)
     return dataclasses.replace(cfg, eval_envs=eval_envs), population, evaluating
+
+
+def _handed_environment(cfg: TrainConfig, env: Any) -> Any:
+    """The environment ``env`` made for ``cfg``'s run (``None``: none handed, made from
+    config.json); a ConfigError where the run did not train on an object."""
+    if env is None:
+        return None
+    if not cfg.env.startswith(OBJECT_PREFIX):
+        raise ConfigError(
+            f"env= is for a run trained on an environment object; this run trained on "
+            f"{cfg.env}, which td3-jax makes itself: leave env= out"
+        )
+    bound, made = bind_environment(cfg, env)
+    if bound.env != cfg.env:
+        raise ConfigError(f"this run trained on {cfg.env}; the environment handed over is "
+                          f"{bound.env}: hand over the run's own")  # fmt: skip
+    return made
 
 
 def _physics_here(cfg: TrainConfig) -> TrainConfig:
@@ -98,15 +119,16 @@ def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict
 
 
 def evaluate_run(
-    out_dir: Path, episodes: int, seed: int
+    out_dir: Path, episodes: int, seed: int, env: Any = None
 ) -> tuple[TrainConfig, list[Member], dict, np.ndarray]:
     """Re-evaluates every member of a run's newest checkpoint on ``episodes`` episodes.
 
     Returns ``(config, members, checkpoint meta, returns [members, episodes])``; member ``k``
     uses the ``k``-th key of ``jax.random.split(PRNGKey(seed), members)``. Restores onto one
-    device, whatever device count wrote the checkpoint.
+    device, whatever device count wrote the checkpoint. ``env``: the environment object of a
+    run trained on one (:func:`run_program`).
     """
-    cfg, population, program = run_program(out_dir, eval_envs=episodes)
+    cfg, population, program = run_program(out_dir, eval_envs=episodes, env=env)
     state, meta = restore_on_one_device(program, out_dir)
     keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
     with awaiting_device():  # (a Ctrl-C leaves the evaluation running on the device)

@@ -348,17 +348,18 @@ def split_episodes(recording: training.Recording) -> tuple[list[np.ndarray], lis
 
 
 def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int | None = None,
-            check: Any = None) -> Rollout:  # fmt: skip
+            check: Any = None, env: Any = None) -> Rollout:  # fmt: skip
     """``episodes`` episodes of member ``member`` (default: :func:`choose_member`) of the newest
     checkpoint in ``run_dir``, as ``td3-jax eval --episodes episodes --seed seed`` runs them.
 
     ``check(env)``, if given, runs once the environment is made, before anything compiles.
+    ``env``: the environment object of a run trained on one.
     """
     from td3_jax.finished import restore_on_one_device, run_program
     from td3_jax.programs import run_compiled
     from td3_jax.runtime import awaiting_device
 
-    cfg, population, program = run_program(run_dir, eval_envs=episodes)
+    cfg, population, program = run_program(run_dir, eval_envs=episodes, env=env)
     choose_member(run_dir, len(population), member)  # a bad --member fails before compiling
     check_renderable(program.env)
     if check is not None:
@@ -421,7 +422,8 @@ def video_path(run_dir: Path, out: Path | None, gif: bool) -> Path:
 
 def write_video(path: Path, frames: np.ndarray, fps: float) -> Path:
     """Writes ``frames [n, h, w, 3]`` (uint8) to ``path``: H.264 MP4 (imageio-ffmpeg; odd
-    sizes are padded to even) or a looping GIF (Pillow), by its suffix."""
+    sizes are padded to even) or a looping GIF (Pillow), by its suffix. ``OSError`` where
+    nothing was written."""
     import imageio.v2 as imageio
 
     path = Path(path)
@@ -429,10 +431,18 @@ def write_video(path: Path, frames: np.ndarray, fps: float) -> Path:
     if path.suffix.lower() == ".gif":
         imageio.mimwrite(path, list(frames), format="GIF", duration=1000.0 / fps, loop=0)
         return path
+    before = _written(path)
     with _forking():
         imageio.mimwrite(path, list(frames), format="FFMPEG", fps=fps, macro_block_size=2,
                          ffmpeg_log_level="error")  # fmt: skip
+    if _written(path) in (before, None) or path.stat().st_size == 0:  # (ffmpeg says why only)
+        raise OSError(f"ffmpeg wrote nothing to {path}")
     return path
+
+
+def _written(path: Path) -> int | None:
+    """When ``path`` was last written (ns), ``None`` where it is no file."""
+    return path.stat().st_mtime_ns if path.is_file() else None
 
 
 def check_scene(env: envs.Environment, camera: str | None) -> None:
@@ -466,6 +476,27 @@ def check_writer(path: Path) -> None:
                           "pip install 'td3-jax[render]'")  # fmt: skip
 
 
+def check_destination(path: Path) -> None:
+    """Raises :class:`RenderError` before a rollout when ``path`` cannot be written: a folder of
+    that name, a folder that cannot be made, or one this process may not write in. (A missing
+    folder is made.)"""
+    path = Path(path)
+    if path.is_dir():
+        raise RenderError(f"--out {path} is a directory; name the video file (.mp4 or .gif)")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise RenderError(f"--out {path}: cannot make its folder ({err.strerror or err})") from err
+    existed = path.exists()
+    try:
+        with open(path, "ab"):  # (a real write: permissions, a read-only disk, /proc)
+            pass
+    except OSError as err:
+        raise RenderError(f"--out {path}: cannot write it ({err.strerror or err})") from err
+    if not existed:
+        path.unlink()
+
+
 def check_settings(episodes: int, width: int, height: int, fps: float) -> None:
     """Raises :class:`RenderError` for a non-positive count, size or rate."""
     for name, value in (("episodes", episodes), ("width", width), ("height", height),
@@ -476,18 +507,23 @@ def check_settings(episodes: int, width: int, height: int, fps: float) -> None:
 
 def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345,
                member: int | None = None, camera: str | None = None, width: int = 320,
-               height: int = 240, fps: float = 30.0) -> Rendered:  # fmt: skip
+               height: int = 240, fps: float = 30.0, env: Any = None) -> Rendered:  # fmt: skip
     """Renders ``episodes`` evaluation episodes of a run (:func:`rollout`,
-    :func:`rollout_frames`) one after the other into the video ``out``."""
+    :func:`rollout_frames`) one after the other into the video ``out`` (``env``: the
+    environment object of a run trained on one)."""
     check_settings(episodes, width, height, fps)
     check_writer(out)
+    check_destination(out)
     from td3_jax.rundir import require_run_dir
 
     require_run_dir(run_dir)  # (the line eval and plot give)
     result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
-                     check=functools.partial(check_scene, camera=camera))  # fmt: skip
+                     check=functools.partial(check_scene, camera=camera), env=env)  # fmt: skip
     frames = rollout_frames(result, camera=camera, width=width, height=height)
-    write_video(out, np.concatenate(frames), fps)
+    try:
+        write_video(out, np.concatenate(frames), fps)
+    except OSError as err:  # (a disk that filled during the rollout)
+        raise RenderError(f"--out {out}: cannot write it ({err.strerror or err})") from err
     return Rendered(Path(out), result.member, [len(f) for f in frames],
                     [float(r) for r in result.returns], result.env_steps)  # fmt: skip
 

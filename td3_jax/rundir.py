@@ -684,15 +684,16 @@ def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
 
 def environment_record(env_name: str, env: Environment | None) -> dict:
     """config.json's ``environment`` entry for a run of a factory (``env_name`` is
-    ``module.path:function``): ``env``'s sizes, bounds and time limit
-    (:func:`td3_jax.envs.custom.signature`), so that a later ``--resume``, ``eval``, ``render``
-    or ``export`` notices a changed factory; ``{}`` for environments known by name."""
-    return {"environment": custom.signature(env)} if ":" in env_name else {}
+    ``module.path:function``) or of an object (``object/<name>``): ``env``'s sizes, bounds and
+    time limit (:func:`td3_jax.envs.custom.signature`), so that a later ``--resume``, ``eval``,
+    ``render`` or ``export`` notices a changed factory or another object; ``{}`` for
+    environments known by name."""
+    return {"environment": custom.signature(env)} if custom.is_custom(env_name) else {}
 
 
 def check_environment_unchanged(out_dir: Path, env_name: str, env: Environment | None) -> None:
-    """Raises :class:`~td3_jax.errors.CustomEnvironmentError` when a factory run's environment
-    ``env``, made now, differs from what its config.json recorded (nothing to check for
-    environments known by name)."""
-    if ":" in env_name:
+    """Raises :class:`~td3_jax.errors.CustomEnvironmentError` when a factory's or object's run
+    environment ``env``, made or handed now, differs from what its config.json recorded
+    (nothing to check for environments known by name)."""
+    if custom.is_custom(env_name) and env is not None:
         custom.check_unchanged(env_name, load_run_info(out_dir).get("environment"), env)

@@ -1451,6 +1451,14 @@ def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys
     assert kwargs["sweep"] == {"return_bound": [1.0, 5.0], "max_grad_norm": [0.5, 2.0]}
     bounds = sorted(dict(m.overrides)["return_bound"] for m in members(cfg, kwargs["sweep"]))
     assert bounds == [1.0, 1.0, 5.0, 5.0]
+    # without --max-grad-norm, the refusal says which flag to add and that any value will do
+    off = dataclasses.replace(cfg, max_grad_norm=None)
+    with pytest.raises(config.ConfigError) as refused:
+        members(off, {"max_grad_norm": [0.5, 2.0]})
+    assert str(refused.value) == (
+        "sweeping max_grad_norm changes nothing with no --max-grad-norm (that flag turns it "
+        "on): add --max-grad-norm with any value, e.g. --max-grad-norm 0.5 (each member takes "
+        "its swept value)")  # fmt: skip
 
 
 def test_preset_source_note_names_the_flags_that_came_from_the_preset():

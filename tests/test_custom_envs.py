@@ -526,6 +526,27 @@ def test_a_run_of_an_object_records_it_and_resumes_only_with_it(tmp_path, capsys
                     resume=True, progress=False)  # fmt: skip
     assert [r["env_steps"] for r in records] == [64] and records[0]["env"] == "object/drift"
 
+    # from Python, eval and export take the object too; another object is refused by name or
+    # by what the policy depends on (here its action bounds), a run made by name refuses one
+    from td3_jax import export, finished
+    from td3_jax.errors import ConfigError, CustomEnvironmentError
+
+    _, _, meta, returns = finished.evaluate_run(out, episodes=3, seed=0, env=drift(limit=8))
+    assert returns.shape == (1, 3) and np.all(returns < 0) and meta["env_steps"] == 64
+    path, policy = export.export_run(out, "npz", tmp_path / "p.npz", env=drift(limit=8))
+    assert path.stat().st_size > 0 and policy.env_steps == 64
+    wider = dataclasses.replace(drift(limit=8), action_high=2.0)
+    with pytest.raises(
+        CustomEnvironmentError, match=re.escape("action_high [1.0, 1.0] then, [2.0, 2.0] now")
+    ):
+        finished.evaluate_run(out, episodes=3, seed=0, env=wider)
+    with pytest.raises(CustomEnvironmentError, match="another environment than the one"):
+        train(dataclasses.replace(cfg, total_steps=96), out, env=wider, resume=True,
+              progress=False)  # fmt: skip
+    renamed = dataclasses.replace(drift(limit=8), name="other")
+    with pytest.raises(ConfigError, match="trained on object/drift; the environment handed"):
+        finished.evaluate_run(out, episodes=3, seed=0, env=renamed)
+
 
 # ---------------------------------------------------------------------------------------------
 # several devices, and the example learning

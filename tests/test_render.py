@@ -236,3 +236,23 @@ def test_export_and_render_say_a_member_out_of_range_alike(tmp_path, capsys, see
     with pytest.raises(errors.RenderError, match=re.escape(said)) as caught:
         render.choose_member(tmp_path, seeds, member)
     assert not isinstance(caught.value, errors.ExportError)
+
+
+def test_a_video_that_cannot_be_written_is_refused_before_the_rollout(tmp_path):
+    """``check_destination`` writes for real (root passes permission checks; /proc does not
+    take files) and leaves nothing behind; a missing folder is made; and ffmpeg, which only
+    prints why it wrote nothing, is caught by :func:`render.write_video` itself."""
+    with pytest.raises(render.RenderError, match="is a directory"):
+        render.check_destination(tmp_path)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(render.RenderError, match="cannot make its folder"):
+        render.check_destination(tmp_path / "file" / "v.mp4")
+    if Path("/proc/self").is_dir():
+        with pytest.raises(render.RenderError, match="cannot write it"):
+            render.check_destination(Path("/proc/v.mp4"))
+        with pytest.raises(OSError, match="ffmpeg wrote nothing"):
+            render.write_video(Path("/proc/v.mp4"), np.zeros((2, 8, 8, 3), np.uint8), 10.0)
+    render.check_destination(tmp_path / "new" / "v.mp4")
+    assert (tmp_path / "new").is_dir() and not (tmp_path / "new" / "v.mp4").exists()
+    video = render.write_video(tmp_path / "new" / "v.mp4", np.zeros((2, 8, 8, 3), np.uint8), 10.0)
+    assert video.stat().st_size > 0

@@ -121,8 +121,10 @@ def object_run_error(name: str) -> CustomEnvironmentError:
     """The error for making ``object/...`` again: a run handed an object records only that."""
     return CustomEnvironmentError(
         f"{name} was handed to td3-jax as a Python object, which config.json cannot record: pass "
-        "the object again (td3_jax.run.train(cfg, out, env=obj, resume=True)), or train with a "
-        "factory (--env module.path:function) so that --resume, eval, render and export find it"
+        "the object again (env=obj to td3_jax.run.train with resume=True, "
+        "td3_jax.finished.evaluate_run, td3_jax.export.export_run or td3_jax.render.render_run), "
+        "or train with a factory (--env module.path:function) so that the CLI's --resume, eval, "
+        "render and export find it"
     )
 
 
@@ -148,11 +150,17 @@ def check_unchanged(name: str, recorded: dict[str, Any] | None, env: Environment
     now = signature(env)
     differ = [f"{key} {recorded.get(key)} then, {now[key]} now" for key in now
               if key in recorded and recorded[key] != now[key]]  # fmt: skip
-    if differ:
+    if not differ:
+        return
+    if name.startswith(OBJECT_PREFIX):
         raise CustomEnvironmentError(
-            f"{name} makes another environment than the one this run trained on "
-            f"({'; '.join(differ)}): did the factory change? Restore it, or start a new run"
+            f"the {name} handed over now is another environment than the one this run trained "
+            f"on ({'; '.join(differ)}): hand over that one, or start a new run"
         )
+    raise CustomEnvironmentError(
+        f"{name} makes another environment than the one this run trained on "
+        f"({'; '.join(differ)}): did the factory change? Restore it, or start a new run"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
