@@ -513,10 +513,10 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     environment object of a run trained on one)."""
     check_settings(episodes, width, height, fps)
     check_writer(out)
-    check_destination(out)
     from td3_jax.rundir import require_run_dir
 
-    require_run_dir(run_dir)  # (the line eval and plot give)
+    require_run_dir(run_dir)  # (the line eval and plot give; before a folder is made)
+    check_destination(out)
     result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
                      check=functools.partial(check_scene, camera=camera), env=env)  # fmt: skip
     frames = rollout_frames(result, camera=camera, width=width, height=height)

@@ -25,6 +25,8 @@ import json
 import os
 import socket
 import time
+import types
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -648,7 +650,52 @@ def load_config(out_dir: Path) -> TrainConfig:
         # written before --impl: Playground ran on Warp with --env-backend warp, else on JAX
         raw["impl"] = "warp" if raw.get("env_backend") == "warp" else "jax"
     known = {f.name for f in dataclasses.fields(TrainConfig)}
-    return TrainConfig(**{k: v for k, v in raw.items() if k in known})
+    settings = {k: v for k, v in raw.items() if k in known}
+    _check_setting_types(settings, Path(out_dir) / CONFIG_FILE)
+    return TrainConfig(**settings)
+
+
+def _check_setting_types(settings: dict[str, Any], path: Path) -> None:
+    """A one-line ConfigError for a setting of config.json whose JSON value is not of its
+    field's type (a hand-edited ``"num_envs": "4"``), rather than a traceback later."""
+    hints = typing.get_type_hints(TrainConfig)
+    for name, value in settings.items():
+        if not _json_fits(value, hints[name]):
+            raise ConfigError(f"{path}: {name} is {json.dumps(value)} (expected "
+                              f"{_type_name(hints[name])}); was the file edited? Restore its "
+                              "value")  # fmt: skip
+
+
+def _json_fits(value: Any, hint: Any) -> bool:
+    """Whether the JSON value ``value`` is one of ``hint`` (int, float, bool, str, a Literal,
+    a union with None, ``tuple[int, ...]``)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_json_fits(value, arm) for arm in args)
+    if origin is typing.Literal:
+        return value in args
+    if origin is tuple:
+        return isinstance(value, list | tuple) and all(_json_fits(v, args[0]) for v in value)
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _type_name(hint: Any) -> str:
+    """``hint`` as a reader would say it: "int or null", "one of 'td3', 'ddpg'"."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(arm) for arm in args)
+    if origin is typing.Literal:
+        return "one of " + ", ".join(json.dumps(a) for a in args)
+    if origin is tuple:
+        return "a list of integers" if args[0] is int else "a list"
+    names = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+    return "null" if hint is type(None) else names.get(hint, hint.__name__)
 
 
 def load_run_info(out_dir: Path) -> dict:

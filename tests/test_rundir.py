@@ -384,6 +384,28 @@ def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
     assert rundir.run_info(tmp_path, resume=False, preset=None, changes={}, at_env_steps=0) == {}
 
 
+@pytest.mark.parametrize(
+    ("name", "value", "expected"),
+    [("num_envs", "4", "an integer"), ("seed", True, "an integer"),
+     ("algo", None, 'one of "td3", "ddpg"'), ("impl", "cuda", 'one of "warp", "jax" or null'),
+     ("hidden_sizes", [1.5], "a list of integers or null"), ("expl_noise", "0.1", "a number")],
+)  # fmt: skip
+def test_a_hand_edited_setting_of_the_wrong_type_is_one_line_naming_it(
+    tmp_path, name, value, expected
+):
+    """Every setting config.json writes reads back; one edited to another JSON type is a
+    ConfigError naming the setting, its value and the type, not a traceback later."""
+    rundir.save_config(SMALL, [Member(seed=0)], tmp_path, {})
+    path = tmp_path / "config.json"
+    raw = json.loads(path.read_text())
+    raw[name] = value
+    path.write_text(json.dumps(raw))
+    with pytest.raises(ConfigError) as refused:
+        rundir.load_config(tmp_path)
+    assert str(refused.value) == (f"{path}: {name} is {json.dumps(value)} (expected {expected}); "
+                                  "was the file edited? Restore its value")  # fmt: skip
+
+
 #: SMALL as config.json records it (the settings it leaves to TD3 as TD3's values).
 SMALL_AS_USED = dataclasses.replace(SMALL, actor_lr=1e-3, critic_lr=1e-3, tau=0.005)
 #: A sweep of two actor learning rates and one tau, two seeds each.
