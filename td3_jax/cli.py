@@ -41,6 +41,7 @@ from td3_jax.config import (
     flag_pattern,
     idle_flags,
     idle_wandb_flags,
+    rounding_note,
     validate,
     whole_iterations,
 )
@@ -607,30 +608,6 @@ def _defaults_note(cfg: TrainConfig, name: str | None, source: str) -> str | Non
         f"no preset for {cfg.env}: the {device} defaults apply where no flag is given (this "
         f"run: {cfg.num_envs} environments, {cfg.total_steps} steps; --preset NAME picks one)"
     )
-
-
-def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str | None:
-    """The line saying that ``--eval-every`` runs as whole iterations and ``--total-steps`` as
-    whole chunks, and that an ``asked_eval_every`` longer than the run was lowered to
-    ``--total-steps`` (:func:`~td3_jax.config.eval_every_within_run`); None when nothing
-    changed."""
-    notes = []
-    asked = cfg.eval_every if asked_eval_every is None else asked_eval_every
-    if asked != cfg.eval_every and asked > cfg.total_steps:
-        notes.append(f"--eval-every {asked} is longer than --total-steps "
-                     f"{cfg.total_steps}: evaluating at its end instead")  # fmt: skip
-    elif cfg.steps_per_chunk != asked:
-        notes.append(f"--eval-every {asked} runs as {cfg.steps_per_chunk} (whole "
-                     f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
-    runs = cfg.run_steps
-    if runs != cfg.total_steps:
-        how = "--eval-every sets them"
-        if cfg.eval_in_chunk:  # (eval_every_within_run keeps such a chunk: a round must fit)
-            how += (", with --eval-in-chunk down to one evaluation episode's iterations; "
-                    "--no-eval-in-chunk ends the run at --total-steps")  # fmt: skip
-        notes.append(f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
-                     f"{cfg.steps_per_chunk} steps between evaluations; {how})")  # fmt: skip
-    return "; ".join(notes) or None
 
 
 def unnamed_env_warning(cfg: TrainConfig, preset_name: str | None, source: str,

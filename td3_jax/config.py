@@ -441,6 +441,30 @@ def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     return rounded_up if rounded_up.run_steps < cfg.run_steps else cfg
 
 
+def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str | None:
+    """The line saying that ``--eval-every`` runs as whole iterations and ``--total-steps`` as
+    whole chunks, and that an ``asked_eval_every`` longer than the run was lowered to
+    ``--total-steps`` (:func:`~td3_jax.config.eval_every_within_run`); None when nothing
+    changed."""
+    notes = []
+    asked = cfg.eval_every if asked_eval_every is None else asked_eval_every
+    if asked != cfg.eval_every and asked > cfg.total_steps:
+        notes.append(f"--eval-every {asked} is longer than --total-steps "
+                     f"{cfg.total_steps}: evaluating at its end instead")  # fmt: skip
+    elif cfg.steps_per_chunk != asked:
+        notes.append(f"--eval-every {asked} runs as {cfg.steps_per_chunk} (whole "
+                     f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
+    runs = cfg.run_steps
+    if runs != cfg.total_steps:
+        how = "--eval-every sets them"
+        if cfg.eval_in_chunk:  # (eval_every_within_run keeps such a chunk: a round must fit)
+            how += (", with --eval-in-chunk down to one evaluation episode's iterations; "
+                    "--no-eval-in-chunk ends the run at --total-steps")  # fmt: skip
+        notes.append(f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
+                     f"{cfg.steps_per_chunk} steps between evaluations; {how})")  # fmt: skip
+    return "; ".join(notes) or None
+
+
 def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
     """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work, on
     its own or on ``devices`` devices (the run's mesh: its global sizes split over them);
@@ -664,6 +688,7 @@ __all__ = [
     "flag",
     "idle_flags",
     "idle_wandb_flags",
+    "rounding_note",
     "unused_settings",
     "validate",
     "whole_iterations",

@@ -24,7 +24,7 @@ import numpy as np
 from td3_jax import programs, tracking
 from td3_jax.build import bind_environment, members
 from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
-from td3_jax.config import TrainConfig, validate
+from td3_jax.config import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.envs import warp_kernels
 from td3_jax.errors import ConfigError, NonFiniteError, OutputWriteError, PhysicsOverflowError
 from td3_jax.logger import WRITE_ERRNOS, MetricsLogger, plot_curve
@@ -100,6 +100,8 @@ def train(
     """
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
+    if not resume:  # (as the CLI does: a resume keeps the chunk its checkpoints were written with)
+        cfg = _eval_every_within_run(cfg, say=progress and writer)
     with warp_kernels.beside_compile():  # (Warp's kernels compile while XLA's programs do)
         prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir,
                             env)  # fmt: skip
@@ -114,6 +116,16 @@ def train(
     finally:
         _finish(run, run_lock)
     return run.records
+
+
+def _eval_every_within_run(cfg: TrainConfig, say: bool) -> TrainConfig:
+    """``cfg`` with ``eval_every`` as whole iterations and at most the run
+    (:func:`~td3_jax.config.eval_every_within_run`); ``say``: print what changed (the CLI
+    hands it over changed already, and says so itself)."""
+    changed = eval_every_within_run(cfg)
+    if say and changed.eval_every != cfg.eval_every:
+        print(rounding_note(changed, cfg.eval_every), flush=True)
+    return changed
 
 
 def check_time_budget(seconds: float | None) -> None:

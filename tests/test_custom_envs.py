@@ -614,3 +614,22 @@ def test_the_example_learns_to_reach_the_target():
     returns = [float(r) for r in evaluations.split(", ")]
     assert returns[-1] > random_return / 3 and returns[-1] > returns[0]
     assert "learned" in proc.stdout
+
+
+@pytest.mark.runs
+def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, capsys):
+    """4 environments: --eval-every 30 is not whole iterations; 32 (3 chunks, 96 steps) trains
+    fewer steps past 90 than 28 (4 chunks, 112). An eval_every past the run is lowered to it
+    (64 steps: one evaluation at the end, not a chunk of 200). Nothing is said without
+    progress."""
+    from td3_jax import run
+
+    cfg = TrainConfig(**{**TINY, "eval_every": 30, "total_steps": 90})
+    records = train(cfg, tmp_path / "run", env=drift(limit=8), progress=True)
+    assert [r["env_steps"] for r in records] == [32, 64, 96]
+    out = capsys.readouterr().out
+    assert "--eval-every 30 runs as 32 (whole iterations of 4 env steps)" in out
+    lowered = run._eval_every_within_run(dataclasses.replace(cfg, eval_every=200, total_steps=64),
+                                         say=False)  # fmt: skip
+    assert lowered.eval_every == 64 and lowered.run_steps == 64
+    assert capsys.readouterr().out == ""
