@@ -390,6 +390,9 @@ def _switch_on_hint(name: str, sweep: dict[str, list[float]], cfg: TrainConfig) 
     value does not matter (each member takes the sweep's)."""
     if name not in SWITCHED_ON_BY_THEIR_FLAG or getattr(cfg, name) is not None:
         return ""
+    if name in ("expl_noise_min", "expl_noise_max"):  # (they go together: per-env noise)
+        return (": add --expl-noise-min and --expl-noise-max, which go together (each member "
+                f"takes its swept {flag(name)})")  # fmt: skip
     return (
         f": add {flag(name)} with any value, e.g. {flag(name)} {sweep[name][0]:g} (each "
         "member takes its swept value)"

@@ -320,13 +320,33 @@ def _value_error(command_type: type, args: list[str], text: str) -> str | None:
     if not kinds:
         return None
     flag, (kind, several) = match.group(1), kinds
-    given = [a.split("=", 1)[1] for a in args if a.startswith(flag + "=")][:1]
-    if flag in args:
-        after = args[args.index(flag) + 1 :]
-        given = list(itertools.takewhile(lambda a: not a.startswith("--"), after))
+    given = _first_unparsed(_flag_values(args, flag), kind)
     what = "whole number" if kind is int else "number"
     what = f"{what}s" if several else f"a {what}"
     return f"{flag} takes {what}, got {' '.join(map(repr, given)) or 'nothing'}"
+
+
+def _flag_values(args: list[str], flag: str) -> list[list[str]]:
+    """The values given to ``flag`` each time it appears in ``args`` (``--flag=v`` or
+    ``--flag v ...``), in order."""
+    found = []
+    for i, arg in enumerate(args):
+        if arg.startswith(flag + "="):
+            found.append([arg.split("=", 1)[1]])
+        elif arg == flag:
+            found.append(list(itertools.takewhile(lambda a: not a.startswith("--"), args[i + 1 :])))
+    return found
+
+
+def _first_unparsed(occurrences: list[list[str]], kind: type) -> list[str]:
+    """The values of the first occurrence that ``kind`` cannot read (the one the parser
+    refused: ``--num-envs 4 --num-envs x`` refuses ``x``), else the last one."""
+    for values in occurrences:
+        try:
+            [kind(value) for value in values]
+        except ValueError:
+            return values
+    return occurrences[-1] if occurrences else []
 
 
 def _invalid_choice(text: str) -> str | None:
@@ -1056,8 +1076,9 @@ def plot_main(args: list[str]) -> None:
         load_config(command.run)  # (not a run directory, or one still starting: it says)
         holder = holder_for_reader(command.run)
         if holder is None:
-            raise ConfigError(f"{command.run} has no evaluation to plot: its run stopped "
-                              "before its first")  # fmt: skip
+            raise ConfigError(f"{command.run} has no evaluation to plot (none in its "
+                              "metrics.jsonl): its run stopped before its first evaluation, or "
+                              "the file was removed")  # fmt: skip
         raise ConfigError(f"{command.run} has no evaluation yet: a td3-jax run ({holder}) is "
                           "training it; plot again after its first evaluation")  # fmt: skip
     print(path)

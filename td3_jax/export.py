@@ -427,6 +427,37 @@ def summary(policy: PolicyArrays) -> str:
     )
 
 
+def check_output(out: Path, fmt: str) -> None:
+    """Raises :class:`ExportError` where ``out`` cannot take a ``fmt`` policy: a suffix other
+    than ``.fmt`` (none is fine), a directory, a missing folder, or an existing file that
+    td3-jax did not export (overwriting a policy file of its own is fine: a second export of a
+    run)."""
+    if out.suffix and out.suffix.lower() != f".{fmt}":
+        raise ExportError(
+            f"--out {out}: --format {fmt} writes a .{fmt} file; end the name in .{fmt}"
+        )
+    if out.is_dir():
+        raise ExportError(f"--out {out} is a directory")
+    if not out.parent.is_dir():
+        what = "is a file" if out.parent.exists() else "does not exist"
+        raise ExportError(f"--out {out}: its folder {out.parent} {what}")
+    if out.exists() and not _exported_by_td3_jax(out, fmt):
+        raise ExportError(f"--out {out} exists and is not a policy td3-jax exported: remove "
+                          "it or choose another name")  # fmt: skip
+
+
+def _exported_by_td3_jax(path: Path, fmt: str) -> bool:
+    """Whether ``path`` is a ``fmt`` policy file td3-jax wrote (npz: its format_version
+    array; onnx: its producer name)."""
+    try:
+        if fmt == "npz":
+            with np.load(path, allow_pickle=False) as arrays:
+                return "format_version" in arrays.files
+        return b"td3-jax" in path.read_bytes()[:4096]  # (ONNX's producer_name comes first)
+    except (OSError, ValueError):  # (not a zip, unreadable)
+        return False
+
+
 def export_run(
     run_dir: Path, fmt: str, out: Path | None = None, member: int | None = None, env: Any = None
 ) -> tuple[Path, PolicyArrays]:
@@ -441,12 +472,7 @@ def export_run(
 
     require_run_dir(run_dir)  # (the line eval and plot give)
     out = Path(out) if out is not None else default_output(run_dir, fmt)
-    other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower(), fmt)
-    if other != fmt:
-        raise ExportError(f"--out {out} names an .{other} file but --format is {fmt}")
-    if out.is_dir() or not out.parent.is_dir():
-        why = "is a directory" if out.is_dir() else f"has no folder {out.parent}"
-        raise ExportError(f"--out {out} {why}")
+    check_output(out, fmt)
     policy = load_run_policy(Path(run_dir), member, env)
     try:
         return (save_onnx if fmt == "onnx" else save_npz)(policy, out), policy
@@ -458,6 +484,7 @@ __all__ = [
     "FORMATS",
     "ExportError",
     "PolicyArrays",
+    "check_output",
     "export_run",
     "extract_policy",
     "load_run_policy",

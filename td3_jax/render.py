@@ -483,6 +483,9 @@ def check_destination(path: Path) -> None:
     path = Path(path)
     if path.is_dir():
         raise RenderError(f"--out {path} is a directory; name the video file (.mp4 or .gif)")
+    blocking = next((up for up in path.parents if up.exists() and not up.is_dir()), None)
+    if blocking is not None:
+        raise RenderError(f"--out {path}: {blocking} is a file, not a folder")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

@@ -369,6 +369,10 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
         ("eval",): "td3-jax eval needs --run (see td3-jax eval --help)",
         ("train", "--num-envs", "many", "--out", out):
             "--num-envs takes a whole number, got 'many'",
+        ("train", "--num-envs", "4", "--total-steps=800", "--num-envs", "x", "--out", out):
+            "--num-envs takes a whole number, got 'x'",  # (the refused one of a repeated flag)
+        ("train", "--total-steps=4000", "--total-steps=nan", "--out", out):
+            "--total-steps takes a whole number, got 'nan'",
         # tyro's "Expected one of ('online', 'None', 'offline')" and "Expected 1 values."
         ("train", "--wandb-mode", "onine", "--out", out):
             "--wandb-mode 'onine' is not one of offline, online; did you mean online?",
@@ -649,7 +653,12 @@ def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
     shutil.copytree(finished_run[0], started)
     (started / "metrics.jsonl").unlink()
     code, _, err = main(["plot", "--run", str(started)], capsys)
-    assert_one_line_error(code, err, "has no evaluation to plot: its run stopped before its first")
+    assert_one_line_error(
+        code,
+        err,
+        "has no evaluation to plot (none in its metrics.jsonl): its "
+        "run stopped before its first evaluation, or the file was removed",
+    )
     lock = rundir.acquire_lock(started)  # a run training it, before its first evaluation
     try:
         code, _, err = main(["plot", "--run", str(started)], capsys)

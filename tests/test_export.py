@@ -392,23 +392,37 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
     no_checkpoint = tmp_path / "no_checkpoint"
     no_checkpoint.mkdir()
     shutil.copy(tiny_run / "config.json", no_checkpoint / "config.json")
+    notes, other = tmp_path / "notes.md", tmp_path / "someone_elses.npz"
+    notes.write_text("# not a policy\n")
+    np.savez(other, weights=np.zeros(3))
     cases = {
         ("--run", str(tmp_path), "--format", "npz"): "not a td3-jax run directory",
         ("--run", str(no_checkpoint), "--format", "npz"): "holds no checkpoint (its run stopped",
         ("--run", str(tiny_run), "--format", "tflite"): "--format 'tflite' is not one of onnx",
         ("--run", str(tiny_run), "--format", "npz", "--member", "2"): "out of range",
-        ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "a" / "b")):
-            "has no folder",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "a" / "b.npz")):
+            f"its folder {tmp_path / 'a'} does not exist",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(notes / "b.npz")):
+            f"its folder {notes} is a file",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "p.onnx")):
-            "names an .onnx file but --format is npz",
+            "--format npz writes a .npz file; end the name in .npz",
         ("--run", str(tiny_run), "--format", "onnx", "--out", str(tmp_path / "p.NPZ")):
-            "names an .npz file but --format is onnx",
+            "--format onnx writes a .onnx file",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(notes)):
+            "--format npz writes a .npz file",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(other)):
+            "exists and is not a policy td3-jax exported: remove it or choose another name",
     }  # fmt: skip
     for args, message in cases.items():
         code, stderr = cli_error(capsys, "export", *args)
         assert code == 2, stderr
         assert stderr.startswith("td3-jax: error: ") and message in stderr, stderr
         assert len(stderr.strip().splitlines()) == 1
+    assert notes.read_text() == "# not a policy\n" and list(np.load(other)) == ["weights"]
+    again = tmp_path / "p.npz"  # (a second export of a run replaces its own file)
+    for _ in range(2):
+        cli.main(["export", "--run", str(tiny_run), "--format", "npz", "--out", str(again)])
+        assert capsys.readouterr().out.splitlines()[0] == str(again)
     # and in a real process: exit status 2, one line, no traceback
     done = subprocess.run(
         [sys.executable, "-m", "td3_jax", "export", "--run", str(tmp_path), "--format", "npz"],

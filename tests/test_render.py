@@ -245,8 +245,8 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_rollout(tmp_path):
     with pytest.raises(render.RenderError, match="is a directory"):
         render.check_destination(tmp_path)
     (tmp_path / "file").write_text("")
-    with pytest.raises(render.RenderError, match="cannot make its folder"):
-        render.check_destination(tmp_path / "file" / "v.mp4")
+    with pytest.raises(render.RenderError, match="file is a file, not a folder"):
+        render.check_destination(tmp_path / "file" / "deeper" / "v.mp4")
     if Path("/proc/self").is_dir():
         with pytest.raises(render.RenderError, match="cannot write it"):
             render.check_destination(Path("/proc/v.mp4"))

@@ -151,9 +151,9 @@ def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkey
 def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
     monkeypatch, capsys
 ):
-    """Inside ``beside_compile`` the task's precompile starts on another thread and the caller
-    goes on at once; ``wait_ready`` waits for it and says so; a failure there is the usual
-    warning. Outside, it runs on the caller's thread."""
+    """Inside ``beside_compile``, on 8 cores, the task's precompile starts on another thread
+    and the caller goes on at once; ``wait_ready`` waits for it and says so; a failure there is
+    the usual warning. Outside, or on 2 cores, it runs on the caller's thread."""
     import threading
 
     from td3_jax.envs import warp_kernels
@@ -162,18 +162,23 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
 
     def slow(task, njmax, naconmax):
         ran_on.append(threading.get_ident())
-        assert release.wait(10)
+        assert task == "quick" or release.wait(10)
         if task == "broken":
             raise RuntimeError("no such kernel")
         return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
 
     monkeypatch.setattr(warp_kernels, "_task_precompile", slow)
+    monkeypatch.setattr(warp_kernels, "cores", lambda: 2)  # (too few: run first, as outside)
+    with warp_kernels.beside_compile():
+        assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
+    assert ran_on == [threading.get_ident()] and not warp_kernels._PENDING
+    monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
     assert warp_kernels._PENDING and not warp_kernels._PENDING[0].outcome  # (still running)
     release.set()
     assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
-    assert ran_on[0] != threading.get_ident()
+    assert ran_on[1] != threading.get_ident()
     out = capsys.readouterr().out
     assert "MuJoCo Warp: 37 kernel modules ready in 2 s" in out and "waited" in out
     assert warp_kernels.wait_ready() == [] and capsys.readouterr().out == ""  # (nothing left)

@@ -13,9 +13,10 @@ own glue is one: its module is made at MJX's first call).
 
 :func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
 call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compile` (a training
-run's environment is made there) it runs on a thread of its own while the caller goes on to
-trace and compile its XLA programs, and :func:`wait_ready` waits for it before the first
-physics step: Warp's compile then costs the run only what XLA's does not cover.
+run's environment is made there), on a machine of 8 cores or more, it runs on a thread of its
+own while the caller goes on to trace and compile its XLA programs, and :func:`wait_ready`
+waits for it before the first physics step: Warp's compile then costs the run only what XLA's
+does not cover.
 """
 
 from __future__ import annotations
@@ -32,10 +33,12 @@ from typing import Any, NamedTuple
 from td3_jax import upstream
 
 __all__ = [
+    "BESIDE_MIN_CORES",
     "MAX_WORKERS",
     "PRECOMPILE",
     "Precompiled",
     "beside_compile",
+    "cores",
     "default_workers",
     "listed_modules",
     "precompile",
@@ -49,6 +52,11 @@ __all__ = [
 PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
 #: At most this many modules compile at once (each compile holds its own compiler's memory).
 MAX_WORKERS = 8
+#: Beside a compile (:func:`beside_compile`), the precompile runs on its own thread only where
+#: the process may use this many cores; with fewer it runs first, as outside. (On 2 cores a tiny
+#: T1 run on Warp's CPU kernels took 233 s from launch with Warp compiling beside XLA, against
+#: 151-180 s one after the other: XLA's compile slowed by more than Warp's whole compile.)
+BESIDE_MIN_CORES = 8
 
 
 class Precompiled(NamedTuple):
@@ -156,10 +164,15 @@ def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
     return run
 
 
+def cores() -> int:
+    """The CPU cores this process may use."""
+    count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, count or 1)
+
+
 def default_workers() -> int:
     """One thread per CPU core this process may use, at most :data:`MAX_WORKERS`."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return max(1, min(cores or 1, MAX_WORKERS))
+    return min(cores(), MAX_WORKERS)
 
 
 def _compile_modules(groups: dict[Any, list[Any]], workers: int) -> None:
@@ -291,11 +304,12 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     of the MJX model it simulates; ``njmax``: its constraints per environment, ``naconmax``:
     contacts for one environment. Says how long it took where that was a second or more. Off
     (``None``) where :data:`PRECOMPILE` is 0; a failure is a warning (``None``): each module is
-    then compiled at its first launch, as without it. Inside :func:`beside_compile`: started on
-    a thread of its own (``None`` at once; :func:`wait_ready` reports it)."""
+    then compiled at its first launch, as without it. Inside :func:`beside_compile`, on a
+    machine of :data:`BESIDE_MIN_CORES` cores or more: started on a thread of its own (``None``
+    at once; :func:`wait_ready` reports it)."""
     if os.environ.get(PRECOMPILE) == "0":
         return None
-    if getattr(_BESIDE, "on", False):
+    if getattr(_BESIDE, "on", False) and cores() >= BESIDE_MIN_CORES:
         _start_beside(task, njmax, naconmax)
         return None
     try:
