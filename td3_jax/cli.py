@@ -343,7 +343,7 @@ def _first_unparsed(occurrences: list[list[str]], kind: type) -> list[str]:
     refused: ``--num-envs 4 --num-envs x`` refuses ``x``), else the last one."""
     for values in occurrences:
         try:
-            [kind(value) for value in values]
+            [kind(value) for value in values if value != "None"]  # (tyro's "leave it out")
         except ValueError:
             return values
     return occurrences[-1] if occurrences else []

@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -428,14 +429,12 @@ def summary(policy: PolicyArrays) -> str:
 
 
 def check_output(out: Path, fmt: str) -> None:
-    """Raises :class:`ExportError` where ``out`` cannot take a ``fmt`` policy: a suffix other
-    than ``.fmt`` (none is fine), a directory, a missing folder, or an existing file that
-    td3-jax did not export (overwriting a policy file of its own is fine: a second export of a
-    run)."""
-    if out.suffix and out.suffix.lower() != f".{fmt}":
-        raise ExportError(
-            f"--out {out}: --format {fmt} writes a .{fmt} file; end the name in .{fmt}"
-        )
+    """Raises :class:`ExportError` where ``out`` cannot take a ``fmt`` policy: the other
+    format's suffix, a directory, a missing folder, or an existing file that td3-jax did not
+    export (replacing a policy file of its own is fine: a second export of a run)."""
+    other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower(), fmt)
+    if other != fmt:
+        raise ExportError(f"--out {out} names an .{other} file but --format is {fmt}")
     if out.is_dir():
         raise ExportError(f"--out {out} is a directory")
     if not out.parent.is_dir():
@@ -447,15 +446,34 @@ def check_output(out: Path, fmt: str) -> None:
 
 
 def _exported_by_td3_jax(path: Path, fmt: str) -> bool:
-    """Whether ``path`` is a ``fmt`` policy file td3-jax wrote (npz: its format_version
-    array; onnx: its producer name)."""
+    """Whether ``path`` is a ``fmt`` policy file td3-jax wrote, read from its first bytes only:
+    an npz (a zip) holding ``format_version.npy``; an ONNX model whose header is its IR
+    version (field 1) then the producer name ``td3-jax`` (field 2)."""
     try:
         if fmt == "npz":
-            with np.load(path, allow_pickle=False) as arrays:
-                return "format_version" in arrays.files
-        return b"td3-jax" in path.read_bytes()[:4096]  # (ONNX's producer_name comes first)
-    except (OSError, ValueError):  # (not a zip, unreadable)
+            if not zipfile.is_zipfile(path):
+                return False
+            with zipfile.ZipFile(path) as archive:
+                return "format_version.npy" in archive.namelist()
+        with open(path, "rb") as file:
+            head = file.read(32)
+    except (OSError, zipfile.BadZipFile):
         return False
+    return _onnx_producer(head) == b"td3-jax"
+
+
+def _onnx_producer(head: bytes) -> bytes | None:
+    """The producer name in the first bytes of a serialised ONNX ModelProto (tag 0x08, the IR
+    version as a varint; tag 0x12, a length, the name), ``None`` where they are not that."""
+    if not head.startswith(b"\x08"):
+        return None
+    i = 1
+    while i < len(head) and head[i] & 0x80:  # (the varint's continuation bytes)
+        i += 1
+    if i + 2 >= len(head) or head[i + 1] != 0x12:
+        return None
+    length = head[i + 2]
+    return head[i + 3 : i + 3 + length]
 
 
 def export_run(

@@ -35,6 +35,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -490,14 +491,14 @@ def check_destination(path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise RenderError(f"--out {path}: cannot make its folder ({err.strerror or err})") from err
-    existed = path.exists()
-    try:
-        with open(path, "ab"):  # (a real write: permissions, a read-only disk, /proc)
-            pass
+    try:  # (a real write: permissions, a read-only disk, /proc)
+        if path.exists():
+            with open(path, "ab"):  # (neither truncated nor touched)
+                pass
+        else:  # (a new file beside it, removed: a dangling link at --out is left as it is)
+            tempfile.NamedTemporaryFile(dir=path.parent, suffix=path.suffix).close()
     except OSError as err:
         raise RenderError(f"--out {path}: cannot write it ({err.strerror or err})") from err
-    if not existed:
-        path.unlink()
 
 
 def check_settings(episodes: int, width: int, height: int, fps: float) -> None:

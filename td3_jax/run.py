@@ -76,7 +76,9 @@ def train(
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
-    Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
+    A fresh run's ``eval_every`` runs as whole iterations and at most the run
+    (:func:`~td3_jax.config.eval_every_within_run`, as the CLI does; with ``progress`` it says
+    so). Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
     throughout (:mod:`td3_jax.rundir`); a busy one, or a used one without ``resume``, is refused.
     A full disk stops it with :class:`~td3_jax.errors.OutputWriteError` (no half record kept).
 
@@ -102,11 +104,15 @@ def train(
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
     if not resume:  # (as the CLI does: a resume keeps the chunk its checkpoints were written with)
         cfg = _eval_every_within_run(cfg, say=progress and writer)
-    with warp_kernels.beside_compile():  # (Warp's kernels compile while XLA's programs do)
+    with warp_kernels.beside_compile():  # (Warp's kernels may compile while XLA's programs do)
         prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir,
                             env)  # fmt: skip
     cfg, population, changes, source = prepared
-    run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
+    try:
+        run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
+    except BaseException:
+        warp_kernels.drop_pending()
+        raise
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
                stop if stop is not None else StopToken(), env=source.env)  # fmt: skip
     try:
@@ -114,6 +120,7 @@ def train(
             on_prepared()
         _start_and_train(run, source, resume, progress, preset=preset, changes=changes)
     finally:
+        warp_kernels.drop_pending()  # (a run that ended before its first physics step)
         _finish(run, run_lock)
     return run.records
 
@@ -228,7 +235,7 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
         cached = " (or loading it from the cache)" if source.stored is not None else ""
         print(f"compiling the training program{cached}...", flush=True)
     compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
-    warp_kernels.wait_ready()  # (before the first physics step)
+    warp_kernels.wait_ready(run.stop)  # (before the first physics step)
     return compiled, compiled.init() if state is None else state
 
 

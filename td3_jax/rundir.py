@@ -680,8 +680,9 @@ def _json_fits(value: Any, hint: Any) -> bool:
         return value is None
     if hint is float:
         return isinstance(value, int | float) and not isinstance(value, bool)
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is int:  # (a whole float: TrainConfig(total_steps=1e6) from Python writes 1000000.0)
+        whole = isinstance(value, float) and value.is_integer()
+        return (isinstance(value, int) or whole) and not isinstance(value, bool)
     return isinstance(value, hint)
 
 

@@ -620,8 +620,7 @@ def test_the_example_learns_to_reach_the_target():
 def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, capsys):
     """4 environments: --eval-every 30 is not whole iterations; 32 (3 chunks, 96 steps) trains
     fewer steps past 90 than 28 (4 chunks, 112). An eval_every past the run is lowered to it
-    (64 steps: one evaluation at the end, not a chunk of 200). Nothing is said without
-    progress."""
+    (64 steps: one evaluation at the end, not a chunk of 200)."""
     from td3_jax import run
 
     cfg = TrainConfig(**{**TINY, "eval_every": 30, "total_steps": 90})
@@ -630,6 +629,6 @@ def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, ca
     out = capsys.readouterr().out
     assert "--eval-every 30 runs as 32 (whole iterations of 4 env steps)" in out
     lowered = run._eval_every_within_run(dataclasses.replace(cfg, eval_every=200, total_steps=64),
-                                         say=False)  # fmt: skip
+                                         say=True)  # fmt: skip
     assert lowered.eval_every == 64 and lowered.run_steps == 64
-    assert capsys.readouterr().out == ""
+    assert "--eval-every 200 is longer than --total-steps 64" in capsys.readouterr().out

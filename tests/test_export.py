@@ -405,11 +405,11 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
         ("--run", str(tiny_run), "--format", "npz", "--out", str(notes / "b.npz")):
             f"its folder {notes} is a file",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "p.onnx")):
-            "--format npz writes a .npz file; end the name in .npz",
+            "names an .onnx file but --format is npz",
         ("--run", str(tiny_run), "--format", "onnx", "--out", str(tmp_path / "p.NPZ")):
-            "--format onnx writes a .onnx file",
+            "names an .npz file but --format is onnx",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(notes)):
-            "--format npz writes a .npz file",
+            "exists and is not a policy td3-jax exported",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(other)):
             "exists and is not a policy td3-jax exported: remove it or choose another name",
     }  # fmt: skip
@@ -419,10 +419,17 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
         assert stderr.startswith("td3-jax: error: ") and message in stderr, stderr
         assert len(stderr.strip().splitlines()) == 1
     assert notes.read_text() == "# not a policy\n" and list(np.load(other)) == ["weights"]
-    again = tmp_path / "p.npz"  # (a second export of a run replaces its own file)
-    for _ in range(2):
-        cli.main(["export", "--run", str(tiny_run), "--format", "npz", "--out", str(again)])
-        assert capsys.readouterr().out.splitlines()[0] == str(again)
+    for fmt in ("npz", "onnx"):  # (a second export of a run replaces its own file)
+        again = tmp_path / f"p.{fmt}"
+        for _ in range(2):
+            cli.main(["export", "--run", str(tiny_run), "--format", fmt, "--out", str(again)])
+            assert capsys.readouterr().out.splitlines()[0] == str(again)
+    script = tmp_path / "train_t1"  # (no suffix, and it names td3-jax: still not a policy)
+    script.write_text("td3-jax train --preset t1\n")
+    code, stderr = cli_error(capsys, "export", "--run", str(tiny_run), "--format", "onnx",
+                             "--out", str(script))  # fmt: skip
+    assert code == 2 and "exists and is not a policy td3-jax exported" in stderr
+    assert script.read_text() == "td3-jax train --preset t1\n"
     # and in a real process: exit status 2, one line, no traceback
     done = subprocess.run(
         [sys.executable, "-m", "td3_jax", "export", "--run", str(tmp_path), "--format", "npz"],

@@ -388,14 +388,17 @@ def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
     ("name", "value", "expected"),
     [("num_envs", "4", "an integer"), ("seed", True, "an integer"),
      ("algo", None, 'one of "td3", "ddpg"'), ("impl", "cuda", 'one of "warp", "jax" or null'),
-     ("hidden_sizes", [1.5], "a list of integers or null"), ("expl_noise", "0.1", "a number")],
+     ("hidden_sizes", [1.5], "a list of integers or null"), ("expl_noise", "0.1", "a number"),
+     ("total_steps", 1000.5, "an integer")],
 )  # fmt: skip
 def test_a_hand_edited_setting_of_the_wrong_type_is_one_line_naming_it(
     tmp_path, name, value, expected
 ):
-    """Every setting config.json writes reads back; one edited to another JSON type is a
-    ConfigError naming the setting, its value and the type, not a traceback later."""
-    rundir.save_config(SMALL, [Member(seed=0)], tmp_path, {})
+    """Every setting config.json writes reads back (a whole float for an integer too, as a
+    config made in Python with ``total_steps=1e6`` writes); one edited to another JSON type
+    is a ConfigError naming the setting, its value and the type, not a traceback later."""
+    rundir.save_config(dataclasses.replace(SMALL, total_steps=1e3), [Member(seed=0)], tmp_path, {})
+    assert rundir.load_config(tmp_path).total_steps == 1000
     path = tmp_path / "config.json"
     raw = json.loads(path.read_text())
     raw[name] = value

@@ -151,9 +151,10 @@ def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkey
 def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
     monkeypatch, capsys
 ):
-    """Inside ``beside_compile``, on 8 cores, the task's precompile starts on another thread
-    and the caller goes on at once; ``wait_ready`` waits for it and says so; a failure there is
-    the usual warning. Outside, or on 2 cores, it runs on the caller's thread."""
+    """Inside ``beside_compile``, with TD3_JAX_WARP_BESIDE=1 on 8 cores, the task's precompile
+    starts on another thread and the caller goes on at once; ``wait_ready`` waits for it and
+    says so; a failure there is the usual warning; an error leaving the block drops it.
+    Outside, without the variable, or on 2 cores, it runs on the caller's thread."""
     import threading
 
     from td3_jax.envs import warp_kernels
@@ -167,18 +168,26 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
             raise RuntimeError("no such kernel")
         return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
 
-    monkeypatch.setattr(warp_kernels, "_task_precompile", slow)
-    monkeypatch.setattr(warp_kernels, "cores", lambda: 2)  # (too few: run first, as outside)
+    def precompile(mj_model, options, njmax, naconmax, cancel=None):
+        return slow(mj_model, njmax, naconmax)
+
+    monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
+    monkeypatch.setattr(warp_kernels, "precompile", precompile)
+    monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
+    with warp_kernels.beside_compile():  # (off by default: run first, as outside)
+        assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
+    monkeypatch.setenv(warp_kernels.BESIDE, "1")
+    monkeypatch.setattr(warp_kernels, "cores", lambda: 2)  # (too few cores: the same)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
-    assert ran_on == [threading.get_ident()] and not warp_kernels._PENDING
+    assert ran_on == [threading.get_ident()] * 2 and not warp_kernels._PENDING
     monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
     assert warp_kernels._PENDING and not warp_kernels._PENDING[0].outcome  # (still running)
     release.set()
     assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
-    assert ran_on[1] != threading.get_ident()
+    assert ran_on[2] != threading.get_ident()
     out = capsys.readouterr().out
     assert "MuJoCo Warp: 37 kernel modules ready in 2 s" in out and "waited" in out
     assert warp_kernels.wait_ready() == [] and capsys.readouterr().out == ""  # (nothing left)
@@ -188,6 +197,12 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     assert warp_kernels.wait_ready() == []
     assert "not compiled ahead (no such kernel)" in capsys.readouterr().err
 
+    # an error leaving beside_compile (the run will not wait) drops what it started
+    with pytest.raises(RuntimeError, match="busy"), warp_kernels.beside_compile():
+        warp_kernels.precompile_task("t1", njmax=9, naconmax=1)
+        raise RuntimeError("busy run directory")
+    assert not warp_kernels._PENDING
+
     assert warp_kernels.precompile_task("t1", njmax=5, naconmax=1) == (5, 2.0)
     assert ran_on[-1] == threading.get_ident() and not warp_kernels._PENDING
 
@@ -195,6 +210,8 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
 def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops_them(
     monkeypatch,
 ):
+    import threading
+
     import warp
 
     from td3_jax.envs import warp_kernels
@@ -209,7 +226,7 @@ def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops
 
     monkeypatch.setattr(warp, "force_load", force_load)
     groups = {None: [f"m{i}" for i in range(20)], 64: ["m0", "x"]}
-    warp_kernels._compile_modules(groups, workers=3)
+    assert warp_kernels._compile_modules(groups, workers=3) == 22
     assert sorted(loaded, key=str) == sorted(
         [(f"m{i}", None) for i in range(20)] + [("m0", 64), ("x", 64)], key=str
     )
@@ -217,3 +234,7 @@ def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops
     with pytest.raises(RuntimeError, match="nvrtc"):
         warp_kernels._compile_modules({None: ["bad", *(f"m{i}" for i in range(50))]}, workers=1)
     assert loaded == []  # (one thread: nothing taken after the failure)
+    cancel = threading.Event()
+    cancel.set()  # (a run that ended: nothing more is started, and the count says so)
+    assert warp_kernels._compile_modules({None: ["m1", "m2"]}, workers=2, cancel=cancel) == 0
+    assert loaded == []

@@ -12,11 +12,11 @@ them loaded. A module the listing misses is compiled at its first launch, as wit
 own glue is one: its module is made at MJX's first call).
 
 :func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
-call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compile` (a training
-run's environment is made there), on a machine of 8 cores or more, it runs on a thread of its
-own while the caller goes on to trace and compile its XLA programs, and :func:`wait_ready`
-waits for it before the first physics step: Warp's compile then costs the run only what XLA's
-does not cover.
+call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. With ``TD3_JAX_WARP_BESIDE=1``, inside
+:func:`beside_compile` (a training run's environment is made there), on a machine of 8 cores or
+more, it runs on a thread of its own while the caller goes on to trace and compile its XLA
+programs, and :func:`wait_ready` waits for it before the first physics step: Warp's compile
+then costs the run only what XLA's does not cover (not measured on a GPU yet).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from typing import Any, NamedTuple
 from td3_jax import upstream
 
 __all__ = [
+    "BESIDE",
     "BESIDE_MIN_CORES",
     "MAX_WORKERS",
     "PRECOMPILE",
@@ -40,6 +41,7 @@ __all__ = [
     "beside_compile",
     "cores",
     "default_workers",
+    "drop_pending",
     "listed_modules",
     "precompile",
     "precompile_task",
@@ -52,10 +54,13 @@ __all__ = [
 PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
 #: At most this many modules compile at once (each compile holds its own compiler's memory).
 MAX_WORKERS = 8
-#: Beside a compile (:func:`beside_compile`), the precompile runs on its own thread only where
-#: the process may use this many cores; with fewer it runs first, as outside. (On 2 cores a tiny
-#: T1 run on Warp's CPU kernels took 233 s from launch with Warp compiling beside XLA, against
-#: 151-180 s one after the other: XLA's compile slowed by more than Warp's whole compile.)
+#: Set to 1 (off by default until measured on a GPU), a training run's precompile runs on its
+#: own thread beside its XLA compile (:func:`beside_compile`).
+BESIDE = "TD3_JAX_WARP_BESIDE"
+#: ... and only where the process may use this many cores; with fewer it runs first. (On 2
+#: cores a tiny T1 run on Warp's CPU kernels took 233 s from launch with Warp compiling beside
+#: XLA, against 151-180 s one after the other: XLA's compile slowed by more than Warp's whole
+#: compile.)
 BESIDE_MIN_CORES = 8
 
 
@@ -175,11 +180,13 @@ def default_workers() -> int:
     return min(cores(), MAX_WORKERS)
 
 
-def _compile_modules(groups: dict[Any, list[Any]], workers: int) -> None:
-    """Compiles and loads every module of ``groups`` (block size -> modules) on Warp's default
-    device, ``workers`` threads taking one module at a time. A thread takes no new module once
-    the main thread has ended (a process that stops waits for the modules in hand only); the
-    first failure stops them all and is raised."""
+def _compile_modules(groups: dict[Any, list[Any]], workers: int,
+                     cancel: threading.Event | None = None) -> int:  # fmt: skip
+    """Compiles and loads the modules of ``groups`` (block size -> modules) on Warp's default
+    device, ``workers`` threads taking one module at a time; returns how many it loaded. A
+    thread takes no new module once ``cancel`` is set or the main thread has ended (a process
+    that stops waits for the modules in hand only); the first failure stops them all and is
+    raised."""
     import warp
 
     device, jobs = warp.get_device(), queue.SimpleQueue()
@@ -187,15 +194,21 @@ def _compile_modules(groups: dict[Any, list[Any]], workers: int) -> None:
         for module in modules:
             jobs.put((module, block_dim))
     failures: list[BaseException] = []
+    loaded: list[None] = []
+
+    def stopped() -> bool:
+        cancelled = cancel is not None and cancel.is_set()
+        return bool(failures) or cancelled or not threading.main_thread().is_alive()
 
     def work() -> None:
-        while not failures and threading.main_thread().is_alive():
+        while not stopped():
             try:
                 module, block_dim = jobs.get_nowait()
             except queue.Empty:
                 return
             try:
                 warp.force_load(device, modules=[module], block_dim=block_dim, max_workers=0)
+                loaded.append(None)
             except Exception as err:  # (raised below, on the calling thread)
                 failures.append(err)
 
@@ -207,27 +220,32 @@ def _compile_modules(groups: dict[Any, list[Any]], workers: int) -> None:
         thread.join()
     if failures:
         raise failures[0]
+    return len(loaded)
 
 
 def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: int | None = None,
-               naconmax: int | None = None, workers: int | None = None) -> Precompiled:  # fmt: skip
+               naconmax: int | None = None, workers: int | None = None,
+               cancel: threading.Event | None = None) -> Precompiled:  # fmt: skip
     """Compiles and loads the Warp modules of MuJoCo Warp's forward and step of ``mj_model``
     (a ``mujoco.MjModel``) on Warp's default device, ``workers`` at a time (default:
     :func:`default_workers`). ``njmax``/``naconmax``: the constraint and contact buffers the
     run uses (they decide which kernels some steps launch); ``options``: MJX's
-    (:func:`static_options`)."""
+    (:func:`static_options`); ``cancel``: once set, no further module is started. The count
+    is of the modules loaded."""
     start = time.perf_counter()
     groups = listed_modules(_mujoco_warp_step(mj_model, options or {}, njmax, naconmax))
-    _compile_modules(groups, workers or default_workers())
-    return Precompiled(sum(map(len, groups.values())), time.perf_counter() - start)
+    loaded = _compile_modules(groups, workers or default_workers(), cancel)
+    return Precompiled(loaded, time.perf_counter() - start)
 
 
 class _Pending(NamedTuple):
     """A precompile running on its own thread (:func:`beside_compile`); ``outcome`` holds its
-    :class:`Precompiled` or its exception once the thread ends."""
+    :class:`Precompiled` or its exception once the thread ends; ``cancel`` stops it taking
+    further modules."""
 
     thread: threading.Thread
     outcome: list[Precompiled | BaseException]
+    cancel: threading.Event
 
 
 #: Where precompile_task runs its precompile on a thread: set inside beside_compile, per thread.
@@ -238,34 +256,53 @@ _PENDING: list[_Pending] = []
 
 @contextlib.contextmanager
 def beside_compile() -> Iterator[None]:
-    """Inside, :func:`precompile_task` (called by this thread) starts the precompile on a
-    thread of its own and returns at once; :func:`wait_ready` waits for it. A training run
-    makes its environment inside, then traces and compiles its programs while Warp's kernels
-    compile."""
+    """Inside, where :data:`BESIDE` is 1 and the machine has :data:`BESIDE_MIN_CORES` cores,
+    :func:`precompile_task` (called by this thread) starts the precompile on a thread of its
+    own and returns at once; :func:`wait_ready` waits for it. A training run makes its
+    environment inside, then traces and compiles its programs while Warp's kernels compile.
+    An exception leaving it drops the precompiles started inside (:func:`drop_pending`)."""
     before = getattr(_BESIDE, "on", False)
     _BESIDE.on = True
     try:
         yield
+    except BaseException:  # (the caller will not wait for them)
+        drop_pending()
+        raise
     finally:
         _BESIDE.on = before
 
 
-def wait_ready() -> list[Precompiled]:
+def wait_ready(stop: Any = None) -> list[Precompiled]:
     """Waits for every precompile started beside a compile, says for each how long it took and
     how long this waited (a failure: the warning :func:`precompile_task` gives), and returns
-    those that finished. Nothing started: ``[]`` at once."""
+    those that finished. Nothing started: ``[]`` at once. ``stop`` (a
+    :class:`~td3_jax.runtime.StopToken`): once set, the precompiles are dropped
+    (:func:`drop_pending`) and it raises as the token does."""
     done = []
-    while _PENDING:
-        pending = _PENDING.pop(0)
-        start = time.perf_counter()
-        pending.thread.join()
-        outcome = pending.outcome[0]
-        if isinstance(outcome, BaseException):
-            _warn_failed(outcome)
-            continue
-        _say_ready(outcome, f"; waited {time.perf_counter() - start:.0f} s for them")
-        done.append(outcome)
+    try:
+        while _PENDING:
+            pending, start = _PENDING[0], time.perf_counter()
+            while pending.thread.is_alive():
+                pending.thread.join(0.2)
+                if stop is not None:
+                    stop.raise_if_set()
+            _PENDING.pop(0)
+            if isinstance(outcome := pending.outcome[0], BaseException):
+                _warn_failed(outcome)
+                continue
+            _say_ready(outcome, f"; waited {time.perf_counter() - start:.0f} s for them")
+            done.append(outcome)
+    except BaseException:
+        drop_pending()
+        raise
     return done
+
+
+def drop_pending() -> None:
+    """Stops every precompile started beside a compile from taking further modules and forgets
+    it (a run that ends before its first physics step: nothing is said of them)."""
+    while _PENDING:
+        _PENDING.pop().cancel.set()
 
 
 def _warn_failed(err: BaseException) -> None:
@@ -280,22 +317,31 @@ def _say_ready(done: Precompiled, waited: str = "") -> None:
               flush=True)  # fmt: skip
 
 
+def _task_model(task: Any) -> tuple[Any, dict[str, Any]]:
+    """The task's ``mujoco.MjModel`` and MJX's Warp options for it, read now (the caller's
+    thread may later swap the task's model while it traces)."""
+    return task.mj_model, static_options(upstream.mjx_warp_options(upstream.task_mjx_model(task)))
+
+
 def _task_precompile(task: Any, njmax: int | None, naconmax: int | None) -> Precompiled:
-    options = static_options(upstream.mjx_warp_options(upstream.task_mjx_model(task)))
-    return precompile(task.mj_model, options=options, njmax=njmax, naconmax=naconmax)
+    mj_model, options = _task_model(task)
+    return precompile(mj_model, options=options, njmax=njmax, naconmax=naconmax)
 
 
 def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
+    mj_model, options = _task_model(task)
     outcome: list[Precompiled | BaseException] = []
+    cancel = threading.Event()
 
     def run() -> None:
         try:
-            outcome.append(_task_precompile(task, njmax, naconmax))
+            outcome.append(precompile(mj_model, options=options, njmax=njmax,
+                                      naconmax=naconmax, cancel=cancel))  # fmt: skip
         except BaseException as err:  # (reported by wait_ready, on the caller's thread)
             outcome.append(err)
 
     thread = threading.Thread(target=run, name="td3-jax-warp-precompile")
-    _PENDING.append(_Pending(thread, outcome))
+    _PENDING.append(_Pending(thread, outcome, cancel))
     thread.start()
 
 
@@ -304,12 +350,13 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     of the MJX model it simulates; ``njmax``: its constraints per environment, ``naconmax``:
     contacts for one environment. Says how long it took where that was a second or more. Off
     (``None``) where :data:`PRECOMPILE` is 0; a failure is a warning (``None``): each module is
-    then compiled at its first launch, as without it. Inside :func:`beside_compile`, on a
-    machine of :data:`BESIDE_MIN_CORES` cores or more: started on a thread of its own (``None``
-    at once; :func:`wait_ready` reports it)."""
+    then compiled at its first launch, as without it. Inside :func:`beside_compile`, with
+    :data:`BESIDE` 1 on a machine of :data:`BESIDE_MIN_CORES` cores or more: started on a
+    thread of its own (``None`` at once; :func:`wait_ready` reports it)."""
     if os.environ.get(PRECOMPILE) == "0":
         return None
-    if getattr(_BESIDE, "on", False) and cores() >= BESIDE_MIN_CORES:
+    beside = os.environ.get(BESIDE) == "1" and cores() >= BESIDE_MIN_CORES
+    if getattr(_BESIDE, "on", False) and beside:
         _start_beside(task, njmax, naconmax)
         return None
     try:
