@@ -102,17 +102,12 @@ def train(
     """
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
-    if not resume:  # (as the CLI does: a resume keeps the chunk its checkpoints were written with)
-        cfg = _eval_every_within_run(cfg, say=progress and writer)
+    cfg = _eval_every_within_run(cfg, resume, say=progress and writer)
     with warp_kernels.beside_compile():  # (Warp's kernels may compile while XLA's programs do)
         prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir,
                             env)  # fmt: skip
     cfg, population, changes, source = prepared
-    try:
-        run_lock = open_run_dir(out_dir, resume=resume, writer=writer)
-    except BaseException:
-        warp_kernels.drop_pending()
-        raise
+    run_lock = _open_run_dir(out_dir, resume, writer)
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
                stop if stop is not None else StopToken(), env=source.env)  # fmt: skip
     try:
@@ -125,14 +120,27 @@ def train(
     return run.records
 
 
-def _eval_every_within_run(cfg: TrainConfig, say: bool) -> TrainConfig:
-    """``cfg`` with ``eval_every`` as whole iterations and at most the run
-    (:func:`~td3_jax.config.eval_every_within_run`); ``say``: print what changed (the CLI
-    hands it over changed already, and says so itself)."""
+def _eval_every_within_run(cfg: TrainConfig, resume: bool, say: bool) -> TrainConfig:
+    """A fresh run's ``cfg`` with ``eval_every`` as whole iterations and at most the run
+    (:func:`~td3_jax.config.eval_every_within_run`; a resume keeps the chunk its checkpoints
+    were written with); ``say``: print what changed (the CLI hands it over changed already,
+    and says so itself)."""
+    if resume:
+        return cfg
     changed = eval_every_within_run(cfg)
     if say and changed.eval_every != cfg.eval_every:
         print(rounding_note(changed, cfg.eval_every), flush=True)
     return changed
+
+
+def _open_run_dir(out_dir: Path, resume: bool, writer: bool) -> Any:
+    """:func:`~td3_jax.rundir.open_run_dir`; a refusal also drops a Warp precompile started
+    for the run (:func:`~td3_jax.envs.warp_kernels.drop_pending`)."""
+    try:
+        return open_run_dir(out_dir, resume=resume, writer=writer)
+    except BaseException:
+        warp_kernels.drop_pending()
+        raise
 
 
 def check_time_budget(seconds: float | None) -> None:

@@ -628,7 +628,8 @@ def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, ca
     assert [r["env_steps"] for r in records] == [32, 64, 96]
     out = capsys.readouterr().out
     assert "--eval-every 30 runs as 32 (whole iterations of 4 env steps)" in out
-    lowered = run._eval_every_within_run(dataclasses.replace(cfg, eval_every=200, total_steps=64),
-                                         say=True)  # fmt: skip
+    longer = dataclasses.replace(cfg, eval_every=200, total_steps=64)
+    assert run._eval_every_within_run(longer, resume=True, say=True) == longer  # (kept)
+    lowered = run._eval_every_within_run(longer, resume=False, say=True)
     assert lowered.eval_every == 64 and lowered.run_steps == 64
     assert "--eval-every 200 is longer than --total-steps 64" in capsys.readouterr().out
