@@ -238,3 +238,19 @@ def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops
     cancel.set()  # (a run that ended: nothing more is started, and the count says so)
     assert warp_kernels._compile_modules({None: ["m1", "m2"]}, workers=2, cancel=cancel) == 0
     assert loaded == []
+
+
+def test_the_cores_counted_are_at_most_the_containers_cpu_quota(tmp_path):
+    """cgroup v2's cpu.max: "200000 100000" is 2 CPUs, "150000 100000" rounds up to 2, "max"
+    is no limit; a missing or odd file is no limit either."""
+    import os
+
+    from td3_jax.envs import warp_kernels
+
+    here = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cpu_max = tmp_path / "cpu.max"
+    for text, limit in [("200000 100000\n", 2), ("150000 100000\n", 2), ("50000 100000", 1),
+                        ("max 100000\n", here), ("nonsense", here)]:  # fmt: skip
+        cpu_max.write_text(text)
+        assert warp_kernels.cores(cpu_max) == min(here, limit), text
+    assert warp_kernels.cores(tmp_path / "absent") == here

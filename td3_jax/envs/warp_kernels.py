@@ -22,12 +22,14 @@ then costs the run only what XLA's does not cover (not measured on a GPU yet).
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import queue
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, NamedTuple
 
 from td3_jax import upstream
@@ -35,6 +37,7 @@ from td3_jax import upstream
 __all__ = [
     "BESIDE",
     "BESIDE_MIN_CORES",
+    "CPU_MAX",
     "MAX_WORKERS",
     "PRECOMPILE",
     "Precompiled",
@@ -169,9 +172,21 @@ def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
     return run
 
 
-def cores() -> int:
-    """The CPU cores this process may use."""
+#: cgroup v2's CPU limit of this process's container ("QUOTA PERIOD", or "max PERIOD": none).
+CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
+
+
+def cores(cpu_max: Path = CPU_MAX) -> int:
+    """The CPU cores this process may use: those it may run on, at most its container's CPU
+    quota (cgroup v2's ``cpu.max``, rounded up; ``docker --cpus 2`` on a host of 64 cores is
+    2)."""
     count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+        if quota != "max":
+            count = min(count or 1, math.ceil(int(quota) / int(period)))
+    except (OSError, ValueError):  # (no cgroup v2 file, or one not as expected: no limit)
+        pass
     return max(1, count or 1)
 
 
