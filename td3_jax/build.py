@@ -379,6 +379,8 @@ def _check_sweep_does_something(cfg: TrainConfig, sweep: dict[str, list[float]])
     run's smoothing noise, an OU run's Gaussian scale, an option left off, ...)."""
     unused = unused_settings(cfg)
     idle = sorted(name for name in sweep if name in unused)
+    if {"expl_noise_max", "expl_noise_min"} <= set(idle):  # (one pair, one hint)
+        idle.remove("expl_noise_max")
     if idle:
         raise ConfigError("sweeping " + "; ".join(
             f"{name} changes nothing with {unused[name]}{_switch_on_hint(name, sweep, cfg)}"
@@ -392,7 +394,7 @@ def _switch_on_hint(name: str, sweep: dict[str, list[float]], cfg: TrainConfig) 
         return ""
     if name in ("expl_noise_min", "expl_noise_max"):  # (they go together: per-env noise)
         return (": add --expl-noise-min and --expl-noise-max, which go together (each member "
-                f"takes its swept {flag(name)})")  # fmt: skip
+                "takes the values swept)")  # fmt: skip
     return (
         f": add {flag(name)} with any value, e.g. {flag(name)} {sweep[name][0]:g} (each "
         "member takes its swept value)"

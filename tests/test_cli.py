@@ -1468,6 +1468,11 @@ def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys
         "sweeping max_grad_norm changes nothing with no --max-grad-norm (that flag turns it "
         "on): add --max-grad-norm with any value, e.g. --max-grad-norm 0.5 (each member takes "
         "its swept value)")  # fmt: skip
+    with pytest.raises(config.ConfigError) as refused:  # (the per-env noise's pair: one hint)
+        members(cfg, {"expl_noise_min": [0.05, 0.1], "expl_noise_max": [0.3]})
+    assert str(refused.value).count("changes nothing") == 1
+    assert str(refused.value).endswith(": add --expl-noise-min and --expl-noise-max, which go "
+                                       "together (each member takes the values swept)")  # fmt: skip
 
 
 def test_preset_source_note_names_the_flags_that_came_from_the_preset():
