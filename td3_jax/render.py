@@ -477,11 +477,12 @@ def check_writer(path: Path) -> None:
                           "pip install 'td3-jax[render]'")  # fmt: skip
 
 
-def check_destination(path: Path) -> None:
+def check_destination(path: Path) -> list[Path]:
     """Raises :class:`RenderError` before a rollout when ``path`` cannot be written: a folder of
-    that name, a folder that cannot be made, or one this process may not write in. (A missing
-    folder is made.)"""
+    that name, a folder that cannot be made, or one this process may not write in. A missing
+    folder is made; returns the folders made, outermost first."""
     path = Path(path)
+    made = [up for up in path.parents if not up.exists()][::-1]
     if path.is_dir():
         raise RenderError(f"--out {path} is a directory; name the video file (.mp4 or .gif)")
     blocking = next((up for up in path.parents if up.exists() and not up.is_dir()), None)
@@ -499,6 +500,22 @@ def check_destination(path: Path) -> None:
             tempfile.NamedTemporaryFile(dir=path.parent, suffix=path.suffix).close()
     except OSError as err:
         raise RenderError(f"--out {path}: cannot write it ({err.strerror or err})") from err
+    return made
+
+
+def _write(out: Path, frames: np.ndarray, fps: float) -> None:
+    """:func:`write_video`, its OSError (a disk that filled during the rollout) a RenderError."""
+    try:
+        write_video(out, frames, fps)
+    except OSError as err:
+        raise RenderError(f"--out {out}: cannot write it ({err.strerror or err})") from err
+
+
+def _remove_folders(made: list[Path]) -> None:
+    """Removes the folders :func:`check_destination` made, innermost first, where empty."""
+    for folder in reversed(made):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def check_settings(episodes: int, width: int, height: int, fps: float) -> None:
@@ -520,14 +537,15 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     from td3_jax.rundir import require_run_dir
 
     require_run_dir(run_dir)  # (the line eval and plot give; before a folder is made)
-    check_destination(out)
-    result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
-                     check=functools.partial(check_scene, camera=camera), env=env)  # fmt: skip
-    frames = rollout_frames(result, camera=camera, width=width, height=height)
+    made = check_destination(out)
     try:
-        write_video(out, np.concatenate(frames), fps)
-    except OSError as err:  # (a disk that filled during the rollout)
-        raise RenderError(f"--out {out}: cannot write it ({err.strerror or err})") from err
+        result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
+                         check=functools.partial(check_scene, camera=camera), env=env)  # fmt: skip
+        frames = rollout_frames(result, camera=camera, width=width, height=height)
+        _write(out, np.concatenate(frames), fps)
+    except BaseException:  # (no checkpoint, no OpenGL, a bad member: no folder left behind)
+        _remove_folders(made)
+        raise
     return Rendered(Path(out), result.member, [len(f) for f in frames],
                     [float(r) for r in result.returns], result.env_steps)  # fmt: skip
 

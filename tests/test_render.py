@@ -252,7 +252,11 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_rollout(tmp_path):
             render.check_destination(Path("/proc/v.mp4"))
         with pytest.raises(OSError, match="ffmpeg wrote nothing"):
             render.write_video(Path("/proc/v.mp4"), np.zeros((2, 8, 8, 3), np.uint8), 10.0)
-    render.check_destination(tmp_path / "new" / "v.mp4")
+    assert render.check_destination(tmp_path / "new" / "v.mp4") == [tmp_path / "new"]
     assert (tmp_path / "new").is_dir() and not (tmp_path / "new" / "v.mp4").exists()
+    made = render.check_destination(tmp_path / "a" / "b" / "v.mp4")
+    assert made == [tmp_path / "a", tmp_path / "a" / "b"]
+    render._remove_folders(made)  # (as render_run does when the rollout fails)
+    assert not (tmp_path / "a").exists()
     video = render.write_video(tmp_path / "new" / "v.mp4", np.zeros((2, 8, 8, 3), np.uint8), 10.0)
     assert video.stat().st_size > 0
