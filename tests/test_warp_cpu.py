@@ -151,10 +151,10 @@ def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkey
 def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
     monkeypatch, capsys
 ):
-    """Inside ``beside_compile``, with TD3_JAX_WARP_BESIDE=1 on 8 cores, the task's precompile
+    """Inside ``beside_compile``, on 8 cores (TD3_JAX_WARP_BESIDE unset), the task's precompile
     starts on another thread and the caller goes on at once; ``wait_ready`` waits for it and
     says so; a failure there is the usual warning; an error leaving the block drops it.
-    Outside, without the variable, or on 2 cores, it runs on the caller's thread."""
+    Outside, with the variable 0, or on 2 cores, it runs on the caller's thread."""
     import threading
 
     from td3_jax.envs import warp_kernels
@@ -174,9 +174,10 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
     monkeypatch.setattr(warp_kernels, "precompile", precompile)
     monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
-    with warp_kernels.beside_compile():  # (off by default: run first, as outside)
+    monkeypatch.setenv(warp_kernels.BESIDE, "0")
+    with warp_kernels.beside_compile():  # (turned off: run first, as outside)
         assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
-    monkeypatch.setenv(warp_kernels.BESIDE, "1")
+    monkeypatch.delenv(warp_kernels.BESIDE)
     monkeypatch.setattr(warp_kernels, "cores", lambda: 2)  # (too few cores: the same)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)

@@ -12,11 +12,14 @@ them loaded. A module the listing misses is compiled at its first launch, as wit
 own glue is one: its module is made at MJX's first call).
 
 :func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
-call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. With ``TD3_JAX_WARP_BESIDE=1``, inside
-:func:`beside_compile` (a training run's environment is made there), on a machine of 8 cores or
-more, it runs on a thread of its own while the caller goes on to trace and compile its XLA
-programs, and :func:`wait_ready` waits for it before the first physics step: Warp's compile
-then costs the run only what XLA's does not cover (not measured on a GPU yet).
+call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compile` (a
+training run's environment is made there), on a machine of 8 cores or more, it runs on a
+thread of its own while the caller goes on to trace and compile its XLA programs, and
+:func:`wait_ready` waits for it before the first physics step: Warp's compile then costs the
+run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). On an H200
+host of 64 cores, cold caches, a ``t1`` run's first record came 110 s after launch alone on the
+host (Warp ready in 28 s, waited for 0 s), and with two such runs starting at once 129 s
+beside against 180 s first (BENCHMARKS.md, 2026-11-27 eighteenth session).
 """
 
 from __future__ import annotations
@@ -57,8 +60,8 @@ __all__ = [
 PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
 #: At most this many modules compile at once (each compile holds its own compiler's memory).
 MAX_WORKERS = 8
-#: Set to 1 (off by default until measured on a GPU), a training run's precompile runs on its
-#: own thread beside its XLA compile (:func:`beside_compile`).
+#: Set to 0, a training run's precompile runs first, then its XLA compile; otherwise (the
+#: default) on its own thread beside the XLA compile (:func:`beside_compile`).
 BESIDE = "TD3_JAX_WARP_BESIDE"
 #: ... and only where the process may use this many cores; with fewer it runs first. (On 2
 #: cores a tiny T1 run on Warp's CPU kernels took 233 s from launch with Warp compiling beside
@@ -271,7 +274,7 @@ _PENDING: list[_Pending] = []
 
 @contextlib.contextmanager
 def beside_compile() -> Iterator[None]:
-    """Inside, where :data:`BESIDE` is 1 and the machine has :data:`BESIDE_MIN_CORES` cores,
+    """Inside, unless :data:`BESIDE` is 0, where the machine has :data:`BESIDE_MIN_CORES` cores,
     :func:`precompile_task` (called by this thread) starts the precompile on a thread of its
     own and returns at once; :func:`wait_ready` waits for it. A training run makes its
     environment inside, then traces and compiles its programs while Warp's kernels compile.
@@ -366,11 +369,11 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     contacts for one environment. Says how long it took where that was a second or more. Off
     (``None``) where :data:`PRECOMPILE` is 0; a failure is a warning (``None``): each module is
     then compiled at its first launch, as without it. Inside :func:`beside_compile`, with
-    :data:`BESIDE` 1 on a machine of :data:`BESIDE_MIN_CORES` cores or more: started on a
+    :data:`BESIDE` not 0, on a machine of :data:`BESIDE_MIN_CORES` cores or more: started on a
     thread of its own (``None`` at once; :func:`wait_ready` reports it)."""
     if os.environ.get(PRECOMPILE) == "0":
         return None
-    beside = os.environ.get(BESIDE) == "1" and cores() >= BESIDE_MIN_CORES
+    beside = os.environ.get(BESIDE) != "0" and cores() >= BESIDE_MIN_CORES
     if getattr(_BESIDE, "on", False) and beside:
         _start_beside(task, njmax, naconmax)
         return None
