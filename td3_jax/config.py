@@ -176,7 +176,8 @@ class TrainConfig:
     critic_feature_norm: bool = False
     """Project the critics' hidden features onto the sphere of radius sqrt(width) after every
     ReLU (with --critic-network residual: after every block; bounded features, as
-    SimbaV2/FlashSAC); the actor is unchanged."""
+    SimbaV2/FlashSAC); the actor is unchanged. On G1 flat (the g1 preset, 3 seeds at 50M
+    steps) it ended at 39.7, 37.0 and 39.3 (IQM 39.0; without: 39.1), so no preset uses it."""
     critic_network: Literal["mlp", "residual"] = "mlp"
     """The critics' network: mlp (ReLU layers of --critic-hidden-sizes, with --layer-norm if
     given) or residual (FlashSAC's layout: an input layer, then a residual block per entry of
