@@ -1168,6 +1168,20 @@ def main(argv: list[str] | None = None) -> None:
 
 _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
+#: The flags whose value is a folder: given empty, each would mean the working directory.
+_FOLDER_FLAGS = ("--out", "--compile-cache", "--menagerie")
+
+
+def check_no_empty_folder(args: list[str]) -> None:
+    """``ConfigError`` for a folder flag given an empty value (``--out ''`` or ``--out=``,
+    often ``--out "$DIR"`` with DIR unset), which would otherwise mean the working directory."""
+    for token, after in zip(args, [*args[1:], None], strict=True):
+        flag, equals, value = token.partition("=")
+        if flag in _FOLDER_FLAGS and ((equals and not value) or (not equals and after == "")):
+            raise ConfigError(f"{flag} is empty (an unset shell variable?), which would mean the "
+                              "working directory; give the folder, or ./ for the working "
+                              "directory")  # fmt: skip
+
 
 def _exit_interrupted(message: str, code: int = 130) -> None:
     """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
@@ -1190,6 +1204,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
+        check_no_empty_folder(args)
         command(args)
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)
