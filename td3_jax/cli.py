@@ -844,6 +844,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         cfg = _resumed_settings(cfg, command.out)
     with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
+    if command.resume and _run_complete(command.out, cfg):  # (before programs are looked up)
+        print(nothing_to_do(command.out, cfg))
+        return
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(typed))  # fmt: skip
     received: list[int] = []
@@ -875,6 +878,16 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         print(nothing_to_do(command.out, cfg))
         return
     _print_end(records, cfg, command, time.perf_counter() - started, sweeping)
+
+
+def _run_complete(out: Path, cfg: TrainConfig) -> bool:
+    """Whether the run in ``out`` has a checkpoint at (or past) the end of ``cfg``'s run, so
+    a ``--resume`` has nothing to train (the run itself would find so only after looking up
+    and loading its programs: seconds)."""
+    from td3_jax import rundir
+
+    written = rundir.checkpoint_steps(out)
+    return bool(written) and written[-1] >= cfg.num_chunks
 
 
 def nothing_to_do(out: Path, cfg: TrainConfig) -> str:

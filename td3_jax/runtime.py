@@ -130,8 +130,9 @@ def result(future: Future, stop: StopToken | None = None) -> Any:
                 stop.raise_if_set()
 
 
-def in_background(function: Callable[..., Any], *args: Any) -> Future:
-    """``function(*args)`` on a thread of its own, as a future.
+def in_background(function: Callable[..., Any], *args: Any, name: str = "td3-jax compile"
+                  ) -> Future:  # fmt: skip
+    """``function(*args)`` on a thread of its own (called ``name``), as a future.
 
     The thread is not a daemon (a daemon thread still compiling when the interpreter exits
     aborts the process); the CLI ends a stopped run with ``os._exit`` instead of waiting for
@@ -147,7 +148,7 @@ def in_background(function: Callable[..., Any], *args: Any) -> Future:
         finally:
             _BACKGROUND.discard(threading.current_thread())
 
-    thread = threading.Thread(target=work, name="td3-jax compile")
+    thread = threading.Thread(target=work, name=name)
     _BACKGROUND.add(thread)
     thread.start()
     return future

@@ -34,10 +34,27 @@ def warp_on_cpu(monkeypatch):
     monkeypatch.setenv(physics.WARP_ON_CPU, "1")
 
 
-def test_a_tiny_robot_run_trains_on_warp_and_records_it(warp_on_cpu, tmp_path, capsys):
+def test_a_tiny_robot_run_trains_on_warp_and_records_it(warp_on_cpu, tmp_path, capsys,
+                                                        monkeypatch):  # fmt: skip
+    """... with the kernels' precompile on a thread of its own beside the XLA compile, as on a
+    machine of 8 cores or more (the default there)."""
+    import threading
+
+    from td3_jax.envs import warp_kernels
+
+    ran_on, real = [], warp_kernels.precompile
+
+    def precompile(*args, **kwargs):
+        ran_on.append(threading.get_ident())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(warp_kernels, "cores", lambda *args: 8)
+    monkeypatch.setattr(warp_kernels, "precompile", precompile)
     out = tmp_path / "run"
     code, stdout, err = main([*TINY_T1, "--out", str(out)], capsys)
     assert code == 0, err
+    assert len(ran_on) == 1 and ran_on[0] != threading.get_ident()  # (beside, then waited for)
+    assert not warp_kernels._PENDING
     assert "physics: MuJoCo Warp (--impl warp)" in stdout
     assert "not compiled ahead" not in err  # (the kernels' precompile worked)
     saved = json.loads((out / "config.json").read_text())
@@ -157,6 +174,7 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     Outside, with the variable 0, or on 2 cores, it runs on the caller's thread."""
     import threading
 
+    from td3_jax import runtime
     from td3_jax.envs import warp_kernels
 
     release, ran_on = threading.Event(), []
@@ -174,21 +192,23 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
     monkeypatch.setattr(warp_kernels, "precompile", precompile)
     monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
-    monkeypatch.setenv(warp_kernels.BESIDE, "0")
-    with warp_kernels.beside_compile():  # (turned off: run first, as outside)
-        assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
+    for off in ("0", "Off"):
+        monkeypatch.setenv(warp_kernels.BESIDE, off)
+        with warp_kernels.beside_compile():  # (turned off: run first, as outside)
+            assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
     monkeypatch.delenv(warp_kernels.BESIDE)
     monkeypatch.setattr(warp_kernels, "cores", lambda: 2)  # (too few cores: the same)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
-    assert ran_on == [threading.get_ident()] * 2 and not warp_kernels._PENDING
+    assert ran_on == [threading.get_ident()] * 3 and not warp_kernels._PENDING
     monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
-    assert warp_kernels._PENDING and not warp_kernels._PENDING[0].outcome  # (still running)
+    assert warp_kernels._PENDING and not warp_kernels._PENDING[0].future.done()  # (running)
+    assert runtime.background_work_running()  # (a stopped run exits without waiting for it)
     release.set()
     assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
-    assert ran_on[2] != threading.get_ident()
+    assert ran_on[3] != threading.get_ident()
     out = capsys.readouterr().out
     assert "MuJoCo Warp: 37 kernel modules ready in 2 s" in out and "waited" in out
     assert warp_kernels.wait_ready() == [] and capsys.readouterr().out == ""  # (nothing left)
@@ -197,6 +217,14 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
         warp_kernels.precompile_task("broken", njmax=1, naconmax=1)
     assert warp_kernels.wait_ready() == []
     assert "not compiled ahead (no such kernel)" in capsys.readouterr().err
+
+    def no_model(task):
+        raise RuntimeError("no model here")
+
+    with monkeypatch.context() as patched, warp_kernels.beside_compile():
+        patched.setattr(warp_kernels, "_task_model", no_model)  # (failing to start: a warning)
+        assert warp_kernels.precompile_task("t1", njmax=1, naconmax=1) is None
+    assert not warp_kernels._PENDING and "(no model here)" in capsys.readouterr().err
 
     # an error leaving beside_compile (the run will not wait) drops what it started
     with pytest.raises(RuntimeError, match="busy"), warp_kernels.beside_compile():
@@ -241,17 +269,36 @@ def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops
     assert loaded == []
 
 
-def test_the_cores_counted_are_at_most_the_containers_cpu_quota(tmp_path):
+def test_the_cores_counted_are_at_most_the_cgroups_cpu_quota(tmp_path):
     """cgroup v2's cpu.max: "200000 100000" is 2 CPUs, "150000 100000" rounds up to 2, "max"
-    is no limit; a missing or odd file is no limit either."""
+    is no limit; a missing or odd file is no limit either. v1's cfs quota over its period
+    counts too (-1: none), as does a quota at the process's own cgroup path
+    (/proc/self/cgroup), the smallest one found winning."""
     import os
 
     from td3_jax.envs import warp_kernels
 
     here = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    cpu_max = tmp_path / "cpu.max"
+    root, own = tmp_path / "cgroup", tmp_path / "self-cgroup"
+    root.mkdir()
+    assert warp_kernels.cores(root, own) == here  # (nothing to read: no limit)
     for text, limit in [("200000 100000\n", 2), ("150000 100000\n", 2), ("50000 100000", 1),
                         ("max 100000\n", here), ("nonsense", here)]:  # fmt: skip
-        cpu_max.write_text(text)
-        assert warp_kernels.cores(cpu_max) == min(here, limit), text
-    assert warp_kernels.cores(tmp_path / "absent") == here
+        (root / "cpu.max").write_text(text)
+        assert warp_kernels.cores(root, own) == min(here, limit), text
+    (root / "cpu.max").write_text("max 100000\n")
+    v1 = root / "cpu,cpuacct"
+    v1.mkdir()
+    (v1 / "cpu.cfs_period_us").write_text("100000\n")
+    for quota, limit in [("-1\n", here), ("250000\n", 3)]:
+        (v1 / "cpu.cfs_quota_us").write_text(quota)
+        assert warp_kernels.cores(root, own) == min(here, limit), quota
+        assert warp_kernels.cpu_quota(root, own) == (2.5 if quota == "250000\n" else None)
+    (v1 / "cpu.cfs_quota_us").write_text("-1\n")
+    job = root / "user.slice" / "job-7"
+    job.mkdir(parents=True)
+    (job / "cpu.max").write_text("100000 100000\n")  # (a v2 limit on this process's own group)
+    own.write_text("0::/user.slice/job-7\n")
+    assert warp_kernels.cores(root, own) == 1
+    own.write_text("0::/\n4:memory:/user.slice/job-7\n")  # (a root path; no cpu controller)
+    assert warp_kernels.cores(root, own) == here

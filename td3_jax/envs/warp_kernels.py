@@ -25,6 +25,7 @@ beside against 180 s first (BENCHMARKS.md, 2026-11-27 eighteenth session).
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import queue
@@ -32,20 +33,23 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from td3_jax import upstream
+from td3_jax import runtime, upstream
 
 __all__ = [
     "BESIDE",
     "BESIDE_MIN_CORES",
-    "CPU_MAX",
+    "CGROUP_ROOT",
     "MAX_WORKERS",
     "PRECOMPILE",
+    "PROC_CGROUP",
     "Precompiled",
     "beside_compile",
     "cores",
+    "cpu_quota",
     "default_workers",
     "drop_pending",
     "listed_modules",
@@ -55,13 +59,14 @@ __all__ = [
     "wait_ready",
 ]
 
-#: Set to 0, Warp compiles each kernel module at its first launch (one at a time), as it does
-#: on its own.
+#: Set to 0 (or false, off, no), Warp compiles each kernel module at its first launch (one at
+#: a time), as it does on its own.
 PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
 #: At most this many modules compile at once (each compile holds its own compiler's memory).
 MAX_WORKERS = 8
-#: Set to 0, a training run's precompile runs first, then its XLA compile; otherwise (the
-#: default) on its own thread beside the XLA compile (:func:`beside_compile`).
+#: Set to 0 (or false, off, no), a training run's precompile runs first, then its XLA
+#: compile; otherwise (the default) on its own thread beside the XLA compile
+#: (:func:`beside_compile`).
 BESIDE = "TD3_JAX_WARP_BESIDE"
 #: ... and only where the process may use this many cores; with fewer it runs first. (On 2
 #: cores a tiny T1 run on Warp's CPU kernels took 233 s from launch with Warp compiling beside
@@ -175,22 +180,66 @@ def _mujoco_warp_step(mj_model: Any, options: dict[str, Any], njmax: int | None,
     return run
 
 
-#: cgroup v2's CPU limit of this process's container ("QUOTA PERIOD", or "max PERIOD": none).
-CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
+#: Where the cgroups are mounted, and the file that names this process's own cgroups.
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+PROC_CGROUP = Path("/proc/self/cgroup")
 
 
-def cores(cpu_max: Path = CPU_MAX) -> int:
-    """The CPU cores this process may use: those it may run on, at most its container's CPU
-    quota (cgroup v2's ``cpu.max``, rounded up; ``docker --cpus 2`` on a host of 64 cores is
-    2)."""
+def cores(root: Path = CGROUP_ROOT, own: Path = PROC_CGROUP) -> int:
+    """The CPU cores this process may use: those it may run on, at most its cgroup's CPU quota
+    (:func:`cpu_quota`, rounded up; ``docker --cpus 2`` on a host of 64 cores is 2)."""
     count = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    try:
-        quota, period = cpu_max.read_text().split()[:2]
-        if quota != "max":
-            count = min(count or 1, math.ceil(int(quota) / int(period)))
-    except (OSError, ValueError):  # (no cgroup v2 file, or one not as expected: no limit)
-        pass
+    quota = cpu_quota(root, own)
+    if quota is not None:
+        count = min(count or 1, math.ceil(quota))
     return max(1, count or 1)
+
+
+def cpu_quota(root: Path = CGROUP_ROOT, own: Path = PROC_CGROUP) -> float | None:
+    """The smallest CPU quota, in CPUs, of the cgroups over this process: cgroup v2's
+    ``cpu.max`` ("QUOTA PERIOD"; "max": none) or v1's ``cpu.cfs_quota_us`` over
+    ``cpu.cfs_period_us`` (-1: none), read at the mount's root (a container's own view) and at
+    the process's own cgroup path named in ``own``; ``None``: no quota (or no file read)."""
+    quotas = [quota for folder in _cgroup_folders(root, own)
+              for quota in (_v2_quota(folder), _v1_quota(folder)) if quota]  # fmt: skip
+    return min(quotas, default=None)
+
+
+def _cgroup_folders(root: Path, own: Path) -> list[Path]:
+    """Where a CPU quota of this process may be: the mount's root (v2) and its cpu controller's
+    (v1), then this process's own cgroup under each (``/proc/self/cgroup``'s lines
+    ``ID:CONTROLLERS:PATH``; v2's have no controllers)."""
+    folders = [root, root / "cpu", root / "cpu,cpuacct"]
+    try:
+        lines = own.read_text().splitlines()
+    except OSError:
+        lines = []
+    for line in lines:
+        _, controllers, path = [*line.split(":", 2), "", ""][:3]
+        if not path.strip("/"):
+            continue
+        if not controllers:
+            folders.append(root / path.strip("/"))
+        elif "cpu" in controllers.split(","):
+            folders.append(root / controllers / path.strip("/"))
+    return folders
+
+
+def _v2_quota(folder: Path) -> float | None:
+    try:
+        quota, period = (folder / "cpu.max").read_text().split()[:2]
+        return int(quota) / int(period) if quota != "max" and int(period) > 0 else None
+    except (OSError, ValueError):  # (no such file, or one not as expected: no limit)
+        return None
+
+
+def _v1_quota(folder: Path) -> float | None:
+    try:
+        quota = int((folder / "cpu.cfs_quota_us").read_text())
+        period = int((folder / "cpu.cfs_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+    return quota / period if quota > 0 and period > 0 else None
 
 
 def default_workers() -> int:
@@ -257,12 +306,12 @@ def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: i
 
 
 class _Pending(NamedTuple):
-    """A precompile running on its own thread (:func:`beside_compile`); ``outcome`` holds its
-    :class:`Precompiled` or its exception once the thread ends; ``cancel`` stops it taking
-    further modules."""
+    """A precompile running on its own thread (:func:`beside_compile`; counted by
+    :func:`td3_jax.runtime.background_work_running`, so a stopped run exits without waiting for
+    it): ``future`` gives its :class:`Precompiled` or raises its exception; ``cancel`` stops it
+    taking further modules."""
 
-    thread: threading.Thread
-    outcome: list[Precompiled | BaseException]
+    future: Future
     cancel: threading.Event
 
 
@@ -300,12 +349,12 @@ def wait_ready(stop: Any = None) -> list[Precompiled]:
     try:
         while _PENDING:
             pending, start = _PENDING[0], time.perf_counter()
-            while pending.thread.is_alive():
-                pending.thread.join(0.2)
-                if stop is not None:
-                    stop.raise_if_set()
+            try:
+                outcome = runtime.result(pending.future, stop)
+            except Exception as err:  # (the precompile's own failure: a warning)
+                outcome = err
             _PENDING.pop(0)
-            if isinstance(outcome := pending.outcome[0], BaseException):
+            if isinstance(outcome, Exception):
                 _warn_failed(outcome)
                 continue
             _say_ready(outcome, f"; waited {time.perf_counter() - start:.0f} s for them")
@@ -347,20 +396,23 @@ def _task_precompile(task: Any, njmax: int | None, naconmax: int | None) -> Prec
 
 
 def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
-    mj_model, options = _task_model(task)
-    outcome: list[Precompiled | BaseException] = []
-    cancel = threading.Event()
+    """The task's precompile started on a thread of its own (:data:`_PENDING`); a failure to
+    start it is :func:`precompile_task`'s warning."""
+    try:
+        mj_model, options = _task_model(task)
+        cancel = threading.Event()
+        work = functools.partial(precompile, mj_model, options=options, njmax=njmax,
+                                 naconmax=naconmax, cancel=cancel)  # fmt: skip
+        future = runtime.in_background(work, name="td3-jax warp precompile")
+    except Exception as err:  # (an optimisation: the run goes on without it)
+        _warn_failed(err)
+        return
+    _PENDING.append(_Pending(future, cancel))
 
-    def run() -> None:
-        try:
-            outcome.append(precompile(mj_model, options=options, njmax=njmax,
-                                      naconmax=naconmax, cancel=cancel))  # fmt: skip
-        except BaseException as err:  # (reported by wait_ready, on the caller's thread)
-            outcome.append(err)
 
-    thread = threading.Thread(target=run, name="td3-jax-warp-precompile")
-    _PENDING.append(_Pending(thread, outcome, cancel))
-    thread.start()
+def _turned_off(variable: str) -> bool:
+    """Whether the environment variable ``variable`` says off (0, false, off or no)."""
+    return os.environ.get(variable, "").strip().lower() in ("0", "false", "off", "no")
 
 
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:
@@ -371,9 +423,9 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     then compiled at its first launch, as without it. Inside :func:`beside_compile`, with
     :data:`BESIDE` not 0, on a machine of :data:`BESIDE_MIN_CORES` cores or more: started on a
     thread of its own (``None`` at once; :func:`wait_ready` reports it)."""
-    if os.environ.get(PRECOMPILE) == "0":
+    if _turned_off(PRECOMPILE):
         return None
-    beside = os.environ.get(BESIDE) != "0" and cores() >= BESIDE_MIN_CORES
+    beside = not _turned_off(BESIDE) and cores() >= BESIDE_MIN_CORES
     if getattr(_BESIDE, "on", False) and beside:
         _start_beside(task, njmax, naconmax)
         return None
