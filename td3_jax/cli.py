@@ -1182,17 +1182,19 @@ def main(argv: list[str] | None = None) -> None:
 _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 #: The flags whose value is a folder: given empty, each would mean the working directory.
-_FOLDER_FLAGS = ("--out", "--compile-cache", "--menagerie")
+_FOLDER_FLAGS = ("--out", "--run", "--compile-cache", "--menagerie")
 
 
 def check_no_empty_folder(args: list[str]) -> None:
-    """``ConfigError`` for a folder flag given an empty value (``--out ''`` or ``--out=``,
-    often ``--out "$DIR"`` with DIR unset), which would otherwise mean the working directory."""
+    """``ConfigError`` for a folder flag given an empty or blank value (``--out ''``,
+    ``--out=``: often ``--out "$DIR"`` with DIR unset), which would otherwise mean the working
+    directory (or a folder named by spaces)."""
     for token, after in zip(args, [*args[1:], None], strict=True):
         flag, equals, value = token.partition("=")
-        if flag in _FOLDER_FLAGS and ((equals and not value) or (not equals and after == "")):
-            raise ConfigError(f"{flag} is empty (an unset shell variable?), which would mean the "
-                              "working directory; give the folder, or ./ for the working "
+        given = value if equals else after
+        if flag in _FOLDER_FLAGS and given is not None and not given.strip():
+            raise ConfigError(f"{flag} is {'blank' if given else 'empty'} (an unset shell "
+                              "variable?); give the folder, or ./ for the working "
                               "directory")  # fmt: skip
 
 

@@ -645,8 +645,12 @@ def _batch_advice(cfg: TrainConfig, longer_run: str) -> str:
 def _check_replay(cfg: TrainConfig) -> None:
     capacity = cfg.replay_capacity
     if cfg.env_steps_per_iter > capacity:
+        least = max(cfg.env_steps_per_iter, cfg.batch_size)
+        suggested = max(min(cfg.run_steps, 1000 * cfg.env_steps_per_iter), least)
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
-                          f"replay buffer holds only {capacity}")  # fmt: skip
+                          f"replay buffer holds only {capacity}: give --buffer-size {least} at "
+                          f"least (a ring of many iterations, e.g. --buffer-size {suggested}, "
+                          "samples more varied batches)")  # fmt: skip
     if cfg.batch_size > cfg.run_steps:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "

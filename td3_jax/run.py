@@ -36,8 +36,10 @@ from td3_jax.rundir import (
     check_environment_unchanged,
     check_fresh,
     check_resume,
+    check_unedited,
     checkpoint_steps,
     environment_record,
+    fixed_settings,
     open_run_dir,
     previous_outputs,
     resume_command,
@@ -369,6 +371,7 @@ def _start(run: _Run, source: Source, resume: bool) -> tuple[Any, int]:
     shardings = state_shardings(abstract, source.mesh)
     state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings,
                                                         resize=ring_as_saved)  # fmt: skip
+    check_unedited(meta.get("settings"), run.cfg, run.out_dir / CONFIG_FILE)
     run.wall_offset = float(meta["wall_time_s"])
     run.diverged = set(meta.get("diverged_members", []))
     return state, start_chunk
@@ -401,7 +404,8 @@ def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
         last = index + 1 == cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
         if last or (index + 1) % cfg.checkpoint_every == 0:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
-                    "diverged_members": sorted(run.diverged)}  # fmt: skip
+                    "diverged_members": sorted(run.diverged),
+                    "settings": fixed_settings(cfg)}  # fmt: skip
             with run.stop.shielded():  # a Ctrl-C now lets the checkpoint be written
                 run.checkpointer.save(index + 1, state, meta, background=not last)
         completed = index + 1

@@ -471,6 +471,39 @@ def config_changes(
     return changes
 
 
+def fixed_settings(cfg: TrainConfig) -> dict[str, Any]:
+    """The settings of ``cfg`` that a resume may not change (all but :data:`SAFE_ON_RESUME`), as
+    config.json records them: what each checkpoint keeps, so that a resume notices a config.json
+    edited since (:func:`check_unedited`)."""
+    safe = _safe_on_resume(cfg)
+    return json.loads(json.dumps({k: v for k, v in _as_used(cfg).items() if k not in safe}))
+
+
+def check_unedited(recorded: Any, cfg: TrainConfig, path: Path) -> None:
+    """A one-line ConfigError where a setting of ``cfg`` (read from ``path``, config.json)
+    differs from the one the checkpoint was written with (``recorded``: its
+    :func:`fixed_settings`; not a dict: a checkpoint written before they were kept)."""
+    if not isinstance(recorded, dict):
+        return
+    now = fixed_settings(cfg)
+    for name, value in recorded.items():
+        if name not in now or now[name] == value or _same_effect(cfg, name, value):
+            continue
+        raise ConfigError(f"{path}: {name} is {json.dumps(now[name])} but the run's checkpoints "
+                          f"were written with {json.dumps(value)}; was the file edited? Restore "
+                          "its value")  # fmt: skip
+
+
+def _same_effect(cfg: TrainConfig, name: str, value: Any) -> bool:
+    """Whether ``cfg`` with its setting ``name`` as the JSON ``value`` takes effect as ``cfg``."""
+    try:
+        other = dataclasses.replace(cfg, **{name: tuple(value) if isinstance(value, list)
+                                            else value})  # fmt: skip
+        return _effective(other, name) == _effective(cfg, name)
+    except (TypeError, ValueError, ConfigError):
+        return False
+
+
 def _safe_on_resume(saved: TrainConfig) -> tuple[str, ...]:
     """:data:`SAFE_ON_RESUME`, less ``eval_envs`` for a run whose evaluation worlds are in the
     environment batch (``--eval-in-chunk``: their number is part of the checkpoint)."""
@@ -626,7 +659,8 @@ def _read_config(out_dir: Path) -> dict:
                 f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
                 "trained (run its td3-jax train command again to start it)"
             )
-        raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory")
+        raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory"
+                          f"{_run_above(Path(out_dir))}")  # fmt: skip
     try:
         raw = json.loads(path.read_text())
     except json.JSONDecodeError as err:
@@ -634,6 +668,16 @@ def _read_config(out_dir: Path) -> dict:
     if not isinstance(raw, dict):
         raise ConfigError(f"{path} does not hold a configuration (a JSON object)")
     return raw
+
+
+def _run_above(folder: Path) -> str:
+    """A hint naming the run directory that holds ``folder`` (its checkpoints/ or one
+    checkpoint of it: ``runs/x/checkpoints/3``), else ``""``."""
+    for parent in list(folder.absolute().parents)[:2]:
+        if (parent / CONFIG_FILE).is_file() and CHECKPOINTS in folder.absolute().parts:
+            shown = parent if folder.is_absolute() else os.path.relpath(parent)
+            return f" (its run is {shown}: give that folder)"
+    return ""
 
 
 def load_config(out_dir: Path) -> TrainConfig:

@@ -183,6 +183,20 @@ def test_replay_capacity_follows_the_run_up_to_buffer_size():
     assert validate(dataclasses.replace(SMALL, buffer_size=10 * SMALL.total_steps))
 
 
+def test_a_ring_smaller_than_one_iteration_is_refused_with_sizes_that_work():
+    """16 environments add 16 transitions an iteration: a ring of 10 is refused, naming the
+    least size that works (the batch of 256 must fit too) and a larger one; both validate."""
+    cfg = TrainConfig(num_envs=16, batch_size=256, buffer_size=10, total_steps=20_000)
+    with pytest.raises(ConfigError) as refused:
+        validate(cfg)
+    message = str(refused.value)
+    assert message.startswith("one iteration adds 16 transitions but the replay buffer holds "
+                              "only 10: give --buffer-size 256 at least")  # fmt: skip
+    assert "e.g. --buffer-size 16000," in message
+    for size in (256, 16000):
+        assert validate(dataclasses.replace(cfg, buffer_size=size))
+
+
 def test_agent_config_td3_defaults():
     # TrainConfig's default networks are the pendulum preset's 256-256; hidden_sizes=None
     # leaves the algorithm's own default (TD3: the paper's 400-300).

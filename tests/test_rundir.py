@@ -409,6 +409,58 @@ def test_a_hand_edited_setting_of_the_wrong_type_is_one_line_naming_it(
                                   "was the file edited? Restore its value")  # fmt: skip
 
 
+def test_a_checkpoint_folder_given_for_its_run_names_the_run(tmp_path, monkeypatch):
+    """``eval --run runs/x/checkpoints/3`` (or ``.../checkpoints``): the error names runs/x,
+    as given (relative stays relative); a folder under no run gets no such hint."""
+    run = tmp_path / "x"
+    (run / "checkpoints" / "3").mkdir(parents=True)
+    rundir.save_config(SMALL, [Member(seed=0)], run, {})
+    monkeypatch.chdir(tmp_path)
+    for given, shown in [(run / "checkpoints" / "3", run), (Path("x/checkpoints"), "x")]:
+        with pytest.raises(ConfigError) as refused:
+            rundir.load_config(given)
+        hint = f"not a td3-jax run directory (its run is {shown}: give that folder)"
+        assert str(refused.value) == f"{given} holds no config.json: {hint}"
+    (tmp_path / "other").mkdir()
+    with pytest.raises(ConfigError, match=r"not a td3-jax run directory$"):
+        rundir.load_config(tmp_path / "other")
+
+
+def test_a_checkpoint_keeps_the_fixed_settings_so_an_edited_config_json_is_noticed(tmp_path):
+    """fixed_settings is config.json's record less what a resume may change; check_unedited
+    refuses a setting that differs from the recorded one (naming both), lets the settings a
+    resume may change and checkpoints from before the record (no dict) through."""
+    recorded = rundir.fixed_settings(SMALL)
+    assert "total_steps" not in recorded and "keep_checkpoints" not in recorded
+    assert recorded["discount"] == SMALL.discount and recorded["actor_lr"] == 1e-3  # (TD3's)
+    assert recorded["hidden_sizes"] == list(SMALL.hidden_sizes)  # (as JSON has it)
+    path = tmp_path / "config.json"
+    rundir.check_unedited(recorded, dataclasses.replace(SMALL, total_steps=10**6), path)
+    rundir.check_unedited(None, dataclasses.replace(SMALL, discount=0.5), path)
+    rundir.check_unedited(recorded, dataclasses.replace(SMALL, actor_lr=1e-3), path)  # (same)
+    with pytest.raises(ConfigError) as refused:
+        rundir.check_unedited(recorded, dataclasses.replace(SMALL, discount=0.5), path)
+    assert str(refused.value) == (f"{path}: discount is 0.5 but the run's checkpoints were "
+                                  f"written with {SMALL.discount}; was the file edited? Restore "
+                                  "its value")  # fmt: skip
+
+
+def test_a_resume_refuses_a_config_json_edited_since_its_checkpoint(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)[0] == 0
+    path = out / "config.json"
+    saved = path.read_text()
+    path.write_text(saved.replace('"discount": 0.99', '"discount": 0.5'))
+    code, _, err = main(["train", "--out", str(out), "--resume", "--total-steps", "192",
+                         "--quiet"], capsys)  # fmt: skip
+    assert code == 2 and "discount is 0.5 but the run's checkpoints were written with 0.99" in err
+    assert len(read_records(out)) == 2  # (nothing trained with the edited setting)
+    path.write_text(saved)
+    assert main(["train", "--out", str(out), "--resume", "--total-steps", "192", "--quiet"],
+                capsys)[0] == 0  # fmt: skip
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128, 192]
+
+
 #: SMALL as config.json records it (the settings it leaves to TD3 as TD3's values).
 SMALL_AS_USED = dataclasses.replace(SMALL, actor_lr=1e-3, critic_lr=1e-3, tau=0.005)
 #: A sweep of two actor learning rates and one tau, two seeds each.

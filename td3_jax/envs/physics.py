@@ -74,9 +74,12 @@ def warp_missing() -> str | None:
 
     device = jax.devices()[0]
     version = str(getattr(getattr(device, "client", None), "platform_version", "")).lower()
-    on_cpu = device.platform == "cpu" and os.environ.get(WARP_ON_CPU) == "1"
+    asked = os.environ.get(WARP_ON_CPU, "").strip().lower() in ("1", "true", "on", "yes")
+    on_cpu = device.platform == "cpu" and asked
     if not on_cpu and (device.platform != "gpu" or "cuda" not in version):
-        return f"MuJoCo Warp needs an NVIDIA GPU (JAX's default device here is {device.platform})"
+        slowly = f"; {WARP_ON_CPU}=1 runs its CPU kernels, slowly" * (device.platform == "cpu")
+        here = f"JAX's default device here is {device.platform}{slowly}"
+        return f"MuJoCo Warp needs an NVIDIA GPU ({here})"
     return None
 
 
