@@ -35,6 +35,7 @@ import numpy as np
 
 from td3_jax import normalization
 from td3_jax.errors import ConfigError, ExportError
+from td3_jax.logger import probe_write
 from td3_jax.policy_file import FORMAT_VERSION
 
 #: The export formats (``td3-jax export --format``).
@@ -430,8 +431,9 @@ def summary(policy: PolicyArrays) -> str:
 
 def check_output(out: Path, fmt: str) -> None:
     """Raises :class:`ExportError` where ``out`` cannot take a ``fmt`` policy: the other
-    format's suffix, a directory, a missing folder, or an existing file that td3-jax did not
-    export (replacing a policy file of its own is fine: a second export of a run)."""
+    format's suffix, a directory, a missing folder, an existing file that td3-jax did not
+    export (replacing a policy file of its own is fine: a second export of a run), or a place
+    this process may not write (:func:`~td3_jax.logger.probe_write`)."""
     other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower(), fmt)
     if other != fmt:
         raise ExportError(f"--out {out} names an .{other} file but --format is {fmt}")
@@ -443,6 +445,10 @@ def check_output(out: Path, fmt: str) -> None:
     if out.exists() and not _exported_by_td3_jax(out, fmt):
         raise ExportError(f"--out {out} exists and is not a policy td3-jax exported: remove "
                           "it or choose another name")  # fmt: skip
+    try:
+        probe_write(out)
+    except OSError as err:
+        raise ExportError(f"--out {out}: cannot write it ({err.strerror or err})") from err
 
 
 def _exported_by_td3_jax(path: Path, fmt: str) -> bool:

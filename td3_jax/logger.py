@@ -9,6 +9,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -146,6 +147,18 @@ def write_atomically(path: Path, text: str) -> None:
     except OSError as err:
         tmp.unlink(missing_ok=True)
         raise OSError(err.errno, err.strerror, str(path)) from err
+
+
+def probe_write(path: Path) -> None:
+    """Raises ``OSError`` where this process cannot write ``path`` (permissions, a read-only
+    disk, /proc), before the work that would write it: an existing file is opened to append
+    (neither truncated nor touched), else a file beside it is made and removed (a dangling link
+    at ``path`` is left as it is)."""
+    if path.exists():
+        with open(path, "ab"):
+            pass
+    else:
+        tempfile.NamedTemporaryFile(dir=path.parent, suffix=path.suffix).close()
 
 
 def append_line(path: Path, line: str) -> None:

@@ -35,7 +35,6 @@ import importlib.util
 import os
 import subprocess
 import sys
-import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -46,6 +45,7 @@ import numpy as np
 
 from td3_jax import envs, training
 from td3_jax.errors import GLUnavailableError, NotRenderableError, RenderError
+from td3_jax.logger import probe_write
 
 #: Headless OpenGL backends tried, in order, when ``MUJOCO_GL`` is not set.
 GL_BACKENDS = ("egl", "osmesa")
@@ -492,12 +492,8 @@ def check_destination(path: Path) -> list[Path]:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise RenderError(f"--out {path}: cannot make its folder ({err.strerror or err})") from err
-    try:  # (a real write: permissions, a read-only disk, /proc)
-        if path.exists():
-            with open(path, "ab"):  # (neither truncated nor touched)
-                pass
-        else:  # (a new file beside it, removed: a dangling link at --out is left as it is)
-            tempfile.NamedTemporaryFile(dir=path.parent, suffix=path.suffix).close()
+    try:
+        probe_write(path)
     except OSError as err:
         raise RenderError(f"--out {path}: cannot write it ({err.strerror or err})") from err
     return made

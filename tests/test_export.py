@@ -412,6 +412,8 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
             "exists and is not a policy td3-jax exported",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(other)):
             "exists and is not a policy td3-jax exported: remove it or choose another name",
+        ("--run", str(tiny_run), "--format", "npz", "--out", "/proc/td3-jax-policy.npz"):
+            "--out /proc/td3-jax-policy.npz: cannot write it (",  # (before the checkpoint)
     }  # fmt: skip
     for args, message in cases.items():
         code, stderr = cli_error(capsys, "export", *args)
