@@ -844,9 +844,6 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         cfg = _resumed_settings(cfg, command.out)
     with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
-    if command.resume and _run_complete(command.out, cfg):  # (before programs are looked up)
-        print(nothing_to_do(command.out, cfg))
-        return
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(typed))  # fmt: skip
     received: list[int] = []
@@ -878,16 +875,6 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         print(nothing_to_do(command.out, cfg))
         return
     _print_end(records, cfg, command, time.perf_counter() - started, sweeping)
-
-
-def _run_complete(out: Path, cfg: TrainConfig) -> bool:
-    """Whether the run in ``out`` has a checkpoint at (or past) the end of ``cfg``'s run, so
-    a ``--resume`` has nothing to train (the run itself would find so only after looking up
-    and loading its programs: seconds)."""
-    from td3_jax import rundir
-
-    written = rundir.checkpoint_steps(out)
-    return bool(written) and written[-1] >= cfg.num_chunks
 
 
 def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
@@ -1181,20 +1168,22 @@ def main(argv: list[str] | None = None) -> None:
 
 _DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
-#: The flags whose value is a folder: given empty, each would mean the working directory.
-_FOLDER_FLAGS = ("--out", "--run", "--compile-cache", "--menagerie")
+#: The flags whose value is a run's folder or an output file: given empty, each would mean
+#: the working directory. (An empty --compile-cache means off and an empty --menagerie not
+#: given, as before.)
+_PATH_FLAGS = ("--out", "--run")
 
 
-def check_no_empty_folder(args: list[str]) -> None:
-    """``ConfigError`` for a folder flag given an empty or blank value (``--out ''``,
+def check_no_empty_path(args: list[str]) -> None:
+    """``ConfigError`` for ``--out`` or ``--run`` given an empty or blank value (``--out ''``,
     ``--out=``: often ``--out "$DIR"`` with DIR unset), which would otherwise mean the working
-    directory (or a folder named by spaces)."""
+    directory (or a path named by spaces)."""
     for token, after in zip(args, [*args[1:], None], strict=True):
         flag, equals, value = token.partition("=")
         given = value if equals else after
-        if flag in _FOLDER_FLAGS and given is not None and not given.strip():
+        if flag in _PATH_FLAGS and given is not None and not given.strip():
             raise ConfigError(f"{flag} is {'blank' if given else 'empty'} (an unset shell "
-                              "variable?); give the folder, or ./ for the working "
+                              "variable?); give the path, or ./ for the working "
                               "directory")  # fmt: skip
 
 
@@ -1219,7 +1208,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
 
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
-        check_no_empty_folder(args)
+        check_no_empty_path(args)
         command(args)
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)

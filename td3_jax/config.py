@@ -642,11 +642,19 @@ def _batch_advice(cfg: TrainConfig, longer_run: str) -> str:
     return f"try --batch-size {fitting}" + (f", or {bigger}" if bigger else "")
 
 
+def _least_ring(cfg: TrainConfig) -> int:
+    """The smallest --buffer-size the checks below take: one iteration's transitions, a batch,
+    the n-step window's, as a multiple of --replay-shards."""
+    least = max(cfg.env_steps_per_iter, cfg.batch_size, (cfg.n_step - 1) * cfg.num_envs + 1)
+    return -(-least // cfg.replay_shards) * cfg.replay_shards
+
+
 def _check_replay(cfg: TrainConfig) -> None:
     capacity = cfg.replay_capacity
     if cfg.env_steps_per_iter > capacity:
-        least = max(cfg.env_steps_per_iter, cfg.batch_size)
-        suggested = max(min(cfg.run_steps, 1000 * cfg.env_steps_per_iter), least)
+        least = _least_ring(cfg)
+        many = min(cfg.run_steps, 1000 * cfg.env_steps_per_iter) // cfg.replay_shards
+        suggested = max(many * cfg.replay_shards, least)
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
                           f"replay buffer holds only {capacity}: give --buffer-size {least} at "
                           f"least (a ring of many iterations, e.g. --buffer-size {suggested}, "

@@ -126,6 +126,8 @@ def result(future: Future, stop: StopToken | None = None) -> Any:
         try:
             return future.result(timeout=0.2)
         except TimeoutError:
+            if future.done():  # (the function's own TimeoutError, not the wait's)
+                raise
             if stop is not None:
                 stop.raise_if_set()
 

@@ -195,6 +195,11 @@ def test_a_ring_smaller_than_one_iteration_is_refused_with_sizes_that_work():
     assert "e.g. --buffer-size 16000," in message
     for size in (256, 16000):
         assert validate(dataclasses.replace(cfg, buffer_size=size))
+    # 3-step targets over 128 environments read 256 stored rows past a sample: 257 at least
+    cfg = TrainConfig(num_envs=128, batch_size=64, n_step=3, buffer_size=100, total_steps=10**5)
+    with pytest.raises(ConfigError, match="give --buffer-size 257 at least"):
+        validate(cfg)
+    assert validate(dataclasses.replace(cfg, buffer_size=257))
 
 
 def test_agent_config_td3_defaults():

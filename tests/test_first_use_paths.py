@@ -68,18 +68,17 @@ def test_an_out_below_a_file_is_refused_before_the_environment_is_made(
 
 @pytest.mark.parametrize(("args", "flag"), [
     (["train", "--out", ""], "--out"), (["train", "--quiet", "--out="], "--out"),
-    (["sweep", "--compile-cache", "", "--out", "x"], "--compile-cache"),
+    (["sweep", "--sweep-tau", "0.01", "--out", "x", "--run="], "--run"),
     (["render", "--run", "somewhere", "--out", ""], "--out"),
-    (["envs", "--menagerie="], "--menagerie"), (["eval", "--run", ""], "--run"),
-    (["train", "--out", "  "], "--out"),
+    (["eval", "--run", ""], "--run"), (["train", "--out", "  "], "--out"),
 ])  # fmt: skip
-def test_an_empty_folder_flag_is_refused_not_taken_as_the_working_directory(
+def test_an_empty_path_flag_is_refused_not_taken_as_the_working_directory(
     args, flag, capsys, tmp_path, monkeypatch
 ):
     monkeypatch.chdir(tmp_path)
     code, stdout, err = main(args, capsys)
     blank = "empty" if "  " not in args else "blank"
-    assert_one_line_error(code, err, f"{flag} is {blank}", "give the folder")
+    assert_one_line_error(code, err, f"{flag} is {blank}", "give the path")
     assert stdout == "" and list(tmp_path.iterdir()) == []  # nothing written where it stands
 
 

@@ -243,6 +243,17 @@ def test_a_stopped_wait_gives_up_the_compile_thread():
     assert runtime.result(future) is True
 
 
+def test_a_timeout_the_work_itself_raised_is_its_result_not_a_wait_to_repeat():
+    """(``result`` waits in steps of 0.2 s, each ending in TimeoutError while the work runs.)"""
+
+    def times_out():
+        raise TimeoutError("a lock held elsewhere")
+
+    future = runtime.in_background(times_out)
+    with pytest.raises(TimeoutError, match="a lock held elsewhere"):
+        runtime.result(future, runtime.StopToken())
+
+
 def test_a_ctrl_c_that_leaves_a_device_wait_is_reported_as_uninterruptible_work():
     """A KeyboardInterrupt out of a device wait leaves the computation running: reported until
     forgotten; another exception, or a wait that ends, reports nothing."""

@@ -300,5 +300,14 @@ def test_the_cores_counted_are_at_most_the_cgroups_cpu_quota(tmp_path):
     (job / "cpu.max").write_text("100000 100000\n")  # (a v2 limit on this process's own group)
     own.write_text("0::/user.slice/job-7\n")
     assert warp_kernels.cores(root, own) == 1
+    (job / "cpu.max").write_text("max 100000\n")
+    (root / "user.slice" / "cpu.max").write_text("200000 100000\n")  # (on a group above it)
+    assert warp_kernels.cores(root, own) == min(here, 2)
+    v1_job = root / "cpuacct,cpu" / "docker" / "abc"
+    v1_job.mkdir(parents=True)
+    (v1_job / "cpu.cfs_quota_us").write_text("100000\n")
+    (v1_job / "cpu.cfs_period_us").write_text("100000\n")
+    own.write_text("5:cpuacct,cpu:/docker/abc\n")  # (v1, the controllers in the other order)
+    assert warp_kernels.cores(root, own) == 1
     own.write_text("0::/\n4:memory:/user.slice/job-7\n")  # (a root path; no cpu controller)
     assert warp_kernels.cores(root, own) == here

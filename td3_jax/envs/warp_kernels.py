@@ -207,21 +207,22 @@ def cpu_quota(root: Path = CGROUP_ROOT, own: Path = PROC_CGROUP) -> float | None
 
 def _cgroup_folders(root: Path, own: Path) -> list[Path]:
     """Where a CPU quota of this process may be: the mount's root (v2) and its cpu controller's
-    (v1), then this process's own cgroup under each (``/proc/self/cgroup``'s lines
-    ``ID:CONTROLLERS:PATH``; v2's have no controllers)."""
-    folders = [root, root / "cpu", root / "cpu,cpuacct"]
+    (v1), then this process's own cgroup and those above it under each (``/proc/self/cgroup``'s
+    lines ``ID:CONTROLLERS:PATH``; v2's have no controllers)."""
+    mounts = {"": [root], "cpu": [root / "cpu", root / "cpu,cpuacct", root / "cpuacct,cpu"]}
+    folders = [*mounts[""], *mounts["cpu"]]
     try:
         lines = own.read_text().splitlines()
     except OSError:
         lines = []
     for line in lines:
         _, controllers, path = [*line.split(":", 2), "", ""][:3]
-        if not path.strip("/"):
+        kind = "" if not controllers else "cpu" if "cpu" in controllers.split(",") else None
+        if kind is None or not path.strip("/"):
             continue
-        if not controllers:
-            folders.append(root / path.strip("/"))
-        elif "cpu" in controllers.split(","):
-            folders.append(root / controllers / path.strip("/"))
+        below = Path(path.strip("/"))
+        for mount in mounts[kind]:
+            folders += [mount / up for up in (below, *below.parents) if str(up) != "."]
     return folders
 
 
@@ -323,7 +324,7 @@ _PENDING: list[_Pending] = []
 
 @contextlib.contextmanager
 def beside_compile() -> Iterator[None]:
-    """Inside, unless :data:`BESIDE` is 0, where the machine has :data:`BESIDE_MIN_CORES` cores,
+    """Inside, unless :data:`BESIDE` is off (0, false, off, no), on :data:`BESIDE_MIN_CORES` cores,
     :func:`precompile_task` (called by this thread) starts the precompile on a thread of its
     own and returns at once; :func:`wait_ready` waits for it. A training run makes its
     environment inside, then traces and compiles its programs while Warp's kernels compile.
@@ -419,10 +420,11 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     """:func:`precompile` for the Playground ``task`` (an ``MjxEnv`` on Warp), with the options
     of the MJX model it simulates; ``njmax``: its constraints per environment, ``naconmax``:
     contacts for one environment. Says how long it took where that was a second or more. Off
-    (``None``) where :data:`PRECOMPILE` is 0; a failure is a warning (``None``): each module is
-    then compiled at its first launch, as without it. Inside :func:`beside_compile`, with
-    :data:`BESIDE` not 0, on a machine of :data:`BESIDE_MIN_CORES` cores or more: started on a
-    thread of its own (``None`` at once; :func:`wait_ready` reports it)."""
+    (``None``) where :data:`PRECOMPILE` is off (0, false, off, no); a failure is a warning
+    (``None``): each module is then compiled at its first launch, as without it. Inside
+    :func:`beside_compile`, with :data:`BESIDE` not off, on a machine of
+    :data:`BESIDE_MIN_CORES` cores or more: started on a thread of its own (``None`` at once;
+    :func:`wait_ready` reports it)."""
     if _turned_off(PRECOMPILE):
         return None
     beside = not _turned_off(BESIDE) and cores() >= BESIDE_MIN_CORES
