@@ -1178,7 +1178,7 @@ def check_no_empty_path(args: list[str]) -> None:
     """``ConfigError`` for ``--out`` or ``--run`` given an empty or blank value (``--out ''``,
     ``--out=``: often ``--out "$DIR"`` with DIR unset), which would otherwise mean the working
     directory (or a path named by spaces)."""
-    for token, after in zip(args, [*args[1:], None], strict=True):
+    for token, after in itertools.pairwise([*args, None]):
         flag, equals, value = token.partition("=")
         given = value if equals else after
         if flag in _PATH_FLAGS and given is not None and not given.strip():
