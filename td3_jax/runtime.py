@@ -113,6 +113,14 @@ class StopToken:
             raise KeyboardInterrupt
 
 
+def env_switch(variable: str) -> bool | None:
+    """The on/off environment variable ``variable``: ``True`` for 1, true, on or yes, ``False``
+    for 0, false, off or no (any case), ``None`` where unset or anything else."""
+    value = os.environ.get(variable, "").strip().lower()
+    return True if value in ("1", "true", "on", "yes") else False if value in (
+        "0", "false", "off", "no") else None  # fmt: skip
+
+
 # --------------------------------------------------------------------------------------------
 # compile threads
 # --------------------------------------------------------------------------------------------

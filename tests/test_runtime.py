@@ -355,3 +355,14 @@ def test_quiet_library_logs_drops_only_what_td3_jax_says_better(restored_logging
         sys.unraisablehook(type("Args", (), {"exc_value": err, "exc_traceback":
                            err.__traceback__, "object": None})())  # fmt: skip
     assert [args.exc_value for args in seen] == [other]
+
+
+def test_an_on_off_variable_reads_the_usual_words_and_nothing_else(monkeypatch):
+    """(TD3_JAX_WARP_BESIDE, TD3_JAX_WARP_PRECOMPILE, TD3_JAX_WARP_ON_CPU read it.)"""
+    monkeypatch.delenv("TD3_JAX_TEST_SWITCH", raising=False)
+    assert runtime.env_switch("TD3_JAX_TEST_SWITCH") is None
+    for value, meaning in [("1", True), (" Yes", True), ("ON", True), ("true", True),
+                           ("0", False), ("no", False), ("Off ", False), ("FALSE", False),
+                           ("", None), ("2", None), ("maybe", None)]:  # fmt: skip
+        monkeypatch.setenv("TD3_JAX_TEST_SWITCH", value)
+        assert runtime.env_switch("TD3_JAX_TEST_SWITCH") is meaning, value

@@ -17,12 +17,11 @@ import contextlib
 import importlib
 import importlib.util
 import io
-import os
 import sys
 from collections.abc import Iterator
 from typing import Any
 
-from td3_jax import upstream
+from td3_jax import runtime, upstream
 
 __all__ = [
     "IMPLS",
@@ -74,8 +73,7 @@ def warp_missing() -> str | None:
 
     device = jax.devices()[0]
     version = str(getattr(getattr(device, "client", None), "platform_version", "")).lower()
-    asked = os.environ.get(WARP_ON_CPU, "").strip().lower() in ("1", "true", "on", "yes")
-    on_cpu = device.platform == "cpu" and asked
+    on_cpu = device.platform == "cpu" and runtime.env_switch(WARP_ON_CPU) is True
     if not on_cpu and (device.platform != "gpu" or "cuda" not in version):
         slowly = f"; {WARP_ON_CPU}=1 runs its CPU kernels, slowly" * (device.platform == "cpu")
         here = f"JAX's default device here is {device.platform}{slowly}"

@@ -411,11 +411,6 @@ def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
     _PENDING.append(_Pending(future, cancel))
 
 
-def _turned_off(variable: str) -> bool:
-    """Whether the environment variable ``variable`` says off (0, false, off or no)."""
-    return os.environ.get(variable, "").strip().lower() in ("0", "false", "off", "no")
-
-
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:
     """:func:`precompile` for the Playground ``task`` (an ``MjxEnv`` on Warp), with the options
     of the MJX model it simulates; ``njmax``: its constraints per environment, ``naconmax``:
@@ -425,9 +420,9 @@ def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Pr
     :func:`beside_compile`, with :data:`BESIDE` not off, on a machine of
     :data:`BESIDE_MIN_CORES` cores or more: started on a thread of its own (``None`` at once;
     :func:`wait_ready` reports it)."""
-    if _turned_off(PRECOMPILE):
+    if runtime.env_switch(PRECOMPILE) is False:
         return None
-    beside = not _turned_off(BESIDE) and cores() >= BESIDE_MIN_CORES
+    beside = runtime.env_switch(BESIDE) is not False and cores() >= BESIDE_MIN_CORES
     if getattr(_BESIDE, "on", False) and beside:
         _start_beside(task, njmax, naconmax)
         return None
