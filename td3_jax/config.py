@@ -166,7 +166,9 @@ class TrainConfig:
     """Clip gradients to this global norm before Adam; default: no clipping."""
     max_weight_norm: float | None = None
     """After every optimiser step, scale each unit's incoming weights (a column of every Dense
-    kernel, actor and critics) down to this norm where they exceed it; default: unbounded."""
+    kernel, actor and critics) down to this norm where they exceed it; default: unbounded.
+    The g1 preset uses 1 (about the units' initial norm): on G1 flat, 3 seeds at 50M steps,
+    39.4, 39.2, 39.5 against 39.1, 38.8, 39.5 without it."""
     return_bound: float | None = None
     """Divide the rewards the critics learn from by the running statistics of each training
     environment's discounted return (FlashSAC's reward normalisation): by max(std of the

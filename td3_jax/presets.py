@@ -228,25 +228,30 @@ PRESETS: dict[str, dict] = {
     # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
     "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
     # G1 flat: FlashSAC's critic layout (two residual blocks of width 256, --critic-network
-    # residual) and no weight decay (AdamW's decay 0, not 0.1), the two changes that lifted G1
-    # at 53.2M env steps over 3 seeds each. The residual critics with decay 0.1: 38.2, 37.3, 38.1
-    # (IQM 38.0) against the plain 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4); then decay
-    # 0: 39.1, 38.8, 39.5 (IQM 39.1; FlashSAC 39.9), every seed above its decay-0.1 run
-    # (BENCHMARKS.md, seventh to fifteenth sessions). The residual critics cost speed: the loop
-    # runs at 73-78K env steps/s against 102-108K on an H200, so FastTD3's final 31.4 comes at
-    # 525-630 s from launch on fresh hosts (fourteenth and fifteenth sessions), and the curve
-    # may dip before it settles. The plain critics (`--critic-network mlp
-    # --critic-hidden-sizes 1024 512 256`) are the faster start.
-    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain"),
+    # residual), no weight decay (AdamW's decay 0, not 0.1) and bounded weights
+    # (--max-weight-norm 1), the three changes that lifted G1 at 53.2M env steps over 3 seeds
+    # each. The residual critics with decay 0.1: 38.2, 37.3, 38.1 (IQM 38.0) against the plain
+    # 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4); then decay 0: 39.1, 38.8, 39.5 (IQM
+    # 39.1; FlashSAC 39.9), every seed above its decay-0.1 run (BENCHMARKS.md, seventh to
+    # fifteenth sessions). The residual critics cost speed: the loop runs at 73-78K env steps/s
+    # against 102-108K on an H200, so FastTD3's final 31.4 comes at 525-630 s from launch on
+    # fresh hosts (fourteenth and fifteenth sessions), and the curve may dip before it settles.
+    # The plain critics (`--critic-network mlp --critic-hidden-sizes 1024 512 256`) are the
+    # faster start. Bounded weights (every unit's incoming weights at most norm 1 after each
+    # step, about their initial norm, as FlashSAC keeps its weights on the unit sphere): 39.4,
+    # 39.2, 39.5 (IQM 39.4) on the same seeds against 39.1, 38.8, 39.5, each seed level or
+    # above, and faster early (31.4 at 417-475 s from launch, cold, four runs starting on one
+    # host; nineteenth session). Not measured on rough terrain, so `g1-rough` stays unbounded.
+    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain", max_weight_norm=1.0),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts), with 128 constraints
     # per environment as a margin on Warp. T1 rough is the flat preset unchanged: 34.8, 35.2,
-    # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough is the `g1` preset
-    # on rough terrain. Its residual critics with decay 0.1 ended 34.1, 33.2, 33.1 (IQM 33.4)
-    # against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3); decay 0 then ended 35.0, 34.0,
-    # 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at 46-51K env
-    # steps/s against the plain critics' 56-62K; it is slower early, so FastTD3's final 27.7
-    # came at 784-1065 s from launch against 691-787 s with decay 0.1 (BENCHMARKS.md, seventh
-    # to sixteenth sessions). Not tuned further for rough terrain.
+    # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough is the `g1` preset on
+    # rough terrain (without the weight bound). Its residual critics with decay 0.1 ended 34.1,
+    # 33.2, 33.1 (IQM 33.4) against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3); decay 0 then
+    # ended 35.0, 34.0, 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at
+    # 46-51K env steps/s against the plain critics' 56-62K; it is slower early, so FastTD3's
+    # final 27.7 came at 784-1065 s from launch against 691-787 s with decay 0.1 (BENCHMARKS.md,
+    # seventh to sixteenth sessions). Not tuned further for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
