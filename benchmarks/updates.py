@@ -16,6 +16,11 @@ the C51 target head chosen by projected means, no target actor, actor on the low
 library computes it (``library``) and, as the baseline in the same command, the dense form
 td3-jax used before 2026-11-25 (``einsum``, over ``[..., atoms, atoms]`` weights).
 
+``--networks mlp residual``: the critics plain (1024-512-256) and/or in the `g1` preset's
+residual layout (two blocks of 256); ``--max-weight-norm B``: each combination also with its
+weights bounded to norm B after every step. The robot presets' cuBLAS matmuls: run with
+``XLA_FLAGS=--xla_gpu_enable_triton_gemm=false``.
+
 Usage (from the project root): python3 benchmarks/updates.py --out DIR
 Prints a table and writes DIR/updates.csv (and DIR/updates.jsonl).
 """
@@ -40,8 +45,9 @@ from td3_jax import distributional, replay
 from td3_jax.types import Transition
 
 CRITIC_HIDDEN, ACTOR_HIDDEN = (1024, 512, 256), (512, 256, 128)
-COLUMNS = ("critic", "precision", "batch", "shape", "rules", "projection", "ring",
-           "updates_per_s", "ms_per_update", "samples_per_s", "device", "jax")  # fmt: skip
+NETWORK_SIZES = {"mlp": CRITIC_HIDDEN, "residual": (256, 256)}
+COLUMNS = ("critic", "network", "bound", "precision", "batch", "shape", "rules", "projection",
+           "ring", "updates_per_s", "ms_per_update", "samples_per_s", "device", "jax")  # fmt: skip
 RULES = {
     "paper": dict(actor_q="min"),
     "fasttd3": dict(actor_q="min", target_actor=False, target_update="every_update",
@@ -66,17 +72,28 @@ def projection(name: str):
     return mock.patch.object(distributional, "project", einsum_project)
 
 
-def make_spec(critic: str, precision: str, shape: tuple, layer_norm: bool, rules: str):
+def make_spec(
+    critic: str,
+    precision: str,
+    shape: tuple,
+    layer_norm: bool,
+    rules: str,
+    network: str = "mlp",
+    bound: bool = False,
+):
     obs, critic_obs, act = shape
+    hidden = NETWORK_SIZES[network]
     options = ac.AgentOptions(
         num_atoms=101 if critic == "distributional" else 0,
         actor_hidden_sizes=ACTOR_HIDDEN,
-        critic_hidden_sizes=CRITIC_HIDDEN,
+        critic_hidden_sizes=hidden,
         layer_norm=layer_norm,
         precision=precision,
+        critic_network=network,
+        bound_weights=bound,
         **RULES[rules],
     )
-    return ac.make_spec(CRITIC_HIDDEN, obs, act, num_critics=2, target_smoothing=True,
+    return ac.make_spec(hidden, obs, act, num_critics=2, target_smoothing=True,
                         policy_freq=2, options=options,
                         critic_observation_size=critic_obs)  # fmt: skip
 
@@ -133,9 +150,11 @@ def run_updates(spec, hp, state, source, n, key, batch_size, project_name):
     return state, metrics["critic_loss"][-1]
 
 
-def agent_hyperparams() -> ac.AgentHyperparams:
+def agent_hyperparams(bound: float | None = None) -> ac.AgentHyperparams:
     settings = dict(discount=0.99, tau=0.005, actor_lr=3e-4, critic_lr=3e-4, policy_noise=0.2,
                     noise_clip=0.5, weight_decay=0.1, v_min=-10.0, v_max=10.0)  # fmt: skip
+    if bound is not None:
+        settings["max_weight_norm"] = bound
     return ac.AgentHyperparams(**{k: jnp.float32(v) for k, v in settings.items()})
 
 
@@ -143,7 +162,8 @@ def updates_per_second(spec, batch_size: int, args: argparse.Namespace, project_
     """Updates per second of the fastest of ``args.repeats`` timed calls; with
     ``args.profile``, a trace of one more call written there."""
     updates, ring = args.updates, args.ring
-    hp, key = agent_hyperparams(), jax.random.PRNGKey(0)
+    bound = args.max_weight_norm if spec.options.bound_weights else None
+    hp, key = agent_hyperparams(bound), jax.random.PRNGKey(0)
     state = jax.jit(functools.partial(ac.init, spec))(key)  # distinct buffers: donated
     row = spec.critic_observation_size or spec.observation_size
     source = (
@@ -197,18 +217,28 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--updates", type=int, default=50, help="updates per timed call")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--layer-norm", action="store_true")
+    parser.add_argument("--networks", nargs="+", default=["mlp"], choices=sorted(NETWORK_SIZES),
+                        help="the critics' layout: mlp (1024-512-256) and/or residual (two "
+                        "blocks of 256, the g1 preset's)")  # fmt: skip
+    parser.add_argument(
+        "--max-weight-norm",
+        type=float,
+        default=None,
+        help="also time each combination with weights bounded to this norm",
+    )
     parser.add_argument("--profile", default="", help="directory for a profiler trace of "
                         "each combination's last call (perfetto .json.gz)")  # fmt: skip
     return parser.parse_args()
 
 
 def measure(args, combo: tuple) -> dict:
-    shape_, batch, critic, precision, rules, proj = combo
+    shape_, batch, critic, network, bound, precision, rules, proj = combo
     if proj != "library" and critic != "distributional":
         return {}
-    spec = make_spec(critic, precision, shape_, args.layer_norm, rules)
+    spec = make_spec(critic, precision, shape_, args.layer_norm, rules, network, bound)
     rate = updates_per_second(spec, batch, args, proj)
-    return dict(critic=critic, precision=precision, batch=batch,
+    return dict(critic=critic, network=network, bound=args.max_weight_norm if bound else "",
+                precision=precision, batch=batch,
                 shape="x".join(str(n) for n in shape_ if n), rules=rules, projection=proj,
                 ring=args.ring, updates_per_s=round(rate, 2), ms_per_update=round(1000 / rate, 3),
                 samples_per_s=round(rate * batch), device=jax.devices()[0].device_kind,
@@ -220,9 +250,10 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    combos = itertools.product(args.shapes, args.batches, args.critics, args.precisions,
-                               args.rules, args.projections)  # fmt: skip
-    print(" ".join(f"{c:>13}" for c in COLUMNS[:10]), flush=True)
+    bounds = [False, True] if args.max_weight_norm is not None else [False]
+    combos = itertools.product(args.shapes, args.batches, args.critics, args.networks, bounds,
+                               args.precisions, args.rules, args.projections)  # fmt: skip
+    print(" ".join(f"{c:>13}" for c in COLUMNS[:12]), flush=True)
     with (out / "updates.jsonl").open("w") as log:
         for combo in combos:
             row = measure(args, combo)
@@ -230,7 +261,7 @@ def main() -> None:
                 continue
             rows.append(row)
             log.write(json.dumps(row) + "\n")
-            print(" ".join(f"{row[c]!s:>13}" for c in COLUMNS[:10]), flush=True)
+            print(" ".join(f"{row[c]!s:>13}" for c in COLUMNS[:12]), flush=True)
     with (out / "updates.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=COLUMNS)
         writer.writeheader()
