@@ -228,7 +228,10 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--profile", default="", help="directory for a profiler trace of "
                         "each combination's last call (perfetto .json.gz)")  # fmt: skip
-    return parser.parse_args()
+    args = parser.parse_args()
+    if args.max_weight_norm is not None and not args.max_weight_norm > 0:
+        parser.error(f"--max-weight-norm must be positive, not {args.max_weight_norm}")
+    return args
 
 
 def measure(args, combo: tuple) -> dict:

@@ -166,9 +166,9 @@ class TrainConfig:
     """Clip gradients to this global norm before Adam; default: no clipping."""
     max_weight_norm: float | None = None
     """After every optimiser step, scale each unit's incoming weights (a column of every Dense
-    kernel, actor and critics) down to this norm where they exceed it; default: unbounded.
-    The g1 preset uses 1 (about the units' initial norm): on G1 flat, 3 seeds at 50M steps,
-    39.4, 39.2, 39.5 against 39.1, 38.8, 39.5 without it."""
+    kernel, actor and critics) down to this norm where they exceed it; default: unbounded
+    (None turns a preset's bound off). The g1 preset uses 1 (about the units' initial norm): on
+    G1 flat, 3 seeds at 53.2M steps, 39.4, 39.2, 39.5 against 39.1, 38.8, 39.5 without it."""
     return_bound: float | None = None
     """Divide the rewards the critics learn from by the running statistics of each training
     environment's discounted return (FlashSAC's reward normalisation): by max(std of the
@@ -370,10 +370,12 @@ def unused_settings(cfg: TrainConfig) -> dict[str, str]:
 def idle_flags(cfg: TrainConfig, given: set[str]) -> list[str]:
     """Warnings for flags typed (``given``: the fields named on the command line) that change
     nothing with the rest of ``cfg`` (:func:`unused_settings`), one per reason: ``--v-min,
-    --v-max do nothing with --critic plain``."""
+    --v-max do nothing with --critic plain``). An option typed as None (``--max-weight-norm
+    None``) is turned off, which undoes a preset's value: not warned of."""
     typed: dict[str, list[str]] = {}
     for name, because in unused_settings(cfg).items():
-        if name in given:
+        turned_off = name in SWITCHED_ON_BY_THEIR_FLAG and getattr(cfg, name) is None
+        if name in given and not turned_off:
             typed.setdefault(because, []).append(flag(name))
     return [f"{', '.join(flags)} {'does' if len(flags) == 1 else 'do'} nothing with {because}"
             for because, flags in typed.items()]  # fmt: skip

@@ -228,9 +228,9 @@ PRESETS: dict[str, dict] = {
     # Playground humanoids (see _PLAYGROUND_LOCOMOTION): Booster T1 and Unitree G1 joysticks.
     "t1": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickFlatTerrain"),
     # G1 flat: FlashSAC's critic layout (two residual blocks of width 256, --critic-network
-    # residual), no weight decay (AdamW's decay 0, not 0.1) and bounded weights
-    # (--max-weight-norm 1), the three changes that lifted G1 at 53.2M env steps over 3 seeds
-    # each. The residual critics with decay 0.1: 38.2, 37.3, 38.1 (IQM 38.0) against the plain
+    # residual) and no weight decay (AdamW's decay 0, not 0.1), the two changes that lifted G1
+    # at 53.2M env steps over 3 seeds each, and bounded weights (--max-weight-norm 1). The
+    # residual critics with decay 0.1: 38.2, 37.3, 38.1 (IQM 38.0) against the plain
     # 1024-512-256 critics' 36.2, 36.4, 36.5 (IQM 36.4); then decay 0: 39.1, 38.8, 39.5 (IQM
     # 39.1; FlashSAC 39.9), every seed above its decay-0.1 run (BENCHMARKS.md, seventh to
     # fifteenth sessions). The residual critics cost speed: the loop runs at 73-78K env steps/s
@@ -239,9 +239,10 @@ PRESETS: dict[str, dict] = {
     # The plain critics (`--critic-network mlp --critic-hidden-sizes 1024 512 256`) are the
     # faster start. Bounded weights (every unit's incoming weights at most norm 1 after each
     # step, about their initial norm, as FlashSAC keeps its weights on the unit sphere): 39.4,
-    # 39.2, 39.5 (IQM 39.4) on the same seeds against 39.1, 38.8, 39.5, each seed level or
-    # above, and faster early (31.4 at 417-475 s from launch, cold, four runs starting on one
-    # host; nineteenth session). Not measured on rough terrain, so `g1-rough` stays unbounded.
+    # 39.2, 39.5 (IQM 39.4) on the same seeds against 39.1, 38.8, 39.5, each seed level or above
+    # by 0.1-0.3 (no worse, within the evaluation's noise), and faster early (31.4 passed with
+    # the policies of 16.4-20.5M steps against 20.5-28.7M; nineteenth session); None turns it
+    # off. Not measured on rough terrain, so `g1-rough` stays unbounded.
     "g1": dict(_G1, env="playground/G1JoystickFlatTerrain", max_weight_norm=1.0),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts), with 128 constraints
     # per environment as a margin on Warp. T1 rough is the flat preset unchanged: 34.8, 35.2,

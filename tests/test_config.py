@@ -419,6 +419,12 @@ def test_typed_flags_that_change_nothing_are_named_with_the_reason():
     assert idle_flags(TrainConfig(), {"env_backend"}) == [
         "--env-backend does nothing with --env gymnax/Pendulum-v1"
     ]
+    # An option typed as None turns a preset's value off: not idle (`--preset g1
+    # --max-weight-norm None`); a typed value beside its option off still is.
+    assert idle_flags(TrainConfig(max_weight_norm=None), {"max_weight_norm"}) == []
+    assert idle_flags(TrainConfig(lr_final_fraction=0.5), {"lr_final_fraction"}) == [
+        "--lr-final-fraction does nothing with --lr-schedule constant"
+    ]
     # The same values from a preset (not typed) say nothing; used flags say nothing.
     assert idle_flags(plain, set()) == []
     assert idle_flags(TrainConfig(critic="distributional"), {"v_max", "expl_noise"}) == []
