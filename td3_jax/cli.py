@@ -208,7 +208,8 @@ class RenderCommand:
     run: Path
     """Run directory written by `td3-jax train`."""
     out: Path | None = None
-    """Video file, .mp4 or .gif (default: RUN/rollout.mp4, RUN/rollout.gif with --gif)."""
+    """Video file, .mp4 or .gif, not one that exists (default: RUN/rollout.mp4, RUN/rollout.gif
+    with --gif, replaced by a later render)."""
     gif: bool = False
     """Write a GIF instead of an MP4."""
     episodes: int = 1

@@ -477,14 +477,18 @@ def check_writer(path: Path) -> None:
                           "pip install 'td3-jax[render]'")  # fmt: skip
 
 
-def check_destination(path: Path) -> list[Path]:
+def check_destination(path: Path, replace: bool = False) -> list[Path]:
     """Raises :class:`RenderError` before a rollout when ``path`` cannot be written: a folder of
-    that name, a folder that cannot be made, or one this process may not write in. A missing
-    folder is made; returns the folders made, outermost first."""
+    that name, a file already there (unless ``replace``: a run's own default video), a folder
+    that cannot be made, or one this process may not write in. A missing folder is made;
+    returns the folders made, outermost first."""
     path = Path(path)
     made = [up for up in path.parents if not up.exists()][::-1]
     if path.is_dir():
         raise RenderError(f"--out {path} is a directory; name the video file (.mp4 or .gif)")
+    if path.exists() and not replace:
+        raise RenderError(f"--out {path} exists: remove it or choose another name (nothing is "
+                          "overwritten)")  # fmt: skip
     blocking = next((up for up in path.parents if up.exists() and not up.is_dir()), None)
     if blocking is not None:
         raise RenderError(f"--out {path}: {blocking} is a file, not a folder")
@@ -533,7 +537,8 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     from td3_jax.rundir import require_run_dir
 
     require_run_dir(run_dir)  # (the line eval and plot give; before a folder is made)
-    made = check_destination(out)
+    own = Path(out).resolve() in {video_path(run_dir, None, g).resolve() for g in (False, True)}
+    made = check_destination(out, replace=own)  # (the run's own rollout video is replaced)
     try:
         result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
                          check=functools.partial(check_scene, camera=camera), env=env)  # fmt: skip

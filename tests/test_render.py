@@ -252,6 +252,11 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_rollout(tmp_path):
             render.check_destination(Path("/proc/v.mp4"))
         with pytest.raises(OSError, match="ffmpeg wrote nothing"):
             render.write_video(Path("/proc/v.mp4"), np.zeros((2, 8, 8, 3), np.uint8), 10.0)
+    (tmp_path / "kept.gif").write_bytes(b"GIF89a")  # (a file of the user's: never replaced)
+    with pytest.raises(render.RenderError, match=r"kept\.gif exists: remove it or choose another"):
+        render.check_destination(tmp_path / "kept.gif")
+    assert (tmp_path / "kept.gif").read_bytes() == b"GIF89a"
+    assert render.check_destination(tmp_path / "kept.gif", replace=True) == []  # (a run's own)
     assert render.check_destination(tmp_path / "new" / "v.mp4") == [tmp_path / "new"]
     assert (tmp_path / "new").is_dir() and not (tmp_path / "new" / "v.mp4").exists()
     made = render.check_destination(tmp_path / "a" / "b" / "v.mp4")
