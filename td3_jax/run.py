@@ -155,13 +155,15 @@ def check_time_budget(seconds: float | None) -> None:
 def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
                      preset: str | None, changes: Any) -> None:  # fmt: skip
     """The run's start (restored, else fresh), its programs compiled and its chunks trained;
-    a run already complete compiles and rewrites nothing."""
+    a run already complete compiles and rewrites nothing, and one stopped before its first
+    chunk writes no outputs (so the same command starts it again)."""
     state, start_chunk = _start(run, source, resume)
     if start_chunk >= run.cfg.num_chunks:
         return
     _say_resuming(run, start_chunk)
     run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
     compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
+    run.stop.raise_if_set()  # (stopped while programs loaded from the cache: nothing written)
     _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
                      preset=preset, changes=changes)  # fmt: skip
 

@@ -845,6 +845,30 @@ def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path,
     assert len(run_module.train(cfg, out, resume=True, progress=False)) == 2  # 128, 192
 
 
+def test_a_stop_as_the_programs_load_leaves_a_startable_directory(tmp_path, monkeypatch):
+    """A stop that comes while the programs load (from the cache, so no compile wait sees
+    it) ends the run before it writes config.json or records: the same call then starts it
+    (it used to find "a previous run's outputs" and no checkpoint to resume)."""
+    from td3_jax.runtime import StopToken
+
+    real = run_module._compiled_and_state
+    stop = StopToken()
+
+    def load_then_stop(*args, **kwargs):
+        out = real(*args, **kwargs)
+        stop.set()
+        return out
+
+    monkeypatch.setattr(run_module, "_compiled_and_state", load_then_stop)
+    cfg = dataclasses.replace(SMALL, total_steps=128, warmup_steps=16, hidden_sizes=(8,))
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        run_module.train(cfg, out, progress=False, stop=stop)
+    assert not (out / "config.json").exists() and not (out / "metrics.jsonl").exists()
+    monkeypatch.undo()
+    assert [r["env_steps"] for r in run_module.train(cfg, out, progress=False)] == [64, 128]
+
+
 @pytest.mark.parametrize("limits", [{"time_budget_s": -1.0}, {"time_budget_s": float("inf")},
                                     {"devices": 0}, {"devices": -2}])  # fmt: skip
 def test_the_library_refuses_a_bad_budget_or_device_count_before_the_run_starts(tmp_path,
