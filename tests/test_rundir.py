@@ -817,6 +817,19 @@ def test_a_full_disk_when_writing_config_json_is_one_line_and_leaves_no_temporar
 
 
 @pytest.mark.runs
+def _stop_after(monkeypatch, step: str, stop, when=lambda out: True) -> None:
+    """``run_module.<step>`` patched to set ``stop`` once it returns (where ``when(out)``)."""
+    real = getattr(run_module, step)
+
+    def step_then_stop(*args, **kwargs):
+        out = real(*args, **kwargs)
+        if when(out):
+            stop.set()
+        return out
+
+    monkeypatch.setattr(run_module, step, step_then_stop)
+
+
 def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path, monkeypatch):
     """The stop token given to train (set by the CLI's Ctrl-C handler, also when Python
     discards the interrupt) stops a run at the next chunk boundary: that chunk is logged and
@@ -824,15 +837,8 @@ def test_stop_ends_the_run_after_checkpointing_the_chunk_it_interrupts(tmp_path,
     from td3_jax.checkpoint import Checkpointer
     from td3_jax.runtime import StopToken
 
-    real = run_module._chunk_and_record
     stop = StopToken()
-
-    def chunk_then_stop(*args, **kwargs):
-        out = real(*args, **kwargs)
-        stop.set()
-        return out
-
-    monkeypatch.setattr(run_module, "_chunk_and_record", chunk_then_stop)
+    _stop_after(monkeypatch, "_chunk_and_record", stop)
     cfg = dataclasses.replace(SMALL, total_steps=192, warmup_steps=16, hidden_sizes=(8,))
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
@@ -851,15 +857,8 @@ def test_a_stop_as_the_programs_load_leaves_a_startable_directory(tmp_path, monk
     (it used to find "a previous run's outputs" and no checkpoint to resume)."""
     from td3_jax.runtime import StopToken
 
-    real = run_module._compiled_and_state
     stop = StopToken()
-
-    def load_then_stop(*args, **kwargs):
-        out = real(*args, **kwargs)
-        stop.set()
-        return out
-
-    monkeypatch.setattr(run_module, "_compiled_and_state", load_then_stop)
+    _stop_after(monkeypatch, "_compiled_and_state", stop)
     cfg = dataclasses.replace(SMALL, total_steps=128, warmup_steps=16, hidden_sizes=(8,))
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
@@ -886,16 +885,8 @@ def test_a_stop_that_comes_with_the_last_chunk_lets_the_run_finish(tmp_path, mon
     the run is complete, so train returns its records instead of raising."""
     from td3_jax.runtime import StopToken
 
-    real = run_module._chunk_and_record
     stop = StopToken()
-
-    def stop_in_the_last_chunk(run, compiled, state, iterations):
-        out = real(run, compiled, state, iterations)
-        if out[1]["env_steps"] == 128:
-            stop.set()
-        return out
-
-    monkeypatch.setattr(run_module, "_chunk_and_record", stop_in_the_last_chunk)
+    _stop_after(monkeypatch, "_chunk_and_record", stop, when=lambda out: out[1]["env_steps"] == 128)
     cfg = dataclasses.replace(SMALL, total_steps=128, warmup_steps=16, hidden_sizes=(8,))
     done = run_module.train(cfg, tmp_path / "run", progress=False, stop=stop)
     assert [r["env_steps"] for r in done] == [64, 128] and stop.is_set()
