@@ -899,9 +899,11 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
     ``--time-budget-s`` stopped it before its last step (and how to go on), a sweep's ranking."""
     resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
     pooled = f" over all {records[-1]['members']} members (per setting below)" if sweeping else ""
-    print(done_line(records[-1], command.out, process_s, resumed_at, pooled))
     taken = records[-1]["env_steps"]
-    if command.time_budget_s is not None and taken < cfg.run_steps:
+    early = command.time_budget_s is not None and taken < cfg.run_steps
+    print(done_line(records[-1], command.out, process_s, resumed_at, pooled,
+                    word="stopped" if early else "done"))  # fmt: skip
+    if early:
         out = shlex.quote(str(command.out))
         print(f"stopped by --time-budget-s {command.time_budget_s:g} at {taken:,} of "
               f"{cfg.run_steps:,} env steps; td3-jax train --out {out} --resume "
@@ -911,11 +913,13 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
 
 
 def done_line(last: dict, out: Path, process_s: float | None = None,
-              resumed_at: int | None = None, pooled: str = "") -> str:  # fmt: skip
-    """The line that ends a run: its steps, time and last evaluation (with the env steps of
-    the policy it is of, where evaluated inside the chunk; ``pooled`` says over what, for a
-    sweep's members of different settings). A run resumed at ``resumed_at`` env steps says
-    what this process did in ``process_s`` seconds, then the whole run's time."""
+              resumed_at: int | None = None, pooled: str = "",
+              word: str = "done") -> str:  # fmt: skip
+    """The line that ends a run (``word``: done, or stopped for one a time budget ended early):
+    its steps, time and last evaluation (with the env steps of the policy it is of, where
+    evaluated inside the chunk; ``pooled`` says over what, for a sweep's members of different
+    settings). A run resumed at ``resumed_at`` env steps says what this process did in
+    ``process_s`` seconds, then the whole run's time."""
     policy = last.get("eval_policy_env_steps", -1)
     of = (
         f" (policy of {int(policy):,} steps; td3-jax eval for the final one)" if policy >= 0 else ""
@@ -925,7 +929,7 @@ def done_line(last: dict, out: Path, process_s: float | None = None,
         seconds = last["wall_time_s"] if process_s is None else process_s
         took = (f"({last['env_steps'] - resumed_at:,} in this process, in {seconds:.0f} s; "
                 f"{last['wall_time_s']:.0f} s over the whole run)")  # fmt: skip
-    return (f"done: {last['env_steps']:,} env steps {took}; eval return "
+    return (f"{word}: {last['env_steps']:,} env steps {took}; eval return "
             f"{last['eval_return_mean']:.1f} ± {last['eval_return_std']:.1f}{pooled}{of}; "
             f"outputs in {out}")  # fmt: skip
 

@@ -308,7 +308,7 @@ def test_a_run_stopped_by_its_time_budget_says_so_and_how_to_go_on(tmp_path, cap
                               "--quiet"], capsys)  # fmt: skip
     assert code == 0, err
     lines = stdout.strip().splitlines()
-    assert lines[-2].startswith("done: 64 env steps")
+    assert lines[-2].startswith("stopped: 64 env steps")  # (not "done": it did not finish)
     assert lines[-1] == (f"stopped by --time-budget-s 0.001 at 64 of 128 env steps; "
                          f"td3-jax train --out {out} --resume continues it")  # fmt: skip
 
