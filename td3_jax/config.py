@@ -516,8 +516,9 @@ def _check_environment(cfg: TrainConfig) -> None:
     """The environment's settings: a known backend and physics, Playground's flags only for
     Playground tasks, observation keys."""
     if cfg.env_backend not in _BACKENDS:
-        raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; "
-                          f"choose one of {', '.join(_BACKENDS)}")  # fmt: skip
+        raise ConfigError(f"unknown --env-backend {cfg.env_backend!r}; Brax's backends are "
+                          "generalized, mjx, positional and spring (Playground's physics is "
+                          "--impl warp or jax)")  # fmt: skip
     if cfg.env.startswith("brax/") and cfg.env_backend in ("jax", "warp"):
         raise ConfigError(f"--env-backend {cfg.env_backend} is Playground's physics (--impl); "
                           "Brax's backends are generalized, mjx, positional and "

@@ -401,6 +401,15 @@ def test_a_setting_with_a_range_says_it_on_either_side(setting, value, says):
     assert str(raised.value) == says
 
 
+def test_an_unknown_env_backend_names_brax_backends_and_playground_physics_flag():
+    with pytest.raises(ConfigError) as raised:
+        validate(TrainConfig(env="brax/ant", env_backend="mjxx"))
+    assert str(raised.value) == (
+        "unknown --env-backend 'mjxx'; Brax's backends are generalized, mjx, positional and "
+        "spring (Playground's physics is --impl warp or jax)"
+    )
+
+
 def test_typed_flags_that_change_nothing_are_named_with_the_reason():
     from td3_jax.config import idle_flags
 
