@@ -370,7 +370,7 @@ def unused_settings(cfg: TrainConfig) -> dict[str, str]:
 def idle_flags(cfg: TrainConfig, given: set[str]) -> list[str]:
     """Warnings for flags typed (``given``: the fields named on the command line) that change
     nothing with the rest of ``cfg`` (:func:`unused_settings`), one per reason: ``--v-min,
-    --v-max do nothing with --critic plain``). An option typed as None (``--max-weight-norm
+    --v-max do nothing with --critic plain``. An option typed as None (``--max-weight-norm
     None``) is turned off, which undoes a preset's value: not warned of."""
     typed: dict[str, list[str]] = {}
     for name, because in unused_settings(cfg).items():
