@@ -167,8 +167,9 @@ class TrainConfig:
     max_weight_norm: float | None = None
     """After every optimiser step, scale each unit's incoming weights (a column of every Dense
     kernel, actor and critics) down to this norm where they exceed it; default: unbounded
-    (None turns a preset's bound off). The g1 preset uses 1 (about the units' initial norm): on
-    G1 flat, 3 seeds at 53.2M steps, 39.4, 39.2, 39.5 against 39.1, 38.8, 39.5 without it."""
+    (None turns a preset's bound off). The g1 and g1-rough presets use 1 (about the units'
+    initial norm): 3 seeds at 53.2M steps, G1 flat 39.4, 39.2, 39.5 against 39.1, 38.8, 39.5
+    without it; G1 rough 34.9, 34.1, 33.9 against 35.0, 34.0, 33.5, faster early."""
     return_bound: float | None = None
     """Divide the rewards the critics learn from by the running statistics of each training
     environment's discounted return (FlashSAC's reward normalisation): by max(std of the

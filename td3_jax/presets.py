@@ -129,14 +129,15 @@ _HUMANOID_JOYSTICK = dict(
 
 # G1 on Warp: 128 constraints per environment, not Playground's 90 (random warm-up actions
 # reached 94 on an H100, benchmarks/warp_buffers.py; T1 stays under its 80 at 59), and
-# FlashSAC's critic layout (two residual blocks of width 256) with no AdamW decay (see the g1
-# and g1-rough presets).
+# FlashSAC's critic layout (two residual blocks of width 256) with no AdamW decay, and bounded
+# weights (see the g1 and g1-rough presets).
 _G1 = dict(
     _HUMANOID_JOYSTICK,
     njmax=128,
     critic_network="residual",
     critic_hidden_sizes=(256, 256),
     weight_decay=0.0,
+    max_weight_norm=1.0,
 )
 
 PRESETS: dict[str, dict] = {
@@ -242,17 +243,19 @@ PRESETS: dict[str, dict] = {
     # 39.2, 39.5 (IQM 39.4) on the same seeds against 39.1, 38.8, 39.5, each seed level or above
     # by 0.1-0.3 (no worse, within the evaluation's noise), and faster early (31.4 passed with
     # the policies of 16.4-20.5M steps against 20.5-28.7M; nineteenth session); None turns it
-    # off. Not measured on rough terrain, so `g1-rough` stays unbounded.
-    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain", max_weight_norm=1.0),
+    # off (G1 rough: see g1-rough).
+    "g1": dict(_G1, env="playground/G1JoystickFlatTerrain"),
     # Rough terrain (Playground's heightfield scenes, feet-only contacts), with 128 constraints
     # per environment as a margin on Warp. T1 rough is the flat preset unchanged: 34.8, 35.2,
     # 34.4 (IQM 34.8) at 53.2M env steps against FlashSAC's 34.6. G1 rough is the `g1` preset on
-    # rough terrain (without the weight bound). Its residual critics with decay 0.1 ended 34.1,
-    # 33.2, 33.1 (IQM 33.4) against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3); decay 0 then
-    # ended 35.0, 34.0, 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at
-    # 46-51K env steps/s against the plain critics' 56-62K; it is slower early, so FastTD3's
-    # final 27.7 came at 784-1065 s from launch against 691-787 s with decay 0.1 (BENCHMARKS.md,
-    # seventh to sixteenth sessions). Not tuned further for rough terrain.
+    # rough terrain. Its residual critics with decay 0.1 ended 34.1, 33.2, 33.1 (IQM 33.4)
+    # against the plain critics' 29.0, 30.5, 30.9 (IQM 30.3); decay 0 then ended 35.0, 34.0,
+    # 33.5 (IQM 34.1; FlashSAC 34.1), every seed above its decay-0.1 run, at 46-51K env steps/s
+    # against the plain critics' 56-62K, but slower early (FastTD3's final 27.7 with the
+    # policies of 24.6-36.9M steps). The weight bound then ended 34.9, 34.1, 33.9 (IQM 34.2; no
+    # worse) and learned much faster early: 28.4-30.4 with the policies of 20.5M steps against
+    # 16.9-19.0, 27.7 passed at 642-648 s from launch against 784-1065 s (BENCHMARKS.md, seventh
+    # to twentieth sessions). Not tuned further for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),
     # Unitree Go1: FastTD3's Go1 entries change 8 updates per step, exploration scales in
