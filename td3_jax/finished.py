@@ -132,5 +132,12 @@ def evaluate_run(
     state, meta = restore_on_one_device(program, out_dir)
     keys = jax.random.split(jax.random.PRNGKey(seed), len(population))
     with awaiting_device():  # (a Ctrl-C leaves the evaluation running on the device)
-        returns = np.asarray(run_compiled(cfg, program.evaluate, state, keys))
+        returns = run_compiled(
+            cfg,
+            program.evaluate,
+            state,
+            keys,
+            doing=f"evaluating {episodes:,} episodes of each member",
+        )
+        returns = np.asarray(returns)
     return cfg, population, meta, returns

@@ -28,7 +28,7 @@ from td3_jax.envs import Environment, is_custom
 from td3_jax.population import Member, Population, member_keys
 from td3_jax.program_cache import FlatProgram
 from td3_jax.runtime import StopToken, in_background, result
-from td3_jax.sharding import replicate, state_shardings
+from td3_jax.sharding import check_program_memory, replicate, state_shardings
 from td3_jax.training import Hyperparams, TrainState
 
 __all__ = [
@@ -194,12 +194,19 @@ def options_on(cfg: TrainConfig, device: jax.Device) -> dict:
     return upstream.compile_options(device.platform, cfg.matmuls)
 
 
-def run_compiled(cfg: TrainConfig, function: Callable, *args: Any) -> Any:
+def run_compiled(
+    cfg: TrainConfig, function: Callable, *args: Any, doing: str = "the program",
+    advice: str = "fewer --episodes",
+) -> Any:  # fmt: skip
     """``function(*args)``, jitted and compiled with the compile options of the run of ``cfg``
     on the default device (as its training programs were, :func:`compile_options`): how a
-    finished run's programs (``td3-jax eval``, ``render``) run."""
-    options = options_on(cfg, jax.devices()[0])
-    return jax.jit(function).lower(*args).compile(compiler_options=options)(*args)
+    finished run's programs (``td3-jax eval``, ``render``) run. A program too big for the
+    device's memory raises :class:`ConfigError` (``doing``, ``advice``: its message) before it
+    runs (:func:`td3_jax.sharding.check_program_memory`)."""
+    device = jax.devices()[0]
+    compiled = jax.jit(function).lower(*args).compile(compiler_options=options_on(cfg, device))
+    check_program_memory(compiled, device, doing, advice)
+    return compiled(*args)
 
 
 def _compile_plain(source: Source, stop: StopToken) -> Programs:

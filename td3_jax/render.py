@@ -371,7 +371,13 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
     spec = dataclasses.replace(program.spec, axis_name=None)
     run = functools.partial(training.evaluate_recorded, spec, record=episodes)
     with awaiting_device():  # (a Ctrl-C leaves the rollout running on the device)
-        returns, recording = run_compiled(cfg, run, jax.tree.map(lambda x: x[k], state), key)
+        returns, recording = run_compiled(
+            cfg,
+            run,
+            jax.tree.map(lambda x: x[k], state),
+            key,
+            doing=f"recording {episodes:,} episodes",
+        )
         returns, recording = np.asarray(returns), jax.device_get(recording)
     return Rollout(program.env, k, returns, *split_episodes(recording),
                    env_steps=meta.get("env_steps"))  # fmt: skip

@@ -94,6 +94,26 @@ def check_memory(abstract_state: Any, mesh: Mesh) -> None:
     )
 
 
+def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) -> None:
+    """Raises :class:`ConfigError` before a compiled program runs when its outputs and working
+    memory (XLA's ``memory_analysis``) cannot fit in ``device``'s memory: one line with both
+    sizes, ``doing`` (what the program is for, e.g. ``"evaluating 1,000 episodes"``) and
+    ``advice`` (the flag that shrinks it). Nothing is checked where either size is unknown."""
+    from td3_jax.checkpoint import size_text
+
+    memory = memory_of(device)
+    try:
+        stats = compiled.memory_analysis()
+        need = int(stats.temp_size_in_bytes) + int(stats.output_size_in_bytes)
+    except Exception:  # not every backend analyses its programs
+        return
+    if memory is None or need <= memory[0]:
+        return
+    limit, what = memory
+    raise ConfigError(f"{doing} needs {size_text(need)} of working memory but {what} "
+                      f"{size_text(limit)}; use {advice}")  # fmt: skip
+
+
 def replay_layout_warning(replay_shards: int, num_devices: int) -> str | None:
     """A warning when the replay ring's ``replay_shards`` slices do not fall on whole devices
     (``None`` when they do, or on one device).

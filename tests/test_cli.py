@@ -572,6 +572,34 @@ def test_eval_prints_mean_and_std(finished_run, capsys):
     assert EPISODE * PENDULUM_WORST_STEP <= low and high <= 0
 
 
+def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run, monkeypatch,
+                                                                    capsys):  # fmt: skip
+    """eval measures its compiled program (XLA's memory analysis) against the device's memory:
+    one line with both sizes and the flag to change, exit 2, no table."""
+    import jax
+    import jax.numpy as jnp
+
+    from td3_jax import sharding
+
+    # The check itself, on a program whose size is known: a 1000 x 250 float32 output, 1 MB.
+    compiled = jax.jit(lambda: jnp.ones((1000, 250), jnp.float32)).lower().compile()
+    device = jax.devices()[0]
+    monkeypatch.setattr(sharding, "memory_of", lambda d: (999_999, "the test's memory is"))
+    with pytest.raises(config.ConfigError, match=r"^making it needs 1\.0 MB of working memory but "
+                       r"the test's memory is 1\.0 MB; use less$"):  # fmt: skip
+        sharding.check_program_memory(compiled, device, "making it", "less")
+    monkeypatch.setattr(sharding, "memory_of", lambda d: (10**9, "the test's memory is"))
+    sharding.check_program_memory(compiled, device, "making it", "less")  # fits: no error
+    # eval: 5000 parallel episodes' states and activations do not fit in 0.1 MB.
+    monkeypatch.setattr(sharding, "memory_of", lambda d: (10**5, "the test's memory is"))
+    args = ["eval", "--run", str(finished_run[0]), "--episodes", "5000"]
+    code, stdout, stderr = main(args, capsys)
+    assert code == 2 and "mean" not in stdout, (code, stdout, stderr)
+    line = stderr.strip().splitlines()[-1]
+    assert line.startswith("td3-jax: error: evaluating 5,000 episodes of each member needs ")
+    assert line.endswith("but the test's memory is 0.1 MB; use fewer --episodes")
+
+
 def test_eval_of_a_sweep_gives_statistics_per_setting_not_pooled(monkeypatch, capsys):
     """A sweep's members (two learning rates x two seeds, one diverged): eval prints each
     member, then per setting the mean over its seeds, never one interval over the settings;
