@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import decimal
 import errno
 import functools
 import inspect
@@ -96,7 +97,8 @@ class TrainCommand(TrainConfig):
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
     --total-steps (to extend or shorten the run; not with --lr-schedule cosine), --matmuls,
     --keep-checkpoints, --checkpoint-every, --eval-envs, --early-evaluation, --menagerie and
-    the --wandb* flags may differ from the run's config.json; other flags must match. A run
+    the --wandb* flags may differ from the run's config.json; other flags must match. The
+    command's own flags (--quiet, --time-budget-s, --compile-cache) apply to this process. A run
     logged to W&B continues its W&B run."""
     preset: PresetName | None = None  # type: ignore[valid-type]
     """Named settings to start from (see `td3-jax presets`); other flags override them.
@@ -261,6 +263,7 @@ class PresetsCommand:
 def _parse(command_type: type, args: list[str], prog: str, default=None):
     """``tyro.cli`` whose parse errors become one ``ConfigError`` line (tyro draws a box)."""
     captured = io.StringIO()
+    args = whole_numbers_written_out(command_type, args)
     try:
         with contextlib.redirect_stderr(captured), upstream.tyro_help_unwrapped_by(help_paragraphs):
             command = tyro.cli(command_type, args=args, default=default, prog=prog)
@@ -270,6 +273,39 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
         message = _parse_error(captured.getvalue(), command_type, args, prog)
         raise ConfigError(message) from None
     return command
+
+
+#: A number in scientific notation (``1e6``, ``2.5E+4``), as users write step counts.
+_SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+
+
+def whole_numbers_written_out(command_type: type, args: list[str]) -> list[str]:
+    """``args`` with each value of a whole-number flag of ``command_type`` that is written in
+    scientific notation and is a whole number (``--total-steps 1e6``, ``=2.5e4``) written out
+    (``1000000``); other values unchanged (``1.5e0`` stays, for the parser to refuse)."""
+    out, kind = [], None
+    for arg in args:
+        if arg.startswith("--"):
+            name, equals, value = arg.partition("=")
+            kind = _number_kinds(command_type, name[2:].replace("-", "_"))
+            kind = kind and kind[0]
+            arg = f"{name}={_written_out(value, kind)}" if equals else arg
+            kind = None if equals else kind
+        else:
+            arg = _written_out(arg, kind)
+        out.append(arg)
+    return out
+
+
+def _written_out(value: str, kind: type | None) -> str:
+    """``value`` as a plain integer where ``kind`` is int and it is a whole number written
+    in scientific notation, else ``value``."""
+    if kind is not int or not _SCIENTIFIC.fullmatch(value):
+        return value
+    number = decimal.Decimal(value)
+    if number.adjusted() > 30:  # (far past any count; the flag's own check refuses it)
+        return value
+    return str(int(number)) if number == number.to_integral_value() else value
 
 
 #: A line that starts an item of a list in a docstring (``- x``, ``* x``, ``1. x``, ``2) x``).

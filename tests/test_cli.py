@@ -8,6 +8,7 @@ checks. One tiny training run (module-scoped) serves every assertion about run o
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import json
 import math
@@ -373,6 +374,8 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "--num-envs takes a whole number, got 'x'",  # (the refused one of a repeated flag)
         ("train", "--total-steps=4000", "--total-steps=nan", "--out", out):
             "--total-steps takes a whole number, got 'nan'",
+        ("train", "--total-steps", "1.5e0", "--out", out):  # (1e4 is one: see the next test)
+            "--total-steps takes a whole number, got '1.5e0'",
         # tyro's "Expected one of ('online', 'None', 'offline')" and "Expected 1 values."
         ("train", "--wandb-mode", "onine", "--out", out):
             "--wandb-mode 'onine' is not one of offline, online; did you mean online?",
@@ -391,6 +394,22 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
     assert proc.returncode == 2 and proc.stderr.strip() == (
         "td3-jax: error: unrecognized option --totl-steps (did you mean --total-steps?)"
     ), proc.stderr
+
+
+def test_whole_numbers_may_be_written_in_scientific_notation():
+    """``--total-steps 1e6`` is a million steps (as users write step counts); a value in that
+    notation that is not whole, or a number flag that takes floats, is left to the parser."""
+    parse = functools.partial(cli._parse, cli.TrainCommand, prog="td3-jax train")
+    command = parse(["--total-steps", "1e6", "--eval-every=2.5E4", "--hidden-sizes", "6.4e1",
+                     "128", "--actor-lr", "1e-3", "--out", "1e6"])  # fmt: skip
+    assert (command.total_steps, command.eval_every) == (1_000_000, 25_000)
+    assert command.hidden_sizes == (64, 128)
+    assert command.actor_lr == 0.001 and command.out == Path("1e6")  # (not numbers to rewrite)
+    assert type(command.total_steps) is int
+    for bad in ("1e-6", "2.5e0", "1e400"):
+        with pytest.raises(config.ConfigError, match=f"--total-steps takes a whole number, got "
+                           f"'{re.escape(bad)}'"):  # fmt: skip
+            parse(["--total-steps", bad])
 
 
 def test_no_subcommand_prints_the_usage_and_exits_2_and_help_exits_0(capsys):
