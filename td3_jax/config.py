@@ -660,11 +660,12 @@ def _check_replay(cfg: TrainConfig) -> None:
     if cfg.env_steps_per_iter > capacity:
         least = _least_ring(cfg)
         many = min(cfg.run_steps, 1000 * cfg.env_steps_per_iter) // cfg.replay_shards
-        suggested = max(many * cfg.replay_shards, least)
+        suggested = many * cfg.replay_shards
+        varied = (f" (a ring of many iterations, e.g. --buffer-size {suggested}, samples more "
+                  "varied batches)" if suggested > least else "")  # fmt: skip
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
                           f"replay buffer holds only {capacity}: give --buffer-size {least} at "
-                          f"least (a ring of many iterations, e.g. --buffer-size {suggested}, "
-                          "samples more varied batches)")  # fmt: skip
+                          f"least{varied}")  # fmt: skip
     if cfg.batch_size > cfg.run_steps:
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "

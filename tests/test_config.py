@@ -200,6 +200,11 @@ def test_a_ring_smaller_than_one_iteration_is_refused_with_sizes_that_work():
     with pytest.raises(ConfigError, match="give --buffer-size 257 at least"):
         validate(cfg)
     assert validate(dataclasses.replace(cfg, buffer_size=257))
+    # A run of one iteration (10^6 environments, 20k steps) has no larger ring to suggest.
+    cfg = TrainConfig(num_envs=10**6, batch_size=256, buffer_size=10, total_steps=20_000)
+    with pytest.raises(ConfigError) as refused:
+        validate(cfg)
+    assert str(refused.value).endswith("give --buffer-size 1000000 at least"), refused.value
 
 
 def test_agent_config_td3_defaults():
