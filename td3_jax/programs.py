@@ -25,6 +25,7 @@ from td3_jax import program_cache, upstream
 from td3_jax.build import make_population, member_hyperparams
 from td3_jax.config import TrainConfig
 from td3_jax.envs import Environment, is_custom
+from td3_jax.errors import ConfigError
 from td3_jax.population import Member, Population, member_keys
 from td3_jax.program_cache import FlatProgram
 from td3_jax.runtime import StopToken, in_background, result
@@ -200,13 +201,21 @@ def run_compiled(
 ) -> Any:  # fmt: skip
     """``function(*args)``, jitted and compiled with the compile options of the run of ``cfg``
     on the default device (as its training programs were, :func:`compile_options`): how a
-    finished run's programs (``td3-jax eval``, ``render``) run. A program too big for the
-    device's memory raises :class:`ConfigError` (``doing``, ``advice``: its message) before it
-    runs (:func:`td3_jax.sharding.check_program_memory`)."""
+    finished run's programs (``td3-jax eval``, ``render``) run, waited for. A program too big
+    for the device's memory raises :class:`ConfigError` (``doing``, ``advice``: its message)
+    before it runs (:func:`td3_jax.sharding.check_program_memory`), as does an allocation that
+    XLA refuses while compiling or running it."""
     device = jax.devices()[0]
-    compiled = jax.jit(function).lower(*args).compile(compiler_options=options_on(cfg, device))
-    check_program_memory(compiled, device, doing, advice)
-    return compiled(*args)
+    try:  # (a GPU compile may run out first: its autotuner allocates the program's operands)
+        compiled = jax.jit(function).lower(*args).compile(compiler_options=options_on(cfg, device))
+        check_program_memory(compiled, device, doing, advice)
+        return jax.block_until_ready(compiled(*args))
+    except jax.errors.JaxRuntimeError as err:
+        if "RESOURCE_EXHAUSTED" not in str(err) and "Out of memory" not in str(err):
+            raise
+        said = " ".join(str(err).split())
+        raise ConfigError(f"{doing} does not fit in {device.device_kind}'s memory ({said}); "
+                          f"use {advice}") from None  # fmt: skip
 
 
 def _compile_plain(source: Source, stop: StopToken) -> Programs:

@@ -609,6 +609,14 @@ def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run
         sharding.check_program_memory(compiled, device, "making it", "less")
     monkeypatch.setattr(sharding, "memory_of", lambda d: (10**9, "the test's memory is"))
     sharding.check_program_memory(compiled, device, "making it", "less")  # fits: no error
+    # Where the memory cannot be told, an allocation XLA refuses is the same kind of line.
+    from td3_jax.programs import run_compiled
+
+    monkeypatch.setattr(sharding, "memory_of", lambda d: None)
+    refused = r"^making it does not fit in .*'s memory \(RESOURCE_EXHAUSTED: .*10{14} bytes.*\); "
+    with pytest.raises(config.ConfigError, match=refused + "use less$"):
+        run_compiled(TrainConfig(), lambda: jnp.ones((10**14,), jnp.uint8), doing="making it",
+                     advice="less")  # fmt: skip
     # eval: 5000 parallel episodes' states and activations do not fit in 0.1 MB.
     monkeypatch.setattr(sharding, "memory_of", lambda d: (10**5, "the test's memory is"))
     args = ["eval", "--run", str(finished_run[0]), "--episodes", "5000"]
