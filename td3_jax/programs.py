@@ -103,8 +103,8 @@ def find(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path
     """Looks the run's programs up in ``directory`` (``None``, several processes, MuJoCo Warp
     physics, whose FFI calls ``jax.export`` refuses, or an environment of your own, whose code
     the key cannot see: never) and makes the population's program, environment included
-    (``env`` when given: :func:`td3_jax.build.make_env`), only when none is stored. Says so on
-    stdout when stored programs are used; nothing is compiled."""
+    (``env`` when given: :func:`td3_jax.build.make_env`), only when none is stored; nothing
+    is compiled."""
     names = program_cache.NAMES if with_init else program_cache.NAMES[:2]
     source = Source(cfg, population, mesh, names)
     if cfg.impl == "warp" or env is not None or is_custom(cfg.env):
@@ -116,8 +116,6 @@ def find(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path
         source.stored, source.trees = program_cache.load(source.directory, source.key, names)
     if source.stored is None:
         source.program = make_population(cfg, population, devices=mesh.size, env=env)
-    elif jax.process_index() == 0:
-        print(f"using the traced programs stored in {source.directory / source.key}")
     return source
 
 

@@ -241,10 +241,13 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
                         ) -> tuple[Programs, Any]:  # fmt: skip
     """The run's compiled programs, the state's room checked as soon as its shapes are known
     (:func:`td3_jax.programs.compiled`), and its state: ``state`` restored, else initialised.
-    ``say``: print that it compiles first (a log then shows where the time goes)."""
+    ``say``: print that it compiles first (a log then shows where the time goes), and from
+    which stored programs (:func:`td3_jax.programs.find`)."""
     if say:
         # (a stored program ran before: XLA's persistent cache likely holds it compiled)
         cached = " (or loading it from the cache)" if source.stored is not None else ""
+        if source.stored is not None:
+            print(f"using the traced programs stored in {source.directory / source.key}")
         print(f"compiling the training program{cached}...", flush=True)
     compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
     warp_kernels.wait_ready(run.stop)  # (before the first physics step)

@@ -297,7 +297,14 @@ def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     code, out, err = main(["train", *flags[:-1], str(tmp_path / "again"), "--total-steps", "256"],
                           capsys)  # fmt: skip
     assert code == 0, err
-    assert "compiling the training program (or loading it from the cache)..." in out.splitlines()
+    lines = out.splitlines()
+    compiling = lines.index("compiling the training program (or loading it from the cache)...")
+    assert lines[compiling - 1].startswith("using the traced programs stored in "), out
+    assert all(not line.startswith("using the traced") for line in lines[: compiling - 1])
+    # a --resume of that finished run says only that it is complete (nothing loaded)
+    code, out, err = main(["train", "--resume", "--out", str(tmp_path / "again")], capsys)
+    assert code == 0 and out.splitlines()[-1].startswith("nothing to do: the run in "), err
+    assert not [line for line in out.splitlines() if line.startswith(("using the", "compiling"))]
 
 
 def test_a_run_stopped_by_its_time_budget_says_so_and_how_to_go_on(tmp_path, capsys):
