@@ -98,8 +98,8 @@ class TrainCommand(TrainConfig):
     --total-steps (to extend or shorten the run; not with --lr-schedule cosine), --matmuls,
     --keep-checkpoints, --checkpoint-every, --eval-envs, --early-evaluation, --menagerie and
     the --wandb* flags may differ from the run's config.json; other flags must match. The
-    command's own flags (--quiet, --time-budget-s, --compile-cache) apply to this process. A run
-    logged to W&B continues its W&B run."""
+    command's own flags (--quiet, --time-budget-s, --compile-cache, --devices and the
+    several-hosts flags) apply to this process. A run logged to W&B continues its W&B run."""
     preset: PresetName | None = None  # type: ignore[valid-type]
     """Named settings to start from (see `td3-jax presets`); other flags override them.
     Default: the --env's own preset where one exists (said in one line), else settings for the
@@ -276,7 +276,7 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
 
 
 #: A number in scientific notation (``1e6``, ``2.5E+4``), as users write step counts.
-_SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+_SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d{1,4}", re.ASCII)
 
 
 def whole_numbers_written_out(command_type: type, args: list[str]) -> list[str]:

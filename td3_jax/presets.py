@@ -254,7 +254,8 @@ PRESETS: dict[str, dict] = {
     # against the plain critics' 56-62K, but slower early (FastTD3's final 27.7 with the
     # policies of 24.6-36.9M steps). The weight bound then ended 34.9, 34.1, 33.9 (IQM 34.2; no
     # worse) and learned much faster early: 28.4-30.4 with the policies of 20.5M steps against
-    # 16.9-19.0, 27.7 passed at 642-648 s from launch against 784-1065 s (BENCHMARKS.md, seventh
+    # 16.9-19.0, so 27.7 passed with the policies of 20.5M steps against 24.6-36.9M (642-648 s
+    # from launch against 784-1065 s, about 60 s of it a faster start-up; BENCHMARKS.md, seventh
     # to twentieth sessions). Not tuned further for rough terrain.
     "t1-rough": dict(_HUMANOID_JOYSTICK, env="playground/T1JoystickRoughTerrain", njmax=128),
     "g1-rough": dict(_G1, env="playground/G1JoystickRoughTerrain"),

@@ -211,7 +211,7 @@ def run_compiled(
     except jax.errors.JaxRuntimeError as err:
         if "RESOURCE_EXHAUSTED" not in str(err) and "Out of memory" not in str(err):
             raise
-        said = " ".join(str(err).split())
+        said = " ".join(str(err).split("BufferAssignment")[0].split())[:300]  # (not its dump)
         raise ConfigError(f"{doing} does not fit in {device.device_kind}'s memory ({said}); "
                           f"use {advice}") from None  # fmt: skip
 

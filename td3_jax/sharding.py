@@ -98,7 +98,9 @@ def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) ->
     """Raises :class:`ConfigError` before a compiled program runs when its outputs and working
     memory (XLA's ``memory_analysis``) cannot fit in ``device``'s memory: one line with both
     sizes, ``doing`` (what the program is for, e.g. ``"evaluating 1,000 episodes"``) and
-    ``advice`` (the flag that shrinks it). Nothing is checked where either size is unknown."""
+    ``advice`` (the flag that shrinks it). Memory the device already holds (a restored train
+    state) counts against it where the device says how much. Nothing is checked where either
+    size is unknown."""
     from td3_jax.checkpoint import size_text
 
     memory = memory_of(device)
@@ -107,11 +109,21 @@ def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) ->
         need = int(stats.temp_size_in_bytes) + int(stats.output_size_in_bytes)
     except Exception:  # not every backend analyses its programs
         return
-    if memory is None or need <= memory[0]:
+    held = _bytes_in_use(device)
+    if memory is None or need + held <= memory[0]:
         return
     limit, what = memory
+    holding = f" and {size_text(held)} of it is in use" if held else ""
     raise ConfigError(f"{doing} needs {size_text(need)} of working memory but {what} "
-                      f"{size_text(limit)}; use {advice}")  # fmt: skip
+                      f"{size_text(limit)}{holding}; use {advice}")  # fmt: skip
+
+
+def _bytes_in_use(device: Any) -> int:
+    """The bytes ``device`` holds now, by its own statistics (0 where it keeps none: a CPU)."""
+    try:
+        return int((device.memory_stats() or {}).get("bytes_in_use", 0))
+    except Exception:  # not every backend reports statistics
+        return 0
 
 
 def replay_layout_warning(replay_shards: int, num_devices: int) -> str | None:

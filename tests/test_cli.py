@@ -406,7 +406,7 @@ def test_whole_numbers_may_be_written_in_scientific_notation():
     assert command.hidden_sizes == (64, 128)
     assert command.actor_lr == 0.001 and command.out == Path("1e6")  # (not numbers to rewrite)
     assert type(command.total_steps) is int
-    for bad in ("1e-6", "2.5e0", "1e400"):
+    for bad in ("1e-6", "2.5e0", "1e400", "1e9999999999999999999"):
         with pytest.raises(config.ConfigError, match=f"--total-steps takes a whole number, got "
                            f"'{re.escape(bad)}'"):  # fmt: skip
             parse(["--total-steps", bad])
@@ -609,14 +609,38 @@ def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run
         sharding.check_program_memory(compiled, device, "making it", "less")
     monkeypatch.setattr(sharding, "memory_of", lambda d: (10**9, "the test's memory is"))
     sharding.check_program_memory(compiled, device, "making it", "less")  # fits: no error
-    # Where the memory cannot be told, an allocation XLA refuses is the same kind of line.
+    monkeypatch.undo()
+
+    class Gpu:  # a device of 2 MB that holds 1.5 MB (a restored train state) or 0.5 MB
+        platform, device_kind, in_use = "gpu", "Fake GPU", 1_500_000
+
+        def memory_stats(self):
+            return {"bytes_limit": 2_000_000, "bytes_in_use": self.in_use}
+
+    with pytest.raises(
+        config.ConfigError,
+        match=r"^making it needs 1\.0 MB of working memory but "
+        r"each Fake GPU holds 2\.0 MB and 1\.5 MB of it is in use; use less$",
+    ):
+        sharding.check_program_memory(compiled, Gpu(), "making it", "less")
+    Gpu.in_use = 500_000
+    sharding.check_program_memory(compiled, Gpu(), "making it", "less")  # 1.5 of 2 MB: fits
+    # An allocation XLA refuses (here while tracing) is the same kind of line, without the
+    # buffer dump that follows XLA's first sentence.
     from td3_jax.programs import run_compiled
 
-    monkeypatch.setattr(sharding, "memory_of", lambda d: None)
-    refused = r"^making it does not fit in .*'s memory \(RESOURCE_EXHAUSTED: .*10{14} bytes.*\); "
-    with pytest.raises(config.ConfigError, match=refused + "use less$"):
-        run_compiled(TrainConfig(), lambda: jnp.ones((10**14,), jnp.uint8), doing="making it",
-                     advice="less")  # fmt: skip
+    def out_of_memory():
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to "
+                                         "allocate 953.69GiB.\nBufferAssignment OOM Debugging.\n"
+                                         "allocation 0: size 953.69GiB")  # fmt: skip
+
+    refused = (r"^making it does not fit in .*'s memory \(RESOURCE_EXHAUSTED: Out of memory "
+               r"while trying to allocate 953\.69GiB\.\); use less$")  # fmt: skip
+    with pytest.raises(config.ConfigError, match=refused):
+        run_compiled(TrainConfig(), out_of_memory, doing="making it", advice="less")
+    with pytest.raises(jax.errors.JaxRuntimeError, match="INTERNAL"):  # (others: as they are)
+        run_compiled(TrainConfig(), lambda: (_ for _ in ()).throw(
+            jax.errors.JaxRuntimeError("INTERNAL: something else")))  # fmt: skip
     # eval: 5000 parallel episodes' states and activations do not fit in 0.1 MB.
     monkeypatch.setattr(sharding, "memory_of", lambda d: (10**5, "the test's memory is"))
     args = ["eval", "--run", str(finished_run[0]), "--episodes", "5000"]
