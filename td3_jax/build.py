@@ -29,6 +29,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from td3_jax import actor_critic as ac
 from td3_jax import envs, replay, training
@@ -422,10 +423,14 @@ def _sweep_flags(message: str, names: Sequence[str]) -> str:
 def member_hyperparams(cfg: TrainConfig, population: list[pop.Member]) -> training.Hyperparams:
     """Every member's :func:`hyperparams` (``cfg`` with the member's overrides), stacked:
     numpy leaves ``[members]``, computed on the host (no accelerator compiles before the run's
-    programs)."""
-    each = lambda: [hyperparams(dataclasses.replace(cfg, **dict(m.overrides)))
-                    for m in population]  # fmt: skip
-    return pop.on_host(lambda: jax.tree.map(lambda *xs: jnp.stack(xs), *each()))
+    programs), once per distinct setting (members that differ only in their seed share it)."""
+    settings = list(dict.fromkeys(m.overrides for m in population))
+    where = {overrides: i for i, overrides in enumerate(settings)}
+    index = np.array([where[m.overrides] for m in population])
+    each = lambda: [hyperparams(dataclasses.replace(cfg, **dict(overrides)))
+                    for overrides in settings]  # fmt: skip
+    distinct = pop.on_host(lambda: jax.tree.map(lambda *xs: jnp.stack(xs), *each()))
+    return jax.tree.map(lambda x: x[index], distinct)
 
 
 def make_population(

@@ -79,8 +79,10 @@ class Population(NamedTuple):
 
 def member_keys(population: list[Member]) -> np.ndarray:
     """Every member's start key (``[members, 2]``, :func:`td3_jax.training.key_for_seed`),
-    computed on the host."""
-    return on_host(lambda: jnp.stack([training.key_for_seed(m.seed) for m in population]))
+    computed on the host, all at once (seeds are in ``[0, 2**32 - 1]``: uint32 holds them,
+    and gives the keys of the Python ints)."""
+    seeds = np.array([m.seed for m in population], np.uint32)
+    return on_host(lambda: jax.vmap(training.key_for_seed)(jnp.asarray(seeds)))
 
 
 def on_host(make: Callable[[], Any]) -> Any:
