@@ -248,6 +248,18 @@ def is_return(key: str) -> bool:
     return key.rpartition("/")[2].startswith("eval_return_")
 
 
+def _check_plottable(records: list, path: Path, band_keys: tuple[str, ...]) -> None:
+    """A one-line ConfigError for a record of ``path`` that is not an object holding what the
+    curve draws (env steps, time, the mean return and ``band_keys``): a hand-edited file."""
+    needed = ("env_steps", "wall_time_s", "eval_return_mean", *band_keys)
+    for number, record in enumerate(records, start=1):
+        missing = [k for k in needed if k not in record] if isinstance(record, dict) else None
+        if missing is None or missing:
+            what = "is not a JSON object" if missing is None else f"lacks {', '.join(missing)}"
+            raise ConfigError(f"record {number} of {path} {what}: was the file edited? (td3-jax "
+                              "writes every record with them)")  # fmt: skip
+
+
 def plot_curve(out_dir: Path) -> Path | None:
     """Writes ``curve.png``: evaluation return against env steps (of the evaluated policy) and
     against wall-clock time (when the record was written)."""
@@ -259,10 +271,14 @@ def plot_curve(out_dir: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    several = isinstance(records[-1], dict) and "per_member" in records[-1]
+    band_keys = (
+        ("eval_return_ci95_low", "eval_return_ci95_high") if several else ("eval_return_std",)
+    )
+    _check_plottable(records, Path(out_dir) / "metrics.jsonl", band_keys)
     steps = [evaluated_steps(r) for r in records]
     wall = [r["wall_time_s"] for r in records]
     mean = [_number(r["eval_return_mean"]) for r in records]
-    several = "per_member" in records[-1]
     if several:  # every member thin, the mean over members with its 95% bootstrap CI
         lower = [_number(r["eval_return_ci95_low"]) for r in records]
         upper = [_number(r["eval_return_ci95_high"]) for r in records]

@@ -744,6 +744,16 @@ def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
     finally:
         lock.release()
     assert_one_line_error(code, err, f"has no evaluation yet: a td3-jax run (pid {os.getpid()}")
+    # a hand-edited metrics.jsonl: a record without its time, or not an object
+    for line, said in (('{"env_steps": 100, "eval_return_mean": NaN}', "lacks wall_time_s, "
+                        "eval_return_std"), ("5", "is not a JSON object")):  # fmt: skip
+        edited = tmp_path / f"edited{len(line)}"
+        shutil.copytree(finished_run[0], edited)
+        with (edited / "metrics.jsonl").open("a") as file:
+            file.write(line + "\n")
+        code, _, err = main(["plot", "--run", str(edited)], capsys)
+        assert_one_line_error(code, err, f"record 3 of {edited / 'metrics.jsonl'} {said}: was "
+                              "the file edited?")  # fmt: skip
 
 
 def test_envs_and_presets_listings(capsys):
