@@ -210,8 +210,8 @@ class RenderCommand:
     run: Path
     """Run directory written by `td3-jax train`."""
     out: Path | None = None
-    """Video file, .mp4 or .gif, not one that exists (default: RUN/rollout.mp4, RUN/rollout.gif
-    with --gif, replaced by a later render)."""
+    """Video file, .mp4 or .gif, not one that exists, but the run's own RUN/rollout.mp4 and
+    RUN/rollout.gif (the default, with --gif the latter), which a later render replaces."""
     gif: bool = False
     """Write a GIF instead of an MP4."""
     episodes: int = 1
@@ -225,9 +225,9 @@ class RenderCommand:
     """A camera of the model, by name or index (-1: MuJoCo's free camera); default: a free
     camera tracking the root body."""
     width: int = 320
-    """Frame width in pixels."""
+    """Frame width in pixels (at most 8192)."""
     height: int = 240
-    """Frame height in pixels."""
+    """Frame height in pixels (at most 8192)."""
     fps: float = 30.0
     """Frames per second of the video."""
 

@@ -524,12 +524,23 @@ def _remove_folders(made: list[Path]) -> None:
             folder.rmdir()
 
 
+#: The largest frame side ``render`` draws (8K; a frame of 100000 x 100000 pixels is 30 GB).
+MAX_FRAME_SIDE = 8192
+
+
 def check_settings(episodes: int, width: int, height: int, fps: float) -> None:
-    """Raises :class:`RenderError` for a non-positive count, size or rate."""
+    """Raises :class:`RenderError` for a non-positive count, size or rate, or a frame side
+    over :data:`MAX_FRAME_SIDE`."""
     for name, value in (("episodes", episodes), ("width", width), ("height", height),
                         ("fps", fps)):  # fmt: skip
         if not value > 0:
             raise RenderError(f"--{name} must be positive, got {value}")
+    for name, value in (("width", width), ("height", height)):
+        if value > MAX_FRAME_SIDE:
+            raise RenderError(
+                f"--{name} {value} is more than the {MAX_FRAME_SIDE} pixels a frame side may "
+                "have (each frame is width x height x 3 bytes)"
+            )
 
 
 def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345,

@@ -210,6 +210,8 @@ def test_errors_exit_2(tmp_path, capsys):
     for flags, needle in ((["--out", "x.avi"], "must end in .mp4 or .gif"),
                           (["--gif", "--out", "x.mp4"], "ends in .gif"),
                           (["--episodes", "0"], "--episodes must be positive"),
+                          (["--width", "100000"], "--width 100000 is more than the 8192 pixels"),
+                          (["--height", "8193"], "--height 8193 is more than the 8192 pixels"),
                           (["--member", "3"], "--member 3 is out of range")):  # fmt: skip
         code, _, err = main(["render", "--run", str(tmp_path / "empty"), *flags], capsys)
         assert_one_line_error(code, err, needle)
