@@ -594,6 +594,11 @@ def _check_counts(cfg: TrainConfig) -> None:
     if cfg.episode_length is not None and cfg.episode_length <= 0:
         raise ConfigError(f"--episode-length must be positive, got {cfg.episode_length}")
     check_seed(cfg.seed, cfg.seeds)
+    if cfg.env_steps_per_iter > MAX_COUNT:  # (one iteration alone: name what makes it)
+        raise ConfigError(f"one iteration of --num-envs {cfg.num_envs:,} x --steps-per-iter "
+                          f"{cfg.steps_per_iter} is {cfg.env_steps_per_iter:,} env steps, more "
+                          f"than the {MAX_COUNT:,} a run can count (int32 counters in the "
+                          "compiled program)")  # fmt: skip
     if cfg.run_steps > MAX_COUNT:
         runs = f" (run as {cfg.run_steps:,}: whole chunks)" * (cfg.run_steps != cfg.total_steps)
         raise ConfigError(f"--total-steps {cfg.total_steps:,}{runs} is more than the "

@@ -387,6 +387,11 @@ def test_a_run_longer_than_its_int32_counters_is_refused():
         validate(TrainConfig(total_steps=2**31 - 100, eval_every=4000))
     with pytest.raises(ConfigError, match="gradient updates, more than the 2,147,483,647"):
         validate(TrainConfig(total_steps=2**30, eval_every=2**20, updates_per_iter=64))
+    # one iteration past the counters names the environments, not --total-steps
+    big = "100,000,000,000,000,000,000"
+    said = f"^one iteration of --num-envs {big} x --steps-per-iter 1 is {big} env steps, more than"
+    with pytest.raises(ConfigError, match=said + " the 2,147,483,647 a run can count"):
+        validate(TrainConfig(num_envs=10**20))
     longest = 2**31 - 1 - (2**31 - 1) % 16  # whole iterations of 16 environments
     assert validate(TrainConfig(total_steps=longest, eval_every=longest))
 
