@@ -266,13 +266,23 @@ def _parse(command_type: type, args: list[str], prog: str, default=None):
     args = whole_numbers_written_out(command_type, args)
     try:
         with contextlib.redirect_stderr(captured), upstream.tyro_help_unwrapped_by(help_paragraphs):
-            command = tyro.cli(command_type, args=args, default=default, prog=prog)
+            command = _tyro_cli(command_type, args, default, prog)
     except SystemExit as exit_:
         if exit_.code in (0, None):
             raise
         message = _parse_error(captured.getvalue(), command_type, args, prog)
         raise ConfigError(message) from None
     return command
+
+
+def _tyro_cli(command_type: type, args: list[str], default: Any, prog: str) -> Any:
+    """``tyro.cli``, tried a second time after a ``SystemError`` (CPython 3.11's "AST
+    constructor recursion depth mismatch", seen once in CI while tyro parsed this module's
+    source for help text; it passed when run again)."""
+    try:
+        return tyro.cli(command_type, args=args, default=default, prog=prog)
+    except SystemError:
+        return tyro.cli(command_type, args=args, default=default, prog=prog)
 
 
 #: A number in scientific notation (``1e6``, ``2.5E+4``), as users write step counts.
