@@ -54,7 +54,8 @@ LR_SCHEDULES = ("constant", "cosine")
 #: Choices of :attr:`AgentOptions.target_update` and :attr:`~AgentOptions.c51_target_head`.
 TARGET_UPDATES = ("with_actor", "every_update")
 C51_TARGET_HEADS = ("unprojected", "projected")
-CRITIC_NETWORKS = ("mlp", "residual")
+#: Choices of :attr:`AgentOptions.actor_network` and :attr:`~AgentOptions.critic_network`.
+NETWORKS = ("mlp", "residual")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +89,8 @@ class AgentOptions:
         unchanged.
       critic_network: ``mlp`` (the plain ReLU network) or ``residual``
         (:class:`td3_jax.networks.ResidualMLP`, FlashSAC's layout: one block per entry of the
-        critics' hidden sizes, which must be equal); the actor is unchanged.
+        critics' hidden sizes, which must be equal).
+      actor_network: the same choice for the actor (FlashSAC's actor: residual, ``128 128``).
       target_update: when the target critics are Polyak-averaged: ``with_actor`` (in the
         delayed actor step, every ``policy_freq`` updates, the TD3 paper) or ``every_update``
         (after every critic step, FastTD3). A target actor always moves with the actor.
@@ -111,6 +113,7 @@ class AgentOptions:
     bound_weights: bool = False
     critic_feature_norm: bool = False
     critic_network: str = "mlp"
+    actor_network: str = "mlp"
     target_update: str = "with_actor"
     c51_target_head: str = "unprojected"
 
@@ -230,7 +233,8 @@ def _check_options(options: AgentOptions) -> None:
         "lr_schedule": LR_SCHEDULES,
         "target_update": TARGET_UPDATES,
         "c51_target_head": C51_TARGET_HEADS,
-        "critic_network": CRITIC_NETWORKS,
+        "critic_network": NETWORKS,
+        "actor_network": NETWORKS,
     }
     for name, allowed in choices.items():
         if getattr(options, name) not in allowed:
@@ -269,11 +273,20 @@ def make_spec(
     if int(policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
     _check_options(options)
-    if options.critic_network == "residual":
-        residual_layout(critic_hidden)  # (ValueError for sizes of several widths)
+    for network, sizes in ((options.critic_network, critic_hidden),
+                           (options.actor_network, actor_hidden)):  # fmt: skip
+        if network == "residual":
+            residual_layout(sizes)  # (ValueError for sizes of several widths)
     dtype = PRECISIONS[options.precision]
     return AgentSpec(
-        actor=Actor(_ints(actor_hidden), int(action_size), max_action, options.layer_norm, dtype),
+        actor=Actor(
+            _ints(actor_hidden),
+            int(action_size),
+            max_action,
+            options.layer_norm,
+            dtype,
+            options.actor_network == "residual",
+        ),
         critic=CriticEnsemble(
             _ints(critic_hidden),
             num_critics,
@@ -601,6 +614,7 @@ __all__ = [
     "C51_TARGET_HEADS",
     "LR_SCHEDULES",
     "METRIC_NAMES",
+    "NETWORKS",
     "PRECISIONS",
     "TARGET_UPDATES",
     "AgentHyperparams",

@@ -72,7 +72,7 @@ __all__ = [
 #: actor_critic.hyperparams, fields of EnvOptions and of TrainSpec.
 _AGENT_OPTIONS = ("actor_hidden_sizes", "critic_hidden_sizes", "layer_norm", "precision",
                   "target_actor", "target_update", "c51_target_head", "lr_schedule",
-                  "critic_feature_norm", "critic_network")  # fmt: skip
+                  "critic_feature_norm", "critic_network", "actor_network")  # fmt: skip
 _AGENT_SETTINGS = ("weight_decay", "max_grad_norm", "max_weight_norm", "v_min", "v_max",
                    "lr_final_fraction")  # fmt: skip
 _ENV_OPTIONS = ("menagerie", "domain_randomization", "actor_obs_key", "critic_obs_key",

@@ -125,7 +125,8 @@ class TrainConfig:
     """Hidden widths of each critic alone (FastTD3: 1024 512 256); default: hidden_sizes."""
     layer_norm: bool = False
     """LayerNorm after every hidden layer of actor and critics (before the ReLU); a residual
-    critic (--critic-network residual) has its own in every block either way."""
+    network (--critic-network or --actor-network residual) has its own in every block either
+    way."""
     precision: Literal["float32", "bfloat16"] = "float32"
     """Matmul precision of the networks; bfloat16 keeps parameters, optimiser states and losses
     in float32."""
@@ -193,6 +194,11 @@ class TrainConfig:
     (plain 1024 512 256 critics: 36.2-36.5) with the loop about 0.73x as fast; on G1 rough 3
     seeds at 34.1, 33.2 and 33.1 (plain: 29.0-30.9); so the g1 and g1-rough presets use it
     (with weight decay 0, which lifted both further)."""
+    actor_network: Literal["mlp", "residual"] = "mlp"
+    """The actor's network: mlp (ReLU layers of --actor-hidden-sizes, with --layer-norm if given)
+    or residual (the layout of --critic-network residual, a block per entry of
+    --actor-hidden-sizes, which must be equal; FlashSAC's actor is 128 128). Export writes
+    only mlp actors so far."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps
@@ -317,6 +323,7 @@ _CHOICES = {
     "target_update": ("with_actor", "every_update"),
     "c51_target_head": ("unprojected", "projected"),
     "critic_network": ("mlp", "residual"),
+    "actor_network": ("mlp", "residual"),
 }
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 #: The settings of Weights & Biases (``--wandb``, ...): where the records are mirrored, never
@@ -488,29 +495,37 @@ def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
             shown = " ".join(map(str, sizes)) or "none"
             raise ConfigError(f"{flag(name)} must be positive integers, got {shown}")
-    _check_residual_critic(cfg)
+    _check_residual_networks(cfg)
     _check_environment(cfg)
     return cfg
 
 
-def _check_residual_critic(cfg: TrainConfig) -> None:
-    """A residual critic's hidden sizes are one width, a block each (the sizes that give them:
-    --critic-hidden-sizes, else --hidden-sizes, else the algorithm's default)."""
-    if cfg.critic_network != "residual":
-        return
+def _check_residual_networks(cfg: TrainConfig) -> None:
+    """A residual network's hidden sizes are one width, a block each (the sizes that give them:
+    --actor-hidden-sizes or --critic-hidden-sizes, else --hidden-sizes, else the algorithm's
+    default)."""
+    for part in ("critic", "actor"):
+        if getattr(cfg, f"{part}_network") == "residual":
+            _check_residual_sizes(cfg, part)
+
+
+def _check_residual_sizes(cfg: TrainConfig, part: str) -> None:
+    """:func:`_check_residual_networks` for the ``part`` (``actor`` or ``critic``)."""
     from td3_jax.build import agent_config  # (jax and flax: only with the option)
     from td3_jax.networks import residual_layout
 
-    name = "critic_hidden_sizes" if cfg.critic_hidden_sizes is not None else "hidden_sizes"
+    own = f"{part}_hidden_sizes"
+    name = own if getattr(cfg, own) is not None else "hidden_sizes"
     sizes = getattr(cfg, name)
     if sizes is None:
         sizes = agent_config(cfg).hidden_sizes
         name = f"hidden_sizes (--algo {cfg.algo}'s default)"
+    example = "128 128" if part == "actor" else "256 256"
     try:
         residual_layout(sizes)
     except ValueError as err:
-        raise ConfigError(f"--critic-network residual: {flag(name)}: {err}; give one, e.g. "
-                          "--critic-hidden-sizes 256 256") from err  # fmt: skip
+        raise ConfigError(f"--{part}-network residual: {flag(name)}: {err}; give one, e.g. "
+                          f"{flag(own)} {example}") from err  # fmt: skip
 
 
 def _check_environment(cfg: TrainConfig) -> None:

@@ -144,6 +144,9 @@ def extract_policy(
     """
     import flax.linen as nn
 
+    if getattr(actor, "residual", False):
+        raise ExportError("export writes plain (mlp) actors; this run's actor is residual "
+                          "(--actor-network residual), which it cannot write yet")  # fmt: skip
     kernels, biases, scales, shifts = mlp_arrays(actor_params, actor.layer_norm)
     if kernels[0].shape[0] != env.observation_size or kernels[-1].shape[1] != env.action_size:
         raise ExportError(

@@ -1,10 +1,10 @@
 """Actor and critic-ensemble networks (flax.linen).
 
 Every network takes ``layer_norm`` (LayerNorm after each hidden Dense, before the ReLU, as
-FastTD3 does), the critics also ``feature_norm`` (each hidden layer's output, after the ReLU,
-projected onto the sphere of radius ``sqrt(width)``, as SimbaV2/FlashSAC bound their features;
-:func:`sphere_features`) and ``residual`` (the :class:`ResidualMLP` body, FlashSAC's layout,
-in place of the plain :class:`MLP`), and ``dtype`` (the computation dtype of the matmuls: ``None``
+FastTD3 does), ``residual`` (the :class:`ResidualMLP` body, FlashSAC's layout, in place of the
+plain :class:`MLP`), the critics also ``feature_norm`` (each hidden layer's output, after the
+ReLU, projected onto the sphere of radius ``sqrt(width)``, as SimbaV2/FlashSAC bound their
+features; :func:`sphere_features`), and ``dtype`` (the computation dtype of the matmuls: ``None``
 computes in the inputs' dtype, float32 here; ``jnp.bfloat16`` runs them in bf16). Parameters
 are always float32 and every network's output is float32, so losses and optimiser states stay
 in float32.
@@ -100,11 +100,11 @@ def residual_layout(hidden_sizes: Sequence[int]) -> tuple[int, int]:
     return sizes[0], len(sizes)
 
 
-def critic_body(hidden_sizes: Sequence[int], out_size: int, layer_norm: bool, dtype: Any,
-                feature_norm: bool, residual: bool) -> nn.Module:  # fmt: skip
-    """A critic's network ``[..., in] -> [..., out_size]``: a :class:`ResidualMLP` laid out
-    by :func:`residual_layout` when ``residual`` (its blocks always normalise, so
-    ``layer_norm`` is not used), else the plain :class:`MLP`."""
+def network_body(hidden_sizes: Sequence[int], out_size: int, layer_norm: bool, dtype: Any,
+                 feature_norm: bool, residual: bool) -> nn.Module:  # fmt: skip
+    """An actor's or a critic's network ``[..., in] -> [..., out_size]``: a
+    :class:`ResidualMLP` laid out by :func:`residual_layout` when ``residual`` (its blocks
+    always normalise, so ``layer_norm`` is not used), else the plain :class:`MLP`."""
     if residual:
         width, blocks = residual_layout(hidden_sizes)
         return ResidualMLP(width, blocks, out_size, dtype, feature_norm)
@@ -116,7 +116,8 @@ class Actor(nn.Module):
 
     ``max_action`` is a scalar or a per-dimension ``[action_size]`` array. Environments with
     bounds ``[low, high]`` are rescaled to ``[-1, 1]`` by the environment adapters, so the
-    library's default is ``max_action = 1``.
+    library's default is ``max_action = 1``. ``residual``: the :class:`ResidualMLP` body laid
+    out by :func:`residual_layout` (FlashSAC's actor: ``128 128``), else the plain :class:`MLP`.
     """
 
     hidden_sizes: Sequence[int]
@@ -124,10 +125,13 @@ class Actor(nn.Module):
     max_action: float = 1.0
     layer_norm: bool = False
     dtype: Any = None
+    residual: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        raw = MLP(self.hidden_sizes, self.action_size, self.layer_norm, self.dtype)(obs)
+        body = network_body(self.hidden_sizes, self.action_size, self.layer_norm, self.dtype,
+                            False, self.residual)  # fmt: skip
+        raw = body(obs)
         return jnp.asarray(self.max_action) * jnp.tanh(raw)
 
 
@@ -143,7 +147,7 @@ class Critic(nn.Module):
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        body = critic_body(self.hidden_sizes, 1, self.layer_norm, self.dtype,
+        body = network_body(self.hidden_sizes, 1, self.layer_norm, self.dtype,
                            self.feature_norm, self.residual)  # fmt: skip
         return body(x)[..., 0]
 
@@ -162,7 +166,7 @@ class DistributionalCritic(nn.Module):
     @nn.compact
     def __call__(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([obs, action], axis=-1)
-        body = critic_body(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype,
+        body = network_body(self.hidden_sizes, self.num_atoms, self.layer_norm, self.dtype,
                            self.feature_norm, self.residual)  # fmt: skip
         return body(x)
 
@@ -209,7 +213,7 @@ __all__ = [
     "CriticEnsemble",
     "DistributionalCritic",
     "ResidualMLP",
-    "critic_body",
+    "network_body",
     "residual_layout",
     "sphere_features",
 ]

@@ -285,6 +285,55 @@ def test_a_plain_residual_critic_in_bfloat16():
     assert not np.array_equal(q16, q32)
 
 
+def test_residual_actor_against_numpy():
+    """A residual actor of two blocks of width 8 (``--actor-network residual``), every
+    parameter redrawn, against the NumPy forward pass then ``max_action * tanh``; one actor step
+    moves every one of its parameters (each gets a gradient); the critics are the plain spec's."""
+    spec = spec_of(actor_network="residual")
+    state = init(spec)
+    params = random_grads(state.actor_params, 4, 0.5)
+    layers = params["params"]["ResidualMLP_0"]
+    assert sorted(layers) == ["Dense_0", "Dense_1", "Dense_2", "Dense_3", "Dense_4", "Dense_5",
+                              "LayerNorm_0", "LayerNorm_1", "LayerNorm_2", "LayerNorm_3",
+                              "RMSNorm_0"]  # fmt: skip
+    assert layers["Dense_1"]["kernel"].shape == (8, 32) and layers["Dense_5"]["bias"].shape == (
+        ACT,
+    )
+    batch = make_batch(7)
+    got = np.asarray(spec.actor.apply(params, batch.obs))
+    with_head = jax.tree.map(lambda a: np.asarray(a)[None], layers)  # (the critics' helper)
+    want = np.tanh(np_residual_critic(with_head, 0, batch.obs.astype(np.float64), 2, False))
+    np.testing.assert_allclose(got, want, atol=2e-5, rtol=2e-5)
+    assert_trees_close(state.critic_params, init(spec_of()).critic_params, atol=0, rtol=0)
+    stepped, _ = jax.jit(functools.partial(ac.actor_step, spec, hparams()))(state, batch)
+    for before, after in zip(jax.tree.leaves(state.actor_params),
+                             jax.tree.leaves(stepped.actor_params), strict=True):  # fmt: skip
+        assert not np.allclose(np.asarray(before), np.asarray(after))
+
+
+def test_a_residual_actor_needs_blocks_of_one_width():
+    """Unequal actor widths are refused by the library and by the config (naming the flag that
+    set them and an example); the option reaches the agent's options; the critics may stay
+    plain and of several widths."""
+    with pytest.raises(ValueError, match="one width"):
+        ac.make_spec((8, 4), OBS, ACT, num_critics=2, target_smoothing=True, policy_freq=1,
+                     options=ac.AgentOptions(actor_network="residual"))  # fmt: skip
+    with pytest.raises(ConfigError, match=r"--actor-network residual: --actor-hidden-sizes: "
+                       r".*not 64 32; give one, e.g. --actor-hidden-sizes 128 128"):  # fmt: skip
+        validate(TrainConfig(actor_network="residual", actor_hidden_sizes=(64, 32)))
+    with pytest.raises(ConfigError, match=r"--actor-network residual: --hidden-sizes: .*64 32"):
+        validate(TrainConfig(actor_network="residual", hidden_sizes=(64, 32)))
+    cfg = validate(TrainConfig(actor_network="residual", hidden_sizes=(64, 32),
+                               actor_hidden_sizes=(16, 16)))  # fmt: skip
+    assert (agent_options(cfg).actor_network, agent_options(cfg).critic_network) == (
+        "residual",
+        "mlp",
+    )
+    assert agent_options(TrainConfig()).actor_network == "mlp"
+    with pytest.raises(ConfigError, match="actor-network"):
+        validate(TrainConfig(actor_network="resnet"))
+
+
 def test_a_residual_critic_needs_blocks_of_one_width():
     """Unequal widths are refused by the library (ValueError) and the config (ConfigError
     naming the flag that set them); a plain critic takes them; the config's option reaches
