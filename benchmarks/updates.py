@@ -17,7 +17,8 @@ library computes it (``library``) and, as the baseline in the same command, the 
 td3-jax used before 2026-11-25 (``einsum``, over ``[..., atoms, atoms]`` weights).
 
 ``--networks mlp residual``: the critics plain (1024-512-256) and/or in the `g1` preset's
-residual layout (two blocks of 256); ``--max-weight-norm B``: each combination also with its
+residual layout (two blocks of 256); ``--actors mlp residual``: the actor plain (512-256-128)
+and/or residual (two blocks of 128, FlashSAC's, ``--actor-network residual``); ``--max-weight-norm B``: each combination also with its
 weights bounded to norm B after every step. The robot presets' cuBLAS matmuls: run with
 ``XLA_FLAGS=--xla_gpu_enable_triton_gemm=false``.
 
@@ -46,7 +47,8 @@ from td3_jax.types import Transition
 
 CRITIC_HIDDEN, ACTOR_HIDDEN = (1024, 512, 256), (512, 256, 128)
 NETWORK_SIZES = {"mlp": CRITIC_HIDDEN, "residual": (256, 256)}
-COLUMNS = ("critic", "network", "bound", "precision", "batch", "shape", "rules", "projection",
+ACTOR_SIZES = {"mlp": ACTOR_HIDDEN, "residual": (128, 128)}
+COLUMNS = ("critic", "network", "actor", "bound", "precision", "batch", "shape", "rules", "projection",
            "ring", "updates_per_s", "ms_per_update", "samples_per_s", "device", "jax")  # fmt: skip
 RULES = {
     "paper": dict(actor_q="min"),
@@ -80,16 +82,18 @@ def make_spec(
     rules: str,
     network: str = "mlp",
     bound: bool = False,
+    actor: str = "mlp",
 ):
     obs, critic_obs, act = shape
     hidden = NETWORK_SIZES[network]
     options = ac.AgentOptions(
         num_atoms=101 if critic == "distributional" else 0,
-        actor_hidden_sizes=ACTOR_HIDDEN,
+        actor_hidden_sizes=ACTOR_SIZES[actor],
         critic_hidden_sizes=hidden,
         layer_norm=layer_norm,
         precision=precision,
         critic_network=network,
+        actor_network=actor,
         bound_weights=bound,
         **RULES[rules],
     )
@@ -220,6 +224,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--networks", nargs="+", default=["mlp"], choices=sorted(NETWORK_SIZES),
                         help="the critics' layout: mlp (1024-512-256) and/or residual (two "
                         "blocks of 256, the g1 preset's)")  # fmt: skip
+    parser.add_argument("--actors", nargs="+", default=["mlp"], choices=sorted(ACTOR_SIZES),
+                        help="the actor's layout: mlp (512-256-128) and/or residual (two "
+                        "blocks of 128, FlashSAC's)")  # fmt: skip
     parser.add_argument(
         "--max-weight-norm",
         type=float,
@@ -235,12 +242,12 @@ def parse_args() -> argparse.Namespace:
 
 
 def measure(args, combo: tuple) -> dict:
-    shape_, batch, critic, network, bound, precision, rules, proj = combo
+    shape_, batch, critic, network, actor, bound, precision, rules, proj = combo
     if proj != "library" and critic != "distributional":
         return {}
-    spec = make_spec(critic, precision, shape_, args.layer_norm, rules, network, bound)
+    spec = make_spec(critic, precision, shape_, args.layer_norm, rules, network, bound, actor)
     rate = updates_per_second(spec, batch, args, proj)
-    return dict(critic=critic, network=network, bound=args.max_weight_norm if bound else "",
+    return dict(critic=critic, network=network, actor=actor, bound=args.max_weight_norm if bound else "",
                 precision=precision, batch=batch,
                 shape="x".join(str(n) for n in shape_ if n), rules=rules, projection=proj,
                 ring=args.ring, updates_per_s=round(rate, 2), ms_per_update=round(1000 / rate, 3),
@@ -254,9 +261,10 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     bounds = [False, True] if args.max_weight_norm is not None else [False]
-    combos = itertools.product(args.shapes, args.batches, args.critics, args.networks, bounds,
-                               args.precisions, args.rules, args.projections)  # fmt: skip
-    print(" ".join(f"{c:>13}" for c in COLUMNS[:12]), flush=True)
+    combos = itertools.product(args.shapes, args.batches, args.critics, args.networks,
+                               args.actors, bounds, args.precisions, args.rules,
+                               args.projections)  # fmt: skip
+    print(" ".join(f"{c:>13}" for c in COLUMNS[:13]), flush=True)
     with (out / "updates.jsonl").open("w") as log:
         for combo in combos:
             row = measure(args, combo)
@@ -264,7 +272,7 @@ def main() -> None:
                 continue
             rows.append(row)
             log.write(json.dumps(row) + "\n")
-            print(" ".join(f"{row[c]!s:>13}" for c in COLUMNS[:12]), flush=True)
+            print(" ".join(f"{row[c]!s:>13}" for c in COLUMNS[:13]), flush=True)
     with (out / "updates.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=COLUMNS)
         writer.writeheader()
