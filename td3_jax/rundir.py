@@ -659,6 +659,14 @@ def _read_config(out_dir: Path) -> dict:
                 f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
                 "trained (run its td3-jax train command again to start it)"
             )
+        steps = checkpoint_steps(out_dir)
+        if steps:
+            raise ConfigError(
+                f"{out_dir} holds checkpoints but no {CONFIG_FILE} (deleted?), which td3-jax "
+                f"reads to rebuild the run: restore it from a copy (each checkpoint's "
+                f"{CHECKPOINTS}/N/meta/metadata lists the settings it was trained with, "
+                f"under 'settings')"
+            )
         raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory"
                           f"{_run_above(Path(out_dir))}")  # fmt: skip
     try:

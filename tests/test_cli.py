@@ -720,6 +720,23 @@ def test_plot_redraws_the_curve(finished_run, capsys):
     assert (out / "curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_run_without_its_config_json_is_named_as_such(finished_run, tmp_path, capsys):
+    """A run directory whose config.json was deleted is not called "not a td3-jax run
+    directory": the line says the checkpoints are there and where their settings are kept (and
+    they are: the file it names holds the run's environment)."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run[0], run)
+    env = json.loads((run / "config.json").read_text())["env"]
+    (run / "config.json").unlink()
+    for command in (["eval", "--run", str(run)], ["train", "--out", str(run), "--resume"]):
+        code, _, err = main(command, capsys)
+        assert_one_line_error(code, err, f"{run} holds checkpoints but no config.json")
+        assert "checkpoints/N/meta/metadata" in err
+    newest = max(rundir.checkpoint_steps(run))
+    meta = json.loads((run / "checkpoints" / str(newest) / "meta" / "metadata").read_text())
+    assert meta["settings"]["env"] == env
+
+
 def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
     """A missing directory, a directory that is no run, a run that stopped before its first
     evaluation and one being trained before it each get their own one-line reason (all once
