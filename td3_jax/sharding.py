@@ -84,14 +84,24 @@ def check_memory(abstract_state: Any, mesh: Mesh) -> None:
         return
     ring = state_bytes(abstract_state.buffer) // share
     networks = state_bytes(abstract_state.agent)  # (replicated: every device holds them all)
-    advice = ("smaller --hidden-sizes (or --actor-hidden-sizes, --critic-hidden-sizes)"
-              if networks > ring else "a smaller --buffer-size")  # fmt: skip
     raise ConfigError(
         f"the train state needs {size_text(need)} per device (the replay ring "
         f"{size_text(ring)}, the networks and their optimiser states {size_text(networks)}) "
-        f"but {what} {size_text(limit)}; use {advice} (or fewer --num-envs, --seeds or sweep "
-        "values)"
+        f"but {what} {size_text(limit)}; use {_memory_advice(abstract_state, networks > ring)}"
     )
+
+
+def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
+    """The flags that shrink a train state, the likeliest first: fewer members where the run
+    has several (each has its own networks and ring), else the larger part's size."""
+    shrink = ("smaller --hidden-sizes (or --actor-hidden-sizes, --critic-hidden-sizes)"
+              if networks_larger else "a smaller --buffer-size")  # fmt: skip
+    leaves = jax.tree.leaves(abstract_state.agent)
+    count = int(leaves[0].shape[0]) if leaves and leaves[0].shape else 1
+    if count > 1:
+        return (f"fewer --seeds or sweep values (the run has {count:,} members, each with its "
+                f"own networks and ring), {shrink} or fewer --num-envs")  # fmt: skip
+    return f"{shrink} (or fewer --num-envs)"
 
 
 def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) -> None:

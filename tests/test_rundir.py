@@ -922,7 +922,18 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     state = make_population(big, members(big)).abstract_state
     assert state_bytes(state.buffer) > state_bytes(state.agent)
     monkeypatch.setattr(sharding, "memory_of", lambda device: (1, "the test's memory is"))
-    with pytest.raises(ConfigError, match="; use a smaller --buffer-size"):
+    with pytest.raises(
+        ConfigError, match=r"; use a smaller --buffer-size \(or fewer --num-envs\)$"
+    ):
+        sharding.check_memory(state, sharding.make_mesh(1))
+    # Several members: fewer of them first (each has its own networks and ring).
+    seeds = dataclasses.replace(cfg, seeds=3)
+    state = make_population(seeds, members(seeds)).abstract_state
+    with pytest.raises(
+        ConfigError,
+        match=r"; use fewer --seeds or sweep values \(the run has 3 "
+        r"members, each .*\), smaller --hidden-sizes .* or fewer --num-envs$",
+    ):
         sharding.check_memory(state, sharding.make_mesh(1))
 
 
