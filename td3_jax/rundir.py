@@ -411,7 +411,8 @@ def no_checkpoint_error(out_dir: Path) -> ConfigError:
                            "training it and has not written its first; try again "
                            "later")  # fmt: skip
     return ConfigError(f"{out_dir} holds no checkpoint (its run stopped before writing one, or "
-                       f"they were removed): {_MOVE_AWAY}")  # fmt: skip
+                       "they were removed), so there is no policy to read: train it again with "
+                       "td3-jax train (move it away or give another --out)")  # fmt: skip
 
 
 def resume_command(out_dir: Path) -> str:

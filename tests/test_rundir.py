@@ -225,8 +225,9 @@ def test_reading_a_run_without_a_checkpoint_says_why(tmp_path):
     finally:
         lock.release()
     with pytest.raises(ConfigError, match=r"holds no checkpoint \(its run stopped before "
-                       r"writing one, or they were removed\): move it away or choose another "
-                       "--out to train again"):  # fmt: skip
+                       r"writing one, or they were removed\), so there is no policy to read: "
+                       r"train it again with td3-jax train \(move it away or give another "
+                       r"--out\)$"):  # fmt: skip
         finished.restore_on_one_device(program, tmp_path)
 
 
