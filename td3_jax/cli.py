@@ -293,16 +293,16 @@ def whole_numbers_written_out(command_type: type, args: list[str]) -> list[str]:
     """``args`` with each value of a whole-number flag of ``command_type`` that is written in
     scientific notation and is a whole number (``--total-steps 1e6``, ``=2.5e4``) written out
     (``1000000``); other values unchanged (``1.5e0`` stays, for the parser to refuse)."""
-    out, kind = [], None
+    out, kind, several = [], None, False
     for arg in args:
         if arg.startswith("--"):
             name, equals, value = arg.partition("=")
-            kind = _number_kinds(command_type, name[2:].replace("-", "_"))
-            kind = kind and kind[0]
+            kind, several = _number_kinds(command_type, name[2:].replace("-", "_")) or (None, 0)
             arg = f"{name}={_written_out(value, kind)}" if equals else arg
             kind = None if equals else kind
         else:
             arg = _written_out(arg, kind)
+            kind = kind if several else None  # (one value: a second is the parser's to refuse)
         out.append(arg)
     return out
 

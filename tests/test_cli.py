@@ -410,6 +410,9 @@ def test_whole_numbers_may_be_written_in_scientific_notation():
         with pytest.raises(config.ConfigError, match=f"--total-steps takes a whole number, got "
                            f"'{re.escape(bad)}'"):  # fmt: skip
             parse(["--total-steps", bad])
+    # A second value of a one-number flag is quoted as typed, not as rewritten (was 2000000).
+    with pytest.raises(config.ConfigError, match=r"unexpected argument 2e6\b"):
+        parse(["--total-steps", "1e6", "2e6"])
 
 
 def test_no_subcommand_prints_the_usage_and_exits_2_and_help_exits_0(capsys):
