@@ -8,6 +8,10 @@
 #        separated by ';', each 'PRESET:SEED ...' with '@FLAGS' for train flags of its own
 #   bash benchmarks/four_chains.sh collect         $OUT/runs.tgz: every finished run, the
 #        metrics of those in progress, the chains' logs; then each run's last two lines
+# The runs live only as long as the lease: a host goes back when idle (30 s after a call ends,
+# on 2026-11-28), so the call that waits for them (benchmarks/chain.sh wait gpuK SECONDS, then
+# collect) must follow the one that started them at once; on 2026-11-28 a late one found a fresh
+# host and four G1 runs were lost at 24.6M steps.
 # Segment s of chain k lands in /root/done/k-s/PRESET-sSEED (runs in /root/runs/k-s); a start
 # that would reuse such a folder is refused, as are more chains than GPUs. FLAGS are split at
 # spaces as runs_50m.sh's EXTRA is (no value with a space in it). The tenth session's four
