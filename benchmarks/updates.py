@@ -18,8 +18,9 @@ td3-jax used before 2026-11-25 (``einsum``, over ``[..., atoms, atoms]`` weights
 
 ``--networks mlp residual``: the critics plain (1024-512-256) and/or in the `g1` preset's
 residual layout (two blocks of 256); ``--actors mlp residual``: the actor plain (512-256-128)
-and/or residual (two blocks of 128, FlashSAC's, ``--actor-network residual``); ``--max-weight-norm B``: each combination also with its
-weights bounded to norm B after every step. The robot presets' cuBLAS matmuls: run with
+and/or residual (two blocks of 128, FlashSAC's, ``--actor-network residual``);
+``--max-weight-norm B``: each combination also with its weights bounded to norm B after every
+step. The robot presets' cuBLAS matmuls: run with
 ``XLA_FLAGS=--xla_gpu_enable_triton_gemm=false``.
 
 Usage (from the project root): python3 benchmarks/updates.py --out DIR
@@ -48,8 +49,9 @@ from td3_jax.types import Transition
 CRITIC_HIDDEN, ACTOR_HIDDEN = (1024, 512, 256), (512, 256, 128)
 NETWORK_SIZES = {"mlp": CRITIC_HIDDEN, "residual": (256, 256)}
 ACTOR_SIZES = {"mlp": ACTOR_HIDDEN, "residual": (128, 128)}
-COLUMNS = ("critic", "network", "actor", "bound", "precision", "batch", "shape", "rules", "projection",
-           "ring", "updates_per_s", "ms_per_update", "samples_per_s", "device", "jax")  # fmt: skip
+COLUMNS = ("critic", "network", "actor", "bound", "precision", "batch", "shape", "rules",
+           "projection", "ring", "updates_per_s", "ms_per_update", "samples_per_s", "device",
+           "jax")  # fmt: skip
 RULES = {
     "paper": dict(actor_q="min"),
     "fasttd3": dict(actor_q="min", target_actor=False, target_update="every_update",
@@ -247,8 +249,8 @@ def measure(args, combo: tuple) -> dict:
         return {}
     spec = make_spec(critic, precision, shape_, args.layer_norm, rules, network, bound, actor)
     rate = updates_per_second(spec, batch, args, proj)
-    return dict(critic=critic, network=network, actor=actor, bound=args.max_weight_norm if bound else "",
-                precision=precision, batch=batch,
+    return dict(critic=critic, network=network, actor=actor,
+                bound=args.max_weight_norm if bound else "", precision=precision, batch=batch,
                 shape="x".join(str(n) for n in shape_ if n), rules=rules, projection=proj,
                 ring=args.ring, updates_per_s=round(rate, 2), ms_per_update=round(1000 / rate, 3),
                 samples_per_s=round(rate * batch), device=jax.devices()[0].device_kind,

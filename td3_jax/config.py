@@ -198,7 +198,7 @@ class TrainConfig:
     """The actor's network: mlp (ReLU layers of --actor-hidden-sizes, with --layer-norm if given)
     or residual (the layout of --critic-network residual, a block per entry of
     --actor-hidden-sizes, which must be equal; FlashSAC's actor is 128 128). Export writes
-    only mlp actors so far."""
+    both."""
     lr_schedule: Literal["constant", "cosine"] = "constant"
     """Learning-rate schedule: constant, or cosine from the learning rate to
     --lr-final-fraction of it (default 0) over the run's gradient updates (so --total-steps

@@ -6,9 +6,12 @@ member of a run's newest checkpoint:
 1. the observation normalisation, when the run's ``normalize_obs`` is on and its statistics
    have seen data: ``clip((obs - mean) / sqrt(var + 1e-8), -10, 10)`` per feature, with the
    statistics sliced to the actor's observation (``row[:observation_size]``);
-2. the actor's MLP: Dense kernels ``[in, out]`` and biases, LayerNorm scales and biases after
-   each hidden Dense with ``--layer-norm`` (epsilon: flax's default, 1e-6), ReLU, then
-   ``max_action * tanh``;
+2. the actor's network, then ``max_action * tanh``. A plain (``--actor-network mlp``) actor:
+   Dense kernels ``[in, out]`` and biases, LayerNorm scales and biases after each hidden Dense
+   with ``--layer-norm`` (epsilon: flax's default, 1e-6), ReLU. A residual one
+   (:class:`~td3_jax.networks.ResidualMLP`): ``h = Dense_0(x)``; per block ``b``,
+   ``y = relu(LN_2b(Dense_2b+1(h)))``, ``h = h + relu(LN_2b+1(Dense_2b+2(y)))``; then
+   ``Dense_2B+1(RMSNorm(h))`` (``h / sqrt(mean(h^2) + 1e-6) * scale``);
 3. the agent's action mapped to the environment's own bounds,
    ``low + (clip(a, -1, 1) + 1) / 2 * (high - low)`` (:meth:`Environment.to_env_action`).
 
@@ -19,7 +22,12 @@ bf16 forward pass by bf16 rounding (a few 1e-3), and are the more exact ones.
 The ``.npz`` runs with :mod:`td3_jax.policy_file` (NumPy only). The ONNX model (opset
 :data:`ONNX_OPSET`, which LayerNormalization needs) is built node by node from the same arrays
 with ``onnx.helper``: input ``obs`` float32 ``[batch, observation_size]`` (dynamic batch),
-output ``action`` float32 ``[batch, action_size]``.
+output ``action`` float32 ``[batch, action_size]``; opset 17 has no RMSNorm, so the residual
+actor's is built of Mul, ReduceMean, Add, Sqrt and Div.
+
+A plain actor's ``.npz`` is of format version 1, as before residual actors (a loader of
+version 1 reads it); a residual actor's is of version 2 (:func:`file_version`), which older
+loaders refuse with a clear error rather than run it as an MLP.
 """
 
 from __future__ import annotations
@@ -36,7 +44,7 @@ import numpy as np
 from td3_jax import normalization
 from td3_jax.errors import ConfigError, ExportError
 from td3_jax.logger import probe_write
-from td3_jax.policy_file import FORMAT_VERSION
+from td3_jax.policy_file import FORMAT_VERSION, MLP_VERSION
 
 #: The export formats (``td3-jax export --format``).
 FORMATS = ("onnx", "npz")
@@ -49,14 +57,19 @@ class PolicyArrays:
     """One deterministic actor as float32 NumPy arrays (see the module docstring).
 
     Attributes:
-      kernels, biases: the Dense layers, ``[in, out]`` and ``[out]``, input layer first.
-      ln_scales, ln_biases: ``[width]`` LayerNorm parameters of each hidden layer (empty
-        without layer norm); ``ln_epsilon`` its epsilon.
+      kernels, biases: the Dense layers, ``[in, out]`` and ``[out]``, input layer first (of a
+        residual actor: ``Dense_0`` to ``Dense_2B+1``, ``2B + 2`` layers of ``B`` blocks).
+      ln_scales, ln_biases: ``[features]`` LayerNorm parameters: of each hidden layer (empty
+        without layer norm), or of a residual actor's blocks (``LayerNorm_0`` to
+        ``LayerNorm_2B-1``); ``ln_epsilon`` their epsilon.
       normalize: whether observations are normalised; ``obs_mean``, ``obs_std``
         ``[observation_size]`` (``std = sqrt(var + 1e-8)``; 0 and 1 when not) and ``obs_clip``.
       max_action: ``[action_size]`` scale of the tanh output.
       action_low, action_high: ``[action_size]`` bounds of the environment's actions.
       env, member, env_steps, precision: where the policy comes from.
+      residual: whether the actor is a :class:`~td3_jax.networks.ResidualMLP`; ``rms_scale``
+        ``[width]`` its RMSNorm's scale (``None`` for a plain actor), ``rms_epsilon`` its
+        epsilon.
     """
 
     kernels: tuple[np.ndarray, ...]
@@ -75,6 +88,9 @@ class PolicyArrays:
     member: int = 0
     env_steps: int = 0
     precision: str = "float32"
+    residual: bool = False
+    rms_scale: np.ndarray | None = None
+    rms_epsilon: float = 1e-6
 
     @property
     def observation_size(self) -> int:
@@ -86,7 +102,18 @@ class PolicyArrays:
 
     @property
     def layer_norm(self) -> bool:
-        return bool(self.ln_scales)
+        """A plain actor's ``--layer-norm`` (a residual actor's blocks always normalise)."""
+        return bool(self.ln_scales) and not self.residual
+
+    @property
+    def network(self) -> str:
+        """``"residual"`` or ``"mlp"`` (``--actor-network``)."""
+        return "residual" if self.residual else "mlp"
+
+    @property
+    def blocks(self) -> int:
+        """The residual blocks (0 for a plain actor)."""
+        return (len(self.kernels) - 2) // 2 if self.residual else 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -104,17 +131,37 @@ def _numbered(params: dict, prefix: str) -> list[dict]:
     return [params[n] for n in sorted(names, key=lambda n: int(n.rsplit("_", 1)[1]))]
 
 
-def mlp_arrays(actor_params: Any, layer_norm: bool) -> tuple[list, list, list, list]:
-    """``(kernels, biases, ln_scales, ln_biases)`` of an :class:`~td3_jax.networks.Actor`'s
-    parameters (``{"params": {"MLP_0": {"Dense_i": ..., "LayerNorm_i": ...}}}``), float32."""
-    mlp = actor_params["params"]["MLP_0"]
-    dense = _numbered(mlp, "Dense")
-    norms = _numbered(mlp, "LayerNorm") if layer_norm else []
-    if layer_norm and len(norms) != len(dense) - 1:
-        raise ExportError(f"the actor has {len(dense)} Dense layers but {len(norms)} LayerNorms")
+def _layers(body: dict, layer_norm: bool) -> tuple[list, list, list, list]:
+    """``(kernels, biases, ln_scales, ln_biases)`` of a network's ``Dense_i`` and (with
+    ``layer_norm``) ``LayerNorm_i`` parameters, in index order, float32."""
+    dense = _numbered(body, "Dense")
+    norms = _numbered(body, "LayerNorm") if layer_norm else []
     kernels = [_f32(d["kernel"]) for d in dense]
     biases = [_f32(d["bias"]) for d in dense]
     return kernels, biases, [_f32(n["scale"]) for n in norms], [_f32(n["bias"]) for n in norms]
+
+
+def mlp_arrays(actor_params: Any, layer_norm: bool) -> tuple[list, list, list, list]:
+    """``(kernels, biases, ln_scales, ln_biases)`` of an :class:`~td3_jax.networks.Actor`'s
+    parameters (``{"params": {"MLP_0": {"Dense_i": ..., "LayerNorm_i": ...}}}``), float32."""
+    layers = _layers(actor_params["params"]["MLP_0"], layer_norm)
+    dense, norms = len(layers[0]), len(layers[2])
+    if layer_norm and norms != dense - 1:
+        raise ExportError(f"the actor has {dense} Dense layers but {norms} LayerNorms")
+    return layers
+
+
+def residual_arrays(actor_params: Any) -> tuple[list, list, list, list, np.ndarray]:
+    """``(kernels, biases, ln_scales, ln_biases, rms_scale)`` of a residual actor's parameters
+    (``{"params": {"ResidualMLP_0": {"Dense_i", "LayerNorm_i", "RMSNorm_0"}}}``): ``2B + 2``
+    Dense layers and ``2B`` LayerNorms of ``B >= 1`` blocks, the RMSNorm's scale ``[width]``."""
+    body = actor_params["params"]["ResidualMLP_0"]
+    kernels, biases, scales, shifts = _layers(body, True)
+    dense, norms = len(kernels), len(scales)
+    if dense < 4 or dense % 2 or norms != dense - 2:
+        raise ExportError(f"the residual actor has {dense} Dense layers and {norms} "
+                          "LayerNorms, not 2B + 2 and 2B of B blocks")  # fmt: skip
+    return kernels, biases, scales, shifts, _f32(body["RMSNorm_0"]["scale"])
 
 
 def normalization_arrays(stats: Any, observation_size: int) -> tuple[bool, np.ndarray, np.ndarray]:
@@ -136,7 +183,8 @@ def extract_policy(
 
     Args:
       env: the :class:`~td3_jax.envs.Environment` (sizes and action bounds).
-      actor: the :class:`~td3_jax.networks.Actor` module (layer norm, ``max_action``).
+      actor: the :class:`~td3_jax.networks.Actor` module (layer norm, ``max_action``,
+        ``residual``).
       actor_params: its parameters (one member's: no leading member axis).
       obs_stats: the member's :class:`~td3_jax.normalization.RunningStats` over rows
         ``[row_size]``, or ``None`` when the run does not normalise observations.
@@ -144,10 +192,12 @@ def extract_policy(
     """
     import flax.linen as nn
 
-    if getattr(actor, "residual", False):
-        raise ExportError("export writes plain (mlp) actors; this run's actor is residual "
-                          "(--actor-network residual), which it cannot write yet")  # fmt: skip
-    kernels, biases, scales, shifts = mlp_arrays(actor_params, actor.layer_norm)
+    residual = bool(getattr(actor, "residual", False))
+    if residual:
+        kernels, biases, scales, shifts, rms_scale = residual_arrays(actor_params)
+    else:
+        kernels, biases, scales, shifts = mlp_arrays(actor_params, actor.layer_norm)
+        rms_scale = None
     if kernels[0].shape[0] != env.observation_size or kernels[-1].shape[1] != env.action_size:
         raise ExportError(
             f"the actor's sizes {kernels[0].shape[0]} -> {kernels[-1].shape[1]} "
@@ -158,14 +208,16 @@ def extract_policy(
     return PolicyArrays(
         tuple(kernels), tuple(biases), tuple(scales), tuple(shifts),
         float(nn.LayerNorm.epsilon), normalize, mean, std, normalization.CLIP, max_action,
-        _f32(env.action_low), _f32(env.action_high), env.name, **origin,
+        _f32(env.action_low), _f32(env.action_high), env.name, **origin, residual=residual,
+        rms_scale=rms_scale, rms_epsilon=float(nn.RMSNorm.epsilon),
     )  # fmt: skip
 
 
 def check_finite(policy: PolicyArrays) -> None:
     """Raises :class:`ExportError` when a parameter or statistic is NaN or infinite."""
     arrays = [*policy.kernels, *policy.biases, *policy.ln_scales, *policy.ln_biases,
-              policy.obs_mean, policy.obs_std]  # fmt: skip
+              policy.obs_mean, policy.obs_std,
+              *([] if policy.rms_scale is None else [policy.rms_scale])]  # fmt: skip
     if not all(np.isfinite(a).all() for a in arrays):
         raise ExportError(
             f"member {policy.member} has non-finite parameters or statistics (it diverged); "
@@ -269,11 +321,18 @@ def load_run_policy(run_dir: Path, member: int | None = None, env: Any = None) -
 # --------------------------------------------------------------------------------------------
 
 
+def file_version(policy: PolicyArrays) -> int:
+    """The policy file's format version: a plain actor's is version 1 (what loaders from before
+    residual actors read), a residual one's :data:`FORMAT_VERSION` (2)."""
+    return FORMAT_VERSION if policy.residual else MLP_VERSION
+
+
 def npz_arrays(policy: PolicyArrays) -> dict[str, np.ndarray]:
-    """The arrays of a version-:data:`FORMAT_VERSION` policy file (read by
-    :mod:`td3_jax.policy_file`; no array needs pickle)."""
+    """The arrays of the policy file (read by :mod:`td3_jax.policy_file`; no array needs
+    pickle): version 1's for a plain actor, and of a residual one also ``network``,
+    ``blocks``, ``rms_scale`` ``[width]`` and ``rms_epsilon`` (version 2)."""
     arrays = {
-        "format_version": np.array(FORMAT_VERSION), "env": np.array(policy.env),
+        "format_version": np.array(file_version(policy)), "env": np.array(policy.env),
         "observation_size": np.array(policy.observation_size),
         "action_size": np.array(policy.action_size), "layer_norm": np.array(policy.layer_norm),
         "num_layers": np.array(len(policy.kernels)), "member": np.array(policy.member),
@@ -287,6 +346,10 @@ def npz_arrays(policy: PolicyArrays) -> dict[str, np.ndarray]:
         arrays[f"kernel_{i}"], arrays[f"bias_{i}"] = kernel, bias
     for i, (scale, bias) in enumerate(zip(policy.ln_scales, policy.ln_biases, strict=True)):
         arrays[f"ln_scale_{i}"], arrays[f"ln_bias_{i}"] = scale, bias
+    if policy.residual:
+        arrays.update(network=np.array(policy.network), blocks=np.array(policy.blocks),
+                      rms_scale=policy.rms_scale,
+                      rms_epsilon=np.float32(policy.rms_epsilon))  # fmt: skip
     return arrays
 
 
@@ -340,21 +403,53 @@ def _onnx_normalize(graph: _Graph, policy: PolicyArrays, x: str) -> str:
     return graph.node("Clip", [x, low, high], "obs_normalized")
 
 
+def _onnx_dense(graph: _Graph, policy: PolicyArrays, i: int, x: str) -> str:
+    """Dense layer ``i``: ``x @ kernel_i + bias_i`` (MatMul, Add), ``[batch, out]``."""
+    x = graph.node("MatMul", [x, graph.constant(f"kernel_{i}", policy.kernels[i])], f"matmul_{i}")
+    return graph.node("Add", [x, graph.constant(f"bias_{i}", policy.biases[i])], f"dense_{i}")
+
+
+def _onnx_layer_norm(graph: _Graph, policy: PolicyArrays, i: int, x: str) -> str:
+    """LayerNorm ``i`` over the last axis of ``x [batch, features]`` (LayerNormalization)."""
+    scale = graph.constant(f"ln_scale_{i}", policy.ln_scales[i])
+    shift = graph.constant(f"ln_bias_{i}", policy.ln_biases[i])
+    return graph.node("LayerNormalization", [x, scale, shift], f"layer_norm_{i}",
+                      axis=-1, epsilon=policy.ln_epsilon)  # fmt: skip
+
+
 def _onnx_mlp(graph: _Graph, policy: PolicyArrays, x: str) -> str:
     """The Dense layers (MatMul, Add), LayerNorm and ReLU after each hidden one."""
     last = len(policy.kernels) - 1
-    for i, (kernel, bias) in enumerate(zip(policy.kernels, policy.biases, strict=True)):
-        x = graph.node("MatMul", [x, graph.constant(f"kernel_{i}", kernel)], f"matmul_{i}")
-        x = graph.node("Add", [x, graph.constant(f"bias_{i}", bias)], f"dense_{i}")
-        if i == last:
-            return x
+    for i in range(last):
+        x = _onnx_dense(graph, policy, i, x)
         if policy.layer_norm:
-            scale = graph.constant(f"ln_scale_{i}", policy.ln_scales[i])
-            shift = graph.constant(f"ln_bias_{i}", policy.ln_biases[i])
-            x = graph.node("LayerNormalization", [x, scale, shift], f"layer_norm_{i}",
-                           axis=-1, epsilon=policy.ln_epsilon)  # fmt: skip
+            x = _onnx_layer_norm(graph, policy, i, x)
         x = graph.node("Relu", [x], f"relu_{i}")
-    return x
+    return _onnx_dense(graph, policy, last, x)
+
+
+def _onnx_rms_norm(graph: _Graph, policy: PolicyArrays, x: str) -> str:
+    """``x / sqrt(mean(x^2) + eps) * scale`` over the last axis of ``x [batch, width]`` (opset
+    17 has no RMSNormalization; its ReduceMean takes ``axes`` as an attribute)."""
+    square = graph.node("Mul", [x, x], "rms_square")
+    mean = graph.node("ReduceMean", [square], "rms_mean", axes=[-1], keepdims=1)
+    eps = graph.constant("rms_epsilon", np.float32(policy.rms_epsilon))
+    rms = graph.node("Sqrt", [graph.node("Add", [mean, eps], "rms_variance")], "rms")
+    x = graph.node("Div", [x, rms], "rms_normalized")
+    return graph.node("Mul", [x, graph.constant("rms_scale", policy.rms_scale)], "rms_norm")
+
+
+def _onnx_residual(graph: _Graph, policy: PolicyArrays, x: str) -> str:
+    """The residual network: ``Dense_0``, per block ``h + relu(LN(Dense(relu(LN(Dense(h))))))``
+    (names indexed as the parameters), then RMSNorm and the output Dense layer."""
+    h = _onnx_dense(graph, policy, 0, x)
+    for b in range(policy.blocks):
+        y = _onnx_layer_norm(graph, policy, 2 * b, _onnx_dense(graph, policy, 2 * b + 1, h))
+        y = graph.node("Relu", [y], f"relu_{2 * b}")
+        y = _onnx_layer_norm(graph, policy, 2 * b + 1, _onnx_dense(graph, policy, 2 * b + 2, y))
+        y = graph.node("Relu", [y], f"relu_{2 * b + 1}")
+        h = graph.node("Add", [h, y], f"block_{b}")
+    return _onnx_dense(graph, policy, 2 * policy.blocks + 1, _onnx_rms_norm(graph, policy, h))
 
 
 def _onnx_action(graph: _Graph, policy: PolicyArrays, x: str) -> None:
@@ -371,9 +466,11 @@ def _onnx_action(graph: _Graph, policy: PolicyArrays, x: str) -> None:
 
 
 def onnx_metadata(policy: PolicyArrays) -> dict[str, str]:
-    """The model's ``metadata_props``: where it comes from, sizes, bounds, opset."""
+    """The model's ``metadata_props``: where it comes from, the network (``mlp`` or
+    ``residual``, its blocks), sizes, bounds, opset."""
     return {
-        "producer": "td3-jax", "format_version": str(FORMAT_VERSION), "env": policy.env,
+        "producer": "td3-jax", "format_version": str(file_version(policy)), "env": policy.env,
+        "network": policy.network, "blocks": str(policy.blocks),
         "observation_size": str(policy.observation_size),
         "action_size": str(policy.action_size), "layer_norm": str(policy.layer_norm).lower(),
         "normalize_obs": str(policy.normalize).lower(), "member": str(policy.member),
@@ -389,7 +486,8 @@ def onnx_model(policy: PolicyArrays) -> Any:
     onnx = require_onnx()
     helper, floats = onnx.helper, onnx.TensorProto.FLOAT
     graph = _Graph(onnx)
-    _onnx_action(graph, policy, _onnx_mlp(graph, policy, _onnx_normalize(graph, policy, "obs")))
+    network = _onnx_residual if policy.residual else _onnx_mlp
+    _onnx_action(graph, policy, network(graph, policy, _onnx_normalize(graph, policy, "obs")))
     inputs = [helper.make_tensor_value_info("obs", floats, ["batch", policy.observation_size])]
     outputs = [helper.make_tensor_value_info("action", floats, ["batch", policy.action_size])]
     body = helper.make_graph(graph.nodes, "td3_jax_policy", inputs, outputs, graph.constants)
@@ -421,13 +519,20 @@ def _bounds(values: np.ndarray) -> str:
     return f"{values[0]:g}" if np.all(values == values[0]) else f"[{', '.join(map(str, values))}]"
 
 
+def _network_summary(policy: PolicyArrays) -> str:
+    if policy.residual:
+        return f", residual actor ({policy.blocks} blocks of {policy.kernels[0].shape[1]})"
+    return ", layer norm" if policy.layer_norm else ""
+
+
 def summary(policy: PolicyArrays) -> str:
-    """One line: environment, member, sizes and action bounds."""
+    """One line: environment, member, sizes, action bounds and what is not the default (layer
+    norm, a residual actor, normalised observations)."""
     return (
         f"{policy.env} member {policy.member} at {policy.env_steps} env steps: "
         f"obs {policy.observation_size} -> action {policy.action_size} in "
         f"[{_bounds(policy.action_low)}, {_bounds(policy.action_high)}]"
-        f"{', layer norm' if policy.layer_norm else ''}"
+        f"{_network_summary(policy)}"
         f"{', normalised observations' if policy.normalize else ''}"
     )
 

@@ -3,12 +3,13 @@
 The exported files are checked against the JAX policy path the run evaluates with
 (normalise -> actor observation -> ``actor.apply`` -> ``to_env_action``) on random
 observations, with random parameters and statistics (stronger than a freshly initialised
-actor), and against hand-computed actions. One tiny two-seed run (module-scoped) serves the
-command-line checks.
+actor), and against hand-computed actions, for plain (mlp) and residual actors. One tiny two-seed
+run (module-scoped) serves the command-line checks.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -46,10 +47,15 @@ def asymmetric_env() -> Environment:
     )  # fmt: skip
 
 
-def random_actor(layer_norm: bool, max_action, key=0) -> tuple[Actor, dict]:
+def make_actor(layer_norm: bool, max_action, residual: bool = False, dtype=None) -> Actor:
+    """A plain actor of hidden sizes 32 16, or a residual one of two blocks of width 8."""
+    return Actor((8, 8) if residual else (32, 16), 3, max_action, layer_norm, dtype, residual)
+
+
+def random_actor(layer_norm: bool, max_action, key=0, residual=False) -> tuple[Actor, dict]:
     """An actor whose every parameter is perturbed away from its init: kernels by a random
-    factor, biases and LayerNorm scales and biases by random offsets."""
-    actor = Actor((32, 16), 3, max_action, layer_norm)
+    factor, biases and LayerNorm (and RMSNorm) scales and biases by random offsets."""
+    actor = make_actor(layer_norm, max_action, residual)
     params = actor.init(jax.random.PRNGKey(key), jnp.zeros((1, 5)))
     leaves, tree = jax.tree.flatten(params)
     keys = jax.random.split(jax.random.PRNGKey(key + 1), len(leaves))
@@ -113,23 +119,25 @@ def check_same(name: str, got: np.ndarray, want: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize(
-    ("layer_norm", "normalized", "max_action"),
-    [(False, True, 1.0), (True, True, 1.0), (True, False, (1.0, 0.5, 2.0))],
-)
-def test_exports_equal_the_jax_policy(tmp_path, layer_norm, normalized, max_action):
+    ("layer_norm", "normalized", "max_action", "residual"),
+    [(False, True, 1.0, False), (True, True, 1.0, False), (True, False, (1.0, 0.5, 2.0), False),
+     (False, True, (1.0, 0.5, 2.0), True), (False, False, 1.0, True)],
+)  # fmt: skip
+def test_exports_equal_the_jax_policy(tmp_path, layer_norm, normalized, max_action, residual):
     env = asymmetric_env()
-    actor, params = random_actor(layer_norm, np.asarray(max_action, np.float32))
+    actor, params = random_actor(layer_norm, np.asarray(max_action, np.float32), 0, residual)
     stats = random_stats(env.row_size) if normalized else None
     policy = export.extract_policy(env, actor, params, stats)
     assert policy.layer_norm == layer_norm and policy.normalize == normalized
+    assert policy.residual == residual and policy.blocks == (2 if residual else 0)
     rows = random_rows(env.row_size, stats)
     want = np.asarray(jax_policy(env, actor, params, stats)(rows))
     assert unsaturated(want, env) > 0.7  # the comparison is not of tanh tails
     obs = rows[:, : env.observation_size]
     npz = policy_file.load(export.save_npz(policy, tmp_path / "p.npz"))
-    check_same(f"npz (layer_norm={layer_norm})", npz(obs), want)
+    check_same(f"npz ({policy.network}, layer_norm={layer_norm})", npz(obs), want)
     onnx_path = export.save_onnx(policy, tmp_path / "p.onnx")
-    check_same(f"onnx (layer_norm={layer_norm})", onnx_actions(onnx_path, obs), want)
+    check_same(f"onnx ({policy.network})", onnx_actions(onnx_path, obs), want)
     assert np.all(want >= env.action_low) and np.all(want <= env.action_high)
     assert np.all(npz(obs) >= env.action_low) and np.all(npz(obs) <= env.action_high)
     if normalized:  # the normaliser's clip acts on some observations, not on most
@@ -137,12 +145,13 @@ def test_exports_equal_the_jax_policy(tmp_path, layer_norm, normalized, max_acti
         assert 0 < np.mean(np.abs(z[:, :5]) > 10) < 0.1
 
 
-def test_a_bf16_actor_exports_its_float32_evaluation():
+@pytest.mark.parametrize("residual", [False, True])
+def test_a_bf16_actor_exports_its_float32_evaluation(residual):
     """bf16 matmuls: the export is the float32 forward pass of the same parameters, and differs
     from the bf16 one by bf16 rounding only (documented in README and td3_jax.export)."""
     env = asymmetric_env()
-    f32_actor, params = random_actor(True, 1.0)
-    bf16_actor = Actor((32, 16), 3, 1.0, True, jnp.bfloat16)
+    f32_actor, params = random_actor(not residual, 1.0, residual=residual)
+    bf16_actor = make_actor(not residual, 1.0, residual, jnp.bfloat16)
     stats = random_stats(env.row_size)
     policy = export.extract_policy(env, bf16_actor, params, stats, precision="bfloat16")
     rows = random_rows(env.row_size, stats)
@@ -208,8 +217,36 @@ def test_onnx_model_interface(tmp_path):
     meta = {p.key: p.value for p in model.metadata_props}
     assert meta["opset"] == "17" and meta["env"] == "test/asymmetric"
     assert meta["action_low"] == "[-1.0, 0.0, -3.0]"
+    assert (meta["network"], meta["format_version"], meta["layer_norm"]) == ("mlp", "1", "true")
     batch = random_rows(5)[:7]  # the batch dimension is dynamic
     assert onnx_actions(tmp_path / "p.onnx", batch).shape == (7, 3)
+
+
+def test_a_residual_actors_layout_and_onnx_model(tmp_path):
+    """The residual actor's parameters are what the export reads (every one used: the
+    comparisons above perturb each); its ONNX model builds the RMSNorm of opset-17 nodes and
+    says the network in its metadata; its summary says it too."""
+    onnx = pytest.importorskip("onnx")
+    env = asymmetric_env()
+    actor, params = random_actor(False, 1.0, residual=True)
+    layers = params["params"]["ResidualMLP_0"]
+    assert {k: [v.shape for v in layer.values()] for k, layer in layers.items()} == {
+        "Dense_0": [(8,), (5, 8)], "Dense_1": [(32,), (8, 32)], "LayerNorm_0": [(32,), (32,)],
+        "Dense_2": [(8,), (32, 8)], "LayerNorm_1": [(8,), (8,)], "Dense_3": [(32,), (8, 32)],
+        "LayerNorm_2": [(32,), (32,)], "Dense_4": [(8,), (32, 8)], "LayerNorm_3": [(8,), (8,)],
+        "RMSNorm_0": [(8,)], "Dense_5": [(3,), (8, 3)],
+    }  # fmt: skip
+    policy = export.extract_policy(env, actor, params)
+    np.testing.assert_array_equal(policy.rms_scale, layers["RMSNorm_0"]["scale"])
+    assert export.summary(policy) == ("test/asymmetric member 0 at 0 env steps: obs 5 -> action "
+                                      "3 in [[-1.0, 0.0, -3.0], [3.0, 0.5, -1.0]], residual "
+                                      "actor (2 blocks of 8)")  # fmt: skip
+    model = onnx.load(str(export.save_onnx(policy, tmp_path / "p.onnx")))
+    ops = {node.op_type for node in model.graph.node}
+    assert {"ReduceMean", "Sqrt", "LayerNormalization"} <= ops
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert (meta["network"], meta["blocks"], meta["format_version"]) == ("residual", "2", "2")
+    assert onnx_actions(tmp_path / "p.onnx", random_rows(5)[:7]).shape == (7, 3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -230,10 +267,10 @@ print(imported)
 """
 
 
-@pytest.mark.parametrize("how", ["package", "copied file"])
-def test_policy_file_runs_without_jax(tmp_path, how):
+@pytest.mark.parametrize(("how", "residual"), [("package", False), ("copied file", True)])
+def test_policy_file_runs_without_jax(tmp_path, how, residual):
     env = asymmetric_env()
-    actor, params = random_actor(True, 1.0)
+    actor, params = random_actor(not residual, 1.0, residual=residual)
     policy = export.extract_policy(env, actor, params, random_stats(env.row_size))
     path = export.save_npz(policy, tmp_path / "p.npz")
     obs = random_rows(5)
@@ -282,6 +319,59 @@ def test_policy_file_refuses_bad_input(tmp_path):
     np.savez(tmp_path / "future.npz", **arrays)
     with pytest.raises(policy_file.PolicyFileError, match="format version 99"):
         policy_file.load(tmp_path / "future.npz")
+    arrays.update(format_version=np.array(2), network=np.array("transformer"))
+    np.savez(tmp_path / "unknown.npz", **arrays)
+    with pytest.raises(policy_file.PolicyFileError, match="holds a 'transformer' actor"):
+        policy_file.load(tmp_path / "unknown.npz")
+
+
+#: The arrays of a version-1 file (a plain actor of two layers, one hidden, with layer norm),
+#: as td3-jax wrote them before residual actors.
+VERSION_1_ARRAYS = (
+    "format_version", "env", "observation_size", "action_size", "layer_norm", "num_layers",
+    "member", "env_steps", "precision", "normalize", "obs_mean", "obs_std", "obs_clip",
+    "max_action", "action_low", "action_high", "ln_epsilon", "kernel_0", "bias_0", "kernel_1",
+    "bias_1", "ln_scale_0", "ln_bias_0",
+)  # fmt: skip
+
+
+def test_a_plain_actor_is_still_written_and_read_as_version_1(tmp_path):
+    """A plain actor's file is the version-1 file it was (the same arrays), which this loader
+    reads; a residual actor's is version 2, which a version-1 loader refuses in one line."""
+    env = asymmetric_env()
+    rng = np.random.default_rng(0)
+    policy = dataclasses.replace(
+        hand_policy(True), kernels=(np.eye(2, dtype=np.float32),
+                 rng.standard_normal((2, 2)).astype(np.float32)),
+        biases=(np.zeros(2, np.float32), np.ones(2, np.float32)),
+        ln_scales=(np.full(2, 2.0, np.float32),), ln_biases=(np.ones(2, np.float32),),
+    )  # fmt: skip
+    arrays = export.npz_arrays(policy)
+    assert tuple(arrays) == VERSION_1_ARRAYS and int(arrays["format_version"]) == 1
+    path = tmp_path / "v1.npz"
+    np.savez(path, **arrays)
+    loaded = policy_file.load(path)
+    assert loaded.network == "mlp"
+    obs = np.array([[0.3, -0.2], [3.0, 1.0]], np.float32)
+    z = np.clip((obs - policy.obs_mean) / policy.obs_std, -10, 10)
+    h = np.maximum(hand_layer_norm(z) * 2.0 + 1.0, 0.0) @ policy.kernels[1] + 1.0
+    want = policy.action_low + (np.tanh(h) + 1) / 2 * (policy.action_high - policy.action_low)
+    np.testing.assert_allclose(loaded(obs), want, atol=1e-5)
+    actor, params = random_actor(False, 1.0, residual=True)
+    residual = export.save_npz(export.extract_policy(env, actor, params), tmp_path / "r.npz")
+    assert int(policy_file.read(residual)["format_version"]) == 2
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(policy_file, "FORMAT_VERSION", policy_file.MLP_VERSION)
+        assert policy_file.load(path).network == "mlp"
+        with pytest.raises(policy_file.PolicyFileError, match="has format version 2; this "
+                           "loader reads up to 1"):  # fmt: skip
+            policy_file.load(residual)
+
+
+def hand_layer_norm(z: np.ndarray) -> np.ndarray:
+    """LayerNorm without scale or bias over ``z [n, features]``."""
+    centred = z - z.mean(-1, keepdims=True)
+    return centred / np.sqrt(np.square(centred).mean(-1, keepdims=True) + 1e-6)
 
 
 # --------------------------------------------------------------------------------------------
