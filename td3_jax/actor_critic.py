@@ -273,29 +273,11 @@ def make_spec(
     if int(policy_freq) < 1:
         raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
     _check_options(options)
-    for network, sizes in ((options.critic_network, critic_hidden),
-                           (options.actor_network, actor_hidden)):  # fmt: skip
-        if network == "residual":
-            residual_layout(sizes)  # (ValueError for sizes of several widths)
-    dtype = PRECISIONS[options.precision]
+    actor, critic = _networks(options, actor_hidden, critic_hidden, action_size, max_action,
+                              num_critics)  # fmt: skip
     return AgentSpec(
-        actor=Actor(
-            _ints(actor_hidden),
-            int(action_size),
-            max_action,
-            options.layer_norm,
-            dtype,
-            options.actor_network == "residual",
-        ),
-        critic=CriticEnsemble(
-            _ints(critic_hidden),
-            num_critics,
-            options.layer_norm,
-            dtype,
-            int(options.num_atoms),
-            options.critic_feature_norm,
-            options.critic_network == "residual",
-        ),
+        actor=actor,
+        critic=critic,
         observation_size=int(observation_size),
         action_size=int(action_size),
         policy_freq=int(policy_freq),
@@ -305,6 +287,29 @@ def make_spec(
         if critic_observation_size is None
         else int(critic_observation_size),
     )
+
+
+def _networks(
+    options: AgentOptions,
+    actor_hidden: tuple[int, ...],
+    critic_hidden: tuple[int, ...],
+    action_size: int,
+    max_action: Any,
+    num_critics: int,
+) -> tuple[Actor, CriticEnsemble]:
+    """The actor and the critics' ensemble of ``options``; ``ValueError`` where a residual
+    network's hidden sizes are not one width (:func:`~td3_jax.networks.residual_layout`)."""
+    for network, sizes in ((options.critic_network, critic_hidden),
+                           (options.actor_network, actor_hidden)):  # fmt: skip
+        if network == "residual":
+            residual_layout(sizes)
+    dtype = PRECISIONS[options.precision]
+    actor = Actor(_ints(actor_hidden), int(action_size), max_action, options.layer_norm, dtype,
+                  options.actor_network == "residual")  # fmt: skip
+    critic = CriticEnsemble(_ints(critic_hidden), num_critics, options.layer_norm, dtype,
+                            int(options.num_atoms), options.critic_feature_norm,
+                            options.critic_network == "residual")  # fmt: skip
+    return actor, critic
 
 
 def critic_input_size(spec: AgentSpec) -> int:

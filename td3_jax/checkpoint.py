@@ -83,6 +83,16 @@ class Checkpointer:
             return []
         return sorted(self._orbax().all_steps())
 
+    def remove_unfinished(self) -> list[Path]:
+        """Removes, and returns, the folders of writes that never finished
+        (``N.orbax-checkpoint-tmp``: a process ended while writing, e.g. by a second Ctrl-C).
+        Only for the run that holds the directory's lock: another process's write in flight
+        looks the same."""
+        left = sorted(self.directory.glob(f"*{_TMP_MARK}*")) if self.directory.is_dir() else []
+        for path in left:
+            shutil.rmtree(path, ignore_errors=True)
+        return left
+
     def latest_step(self) -> int | None:
         """The newest complete checkpoint's step (it may still turn out corrupt), or None."""
         steps = self.steps()

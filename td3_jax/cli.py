@@ -292,12 +292,14 @@ _SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d{1,4}", re.ASCII)
 def whole_numbers_written_out(command_type: type, args: list[str]) -> list[str]:
     """``args`` with each value of a whole-number flag of ``command_type`` that is written in
     scientific notation and is a whole number (``--total-steps 1e6``, ``=2.5e4``) written out
-    (``1000000``); other values unchanged (``1.5e0`` stays, for the parser to refuse)."""
+    (``1000000``); other values unchanged (``1.5e0`` stays, for the parser to refuse). Only a
+    tuple flag's values are all rewritten: a second value after a one-number flag is left as
+    typed, for the parser's error to quote."""
     out, kind, several = [], None, False
     for arg in args:
         if arg.startswith("--"):
             name, equals, value = arg.partition("=")
-            kind, several = _number_kinds(command_type, name[2:].replace("-", "_")) or (None, 0)
+            kind, several = _number_kinds(command_type, name[2:].replace("-", "_")) or (None, False)
             arg = f"{name}={_written_out(value, kind)}" if equals else arg
             kind = None if equals else kind
         else:

@@ -192,7 +192,7 @@ def extract_policy(
     """
     import flax.linen as nn
 
-    residual = bool(getattr(actor, "residual", False))
+    residual = bool(actor.residual)
     if residual:
         kernels, biases, scales, shifts, rms_scale = residual_arrays(actor_params)
     else:

@@ -83,10 +83,26 @@ def read(path: str | Path) -> dict[str, np.ndarray]:
     if network(arrays) not in NETWORKS:
         raise PolicyFileError(f"{path} holds a {network(arrays)!r} actor; this loader runs "
                               f"{' and '.join(NETWORKS)} actors")  # fmt: skip
+    _check_layers(arrays, path)
+    return {k: v.astype(np.float32) if v.dtype.kind == "f" else v for k, v in arrays.items()}
+
+
+def _check_layers(arrays: dict[str, np.ndarray], path: Path) -> None:
+    """:class:`PolicyFileError` where an array the network needs is missing, or a residual
+    actor's ``num_layers`` is not ``2 * blocks + 2``."""
+    layers = int(_get(arrays, "num_layers", path))
+    norms = layers - 1 if bool(_get(arrays, "layer_norm", path)) else 0
     if network(arrays) == "residual":
         for name in RESIDUAL_ARRAYS:
             _get(arrays, name, path)
-    return {k: v.astype(np.float32) if v.dtype.kind == "f" else v for k, v in arrays.items()}
+        norms = 2 * int(arrays["blocks"])
+        if layers != norms + 2:
+            raise PolicyFileError(f"{path} is damaged: a residual actor of {norms // 2} blocks "
+                                  f"has {norms + 2} layers, not {layers}")  # fmt: skip
+    names = [f"{kind}_{i}" for i in range(layers) for kind in ("kernel", "bias")]
+    names += [f"{kind}_{i}" for i in range(norms) for kind in ("ln_scale", "ln_bias")]
+    for name in names + (["ln_epsilon"] if norms else []):
+        _get(arrays, name, path)
 
 
 def network(arrays: dict[str, np.ndarray]) -> str:

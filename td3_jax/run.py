@@ -371,6 +371,8 @@ def _start(run: _Run, source: Source, resume: bool) -> tuple[Any, int]:
     run.clock_start = time.perf_counter()
     if not resume:
         return None, 0
+    if run.writer:  # (it holds the run's lock: no other write can be in flight)
+        run.checkpointer.remove_unfinished()
     abstract = programs.abstract_state(source)
     check_memory(abstract, source.mesh)
     shardings = state_shardings(abstract, source.mesh)

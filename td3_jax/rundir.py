@@ -660,13 +660,12 @@ def _read_config(out_dir: Path) -> dict:
                 f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
                 "trained (run its td3-jax train command again to start it)"
             )
-        steps = checkpoint_steps(out_dir)
-        if steps:
+        if checkpoint_steps(out_dir):
             raise ConfigError(
                 f"{out_dir} holds checkpoints but no {CONFIG_FILE} (deleted?), which td3-jax "
                 f"reads to rebuild the run: restore it from a copy (each checkpoint's "
-                f"{CHECKPOINTS}/N/meta/metadata lists the settings it was trained with, "
-                f"under 'settings')"
+                f"{CHECKPOINTS}/N/meta/metadata lists, under 'settings', those a resume may "
+                "not change)"
             )
         raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory"
                           f"{_run_above(Path(out_dir))}")  # fmt: skip

@@ -93,7 +93,8 @@ def check_memory(abstract_state: Any, mesh: Mesh) -> None:
 
 def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
     """The flags that shrink a train state, the likeliest first: fewer members where the run
-    has several (each has its own networks and ring), else the larger part's size."""
+    has several (each has its own networks and ring; the agent's leaves are ``[members,
+    ...]``), else the larger part's size."""
     shrink = ("smaller --hidden-sizes (or --actor-hidden-sizes, --critic-hidden-sizes)"
               if networks_larger else "a smaller --buffer-size")  # fmt: skip
     leaves = jax.tree.leaves(abstract_state.agent)
@@ -101,7 +102,7 @@ def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
     if count > 1:
         return (f"fewer --seeds or sweep values (the run has {count:,} members, each with its "
                 f"own networks and ring), {shrink} or fewer --num-envs")  # fmt: skip
-    return f"{shrink} (or fewer --num-envs)"
+    return f"{shrink}, or fewer --num-envs"
 
 
 def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) -> None:

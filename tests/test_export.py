@@ -323,6 +323,20 @@ def test_policy_file_refuses_bad_input(tmp_path):
     np.savez(tmp_path / "unknown.npz", **arrays)
     with pytest.raises(policy_file.PolicyFileError, match="holds a 'transformer' actor"):
         policy_file.load(tmp_path / "unknown.npz")
+    # A damaged file: a layer missing (a KeyError when run, once), a residual layer count off.
+    arrays = dict(np.load(path))
+    del arrays[f"bias_{int(arrays['num_layers']) - 1}"]
+    np.savez(tmp_path / "no_bias.npz", **arrays)
+    with pytest.raises(policy_file.PolicyFileError, match=r"not a td3-jax policy file \(no "
+                       r"'bias_2' array\)"):  # fmt: skip
+        policy_file.load(tmp_path / "no_bias.npz")
+    residual, params = random_actor(False, 1.0, residual=True)
+    arrays = export.npz_arrays(export.extract_policy(env, residual, params))
+    arrays["blocks"] = np.array(3)
+    np.savez(tmp_path / "blocks.npz", **arrays)
+    with pytest.raises(policy_file.PolicyFileError, match="damaged: a residual actor of 3 "
+                       "blocks has 8 layers, not 6"):  # fmt: skip
+        policy_file.load(tmp_path / "blocks.npz")
 
 
 #: The arrays of a version-1 file (a plain actor of two layers, one hidden, with layer norm),

@@ -174,10 +174,15 @@ def test_a_run_killed_after_a_checkpoint_resumes_despite_its_lock_file(tmp_path,
         first.kill()
         first.communicate()
     assert json.loads((out / ".lock").read_text())["pid"] == first.pid
+    # A write the kill cut short (of a step the resumed run never writes) is removed.
+    unfinished = out / "checkpoints" / "999.orbax-checkpoint-tmp" / "state"
+    unfinished.mkdir(parents=True)
+    (unfinished / "d").write_bytes(b"cut short")
     code, stdout, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
     assert code == 0, err
     assert "resuming from checkpoint" in stdout and "done: 3,200 env steps" in stdout
     assert read_records(out)[-1]["env_steps"] == 3200 and not lock_is_held(out)
+    assert not list((out / "checkpoints").glob("*orbax-checkpoint-tmp*"))
 
 
 def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
@@ -923,9 +928,7 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     state = make_population(big, members(big)).abstract_state
     assert state_bytes(state.buffer) > state_bytes(state.agent)
     monkeypatch.setattr(sharding, "memory_of", lambda device: (1, "the test's memory is"))
-    with pytest.raises(
-        ConfigError, match=r"; use a smaller --buffer-size \(or fewer --num-envs\)$"
-    ):
+    with pytest.raises(ConfigError, match=r"; use a smaller --buffer-size, or fewer --num-envs$"):
         sharding.check_memory(state, sharding.make_mesh(1))
     # Several members: fewer of them first (each has its own networks and ring).
     seeds = dataclasses.replace(cfg, seeds=3)
