@@ -10,9 +10,10 @@ loop (:mod:`td3_jax.run`) never asks where they came from.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -204,10 +205,20 @@ def run_compiled(
     before it runs (:func:`td3_jax.sharding.check_program_memory`), as does an allocation that
     XLA refuses while compiling or running it."""
     device = jax.devices()[0]
-    try:  # (a GPU compile may run out first: its autotuner allocates the program's operands)
+    with out_of_memory_as_config_error(device, doing, advice):
+        # (a GPU compile may run out first: its autotuner allocates the program's operands)
         compiled = jax.jit(function).lower(*args).compile(compiler_options=options_on(cfg, device))
         check_program_memory(compiled, device, doing, advice)
         return jax.block_until_ready(compiled(*args))
+
+
+@contextlib.contextmanager
+def out_of_memory_as_config_error(device: Any, doing: str, advice: str) -> Iterator[None]:
+    """An allocation XLA refuses in the block (``RESOURCE_EXHAUSTED``) becomes one line, a
+    :class:`ConfigError`: ``doing`` does not fit in ``device``'s memory, XLA's words (cut
+    before its buffer dump), then ``use {advice}``; other errors pass as they are."""
+    try:
+        yield
     except jax.errors.JaxRuntimeError as err:
         if "RESOURCE_EXHAUSTED" not in str(err) and "Out of memory" not in str(err):
             raise

@@ -177,6 +177,11 @@ def _say_resuming(run: _Run, start_chunk: int) -> None:
     print(f"resuming from checkpoint {path} (env step {steps})", flush=True)
 
 
+#: What shrinks the training programs' working memory (the train state's own size is checked
+#: before they compile: :func:`td3_jax.sharding.check_memory`).
+_MEMORY_ADVICE = "fewer --eval-envs or --num-envs, or a smaller --batch-size"
+
+
 def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int, progress: bool, *,
                      resume: bool, preset: str | None, changes: Any) -> None:  # fmt: skip
     """config.json, the progress display, metrics.jsonl, TensorBoard and W&B, then the chunks;
@@ -187,7 +192,9 @@ def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int
         run.display = _Progress(run.cfg, start_chunk, enabled=progress and run.writer)
         run.logger = MetricsLogger(run.out_dir, start_chunk * run.cfg.steps_per_chunk,
                                    enabled=run.writer, mirror=run.tracker)  # fmt: skip
-        _loop(run, compiled, state, start_chunk)
+        with programs.out_of_memory_as_config_error(jax.local_devices()[0], "training",
+                                                    _MEMORY_ADVICE):  # fmt: skip
+            _loop(run, compiled, state, start_chunk)
     except (OSError, CheckpointWriteError) as err:
         if isinstance(err, OSError) and not _refused_write(err):
             raise

@@ -654,6 +654,25 @@ def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run
     assert line.endswith("but the test's memory is 0.1 MB; use fewer --episodes")
 
 
+def test_training_that_runs_out_of_device_memory_is_one_line(tmp_path, monkeypatch, capsys):
+    """An allocation XLA refuses while the chunks run (``--eval-envs 1e8`` asked 206 GB of a
+    CPU's memory: a traceback) is one line naming the flags that shrink it, exit code 2."""
+    import jax
+
+    from td3_jax import run
+
+    def out_of_memory(*args, **kwargs):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating "
+                                         "206200001536 bytes.")  # fmt: skip
+
+    monkeypatch.setattr(run, "_loop", out_of_memory)
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "run")], capsys)
+    assert_one_line_error(code, err, "training does not fit in ")
+    assert err.strip().endswith("(RESOURCE_EXHAUSTED: Out of memory allocating 206200001536 "
+                                "bytes.); use fewer --eval-envs or --num-envs, or a smaller "
+                                "--batch-size"), err  # fmt: skip
+
+
 def test_eval_of_a_sweep_gives_statistics_per_setting_not_pooled(monkeypatch, capsys):
     """A sweep's members (two learning rates x two seeds, one diverged): eval prints each
     member, then per setting the mean over its seeds, never one interval over the settings;
