@@ -868,7 +868,7 @@ def _parse_train(args: list[str], sweeping: bool) -> tuple[Any, TrainConfig, str
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.run import train
-    from td3_jax.rundir import interrupted_message
+    from td3_jax.rundir import interrupted_message, is_sweep_dir
 
     command, cfg, preset_name, source = _parse_train(args, sweeping)
     sweep = _sweep_values(command, args) if sweeping else None
@@ -923,7 +923,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     if not records:
         print(nothing_to_do(command.out, cfg))
         return
-    _print_end(records, cfg, command, time.perf_counter() - started, sweeping)
+    ranked = sweeping or (command.resume and is_sweep_dir(command.out))  # (also train --resume)
+    _print_end(records, cfg, command, time.perf_counter() - started, ranked)
 
 
 def nothing_to_do(out: Path, cfg: TrainConfig) -> str:

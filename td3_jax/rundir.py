@@ -415,14 +415,19 @@ def no_checkpoint_error(out_dir: Path) -> ConfigError:
                        "td3-jax train (move it away or give another --out)")  # fmt: skip
 
 
-def resume_command(out_dir: Path) -> str:
-    """``td3-jax sweep --out OUT --resume`` for a sweep's directory (whose config.json has a
-    :data:`SWEEP` section; it then ends with the sweep's ranking), else ``td3-jax train``'s."""
+def is_sweep_dir(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds a sweep's run (its config.json has a :data:`SWEEP` section);
+    False where the file is missing or unreadable."""
     try:
-        sweep = SWEEP in json.loads((Path(out_dir) / CONFIG_FILE).read_text())
-    except (OSError, ValueError):
-        sweep = False
-    return f"td3-jax {'sweep' if sweep else 'train'} --out {out_dir} --resume"
+        return SWEEP in json.loads((Path(out_dir) / CONFIG_FILE).read_text())
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+def resume_command(out_dir: Path) -> str:
+    """``td3-jax sweep --out OUT --resume`` for a sweep's directory (:func:`is_sweep_dir`; it
+    then ends with the sweep's ranking), else ``td3-jax train``'s."""
+    return f"td3-jax {'sweep' if is_sweep_dir(out_dir) else 'train'} --out {out_dir} --resume"
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
