@@ -38,7 +38,7 @@ def test_a_sweeps_config_json_is_each_members_values_through_resume_eval_and_exp
     assert code == 0 and "done: 192 env steps" in stdout, err
     # `train --resume` of a sweep ends as `sweep --resume` does: pooled, then the ranking.
     assert "over all 4 members (per setting below)" in stdout, stdout
-    ranking = stdout[stdout.index("per setting below"):]
+    ranking = stdout[stdout.index("per setting below") :]
     assert "0.0003" in ranking and "0.001" in ranking, stdout
     resumed = json.loads((out / "config.json").read_text())
     assert resumed["resume_changes"] == [{"at_env_steps": 128, "total_steps": [128, 192]}]
