@@ -95,14 +95,23 @@ def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
     """The flags that shrink a train state, the likeliest first: fewer members where the run
     has several (each has its own networks and ring; the agent's leaves are ``[members,
     ...]``), else the larger part's size."""
-    shrink = ("smaller --hidden-sizes (or --actor-hidden-sizes, --critic-hidden-sizes)"
-              if networks_larger else "a smaller --buffer-size")  # fmt: skip
+    shrink = _larger_network(abstract_state.agent) if networks_larger else "a smaller --buffer-size"
     leaves = jax.tree.leaves(abstract_state.agent)
     count = int(leaves[0].shape[0]) if leaves and leaves[0].shape else 1
     if count > 1:
         return (f"fewer --seeds or sweep values (the run has {count:,} members, each with its "
                 f"own networks and ring), {shrink} or fewer --num-envs")  # fmt: skip
     return f"{shrink}, or fewer --num-envs"
+
+
+def _larger_network(agent: Any) -> str:
+    """``smaller --critic-hidden-sizes`` where the critics' parameters outweigh the actor's,
+    else ``smaller --actor-hidden-sizes`` (``--hidden-sizes`` sets both)."""
+    from td3_jax.checkpoint import state_bytes
+
+    critics = state_bytes(agent.critic_params) > state_bytes(agent.actor_params)
+    return (f"smaller --{'critic' if critics else 'actor'}-hidden-sizes (or --hidden-sizes, "
+            "which sets both)")  # fmt: skip
 
 
 def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) -> None:

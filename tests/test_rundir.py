@@ -917,7 +917,7 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     line = err.strip().splitlines()[-1]
     networks = state_bytes(state.agent)
     assert networks > ring  # 16-wide networks with Adam's moments outweigh 256 ring rows
-    assert code == 2 and "use smaller --hidden-sizes" in line, err
+    assert code == 2 and "use smaller --critic-hidden-sizes (or --hidden-sizes, which " in line, err
     assert f"{size_text(need)} per device" in line and f"ring {size_text(ring)}, " in line
     assert f"optimiser states {size_text(networks)})" in line
     assert not list((tmp_path / "run").glob("checkpoints/*"))
@@ -930,13 +930,18 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     monkeypatch.setattr(sharding, "memory_of", lambda device: (1, "the test's memory is"))
     with pytest.raises(ConfigError, match=r"; use a smaller --buffer-size, or fewer --num-envs$"):
         sharding.check_memory(state, sharding.make_mesh(1))
+    # The actor's layers outweigh the critics': its own flag is named.
+    wide = dataclasses.replace(cfg, actor_hidden_sizes=(256, 256))
+    state = make_population(wide, members(wide)).abstract_state
+    with pytest.raises(ConfigError, match=r"; use smaller --actor-hidden-sizes \(or "):
+        sharding.check_memory(state, sharding.make_mesh(1))
     # Several members: fewer of them first (each has its own networks and ring).
     seeds = dataclasses.replace(cfg, seeds=3)
     state = make_population(seeds, members(seeds)).abstract_state
     with pytest.raises(
         ConfigError,
         match=r"; use fewer --seeds or sweep values \(the run has 3 "
-        r"members, each .*\), smaller --hidden-sizes .* or fewer --num-envs$",
+        r"members, each .*\), smaller --critic-hidden-sizes .* or fewer --num-envs$",
     ):
         sharding.check_memory(state, sharding.make_mesh(1))
 
