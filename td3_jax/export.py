@@ -304,8 +304,9 @@ def load_run_policy(run_dir: Path, member: int | None = None, env: Any = None) -
         choose_member(member, len(rundir.load_members(run_dir, cfg)), [], 0)
     cfg, program, state, meta = restore_checkpoint(run_dir, env)
     env_steps = int(meta.get("env_steps", 0))
-    records = read_metrics(Path(run_dir) / "metrics.jsonl")
-    k = choose_member(member, len(program.members), records, env_steps)
+    count = len(program.members)  # (the records only choose among several members)
+    records = read_metrics(Path(run_dir) / "metrics.jsonl") if member is None and count > 1 else []
+    k = choose_member(member, count, records, env_steps)
     spec = program.spec
     stats = _member(state.obs_stats, k) if spec.normalize_obs else None
     policy = extract_policy(

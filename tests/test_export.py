@@ -473,6 +473,17 @@ def test_cli_member_flag(tiny_run, tmp_path, capsys):
               str(out)])  # fmt: skip
     assert "member 1 at 64 env steps" in capsys.readouterr().out
     assert int(policy_file.load(out).arrays["member"]) == 1
+    # With --member the records are not read: a damaged metrics.jsonl does not stop it (it
+    # does where they choose the best member).
+    damaged = tmp_path / "damaged"
+    shutil.copytree(tiny_run, damaged)
+    lines = (damaged / "metrics.jsonl").read_text().splitlines()
+    (damaged / "metrics.jsonl").write_text("\n".join([lines[0][:20], *lines]) + "\n")
+    cli.main(["export", "--run", str(damaged), "--format", "npz", "--member", "1", "--out",
+              str(tmp_path / "m1-again.npz")])  # fmt: skip
+    assert "member 1 at 64 env steps" in capsys.readouterr().out
+    code, err = cli_error(capsys, "export", "--run", str(damaged), "--format", "npz")
+    assert code == 2 and "metrics.jsonl is not a JSON record" in err, err
 
 
 def test_the_export_extra_installs_what_the_readme_snippet_imports():
