@@ -25,7 +25,9 @@ from td3_jax.population import Member, Population
 from td3_jax.programs import run_compiled
 from td3_jax.rundir import (
     CHECKPOINTS,
+    CONFIG_FILE,
     check_environment_unchanged,
+    check_unedited,
     checkpoint_steps,
     load_config,
     load_members,
@@ -110,11 +112,14 @@ def _physics_here(cfg: TrainConfig) -> TrainConfig:
 def restore_on_one_device(program: Population, out_dir: Path) -> tuple[Any, dict]:
     """``(state, meta)`` of the newest good checkpoint of ``out_dir`` on one device, whatever
     device count wrote it (every leaf ``[members, ...]``); where it has none, a ConfigError
-    that says why (:func:`~td3_jax.rundir.no_checkpoint_error`)."""
+    that says why (:func:`~td3_jax.rundir.no_checkpoint_error`), as where config.json was
+    edited since the checkpoint (:func:`~td3_jax.rundir.check_unedited`, as a resume does)."""
     if not checkpoint_steps(out_dir):
         raise no_checkpoint_error(out_dir)
     shardings = state_shardings(program.abstract_state, make_mesh(1))
     state, meta, _ = restore_state(program, out_dir, shardings=shardings)
+    path = Path(out_dir) / CONFIG_FILE
+    check_unedited(meta.get("settings"), load_config(out_dir), path)
     return state, meta
 
 

@@ -461,6 +461,11 @@ def test_a_resume_refuses_a_config_json_edited_since_its_checkpoint(tmp_path, ca
                          "--quiet"], capsys)  # fmt: skip
     assert code == 2 and "discount is 0.5 but the run's checkpoints were written with 0.99" in err
     assert len(read_records(out)) == 2  # (nothing trained with the edited setting)
+    # eval and export read the run the same way: refused too (they used the edited file).
+    for command in (["eval", "--run", str(out), "--episodes", "2"],
+                    ["export", "--run", str(out), "--format", "npz"]):  # fmt: skip
+        code, _, err = main(command, capsys)
+        assert code == 2 and "discount is 0.5 but the run's checkpoints were written" in err, err
     path.write_text(saved)
     assert main(["train", "--out", str(out), "--resume", "--total-steps", "192", "--quiet"],
                 capsys)[0] == 0  # fmt: skip
