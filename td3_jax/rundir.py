@@ -677,7 +677,9 @@ def _read_config(out_dir: Path) -> dict:
     try:
         raw = json.loads(path.read_text())
     except json.JSONDecodeError as err:
-        raise ConfigError(f"{path} is not valid JSON ({err})") from err
+        raise ConfigError(f"{path} is not valid JSON ({err}); restore it from a copy (each "
+                          f"checkpoint's {CHECKPOINTS}/N/meta/metadata lists, under 'settings', "
+                          "those a resume may not change)") from err  # fmt: skip
     if not isinstance(raw, dict):
         raise ConfigError(f"{path} does not hold a configuration (a JSON object)")
     return raw

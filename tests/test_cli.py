@@ -757,6 +757,10 @@ def test_a_run_without_its_config_json_is_named_as_such(finished_run, tmp_path, 
     newest = max(rundir.checkpoint_steps(run))
     meta = json.loads((run / "checkpoints" / str(newest) / "meta" / "metadata").read_text())
     assert meta["settings"]["env"] == env
+    (run / "config.json").write_text('{"env": ')  # cut short: the same way forward
+    code, _, err = main(["eval", "--run", str(run)], capsys)
+    assert_one_line_error(code, err, "config.json is not valid JSON (")
+    assert "; restore it from a copy (each checkpoint's checkpoints/N/meta/metadata" in err
 
 
 def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
