@@ -48,6 +48,9 @@ from td3_jax.config import (
 )
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
+if typing.TYPE_CHECKING:
+    from td3_jax.curves import Curve
+
 __all__ = ["main"]
 
 USAGE = """\
@@ -64,7 +67,8 @@ subcommands:
   export    write a run's policy as ONNX or a NumPy-only .npz:
               td3-jax export --run runs/ant --format onnx
   render    write a video of a run's policy:  td3-jax render --run runs/ant [--gif]
-  plot      redraw a run's curve.png from its metrics.jsonl
+  plot      redraw a run's curve.png, or compare runs:
+              td3-jax plot --run runs/a runs/b --out compare.png
   envs      list the environment names this installation knows
   presets   list the presets (or those named) and what they set:  td3-jax presets ant
 
@@ -234,10 +238,15 @@ class RenderCommand:
 
 @dataclasses.dataclass(frozen=True)
 class PlotCommand:
-    """Redraw curve.png of a run from its metrics.jsonl."""
+    """Redraw a run's curve.png from its metrics.jsonl, or compare several runs in one figure
+    (each run's mean return and band, against env steps and against wall-clock)."""
 
-    run: Path
-    """Run directory written by `td3-jax train`."""
+    run: Annotated[tuple[Path, ...], tyro.conf.arg(metavar="DIR [DIR ...]")]
+    """Run directories written by `td3-jax train` or `td3-jax sweep`: one, or several to
+    compare."""
+    out: Path | None = None
+    """Image to write, .png, .pdf or .svg (replaced where it exists); default: RUN/curve.png
+    for one run; several runs need it."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1120,22 +1129,62 @@ def render_main(args: list[str]) -> None:
 
 
 def plot_main(args: list[str]) -> None:
-    from td3_jax.logger import plot_curve
-    from td3_jax.rundir import holder_for_reader, load_config, require_run_dir
+    from td3_jax.curves import draw_curve, plot_comparison, run_labels
 
     command = _parse(PlotCommand, args, "td3-jax plot")
-    require_run_dir(command.run)
-    path = plot_curve(command.run)
-    if path is None:
-        load_config(command.run)  # (not a run directory, or one still starting: it says)
-        holder = holder_for_reader(command.run)
-        if holder is None:
-            raise ConfigError(f"{command.run} has no evaluation to plot (none in its "
-                              "metrics.jsonl): its run stopped before its first evaluation, or "
-                              "the file was removed")  # fmt: skip
-        raise ConfigError(f"{command.run} has no evaluation yet: a td3-jax run ({holder}) is "
-                          "training it; plot again after its first evaluation")  # fmt: skip
-    print(path)
+    out = _plot_path(command.run, command.out)
+    curves = [_curve_to_plot(run) for run in command.run]
+    if len(curves) == 1:
+        print(draw_curve(curves[0], out))
+    else:
+        print(plot_comparison(curves, run_labels(command.run), out))
+
+
+def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
+    """Where ``td3-jax plot`` writes its image: ``out``, checked (a known suffix, an existing
+    folder, no run given twice), else the one run's curve.png."""
+    from td3_jax.curves import IMAGE_SUFFIXES
+
+    if not runs:
+        raise ConfigError("td3-jax plot: give a run directory: --run DIR [DIR ...]")
+    resolved = [Path(run).resolve() for run in runs]
+    again = next((j for j, path in enumerate(resolved) if path in resolved[:j]), None)
+    if again is not None:
+        first = runs[resolved.index(resolved[again])]
+        if str(first) == str(runs[again]):
+            raise ConfigError(f"--run {first} is given twice")
+        raise ConfigError(f"--run {first} and {runs[again]} are the same run")
+    if out is None:
+        if len(runs) > 1:
+            raise ConfigError(f"comparing {len(runs)} runs needs --out FILE (.png, .pdf or .svg)")
+        return Path(runs[0]) / "curve.png"
+    if out.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ConfigError(f"--out {out}: the image's format comes from its suffix, one of "
+                          f"{', '.join(IMAGE_SUFFIXES)}, not {out.suffix or 'none'}")  # fmt: skip
+    if out.is_dir() or not out.parent.is_dir():
+        what = "is a directory" if out.is_dir() else f"is in {out.parent}, which is no directory"
+        raise ConfigError(f"--out {out} {what}; give an image file in an existing folder")
+    return out
+
+
+def _curve_to_plot(run: Path) -> Curve:
+    """The curve of ``run``, or a one-line reason why it has none: not a run directory, a run
+    stopped before its first evaluation, or one training before it."""
+    from td3_jax.curves import read_curve
+    from td3_jax.rundir import holder_for_reader, load_config, require_run_dir
+
+    require_run_dir(run)
+    curve = read_curve(run)
+    if curve is not None:
+        return curve
+    load_config(run)  # (not a run directory, or one still starting: it says)
+    holder = holder_for_reader(run)
+    if holder is None:
+        raise ConfigError(f"{run} has no evaluation to plot (none in its metrics.jsonl): its "
+                          "run stopped before its first evaluation, or the file was "
+                          "removed")  # fmt: skip
+    raise ConfigError(f"{run} has no evaluation yet: a td3-jax run ({holder}) is training it; "
+                      "plot again after its first evaluation")  # fmt: skip
 
 
 def envs_main(args: list[str]) -> None:

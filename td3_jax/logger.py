@@ -1,4 +1,5 @@
-"""Run outputs: ``metrics.jsonl``, TensorBoard event files and ``curve.png``."""
+"""Run outputs: ``metrics.jsonl`` and TensorBoard event files (``curve.png``:
+:mod:`td3_jax.curves`)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,6 @@ __all__ = [
     "append_line",
     "evaluated_steps",
     "is_return",
-    "plot_curve",
     "read_metrics",
     "write_atomically",
 ]
@@ -207,11 +207,6 @@ def _summary_writer_class() -> type:
     return SummaryWriter
 
 
-def _number(value: Any) -> float:
-    """A record's value as a float for plotting (null, as JSON writes NaN, becomes NaN)."""
-    return math.nan if value is None else float(value)
-
-
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     """The records of a ``metrics.jsonl`` (an empty list when there is none yet).
 
@@ -246,68 +241,6 @@ def is_return(key: str) -> bool:
     """Whether a record's key (or a nested one, ``per_member/0/eval_return_mean``) is an
     evaluation return statistic, plotted at :func:`evaluated_steps`."""
     return key.rpartition("/")[2].startswith("eval_return_")
-
-
-def _check_plottable(records: list, path: Path, band_keys: tuple[str, ...]) -> None:
-    """A one-line ConfigError for a record of ``path`` that is not an object holding what the
-    curve draws (env steps, time, the mean return and ``band_keys``): a hand-edited file."""
-    needed = ("env_steps", "wall_time_s", "eval_return_mean", *band_keys)
-    for number, record in enumerate(records, start=1):
-        missing = [k for k in needed if k not in record] if isinstance(record, dict) else None
-        if missing is None or missing:
-            what = "is not a JSON object" if missing is None else f"lacks {', '.join(missing)}"
-            raise ConfigError(f"record {number} of {path} {what}: was the file edited? (td3-jax "
-                              "writes every record with them)")  # fmt: skip
-
-
-def plot_curve(out_dir: Path) -> Path | None:
-    """Writes ``curve.png``: evaluation return against env steps (of the evaluated policy) and
-    against wall-clock time (when the record was written)."""
-    records = read_metrics(Path(out_dir) / "metrics.jsonl")
-    if not records:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    several = isinstance(records[-1], dict) and "per_member" in records[-1]
-    band_keys = (
-        ("eval_return_ci95_low", "eval_return_ci95_high") if several else ("eval_return_std",)
-    )
-    _check_plottable(records, Path(out_dir) / "metrics.jsonl", band_keys)
-    steps = [evaluated_steps(r) for r in records]
-    wall = [r["wall_time_s"] for r in records]
-    mean = [_number(r["eval_return_mean"]) for r in records]
-    if several:  # every member thin, the mean over members with its 95% bootstrap CI
-        lower = [_number(r["eval_return_ci95_low"]) for r in records]
-        upper = [_number(r["eval_return_ci95_high"]) for r in records]
-        band = "mean over members, 95% bootstrap CI"
-    else:  # one run: mean ± std over evaluation episodes
-        std = [_number(r["eval_return_std"]) for r in records]
-        lower = [m - d for m, d in zip(mean, std, strict=True)]
-        upper = [m + d for m, d in zip(mean, std, strict=True)]
-        band = "mean ± std over episodes"
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    in_chunk = "eval_policy_env_steps" in records[-1]
-    step_label = "environment steps of the evaluated policy" if in_chunk else "environment steps"
-    for ax, x, label in ((axes[0], steps, step_label), (axes[1], wall, "wall-clock (s)")):
-        if several:
-            for i in range(len(records[-1]["per_member"])):
-                member = [_number(r["per_member"][i]["eval_return_mean"]) for r in records]
-                ax.plot(x, member, lw=0.8, alpha=0.45)
-        ax.plot(x, mean, marker="o", ms=3, color="black" if several else None, label=band)
-        ax.fill_between(x, lower, upper, alpha=0.25, color="gray" if several else None)
-        ax.set_xlabel(label)
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="lower right", fontsize=8)
-    axes[0].set_ylabel("evaluation return")
-    fig.suptitle(records[-1].get("env", ""))
-    fig.tight_layout()
-    path = Path(out_dir) / "curve.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 def _jsonable(record: dict[str, Any]) -> dict[str, Any]:

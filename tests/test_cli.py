@@ -742,6 +742,34 @@ def test_plot_redraws_the_curve(finished_run, capsys):
     assert (out / "curve.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_plot_compares_runs_in_one_image_and_checks_where_it_goes(finished_run, tmp_path, capsys):
+    """Two runs in one figure at --out (its suffix the format; neither run's curve.png
+    touched); several runs without --out, a run given twice, an unknown suffix or a missing
+    folder each get one line, and write nothing."""
+    first = finished_run[0]
+    second = tmp_path / "second"
+    shutil.copytree(first, second)
+    (second / "curve.png").unlink()
+    before = (first / "curve.png").read_bytes()
+    alias = first.parent / ".." / first.parent.name / first.name
+    code, stdout, err = main(["plot", "--run", str(first), str(second), "--out",
+                              str(tmp_path / "both.pdf")], capsys)  # fmt: skip
+    assert code == 0, err
+    assert stdout.strip() == str(tmp_path / "both.pdf")
+    assert (tmp_path / "both.pdf").read_bytes()[:5] == b"%PDF-"
+    assert (first / "curve.png").read_bytes() == before and not (second / "curve.png").exists()
+    for extra, said in (
+        ([str(second)], "comparing 2 runs needs --out FILE"),
+        ([str(alias), "--out", str(tmp_path / "x.png")], f"{first} and {alias} are the same"),
+        ([str(second), str(second), "--out", str(tmp_path / "x.png")], "second is given twice"),
+        (["--out", str(tmp_path / "x.jpg")], "format comes from its suffix, one of .png"),
+        (["--out", str(tmp_path / "no" / "x.png")], "which is no directory"),
+    ):
+        code, _, err = main(["plot", "--run", str(first), *extra], capsys)
+        assert_one_line_error(code, err, said)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "second"]
+
+
 def test_a_run_without_its_config_json_is_named_as_such(finished_run, tmp_path, capsys):
     """A run directory whose config.json was deleted is not called "not a td3-jax run
     directory": the line says the checkpoints are there and where their settings are kept (and

@@ -1,0 +1,178 @@
+"""Learning curves drawn from ``metrics.jsonl``: a run's ``curve.png``, and several runs
+compared in one figure (``td3-jax plot --run A B --out FILE``)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from td3_jax.errors import ConfigError
+from td3_jax.logger import evaluated_steps, read_metrics
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "Curve",
+    "draw_curve",
+    "plot_comparison",
+    "plot_curve",
+    "read_curve",
+    "run_labels",
+]
+
+#: The image formats a figure is written in, by the file's suffix.
+IMAGE_SUFFIXES = (".png", ".pdf", ".svg")
+
+
+class Curve(NamedTuple):
+    """One run's evaluation returns, a point per record of its ``metrics.jsonl``.
+
+    ``steps``: the env steps of each evaluated policy (:func:`td3_jax.logger.evaluated_steps`);
+    ``wall``: seconds from launch when the record was written; ``mean``: the mean return (over
+    episodes for one run, over members for several); ``lower``/``upper``: the band drawn around
+    it (mean ± std over episodes, or the 95% bootstrap CI over members); ``members``: each
+    member's mean return per point (empty for a run of one member).
+    """
+
+    env: str
+    steps: list[int]
+    wall: list[float]
+    mean: list[float]
+    lower: list[float]
+    upper: list[float]
+    band: str
+    members: list[list[float]]
+    policy_steps: bool
+
+
+def _number(value: Any) -> float:
+    """A record's value as a float for plotting (null, as JSON writes NaN, becomes NaN)."""
+    return math.nan if value is None else float(value)
+
+
+def _check_plottable(records: list, path: Path, band_keys: tuple[str, ...]) -> None:
+    """A one-line ConfigError for a record of ``path`` that is not an object holding what the
+    curve draws (env steps, time, the mean return and ``band_keys``): a hand-edited file."""
+    needed = ("env_steps", "wall_time_s", "eval_return_mean", *band_keys)
+    for number, record in enumerate(records, start=1):
+        missing = [k for k in needed if k not in record] if isinstance(record, dict) else None
+        if missing is None or missing:
+            what = "is not a JSON object" if missing is None else f"lacks {', '.join(missing)}"
+            raise ConfigError(f"record {number} of {path} {what}: was the file edited? (td3-jax "
+                              "writes every record with them)")  # fmt: skip
+
+
+def read_curve(run_dir: Path) -> Curve | None:
+    """The curve of the run in ``run_dir``; None where its ``metrics.jsonl`` holds no record
+    yet. A record without what the curve draws raises a one-line ConfigError."""
+    path = Path(run_dir) / "metrics.jsonl"
+    records = read_metrics(path)
+    if not records:
+        return None
+    several = isinstance(records[-1], dict) and "per_member" in records[-1]
+    ci = ("eval_return_ci95_low", "eval_return_ci95_high")
+    band_keys = ci if several else ("eval_return_std",)
+    _check_plottable(records, path, band_keys)
+    mean = [_number(r["eval_return_mean"]) for r in records]
+    if several:
+        lower = [_number(r["eval_return_ci95_low"]) for r in records]
+        upper = [_number(r["eval_return_ci95_high"]) for r in records]
+        count = len(records[-1]["per_member"])
+        members = [[_number(r["per_member"][i]["eval_return_mean"]) for r in records]
+                   for i in range(count)]  # fmt: skip
+        band = "mean over members, 95% bootstrap CI"
+    else:
+        std = [_number(r["eval_return_std"]) for r in records]
+        lower = [m - d for m, d in zip(mean, std, strict=True)]
+        upper = [m + d for m, d in zip(mean, std, strict=True)]
+        members, band = [], "mean ± std over episodes"
+    return Curve(
+        env=str(records[-1].get("env", "")), steps=[evaluated_steps(r) for r in records],
+        wall=[_number(r["wall_time_s"]) for r in records], mean=mean, lower=lower, upper=upper,
+        band=band, members=members, policy_steps="eval_policy_env_steps" in records[-1],
+    )  # fmt: skip
+
+
+def _draw(axes: Sequence[Any], curve: Curve, label: str | None, color: Any) -> None:
+    """``curve`` on both axes (env steps, wall-clock): its members thin, its mean with a
+    marker, its band shaded; ``label`` names it in a comparison (else the band does)."""
+    for ax, x in zip(axes, (curve.steps, curve.wall), strict=True):
+        if label is None:  # (a comparison draws only each run's mean and band)
+            for member in curve.members:
+                ax.plot(x, member, lw=0.8, alpha=0.45)
+        ax.plot(x, curve.mean, marker="o", ms=3, label=label or curve.band,
+                color=color if label or not curve.members else "black")  # fmt: skip
+        ax.fill_between(x, curve.lower, curve.upper, alpha=0.2 if label else 0.25,
+                        color=color if label or not curve.members else "gray")  # fmt: skip
+
+
+def _save(labelled: Sequence[tuple[Curve, str | None]], path: Path, title: str) -> Path:
+    """Draws the curves into a figure of two panels (return against the evaluated policy's env
+    steps and against wall-clock) and writes it to ``path`` (its suffix picks the format)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for index, (curve, label) in enumerate(labelled):
+        _draw(axes, curve, label, colors[index % len(colors)])
+    in_chunk = any(curve.policy_steps for curve, _ in labelled)
+    step_label = "environment steps of the evaluated policy" if in_chunk else "environment steps"
+    for ax, x_label in zip(axes, (step_label, "wall-clock (s)"), strict=True):
+        ax.set_xlabel(x_label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="lower right", fontsize=8)
+    axes[0].set_ylabel("evaluation return")
+    fig.suptitle(title)
+    fig.tight_layout()
+    temporary = path.with_name(path.name + ".tmp")  # (a failed write leaves the old image)
+    try:
+        fig.savefig(temporary, dpi=110, format=path.suffix[1:].lower() or "png")
+        temporary.replace(path)
+    finally:
+        plt.close(fig)
+        temporary.unlink(missing_ok=True)
+    return path
+
+
+def draw_curve(curve: Curve, path: Path) -> Path:
+    """Writes one run's ``curve`` to ``path`` (its suffix picks the format): its members thin,
+    their mean (or the run's) with its band."""
+    return _save([(curve, None)], Path(path), curve.env)
+
+
+def plot_curve(run_dir: Path, path: Path | None = None) -> Path | None:
+    """Writes the run's curve to ``path`` (default ``run_dir/curve.png``): evaluation return
+    against the evaluated policy's env steps and against wall-clock; None (nothing written)
+    where its ``metrics.jsonl`` holds no record yet."""
+    curve = read_curve(run_dir)
+    if curve is None:
+        return None
+    return draw_curve(curve, Path(path or Path(run_dir) / "curve.png"))
+
+
+def run_labels(run_dirs: Sequence[Path]) -> list[str]:
+    """Short distinct names for runs: each directory's name, or its path as given where two
+    runs share a name (``seed0/run`` and ``seed1/run``)."""
+    names = [Path(run).name or str(run) for run in run_dirs]
+    return [name if names.count(name) == 1 else str(run)
+            for name, run in zip(names, run_dirs, strict=True)]  # fmt: skip
+
+
+def plot_comparison(curves: Sequence[Curve], labels: Sequence[str], path: Path) -> Path:
+    """Writes one figure of several runs' curves to ``path``, each run's mean return and its
+    band in a colour of its own, named by ``labels`` (the bands are those of
+    :attr:`Curve.band`: over episodes for a run of one member, over members for several)."""
+    envs = list(dict.fromkeys(curve.env for curve in curves))
+    named = [f"{label} ({_band_name(curve)})" for curve, label in zip(curves, labels, strict=True)]
+    return _save(list(zip(curves, named, strict=True)), Path(path), " / ".join(envs))
+
+
+def _band_name(curve: Curve) -> str:
+    """What a run's band is, briefly, for a comparison's legend."""
+    if curve.members:
+        return f"{len(curve.members)} members, 95% CI"
+    return "± std over episodes"

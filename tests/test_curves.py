@@ -1,0 +1,75 @@
+"""Learning curves from metrics.jsonl (td3_jax.curves): what a run's curve holds, the names of
+compared runs, and the images written."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from td3_jax.curves import plot_comparison, plot_curve, read_curve, run_labels
+from td3_jax.errors import ConfigError
+
+
+def _write_records(run: Path, records: list[dict]) -> Path:
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    return run
+
+
+def _one_member(steps: int, mean: float, std: float, wall: float, **extra) -> dict:
+    return {"env": "gymnax/Pendulum-v1", "env_steps": steps, "wall_time_s": wall,
+            "eval_return_mean": mean, "eval_return_std": std, **extra}  # fmt: skip
+
+
+def test_a_run_of_one_member_is_its_mean_with_a_band_of_one_std(tmp_path):
+    """Mean ± std over episodes, at the evaluated policy's env steps where the record names
+    them (the evaluation inside the chunk); a null (a NaN written as JSON) stays a NaN."""
+    run = _write_records(tmp_path / "run", [
+        _one_member(100, -5.0, 2.0, 1.5, eval_policy_env_steps=-1),  # (no round finished yet)
+        _one_member(200, -3.0, 0.5, 3.0, eval_policy_env_steps=100),
+        _one_member(300, None, 1.0, 4.5, eval_policy_env_steps=200),
+    ])  # fmt: skip
+    curve = read_curve(run)
+    assert curve.steps == [100, 100, 200]
+    assert curve.wall == [1.5, 3.0, 4.5]
+    assert curve.mean[:2] == [-5.0, -3.0] and curve.mean[2] != curve.mean[2]
+    assert curve.lower[:2] == [-7.0, -3.5] and curve.upper[:2] == [-3.0, -2.5]
+    assert curve.members == [] and curve.policy_steps and curve.env == "gymnax/Pendulum-v1"
+
+
+def test_a_run_of_several_members_keeps_each_member_and_the_ci_band(tmp_path):
+    records = [
+        {"env": "e", "env_steps": steps, "wall_time_s": steps / 10, "eval_return_mean": mean,
+         "eval_return_ci95_low": mean - 1, "eval_return_ci95_high": mean + 2,
+         "per_member": [{"eval_return_mean": a}, {"eval_return_mean": b}]}
+        for steps, mean, a, b in ((10, 1.5, 1.0, 2.0), (20, 3.5, 3.0, 4.0))
+    ]  # fmt: skip
+    curve = read_curve(_write_records(tmp_path / "sweep", records))
+    assert curve.members == [[1.0, 3.0], [2.0, 4.0]]
+    assert curve.lower == [0.5, 2.5] and curve.upper == [3.5, 5.5]
+    assert curve.steps == [10, 20] and not curve.policy_steps
+
+
+def test_no_record_is_no_curve_and_an_edited_record_is_named(tmp_path):
+    assert read_curve(tmp_path) is None and plot_curve(tmp_path) is None
+    assert not (tmp_path / "curve.png").exists()
+    _write_records(tmp_path, [_one_member(1, 0.0, 0.0, 0.0), {"env_steps": 2}])
+    with pytest.raises(ConfigError, match=r"record 2 of .* lacks wall_time_s, eval_return_mean"):
+        read_curve(tmp_path)
+
+
+def test_compared_runs_are_named_by_folder_unless_two_share_a_name():
+    runs = [Path("runs/a/run"), Path("runs/b/run"), Path("runs/ant"), Path("other")]
+    assert run_labels(runs) == ["runs/a/run", "runs/b/run", "ant", "other"]
+
+
+def test_the_images_are_written_in_the_format_their_suffix_names(tmp_path):
+    one = _write_records(tmp_path / "one", [_one_member(s, -s, 1.0, s) for s in (1, 2, 3)])
+    assert plot_curve(one).read_bytes()[:4] == b"\x89PNG"
+    assert plot_curve(one, tmp_path / "one.svg").read_text().lstrip().startswith("<?xml")
+    curves = [read_curve(one), read_curve(one)]
+    path = plot_comparison(curves, ["a", "b"], tmp_path / "both.pdf")
+    assert path.read_bytes()[:5] == b"%PDF-"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "one", "one.svg"]
