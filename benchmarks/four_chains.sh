@@ -8,6 +8,8 @@
 #        separated by ';', each 'PRESET:SEED ...' with '@FLAGS' for train flags of its own
 #   bash benchmarks/four_chains.sh collect         $OUT/runs.tgz: every finished run, the
 #        metrics of those in progress, the chains' logs; then each run's last two lines
+#   bash benchmarks/four_chains.sh watch SECONDS   collect every 40 s until the chains end or
+#        SECONDS pass (each call after the start: `watch 590`, issued at once)
 # The runs live only as long as the lease: a host goes back when idle (30 s after a call ends,
 # on 2026-11-28), so the call that waits for them (benchmarks/chain.sh wait gpuK SECONDS, then
 # collect) must follow the one that started them at once; on 2026-11-28 a late one found a fresh
@@ -21,6 +23,7 @@
 #   bash benchmarks/four_chains.sh start 't1:2 g1:1' "g1:0 g1:1@$rb" "g1:2; g1:2@$rb" \
 #     't1-rough:1 t1-rough:2'
 set -uo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
 segment_command() {  # segment_command CHAIN SEGMENT TEXT: the shell command of one segment
   local runs=${3%%@*} flags=""
   [[ $3 == *@* ]] && flags=${3#*@}
@@ -50,18 +53,45 @@ start() {  # start CHAIN...: chain k in the background on GPU k
     k=$((k + 1))
   done
 }
-case ${1:?start or collect} in
+pack() {  # $OUT/runs.tgz: every finished run, the metrics of those in progress, the logs
+  (
+    cd /root || exit 2
+    shopt -s nullglob
+    files=(done chains/*.log runs/*/*/metrics.jsonl runs/*/*/config.json)
+    [ -d done ] || files=("${files[@]:1}")
+    [ ${#files[@]} -gt 0 ] || exit 1
+    tar -czf "$OUT/runs.tgz.part" "${files[@]}" && mv "$OUT/runs.tgz.part" "$OUT/runs.tgz"
+  )
+}
+any_alive() {  # exit 0 while a chain started here still runs
+  local pid
+  for pid in /root/chains/gpu*.pid; do
+    [ -e "$pid" ] || continue
+    bash "$here/chain.sh" alive "$(basename "$pid" .pid)" && return 0
+  done
+  return 1
+}
+case ${1:?start, collect or watch} in
   start)
     shift
     [ $# -gt 0 ] || { echo "four_chains: start needs a chain per GPU"; exit 2; }
     start "$@" ;;
   collect)
+    pack || echo "nothing yet"
     cd /root || exit 2
-    shopt -s nullglob
-    files=(done chains/*.log runs/*/*/metrics.jsonl runs/*/*/config.json)
-    [ -d done ] || files=("${files[@]:1}")
-    if [ ${#files[@]} -gt 0 ]; then tar -czf "$OUT/runs.tgz" "${files[@]}"; else echo "nothing yet"; fi
     for log in done/*/*/train.log; do echo "== $log"; tail -n 2 "$log"; done
     nvidia-smi --query-gpu=index,name,utilization.gpu,memory.used --format=csv,noheader ;;
-  *) echo "four_chains: start or collect, not $1"; exit 2 ;;
+  watch)
+    # watch SECONDS: until every chain has ended or SECONDS pass, $OUT/runs.tgz is packed anew
+    # every 40 s, so a call stopped at its limit (or by the session's device time) still
+    # brings back the runs' records up to 40 s before; then a collect. Make each following
+    # call this at once (the host goes back 30 s after a call ends).
+    deadline=$(( $(date +%s) + ${2:?seconds} )) packed=$(date +%s)
+    while any_alive && [ "$(date +%s)" -lt "$deadline" ]; do
+      sleep 2
+      if [ $(( $(date +%s) - packed )) -ge 40 ]; then pack >/dev/null 2>&1; packed=$(date +%s); fi
+    done
+    any_alive && echo "four_chains: chains still running" || echo "four_chains: every chain ended"
+    bash "$here/four_chains.sh" collect ;;
+  *) echo "four_chains: start, collect or watch, not $1"; exit 2 ;;
 esac
