@@ -888,7 +888,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     from td3_jax.sharding import initialize_distributed
 
-    program_dir = runtime.enable_compile_cache(command.compile_cache)
+    given_cache = any(arg.split("=", 1)[0] == "--compile-cache" for arg in args)
+    program_dir = runtime.enable_compile_cache(command.compile_cache, given=given_cache)
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     if source == "device":
         cfg = _scale_to_device(cfg, args)

@@ -22,6 +22,7 @@ __all__ = [
     "WRITE_ERRNOS",
     "MetricsLogger",
     "append_line",
+    "check_records",
     "evaluated_steps",
     "is_return",
     "read_metrics",
@@ -207,11 +208,12 @@ def _summary_writer_class() -> type:
     return SummaryWriter
 
 
-def read_metrics(path: Path) -> list[dict[str, Any]]:
+def read_metrics(path: Path, warn: bool = True) -> list[dict[str, Any]]:
     """The records of a ``metrics.jsonl`` (an empty list when there is none yet).
 
     A last line cut short (a run killed, or a disk that filled, while appending it) is left
-    out with a warning; any other line that is not JSON raises :class:`~td3_jax.config.ConfigError`.
+    out (with a warning where ``warn``); any other line that is not JSON raises
+    :class:`~td3_jax.config.ConfigError`.
     """
     path = Path(path)
     if not path.exists():
@@ -223,11 +225,25 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
             records.append(json.loads(line))
         except json.JSONDecodeError as err:
             if number < len(lines):
-                raise ConfigError(f"line {number} of {path} is not a JSON record ({err})") from err
-            print(f"td3-jax: warning: the last line of {path} is incomplete (a run stopped "
-                  "while writing it, or is writing it now); it is left out",
-                  file=sys.stderr)  # fmt: skip
+                raise ConfigError(f"line {number} of {path} is not a JSON record ({err}); "
+                                  "was the file edited? Repair or delete that "
+                                  "line") from err  # fmt: skip
+            if warn:
+                print(f"td3-jax: warning: the last line of {path} is incomplete (a run "
+                      "stopped while writing it, or is writing it now); it is left out",
+                      file=sys.stderr)  # fmt: skip
     return records
+
+
+def check_records(path: Path) -> None:
+    """A one-line ConfigError, before a resume writes anything, where ``path`` (a run's
+    ``metrics.jsonl``) holds a line that is not JSON or a record without its whole-number
+    ``env_steps`` (which the resume keeps or drops by): an edited file."""
+    for number, record in enumerate(read_metrics(path, warn=False), start=1):
+        steps = record.get("env_steps") if isinstance(record, dict) else None
+        if not isinstance(steps, int) or isinstance(steps, bool):
+            raise ConfigError(f"record {number} of {path} has no whole-number env_steps: was "
+                              "the file edited? Repair or delete that line")  # fmt: skip
 
 
 def evaluated_steps(record: dict) -> int:

@@ -35,7 +35,7 @@ from td3_jax.build import agent_config, members, ou_params
 from td3_jax.config import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
 from td3_jax.envs import Environment, custom
 from td3_jax.errors import LockUnavailableError
-from td3_jax.logger import write_atomically
+from td3_jax.logger import check_records, write_atomically
 from td3_jax.population import Member
 from td3_jax.tracking import WANDB_DIR
 
@@ -289,6 +289,8 @@ def check_resume(
         )
     population = load_members(out_dir, cfg)
     changes = config_changes(load_config(out_dir), cfg, population)
+    if writer:  # (before config.json is rewritten: a resume that stops writes nothing)
+        check_records(out_dir / "metrics.jsonl")
     if "total_steps" in changes and cfg.lr_schedule == "cosine":
         raise ConfigError(
             "--total-steps cannot change on --resume with --lr-schedule cosine: the schedule's "
@@ -779,14 +781,69 @@ def run_info(
 
 
 def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
-    """The members of a run directory (its seeds and swept settings)."""
+    """The members of a run directory (its seeds and swept settings). A members.json that is
+    not as td3-jax writes it, or that disagrees with config.json (its seeds, or its sweep
+    section's members), raises a one-line ConfigError: an edited file would label (or
+    restore) the members wrongly."""
     path = Path(out_dir) / MEMBERS_FILE
     if not path.exists():
         return members(cfg)
-    return [
-        Member(seed=int(m["seed"]), overrides=tuple(sorted(m["overrides"].items())))
-        for m in json.loads(path.read_text())
-    ]
+    try:
+        listing = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path} is not valid JSON ({err}); {_RESTORE_MEMBERS}") from err
+    population = _parse_members(listing, path)
+    expected = _members_in_config(out_dir, population)
+    if expected is not None and population != expected:
+        listed, said = (", ".join(str(m.seed) for m in g) for g in (population, expected))
+        raise ConfigError(f"{path} lists the members of seeds {listed} but config.json says the "
+                          f"run trained seeds {said} (or other swept values); was it edited? "
+                          f"{_RESTORE_MEMBERS[0].upper()}{_RESTORE_MEMBERS[1:]}")  # fmt: skip
+    return population
+
+
+#: How to go on from a damaged members.json.
+_RESTORE_MEMBERS = ("restore it from a copy, or delete it: config.json's seed and seeds (and "
+                    "its sweep section) say which members the run has")  # fmt: skip
+
+
+def _parse_members(listing: Any, path: Path) -> list[Member]:
+    """members.json's entries as members; a one-line ConfigError where it is not a non-empty
+    list of ``{"seed": int, "overrides": {setting: number}}``."""
+    if not isinstance(listing, list) or not listing or not all(map(_is_member, listing)):
+        raise ConfigError(f"{path} is not a list of members as td3-jax writes it (each with "
+                          "an integer seed and its overrides); was it edited? "
+                          f"{_RESTORE_MEMBERS[0].upper()}{_RESTORE_MEMBERS[1:]}")  # fmt: skip
+    return [Member(seed=m["seed"], overrides=tuple(sorted((k, float(v))
+                   for k, v in m["overrides"].items()))) for m in listing]  # fmt: skip
+
+
+def _is_member(entry: Any) -> bool:
+    """Whether a members.json entry is ``{"seed": int, "overrides": {setting: number}}``."""
+    if not isinstance(entry, dict) or not isinstance(entry.get("overrides"), dict):
+        return False
+    numbers = all(isinstance(v, int | float) for v in entry["overrides"].values())
+    return isinstance(entry.get("seed"), int) and not isinstance(entry["seed"], bool) and numbers
+
+
+def _members_in_config(out_dir: Path, listed: list[Member]) -> list[Member] | None:
+    """The members config.json describes: its sweep section's, else its ``seeds`` seeds from
+    its ``seed``; None where it cannot say (no config.json, or a sweep written before config.json
+    had its sweep section: ``listed`` overrides settings but no section says which)."""
+    path = Path(out_dir) / CONFIG_FILE
+    if not path.exists():
+        return None
+    raw = _read_config(out_dir)
+    section = raw.get(SWEEP)
+    if isinstance(section, dict) and isinstance(section.get("members"), list):
+        swept = section.get("settings") or []
+        return [Member(seed=m.get("seed"), overrides=tuple(sorted(
+                    (k, float(m[k])) for k in swept if k in m)))
+                for m in section["members"] if isinstance(m, dict)]  # fmt: skip
+    if any(m.overrides for m in listed):
+        return None
+    saved = load_config(out_dir)
+    return [Member(seed=saved.seed + k, overrides=()) for k in range(saved.seeds)]
 
 
 def environment_record(env_name: str, env: Environment | None) -> dict:

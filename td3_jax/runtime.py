@@ -17,6 +17,7 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 import traceback
@@ -202,10 +203,12 @@ CACHE_MAX_BYTES = 4 * 1024**3
 PROGRAMS_FOLDER = "programs"
 
 
-def enable_compile_cache(directory: str) -> Path | None:
+def enable_compile_cache(directory: str, given: bool = True) -> Path | None:
     """Points JAX's persistent compilation cache at ``directory`` (``off``: leave it off) and
     returns where the traced programs are kept (``directory/programs``; ``None`` when off).
-    JAX's settings are process-wide: the CLI calls this once, before compiling."""
+    A directory that cannot be made or written raises a one-line ConfigError where the user
+    ``given`` it, else (the default one, in a read-only or full home) warns and leaves the
+    cache off. JAX's settings are process-wide: the CLI calls this once, before compiling."""
     if directory.strip().lower() in ("off", "none", ""):
         return None
     import jax
@@ -216,8 +219,16 @@ def enable_compile_cache(directory: str) -> Path | None:
     path = Path(directory).expanduser()
     try:
         path.mkdir(parents=True, exist_ok=True)
+        tempfile.NamedTemporaryFile(dir=path).close()
     except OSError as err:
-        raise ConfigError(f"--compile-cache {directory}: cannot create it ({err})") from err
+        reason = err.strerror or str(err)
+        if given:
+            raise ConfigError(f"--compile-cache {directory}: cannot write there ({reason}); "
+                              "choose another directory, or off") from err  # fmt: skip
+        print(f"td3-jax: warning: the compile cache {directory} cannot be written ({reason}): "
+              "this run compiles without it; --compile-cache DIR puts it elsewhere",
+              file=sys.stderr)  # fmt: skip
+        return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     # Everything the run compiles, however quick: a second identical run then compiles nothing.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

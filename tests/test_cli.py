@@ -770,6 +770,25 @@ def test_plot_compares_runs_in_one_image_and_checks_where_it_goes(finished_run, 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "second"]
 
 
+def test_a_resume_refused_for_an_edited_metrics_jsonl_rewrites_nothing(finished_run, tmp_path,
+                                                                        capsys):  # fmt: skip
+    """A metrics.jsonl line that is not JSON, or a record without its env steps, stops a
+    --resume in one line before anything is written: config.json keeps its total steps and
+    no resume_changes (it once recorded the longer run it had refused to train)."""
+    run = tmp_path / "run"
+    for line, said in (("{oops", "line 1 of"), ('{"eval_return_mean": 1.0}', "record 1 of")):
+        shutil.rmtree(run, ignore_errors=True)
+        shutil.copytree(finished_run[0], run)
+        records = (run / "metrics.jsonl").read_text().splitlines()
+        (run / "metrics.jsonl").write_text("\n".join([line, *records[1:]]) + "\n")
+        before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+        resume = ["train", "--out", str(run), "--resume", "--total-steps", "512"]
+        code, _, err = main(resume, capsys)
+        assert_one_line_error(code, err, said, "Repair or delete that line")
+        assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+        assert json.loads(before["config.json"])["total_steps"] == 128
+
+
 def test_a_run_without_its_config_json_is_named_as_such(finished_run, tmp_path, capsys):
     """A run directory whose config.json was deleted is not called "not a td3-jax run
     directory": the line says the checkpoints are there and where their settings are kept (and

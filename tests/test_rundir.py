@@ -293,6 +293,38 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
         rundir.check_fresh(tmp_path)
 
 
+def test_a_damaged_or_edited_members_json_is_refused_in_one_line(tmp_path):
+    """members.json is read back as written (a sweep's overrides included), or refused where
+    it is no list of members or names members config.json does not (it once gave tracebacks,
+    and a changed seed labelled the member wrongly); deleted, config.json's seeds stand."""
+    sweep = {"actor_lr": [1e-3, 3e-4]}
+    population = members(dataclasses.replace(SMALL, seeds=2, seed=7), sweep)
+    rundir.save_config(dataclasses.replace(SMALL, seeds=2, seed=7), population, tmp_path)
+    assert rundir.load_members(tmp_path, SMALL) == population
+    assert {m.seed for m in population} == {7, 8} and len(population) == 4
+    path = tmp_path / "members.json"
+    listing = json.loads(path.read_text())
+    bad = ("[]", "{", '[{"seed": "a", "overrides": {}}]', '[{"seed": 7}]',
+           '[{"seed": 7, "overrides": {"actor_lr": "fast"}}]')  # fmt: skip
+    for text in bad:
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=r"members.json is not (valid JSON|a list of)"):
+            rundir.load_members(tmp_path, SMALL)
+    listing[1]["seed"] = 9
+    path.write_text(json.dumps(listing))
+    with pytest.raises(ConfigError, match=r"seeds 7, 9, 7, 8 but config.json says the run trained "
+                       "seeds 7, 8, 7, 8"):  # fmt: skip
+        rundir.load_members(tmp_path, SMALL)
+    one = tmp_path / "one"
+    one.mkdir()
+    rundir.save_config(SMALL, [Member(seed=0)], one)
+    (one / "members.json").write_text('[{"seed": 3, "overrides": {}}]')
+    with pytest.raises(ConfigError, match=r"seeds 3 but config.json says the run trained seeds 0"):
+        rundir.load_members(one, SMALL)
+    (one / "members.json").unlink()
+    assert rundir.load_members(one, SMALL) == [Member(seed=0)]
+
+
 def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
     sweep = {"actor_lr": [1e-3, 3e-4]}
     population = members(SMALL, sweep)
@@ -370,9 +402,10 @@ def test_structural_settings_cannot_change_on_resume(changes, needles):
 
 def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
     population = [Member(seed=0), Member(seed=1)]
-    rundir.save_config(SMALL, population, tmp_path, {"preset": "pendulum"})
+    two = dataclasses.replace(SMALL, seeds=2)
+    rundir.save_config(two, population, tmp_path, {"preset": "pendulum"})
     # the settings SMALL leaves to TD3 come back as TD3's values (Adam 1e-3, tau 0.005)
-    used = dataclasses.replace(SMALL, actor_lr=1e-3, critic_lr=1e-3, tau=0.005)
+    used = dataclasses.replace(two, actor_lr=1e-3, critic_lr=1e-3, tau=0.005)
     assert rundir.load_config(tmp_path) == used
     assert rundir.load_members(tmp_path, SMALL) == population
     assert rundir.load_run_info(tmp_path) == {"preset": "pendulum"}
@@ -383,7 +416,7 @@ def test_config_json_keeps_its_extra_keys_and_loads(tmp_path):
         "preset": "pendulum",
         "resume_changes": [{"at_env_steps": 128, "total_steps": [128, 256]}],
     }
-    rundir.save_config(dataclasses.replace(SMALL, total_steps=256), population, tmp_path, info)
+    rundir.save_config(dataclasses.replace(two, total_steps=256), population, tmp_path, info)
     assert rundir.load_config(tmp_path).total_steps == 256
     assert rundir.load_run_info(tmp_path) == info
     assert not list(tmp_path.glob("*.tmp"))

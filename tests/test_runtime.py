@@ -366,3 +366,21 @@ def test_an_on_off_variable_reads_the_usual_words_and_nothing_else(monkeypatch):
                            ("", None), ("2", None), ("maybe", None)]:  # fmt: skip
         monkeypatch.setenv("TD3_JAX_TEST_SWITCH", value)
         assert runtime.env_switch("TD3_JAX_TEST_SWITCH") is meaning, value
+
+
+def test_an_unwritable_compile_cache_is_refused_if_asked_for_and_skipped_if_default(
+    tmp_path, capsys
+):
+    """A cache directory that cannot be made (under a file here; a read-only or full home in
+    use): one line naming it where --compile-cache asked for it; the default one instead warns
+    and leaves the cache off (None: no programs folder), so training still starts."""
+    from td3_jax.config import ConfigError
+    from td3_jax.runtime import enable_compile_cache
+
+    (tmp_path / "home").write_text("a file, not a folder")
+    wanted = str(tmp_path / "home" / "cache")
+    with pytest.raises(ConfigError, match=r"cannot write there .*choose another directory, or off"):
+        enable_compile_cache(wanted)
+    assert enable_compile_cache(wanted, given=False) is None
+    assert "cannot be written" in capsys.readouterr().err
+    assert enable_compile_cache("off") is None and not (tmp_path / "home").is_dir()
