@@ -441,7 +441,7 @@ def _all_corrupt(directory: Path, errors: list[CorruptCheckpointError]) -> Corru
     fix = (f"none can be restored: start the run again with another --out (or remove {run}), "
            "or put back an intact copy of the checkpoints")  # fmt: skip
     if not all(getattr(err, "damaged", True) for err in errors):
-        fix = "fix what keeps them from being read, then --resume again"
+        fix = "fix what keeps them from being read, then try again"
     if len(errors) == 1:
         return CorruptCheckpointError(f"{reasons}; {fix}")
     return CorruptCheckpointError(f"no usable checkpoint in {directory}: {reasons}; {fix}")
@@ -461,8 +461,12 @@ def _cause(err: Exception) -> str:
     text = str(err)
     if isinstance(err, ValueError | TypeError | KeyError) and "JSON" in type(err).__name__ + text:
         return "its metadata is damaged"
-    if isinstance(err, FileNotFoundError) or "NOT_FOUND" in text:
+    chain = list(_exception_chain(err))  # (the storage library's cause is often beneath)
+    text = " ".join(str(e) for e in chain)
+    if any(isinstance(e, FileNotFoundError) for e in chain) or "NOT_FOUND" in text:
         return "files of it are missing"
+    if "OUT_OF_RANGE" in text and "byte range" in text:
+        return "its array files are cut short"
     if any(code in text for code in ("DATA_LOSS", "OUT_OF_RANGE", "corrupt", "checksum")):
         return "its array files are damaged"
     return f"{_UNKNOWN}: {_first_line(err, 120)}"

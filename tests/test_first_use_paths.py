@@ -197,6 +197,26 @@ def test_a_corrupt_checkpoint_is_said_in_words_with_what_to_do():
     assert str(_all_corrupt(run / "checkpoints", [newest])).startswith(f"{newest}; none can be")
 
 
+def test_a_checkpoint_cut_short_is_named_from_the_cause_beneath_the_storage_error():
+    """Orbax raises a bare ``Exception`` ("Encountered error while reading array ...") from
+    TensorStore's OUT_OF_RANGE error of a truncated file: the cause beneath is what is said,
+    and the checkpoint counts as damaged (it once read "it cannot be read: ... See f...")."""
+    try:
+        try:
+            raise ValueError('OUT_OF_RANGE: Error reading "00051/0.0.0.0" in OCDBT database: '
+                             "Requested byte range [389710, 478562) is not valid for value of "
+                             "size 100")  # fmt: skip
+        except ValueError as cause:
+            raise Exception("Encountered error while reading array index: (slice(0, 1, 1),). "
+                            "See full TensorStore details: ...") from cause  # fmt: skip
+    except Exception as err:
+        cut = _unusable(Path("/runs/x/checkpoints/2"), err)
+    assert str(cut).endswith("is unreadable or corrupt (its array files are cut short)")
+    said = str(_all_corrupt(Path("/runs/x/checkpoints"), [cut]))
+    assert said.endswith("start the run again with another --out (or remove /runs/x), or put "
+                         "back an intact copy of the checkpoints")  # fmt: skip
+
+
 def test_a_checkpoint_unread_for_another_cause_is_not_called_for_removal():
     # Out of memory (or no permission) says nothing of damage: the run is not to be thrown away.
     run = Path("/runs/x")
@@ -205,7 +225,7 @@ def test_a_checkpoint_unread_for_another_cause_is_not_called_for_removal():
     assert str(memory).endswith("(it cannot be read: RuntimeError: RESOURCE_EXHAUSTED: Out of "
                                 "memory)")  # fmt: skip
     said = str(_all_corrupt(run / "checkpoints", [damaged, memory]))
-    assert said.endswith("; fix what keeps them from being read, then --resume again")
+    assert said.endswith("; fix what keeps them from being read, then try again")
     assert "remove" not in said and "another --out" not in said
 
 
