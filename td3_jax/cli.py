@@ -942,6 +942,14 @@ def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
     train it further (a larger ``--total-steps``; a new run where a cosine schedule fixed its
     length)."""
     done = f"{cfg.run_steps:,}"
+    from td3_jax.rundir import load_config
+
+    planned = load_config(out).run_steps  # (a complete run's resume rewrote nothing)
+    if planned > cfg.run_steps:  # a stopped run resumed with a shorter --total-steps
+        go_on = f"td3-jax train --out {shlex.quote(str(out))} --resume"
+        return (f"nothing to do: the run in {out} has taken {done} env steps, what --total-steps "
+                f"{cfg.total_steps:,} asks; it was set for {planned:,}: {go_on} goes on to "
+                "them")  # fmt: skip
     if cfg.lr_schedule == "cosine":
         further = ("its cosine learning-rate schedule fixed its length: start a new run with a "
                    "larger --total-steps to train longer")  # fmt: skip

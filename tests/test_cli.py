@@ -989,6 +989,24 @@ def test_the_resume_help_and_readme_name_every_setting_a_resume_may_change(capsy
             assert re.search(rf"{re.escape(flag(name))}\b", text), (name, text)
 
 
+def test_a_resume_shorter_than_a_stopped_run_says_it_is_not_complete(finished_run, tmp_path,
+                                                                      capsys):  # fmt: skip
+    """A run set for 256 steps, stopped at its checkpoint of 128 (config.json says 256; the
+    checkpoint holds 128), resumed with --total-steps 128: nothing to train, but the run is
+    not called complete; the line says how to go on to its 256."""
+    run_dir = _copy_run(finished_run, tmp_path)
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps({**config, "total_steps": 256}))
+    code, out, err = main(["train", "--resume", "--total-steps", "128", "--out", str(run_dir),
+                           "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    said = out.strip().splitlines()[-1]
+    assert said.startswith(f"nothing to do: the run in {run_dir} has taken 128 env steps, what "
+                           "--total-steps 128 asks; it was set for 256: ")  # fmt: skip
+    assert said.endswith(f"td3-jax train --out {run_dir} --resume goes on to them")
+    assert json.loads((run_dir / "config.json").read_text())["total_steps"] == 256
+
+
 def test_resume_accepts_flags_equal_to_the_saved_ones(finished_run, tmp_path, capsys):
     run_dir = _copy_run(finished_run, tmp_path)
     records = read_records(run_dir)
