@@ -60,7 +60,9 @@ pack() {  # $OUT/runs.tgz: every finished run, the metrics of those in progress,
     files=(done chains/*.log runs/*/*/metrics.jsonl runs/*/*/config.json)
     [ -d done ] || files=("${files[@]:1}")
     [ ${#files[@]} -gt 0 ] || exit 1
-    tar -czf "$OUT/runs.tgz.part" "${files[@]}" && mv "$OUT/runs.tgz.part" "$OUT/runs.tgz"
+    tar -czf "$OUT/runs.tgz.part" "${files[@]}"
+    rc=$?  # (1: a file changed while read, as logs do: the archive is still good)
+    if [ $rc -le 1 ]; then mv "$OUT/runs.tgz.part" "$OUT/runs.tgz"; else rm -f "$OUT/runs.tgz.part"; exit 2; fi
   )
 }
 any_alive() {  # exit 0 while a chain started here still runs
@@ -86,7 +88,7 @@ case ${1:?start, collect or watch} in
     # every 40 s, so a call stopped at its limit (or by the session's device time) still
     # brings back the runs' records up to 40 s before; then a collect. Make each following
     # call this at once (the host goes back 30 s after a call ends).
-    deadline=$(( $(date +%s) + ${2:?seconds} )) packed=$(date +%s)
+    deadline=$(( $(date +%s) + ${2:?seconds} )) packed=0
     while any_alive && [ "$(date +%s)" -lt "$deadline" ]; do
       sleep 2
       if [ $(( $(date +%s) - packed )) -ge 40 ]; then pack >/dev/null 2>&1; packed=$(date +%s); fi

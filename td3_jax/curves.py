@@ -4,6 +4,7 @@ compared in one figure (``td3-jax plot --run A B --out FILE``)."""
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -128,10 +129,12 @@ def _save(labelled: Sequence[tuple[Curve, str | None]], path: Path, title: str) 
     axes[0].set_ylabel("evaluation return")
     fig.suptitle(title)
     fig.tight_layout()
-    temporary = path.with_name(path.name + ".tmp")  # (a failed write leaves the old image)
+    temporary = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # (a failed write: old image)
     try:
         fig.savefig(temporary, dpi=110, format=path.suffix[1:].lower() or "png")
         temporary.replace(path)
+    except OSError as err:  # (named by the image, not the temporary file)
+        raise OSError(err.errno, err.strerror, str(path)) from err
     finally:
         plt.close(fig)
         temporary.unlink(missing_ok=True)
