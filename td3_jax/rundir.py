@@ -798,7 +798,7 @@ def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
         listed, said = (", ".join(str(m.seed) for m in g) for g in (population, expected))
         raise ConfigError(f"{path} lists the members of seeds {listed} but config.json says the "
                           f"run trained seeds {said} (or other swept values); was it edited? "
-                          f"{_RESTORE_MEMBERS[0].upper()}{_RESTORE_MEMBERS[1:]}")  # fmt: skip
+                          f"{_RESTORE_MEMBERS.capitalize()}")  # fmt: skip
     return population
 
 
@@ -813,7 +813,7 @@ def _parse_members(listing: Any, path: Path) -> list[Member]:
     if not isinstance(listing, list) or not listing or not all(map(_is_member, listing)):
         raise ConfigError(f"{path} is not a list of members as td3-jax writes it (each with "
                           "an integer seed and its overrides); was it edited? "
-                          f"{_RESTORE_MEMBERS[0].upper()}{_RESTORE_MEMBERS[1:]}")  # fmt: skip
+                          f"{_RESTORE_MEMBERS.capitalize()}")  # fmt: skip
     return [Member(seed=m["seed"], overrides=tuple(sorted((k, float(v))
                    for k, v in m["overrides"].items()))) for m in listing]  # fmt: skip
 
