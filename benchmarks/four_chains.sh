@@ -89,6 +89,10 @@ case ${1:?start, collect or watch} in
     # brings back the runs' records up to 40 s before; then a collect. Make each following
     # call this at once (the host goes back 30 s after a call ends).
     deadline=$(( $(date +%s) + ${2:?seconds} )) packed=0
+    if ! compgen -G "/root/chains/gpu*.pid" >/dev/null; then
+      echo "four_chains: no chain was started on this host (a fresh host: the runs were lost?)"
+      exit 2
+    fi
     while any_alive && [ "$(date +%s)" -lt "$deadline" ]; do
       sleep 2
       if [ $(( $(date +%s) - packed )) -ge 40 ]; then pack >/dev/null 2>&1; packed=$(date +%s); fi

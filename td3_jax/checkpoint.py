@@ -173,7 +173,7 @@ class Checkpointer:
         if existing:  # a resume: sizes and --out are the run's own
             fixes.append("free space on that disk or move the run directory to a larger one")
         else:
-            fixes += ["a smaller --buffer-size", "an --out on a larger disk"]
+            fixes += [_shrink_advice(state), "an --out on a larger disk"]
         raise CheckpointWriteError(
             f"the disk holding {self.directory} has {size_text(free)} free, and this run's "
             f"checkpoints need {size_text(need)} ({self._keep} kept and one being written{there}; "
@@ -310,6 +310,18 @@ def state_bytes(state: Any) -> int:
         return int(math.prod(x.shape)) * np.dtype(x.dtype).itemsize
 
     return sum(nbytes(x) for x in jax.tree.leaves(state))
+
+
+def _shrink_advice(state: Any) -> str:
+    """The size flag that shrinks a train state's checkpoint most: ``--buffer-size`` where the
+    replay ring outweighs the networks and their optimiser states (or ``state`` is not a train
+    state), else the larger network's hidden sizes."""
+    buffer, agent = getattr(state, "buffer", None), getattr(state, "agent", None)
+    if buffer is None or agent is None or state_bytes(buffer) >= state_bytes(agent):
+        return "a smaller --buffer-size"
+    from td3_jax.sharding import larger_network_advice
+
+    return larger_network_advice(agent)
 
 
 def size_text(size: int) -> str:

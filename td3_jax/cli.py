@@ -197,7 +197,8 @@ class ExportCommand:
     """onnx (opset 17, needs pip install 'td3-jax[export]') or npz (run it with NumPy alone:
     td3_jax/policy_file.py)."""
     out: Path | None = None
-    """Output file (default: RUN/policy.onnx or RUN/policy.npz)."""
+    """Output file, ending in .onnx or .npz as --format says (default: RUN/policy.onnx or
+    RUN/policy.npz)."""
     member: int | None = None
     """Member (seed / swept setting) to export, from 0 (default: the best in the checkpoint's
     evaluation in metrics.jsonl; member 0 for a single-seed run)."""
@@ -1138,7 +1139,7 @@ def render_main(args: list[str]) -> None:
 
 
 def plot_main(args: list[str]) -> None:
-    from td3_jax.curves import draw_curve, plot_comparison, run_labels
+    from td3_jax.curves import draw_curve, mixed_envs_warning, plot_comparison, run_labels
 
     command = _parse(PlotCommand, args, "td3-jax plot")
     out = _plot_path(command.run, command.out)
@@ -1146,6 +1147,9 @@ def plot_main(args: list[str]) -> None:
     if len(curves) == 1:
         print(draw_curve(curves[0], out))
     else:
+        mixed = mixed_envs_warning(curves)
+        if mixed:
+            print(mixed, file=sys.stderr, flush=True)
         print(plot_comparison(curves, run_labels(command.run), out))
 
 

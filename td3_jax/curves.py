@@ -16,6 +16,7 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "Curve",
     "draw_curve",
+    "mixed_envs_warning",
     "plot_comparison",
     "plot_curve",
     "read_curve",
@@ -158,9 +159,10 @@ def plot_curve(run_dir: Path, path: Path | None = None) -> Path | None:
 
 
 def run_labels(run_dirs: Sequence[Path]) -> list[str]:
-    """Short distinct names for runs: each directory's name, or its path as given where two
-    runs share a name (``seed0/run`` and ``seed1/run``)."""
-    names = [Path(run).name or str(run) for run in run_dirs]
+    """Short distinct names for runs: each directory's name (``.`` and ``..`` by the folder they
+    stand for), or its path as given where two runs share a name (``seed0/run`` and
+    ``seed1/run``)."""
+    names = [Path(run).resolve().name or str(run) for run in run_dirs]
     return [name if names.count(name) == 1 else str(run)
             for name, run in zip(names, run_dirs, strict=True)]  # fmt: skip
 
@@ -172,6 +174,16 @@ def plot_comparison(curves: Sequence[Curve], labels: Sequence[str], path: Path) 
     envs = list(dict.fromkeys(curve.env for curve in curves))
     named = [f"{label} ({_band_name(curve)})" for curve, label in zip(curves, labels, strict=True)]
     return _save(list(zip(curves, named, strict=True)), Path(path), " / ".join(envs))
+
+
+def mixed_envs_warning(curves: Sequence[Curve]) -> str | None:
+    """A warning when a comparison's runs trained different environments: their returns share
+    one axis though their scales need not agree."""
+    envs = list(dict.fromkeys(curve.env for curve in curves))
+    if len(envs) < 2:
+        return None
+    return (f"warning: these runs trained different environments ({', '.join(envs)}); their "
+            "returns share one axis")  # fmt: skip
 
 
 def _band_name(curve: Curve) -> str:

@@ -539,11 +539,15 @@ def summary(policy: PolicyArrays) -> str:
 
 
 def check_output(out: Path, fmt: str) -> None:
-    """Raises :class:`ExportError` where ``out`` cannot take a ``fmt`` policy: the other
-    format's suffix, a directory, a missing folder, an existing file that td3-jax did not
-    export (replacing a policy file of its own is fine: a second export of a run), or a place
-    this process may not write (:func:`~td3_jax.logger.probe_write`)."""
-    other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower(), fmt)
+    """Raises :class:`ExportError` where ``out`` cannot take a ``fmt`` policy: a suffix that is
+    not ``.fmt`` (the other format's or none of them), a directory, a missing folder, an
+    existing file that td3-jax did not export (replacing a policy file of its own is fine: a
+    second export of a run), or a place this process may not write
+    (:func:`~td3_jax.logger.probe_write`)."""
+    other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower())
+    if other is None:
+        raise ExportError(f"--out {out}: a --format {fmt} policy file ends in .{fmt} (as "
+                          f"{out.with_name(out.name + '.' + fmt).name})")  # fmt: skip
     if other != fmt:
         raise ExportError(f"--out {out} names an .{other} file but --format is {fmt}")
     if out.is_dir():

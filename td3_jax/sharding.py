@@ -95,16 +95,19 @@ def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
     """The flags that shrink a train state, the likeliest first: fewer members where the run
     has several (each has its own networks and ring; the agent's leaves are ``[members,
     ...]``), else the larger part's size."""
-    shrink = _larger_network(abstract_state.agent) if networks_larger else "a smaller --buffer-size"
+    shrink = "a smaller --buffer-size"
+    if networks_larger:
+        shrink = larger_network_advice(abstract_state.agent)
     leaves = jax.tree.leaves(abstract_state.agent)
     count = int(leaves[0].shape[0]) if leaves and leaves[0].shape else 1
+    envs = "" if networks_larger else " or fewer --num-envs"  # (the ring's default size)
     if count > 1:
         return (f"fewer --seeds or sweep values (the run has {count:,} members, each with its "
-                f"own networks and ring), {shrink} or fewer --num-envs")  # fmt: skip
-    return f"{shrink}, or fewer --num-envs"
+                f"own networks and ring), {shrink}{envs}")  # fmt: skip
+    return f"{shrink}{envs.replace(' or', ', or')}"
 
 
-def _larger_network(agent: Any) -> str:
+def larger_network_advice(agent: Any) -> str:
     """``smaller --critic-hidden-sizes`` where the critics' parameters outweigh the actor's,
     else ``smaller --actor-hidden-sizes`` (``--hidden-sizes`` sets both)."""
     from td3_jax.checkpoint import state_bytes

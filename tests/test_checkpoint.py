@@ -641,6 +641,35 @@ def test_check_space_asks_for_the_kept_checkpoints_and_one_being_written(
         assert ("--keep-checkpoints 1" in message) == (keep > 1 and one_kept_fits)
         # On resume (checkpoints already there) the sizes and --out are the run's own.
         assert (f"less the {existing} already there" in message) == (existing > 0)
-        assert ("--buffer-size" in message) == (existing == 0)
+        assert ("smaller --critic-hidden-sizes" in message) == (existing == 0)  # (see below)
         assert ("free space on that disk" in message) == (existing > 0)
+    ckpt.close()
+
+
+def test_check_space_names_the_larger_part_of_the_train_state_to_shrink(tmp_path, monkeypatch):
+    """A fresh run short of disk is told to shrink what outweighs the rest of a checkpoint:
+    the replay ring (--buffer-size) or the networks with their optimiser states (the larger
+    network's hidden sizes), not a ring that is a sliver of it."""
+    import shutil
+
+    from td3_jax import checkpoint
+
+    usage = shutil.disk_usage(tmp_path)._replace(free=0)
+    monkeypatch.setattr(checkpoint.shutil, "disk_usage", lambda path: usage)
+    ckpt = Checkpointer(tmp_path / "ckpt", keep=1)
+    for cfg, part, advice in (
+        (CFG, "agent", "smaller --critic-hidden-sizes"),
+        (
+            dataclasses.replace(CFG, buffer_size=4096, total_steps=4096),
+            "buffer",
+            "a smaller --buffer-size",
+        ),
+    ):
+        abstract = jax.eval_shape(make_trainer(cfg).init, jax.random.PRNGKey(0))
+        other = "buffer" if part == "agent" else "agent"
+        sizes = {name: checkpoint.state_bytes(getattr(abstract, name)) for name in (part, other)}
+        assert sizes[part] > sizes[other]
+        with pytest.raises(CheckpointWriteError, match="checkpoints need") as err:
+            ckpt.check_space(abstract)
+        assert advice in str(err.value) and str(err.value).count("smaller") == 1
     ckpt.close()

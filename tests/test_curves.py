@@ -8,7 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from td3_jax.curves import plot_comparison, plot_curve, read_curve, run_labels
+from td3_jax.curves import (
+    mixed_envs_warning,
+    plot_comparison,
+    plot_curve,
+    read_curve,
+    run_labels,
+)
 from td3_jax.errors import ConfigError
 
 
@@ -63,6 +69,23 @@ def test_no_record_is_no_curve_and_an_edited_record_is_named(tmp_path):
 def test_compared_runs_are_named_by_folder_unless_two_share_a_name():
     runs = [Path("runs/a/run"), Path("runs/b/run"), Path("runs/ant"), Path("other")]
     assert run_labels(runs) == ["runs/a/run", "runs/b/run", "ant", "other"]
+
+
+def test_a_run_given_as_dot_is_named_by_its_folder(tmp_path, monkeypatch):
+    (tmp_path / "ant-run" / "sub").mkdir(parents=True)
+    monkeypatch.chdir(tmp_path / "ant-run")
+    assert run_labels([Path("."), Path("sub")]) == ["ant-run", "sub"]
+    assert run_labels([Path("sub/..")]) == ["ant-run"]
+
+
+def test_a_comparison_of_different_environments_is_warned_about(tmp_path):
+    pendulum = read_curve(_write_records(tmp_path / "a", [_one_member(1, -9.0, 1.0, 1.0)]))
+    ant = read_curve(
+        _write_records(tmp_path / "b", [{**_one_member(1, 900.0, 1.0, 1.0), "env": "brax/ant"}])
+    )
+    assert mixed_envs_warning([pendulum, pendulum]) is None
+    said = mixed_envs_warning([pendulum, ant, pendulum])
+    assert said is not None and "(gymnax/Pendulum-v1, brax/ant)" in said
 
 
 def test_the_images_are_written_in_the_format_their_suffix_names(tmp_path):

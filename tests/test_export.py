@@ -508,7 +508,9 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
     no_checkpoint.mkdir()
     shutil.copy(tiny_run / "config.json", no_checkpoint / "config.json")
     notes, other = tmp_path / "notes.md", tmp_path / "someone_elses.npz"
-    notes.write_text("# not a policy\n")
+    text_npz = tmp_path / "notes.npz"
+    for text in (notes, text_npz):
+        text.write_text("# not a policy\n")
     np.savez(other, weights=np.zeros(3))
     cases = {
         ("--run", str(tmp_path), "--format", "npz"): "not a td3-jax run directory",
@@ -524,6 +526,8 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
         ("--run", str(tiny_run), "--format", "onnx", "--out", str(tmp_path / "p.NPZ")):
             "names an .npz file but --format is onnx",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(notes)):
+            f"--out {notes}: a --format npz policy file ends in .npz (as notes.md.npz)",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(text_npz)):
             "exists and is not a policy td3-jax exported",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(other)):
             "exists and is not a policy td3-jax exported: remove it or choose another name",
@@ -535,17 +539,21 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
         assert code == 2, stderr
         assert stderr.startswith("td3-jax: error: ") and message in stderr, stderr
         assert len(stderr.strip().splitlines()) == 1
-    assert notes.read_text() == "# not a policy\n" and list(np.load(other)) == ["weights"]
+    assert notes.read_text() == text_npz.read_text() == "# not a policy\n"
+    assert list(np.load(other)) == ["weights"]
     for fmt in ("npz", "onnx"):  # (a second export of a run replaces its own file)
         again = tmp_path / f"p.{fmt}"
         for _ in range(2):
             cli.main(["export", "--run", str(tiny_run), "--format", fmt, "--out", str(again)])
             assert capsys.readouterr().out.splitlines()[0] == str(again)
-    script = tmp_path / "train_t1"  # (no suffix, and it names td3-jax: still not a policy)
+    script = tmp_path / "train_t1.onnx"  # (a text naming td3-jax: still not a policy)
     script.write_text("td3-jax train --preset t1\n")
     code, stderr = cli_error(capsys, "export", "--run", str(tiny_run), "--format", "onnx",
                              "--out", str(script))  # fmt: skip
     assert code == 2 and "exists and is not a policy td3-jax exported" in stderr
+    code, stderr = cli_error(capsys, "export", "--run", str(tiny_run), "--format", "onnx",
+                             "--out", str(tmp_path / "policy"))  # fmt: skip
+    assert code == 2 and "ends in .onnx (as policy.onnx)" in stderr
     assert script.read_text() == "td3-jax train --preset t1\n"
     # and in a real process: exit status 2, one line, no traceback
     done = subprocess.run(

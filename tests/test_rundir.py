@@ -956,6 +956,7 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     networks = state_bytes(state.agent)
     assert networks > ring  # 16-wide networks with Adam's moments outweigh 256 ring rows
     assert code == 2 and "use smaller --critic-hidden-sizes (or --hidden-sizes, which " in line, err
+    assert "--num-envs" not in line  # (it sizes the ring, not the networks)
     assert f"{size_text(need)} per device" in line and f"ring {size_text(ring)}, " in line
     assert f"optimiser states {size_text(networks)})" in line
     assert not list((tmp_path / "run").glob("checkpoints/*"))
@@ -979,7 +980,8 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     with pytest.raises(
         ConfigError,
         match=r"; use fewer --seeds or sweep values \(the run has 3 "
-        r"members, each .*\), smaller --critic-hidden-sizes .* or fewer --num-envs$",
+        r"members, each .*\), smaller --critic-hidden-sizes \(or --hidden-sizes, which sets "
+        r"both\)$",
     ):
         sharding.check_memory(state, sharding.make_mesh(1))
 
