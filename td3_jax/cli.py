@@ -78,6 +78,8 @@ subcommands:
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 #: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
 Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]
+#: The values a sweep tries for one setting (none: the setting is not swept).
+SweptValues = Annotated[tuple[float, ...], tyro.conf.arg(help_behavior_hint="(default: not swept)")]
 
 
 class Interrupted(Exception):
@@ -136,41 +138,41 @@ class SweepCommand(TrainCommand):
     over seeds. Settings not swept take their single value (preset, flag or default).
     """
 
-    sweep_actor_lr: tuple[float, ...] = ()
+    sweep_actor_lr: SweptValues = ()
     """Actor learning rates to try."""
-    sweep_critic_lr: tuple[float, ...] = ()
+    sweep_critic_lr: SweptValues = ()
     """Critic learning rates to try."""
-    sweep_tau: tuple[float, ...] = ()
+    sweep_tau: SweptValues = ()
     """Target Polyak rates to try."""
-    sweep_discount: tuple[float, ...] = ()
+    sweep_discount: SweptValues = ()
     """Discounts to try."""
-    sweep_expl_noise: tuple[float, ...] = ()
+    sweep_expl_noise: SweptValues = ()
     """Gaussian exploration scales to try."""
-    sweep_policy_noise: tuple[float, ...] = ()
+    sweep_policy_noise: SweptValues = ()
     """TD3 target smoothing noise scales to try."""
-    sweep_noise_clip: tuple[float, ...] = ()
+    sweep_noise_clip: SweptValues = ()
     """TD3 target smoothing clips to try."""
-    sweep_ou_sigma: tuple[float, ...] = ()
+    sweep_ou_sigma: SweptValues = ()
     """OU sigmas to try."""
-    sweep_ou_theta: tuple[float, ...] = ()
+    sweep_ou_theta: SweptValues = ()
     """OU thetas to try."""
-    sweep_expl_noise_min: tuple[float, ...] = ()
+    sweep_expl_noise_min: SweptValues = ()
     """Lower ends of the per-environment exploration stds to try."""
-    sweep_expl_noise_max: tuple[float, ...] = ()
+    sweep_expl_noise_max: SweptValues = ()
     """Upper ends of the per-environment exploration stds to try."""
-    sweep_weight_decay: tuple[float, ...] = ()
+    sweep_weight_decay: SweptValues = ()
     """AdamW weight decays to try."""
-    sweep_max_grad_norm: tuple[float, ...] = ()
+    sweep_max_grad_norm: SweptValues = ()
     """Gradient-norm bounds to try (needs --max-grad-norm)."""
-    sweep_max_weight_norm: tuple[float, ...] = ()
+    sweep_max_weight_norm: SweptValues = ()
     """Weight-norm bounds to try (needs --max-weight-norm)."""
-    sweep_v_min: tuple[float, ...] = ()
+    sweep_v_min: SweptValues = ()
     """Lowest values of the distributional critic's support to try."""
-    sweep_v_max: tuple[float, ...] = ()
+    sweep_v_max: SweptValues = ()
     """Highest values of the distributional critic's support to try."""
-    sweep_lr_final_fraction: tuple[float, ...] = ()
+    sweep_lr_final_fraction: SweptValues = ()
     """Ends of the cosine learning-rate schedule to try (needs --lr-schedule cosine)."""
-    sweep_return_bound: tuple[float, ...] = ()
+    sweep_return_bound: SweptValues = ()
     """Return bounds of the reward scaling to try (needs --return-bound)."""
 
 
@@ -757,9 +759,11 @@ def eval_size_warning(cfg: TrainConfig) -> str | None:
 
 
 def _announce(cfg: TrainConfig, preset_name: str | None, source: str,
-              asked_eval_every: int | None = None) -> None:  # fmt: skip
-    """Prints which settings the run got, before it starts."""
-    for line in (_defaults_note(cfg, preset_name, source), rounding_note(cfg, asked_eval_every)):
+              asked_eval_every: int | None = None, rounding: bool = True) -> None:  # fmt: skip
+    """Prints which settings the run got, before it starts (``rounding``: also how
+    ``--total-steps`` and ``--eval-every`` round to whole chunks and iterations)."""
+    rounded = rounding_note(cfg, asked_eval_every) if rounding else None
+    for line in (_defaults_note(cfg, preset_name, source), rounded):
         if line:
             print(line, flush=True)
 
@@ -800,16 +804,18 @@ def no_learning_warning(cfg: TrainConfig) -> str | None:
 
 
 def _when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
-                   asked_eval_every: int | None = None,
-                   given: frozenset[str] = frozenset()) -> None:  # fmt: skip
+                   asked_eval_every: int | None = None, given: frozenset[str] = frozenset(),
+                   resumed: bool = False) -> None:  # fmt: skip
     """Once the run's settings, directory and environment are good (a run they stop says
     nothing else): which settings it got, and warnings (a GPU-sized run on a CPU, an
-    evaluation that dwarfs the training, no updates)."""
+    evaluation that dwarfs the training, no updates). A resume says how its steps round only
+    where ``--total-steps`` was typed (its fresh start said so already)."""
     import jax
 
     if jax.process_index() != 0:
         return
-    _announce(cfg, preset_name, source, asked_eval_every)
+    rounding = not resumed or "total_steps" in given
+    _announce(cfg, preset_name, source, asked_eval_every, rounding)
     warnings = (unnamed_env_warning(cfg, preset_name, source, given),
                 cpu_size_warning(cfg, jax.default_backend(), source),
                 critic_network_note(cfg, preset_name, set(given)), eval_size_warning(cfg),
@@ -905,7 +911,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     with preset_noted(cfg, preset_name, given):
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
-                                 frozenset(typed))  # fmt: skip
+                                 frozenset(typed), command.resume)  # fmt: skip
     received: list[int] = []
     started = time.perf_counter()
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped

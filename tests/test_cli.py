@@ -989,6 +989,18 @@ def test_the_resume_help_and_readme_name_every_setting_a_resume_may_change(capsy
             assert re.search(rf"{re.escape(flag(name))}\b", text), (name, text)
 
 
+def test_every_help_shows_a_default_for_each_flag_that_has_one(capsys):
+    """No entry of any command's help reads "(default: )" (the sweep lists printed their empty
+    tuple as nothing): a list not given says what that means."""
+    for command in ("train", "sweep", "eval", "export", "render", "plot", "presets"):
+        code, out, _ = main([command, "--help"], capsys)
+        assert code == 0 and "(default:" in out, command
+        assert "(default: )" not in " ".join(out.replace("│", " ").split()), command
+    assert "Actor learning rates to try. (default: not swept)" in " ".join(
+        main(["sweep", "--help"], capsys)[1].replace("│", " ").split()
+    )
+
+
 def test_a_resume_shorter_than_a_stopped_run_says_it_is_not_complete(finished_run, tmp_path,
                                                                       capsys):  # fmt: skip
     """A run set for 256 steps, stopped at its checkpoint of 128 (config.json says 256; the
@@ -1255,6 +1267,17 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
     assert note.startswith("--total-steps 100 runs as 4000 (")
     assert "down to one evaluation episode" in note and "--no-eval-in-chunk ends" in note
     assert "--no-eval-in-chunk" not in cli.rounding_note(cfg)
+
+
+def test_a_resume_says_how_its_steps_round_only_where_total_steps_was_typed(capsys):
+    """A fresh run and a resume given --total-steps say that 100 steps run as 4000; a plain
+    --resume, whose fresh start said so, does not repeat it."""
+    cfg = TrainConfig(num_envs=16, eval_every=4000, total_steps=100, env="gymnax/Pendulum-v1")
+    for resumed, given, said in ((False, frozenset(), True), (True, frozenset(), False),
+                                 (True, frozenset({"total_steps"}), True)):  # fmt: skip
+        cli._when_prepared(cfg, None, "config", 4000, given, resumed)
+        out = capsys.readouterr().out
+        assert ("--total-steps 100 runs as 4000 (" in out) == said, (resumed, given, out)
 
 
 def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
