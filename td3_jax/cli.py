@@ -1155,7 +1155,7 @@ def plot_main(args: list[str]) -> None:
     else:
         mixed = mixed_envs_warning(curves)
         if mixed:
-            print(mixed, file=sys.stderr, flush=True)
+            print(f"td3-jax: warning: {mixed}", file=sys.stderr, flush=True)
         print(plot_comparison(curves, run_labels(command.run), out))
 
 

@@ -162,7 +162,7 @@ def run_labels(run_dirs: Sequence[Path]) -> list[str]:
     """Short distinct names for runs: each directory's name (``.`` and ``..`` by the folder they
     stand for), or its path as given where two runs share a name (``seed0/run`` and
     ``seed1/run``)."""
-    names = [Path(run).resolve().name or str(run) for run in run_dirs]
+    names = [Path(os.path.abspath(run)).name or str(run) for run in run_dirs]  # (no links followed)
     return [name if names.count(name) == 1 else str(run)
             for name, run in zip(names, run_dirs, strict=True)]  # fmt: skip
 
@@ -179,11 +179,11 @@ def plot_comparison(curves: Sequence[Curve], labels: Sequence[str], path: Path) 
 def mixed_envs_warning(curves: Sequence[Curve]) -> str | None:
     """A warning when a comparison's runs trained different environments: their returns share
     one axis though their scales need not agree."""
-    envs = list(dict.fromkeys(curve.env for curve in curves))
+    envs = list(dict.fromkeys(curve.env for curve in curves if curve.env))
     if len(envs) < 2:
         return None
-    return (f"warning: these runs trained different environments ({', '.join(envs)}); their "
-            "returns share one axis")  # fmt: skip
+    return (f"these runs trained different environments ({', '.join(envs)}); their returns "
+            "share one axis")  # fmt: skip
 
 
 def _band_name(curve: Curve) -> str:

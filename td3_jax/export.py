@@ -544,14 +544,15 @@ def check_output(out: Path, fmt: str) -> None:
     existing file that td3-jax did not export (replacing a policy file of its own is fine: a
     second export of a run), or a place this process may not write
     (:func:`~td3_jax.logger.probe_write`)."""
+    if out.is_dir():
+        raise ExportError(f"--out {out} is a directory: name a file in it, as "
+                          f"{out / default_output(Path(), fmt)}")  # fmt: skip
     other = {".onnx": "onnx", ".npz": "npz"}.get(out.suffix.lower())
     if other is None:
         raise ExportError(f"--out {out}: a --format {fmt} policy file ends in .{fmt} (as "
-                          f"{out.with_name(out.name + '.' + fmt).name})")  # fmt: skip
+                          f"{out.name or 'policy'}.{fmt})")  # fmt: skip
     if other != fmt:
         raise ExportError(f"--out {out} names an .{other} file but --format is {fmt}")
-    if out.is_dir():
-        raise ExportError(f"--out {out} is a directory")
     if not out.parent.is_dir():
         what = "is a file" if out.parent.exists() else "does not exist"
         raise ExportError(f"--out {out}: its folder {out.parent} {what}")

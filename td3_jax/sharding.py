@@ -103,7 +103,7 @@ def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
     envs = "" if networks_larger else " or fewer --num-envs"  # (the ring's default size)
     if count > 1:
         return (f"fewer --seeds or sweep values (the run has {count:,} members, each with its "
-                f"own networks and ring), {shrink}{envs}")  # fmt: skip
+                f"own networks and ring), {shrink if envs else 'or ' + shrink}{envs}")  # fmt: skip
     return f"{shrink}{envs.replace(' or', ', or')}"
 
 

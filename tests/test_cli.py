@@ -768,6 +768,13 @@ def test_plot_compares_runs_in_one_image_and_checks_where_it_goes(finished_run, 
         code, _, err = main(["plot", "--run", str(first), *extra], capsys)
         assert_one_line_error(code, err, said)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "second"]
+    records = (second / "metrics.jsonl").read_text().replace('"env": "', '"env": "other/')
+    (second / "metrics.jsonl").write_text(records)  # (a run of another environment)
+    code, stdout, err = main(["plot", "--run", str(first), str(second), "--out",
+                              str(tmp_path / "both.pdf")], capsys)  # fmt: skip
+    assert code == 0 and stdout.strip() == str(tmp_path / "both.pdf")
+    assert err.startswith("td3-jax: warning: these runs trained different environments (")
+    assert "other/" in err and len(err.strip().splitlines()) == 1
 
 
 def test_a_resume_refused_for_an_edited_metrics_jsonl_rewrites_nothing(finished_run, tmp_path,

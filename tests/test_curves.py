@@ -71,11 +71,15 @@ def test_compared_runs_are_named_by_folder_unless_two_share_a_name():
     assert run_labels(runs) == ["runs/a/run", "runs/b/run", "ant", "other"]
 
 
-def test_a_run_given_as_dot_is_named_by_its_folder(tmp_path, monkeypatch):
+def test_a_run_given_as_dot_is_named_by_its_folder_and_a_link_by_its_own_name(
+    tmp_path, monkeypatch
+):
     (tmp_path / "ant-run" / "sub").mkdir(parents=True)
+    (tmp_path / "ant-run" / "latest").symlink_to(tmp_path / "ant-run" / "sub")
     monkeypatch.chdir(tmp_path / "ant-run")
     assert run_labels([Path("."), Path("sub")]) == ["ant-run", "sub"]
     assert run_labels([Path("sub/..")]) == ["ant-run"]
+    assert run_labels([Path("latest"), Path("..")]) == ["latest", tmp_path.name]
 
 
 def test_a_comparison_of_different_environments_is_warned_about(tmp_path):
@@ -85,7 +89,11 @@ def test_a_comparison_of_different_environments_is_warned_about(tmp_path):
     )
     assert mixed_envs_warning([pendulum, pendulum]) is None
     said = mixed_envs_warning([pendulum, ant, pendulum])
-    assert said is not None and "(gymnax/Pendulum-v1, brax/ant)" in said
+    assert said is not None and "(gymnax/Pendulum-v1, brax/ant);" in said
+    unnamed = read_curve(_write_records(tmp_path / "c", [
+        {**_one_member(1, 900.0, 1.0, 1.0), "env": ""}]))  # fmt: skip
+    assert mixed_envs_warning([pendulum, unnamed]) is None
+    assert "(brax/ant, gymnax/Pendulum-v1);" in mixed_envs_warning([ant, unnamed, pendulum])
 
 
 def test_the_images_are_written_in_the_format_their_suffix_names(tmp_path):

@@ -527,6 +527,12 @@ def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
             "names an .npz file but --format is onnx",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(notes)):
             f"--out {notes}: a --format npz policy file ends in .npz (as notes.md.npz)",
+        ("--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path)):
+            f"--out {tmp_path} is a directory: name a file in it, as {tmp_path}/policy.npz",
+        ("--run", str(tiny_run), "--format", "onnx", "--out", "."):
+            "--out . is a directory: name a file in it, as policy.onnx",
+        ("--run", str(tiny_run), "--format", "onnx", "--out", "/"):
+            "--out / is a directory: name a file in it, as /policy.onnx",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(text_npz)):
             "exists and is not a policy td3-jax exported",
         ("--run", str(tiny_run), "--format", "npz", "--out", str(other)):

@@ -980,8 +980,8 @@ def test_a_state_larger_than_memory_is_refused_before_it_is_allocated(tmp_path, 
     with pytest.raises(
         ConfigError,
         match=r"; use fewer --seeds or sweep values \(the run has 3 "
-        r"members, each .*\), smaller --critic-hidden-sizes \(or --hidden-sizes, which sets "
-        r"both\)$",
+        r"members, each .*\), or smaller --critic-hidden-sizes \(or --hidden-sizes, which "
+        r"sets both\)$",
     ):
         sharding.check_memory(state, sharding.make_mesh(1))
 
