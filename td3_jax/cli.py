@@ -78,6 +78,8 @@ subcommands:
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 #: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
 Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]
+#: A flag whose help says its default in words (tyro would add "(default: None)").
+DEFAULT_IN_HELP = tyro.conf.arg(help_behavior_hint="")
 #: The values a sweep tries for one setting (none: the setting is not swept).
 SweptValues = Annotated[tuple[float, ...], tyro.conf.arg(help_behavior_hint="(default: not swept)")]
 
@@ -198,10 +200,10 @@ class ExportCommand:
     format: Annotated[str, tyro.conf.arg(metavar="{onnx,npz}")]
     """onnx (opset 17, needs pip install 'td3-jax[export]') or npz (run it with NumPy alone:
     td3_jax/policy_file.py)."""
-    out: Path | None = None
+    out: Annotated[Path | None, DEFAULT_IN_HELP] = None
     """Output file, ending in .onnx or .npz as --format says (default: RUN/policy.onnx or
     RUN/policy.npz)."""
-    member: int | None = None
+    member: Annotated[int | None, DEFAULT_IN_HELP] = None
     """Member (seed / swept setting) to export, from 0 (default: the best in the checkpoint's
     evaluation in metrics.jsonl; member 0 for a single-seed run)."""
 
@@ -216,7 +218,7 @@ class RenderCommand:
 
     run: Path
     """Run directory written by `td3-jax train`."""
-    out: Path | None = None
+    out: Annotated[Path | None, DEFAULT_IN_HELP] = None
     """Video file, .mp4 or .gif, not one that exists, but the run's own RUN/rollout.mp4 and
     RUN/rollout.gif (the default, with --gif the latter), which a later render replaces."""
     gif: bool = False
@@ -225,10 +227,10 @@ class RenderCommand:
     """Episodes to render, one after another."""
     seed: int = 12345
     """Seed of the evaluation environments (td3-jax eval's default)."""
-    member: int | None = None
+    member: Annotated[int | None, DEFAULT_IN_HELP] = None
     """Member of a multi-seed run or sweep (its index in members.json); default: the highest
     return of the checkpoint's evaluation in metrics.jsonl, as td3-jax export picks."""
-    camera: str | None = None
+    camera: Annotated[str | None, DEFAULT_IN_HELP] = None
     """A camera of the model, by name or index (-1: MuJoCo's free camera); default: a free
     camera tracking the root body."""
     width: int = 320
@@ -247,7 +249,7 @@ class PlotCommand:
     run: Annotated[tuple[Path, ...], tyro.conf.arg(metavar="DIR [DIR ...]")]
     """Run directories written by `td3-jax train` or `td3-jax sweep`: one, or several to
     compare."""
-    out: Path | None = None
+    out: Annotated[Path | None, DEFAULT_IN_HELP] = None
     """Image to write, .png, .pdf or .svg (replaced where it exists); default: RUN/curve.png
     for one run; several runs need it."""
 

@@ -90,7 +90,8 @@ class TrainConfig:
     """Playground locomotion: the task's own domain randomiser draws each environment's physics
     (friction, masses, gains, ...) at every reset."""
     pushes: Literal["default", "on", "off"] = "default"
-    """Playground locomotion: the task's push perturbations on or off (default: the task's)."""
+    """Playground locomotion: the task's push perturbations on or off; 'default' keeps the
+    task's own setting."""
     actor_obs_key: str = "state"
     """Key of a dict observation (Playground locomotion) that the actor acts on."""
     critic_obs_key: str = "privileged_state"

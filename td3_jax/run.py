@@ -501,10 +501,17 @@ def _member_record(run: _Run, i: int, metrics, returns) -> dict[str, Any]:
     return {**entry, "diverged": True} if i in run.diverged else entry
 
 
+#: How a chunk's non-finite mean reward is named: the environment's, not the learner's fault.
+ENV_REWARDS = "rewards from the environment (its step returned NaN or inf)"
+
+
 def _nonfinite(metrics: dict[str, np.ndarray], i: int) -> list[str]:
-    """What is non-finite in member ``i``'s chunk metrics (losses, Q, parameters)."""
+    """What is non-finite in member ``i``'s chunk metrics: the environment's rewards first
+    (a cause, where the rest are its consequences), then losses, Q and parameters."""
+    rewards = metrics.get("reward_mean")
+    env = [ENV_REWARDS] if rewards is not None and not math.isfinite(rewards[i]) else []
     names = [k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])]
-    return names + (["parameters"] if metrics["params_finite"][i] < 1.0 else [])
+    return env + names + (["parameters"] if metrics["params_finite"][i] < 1.0 else [])
 
 
 def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:

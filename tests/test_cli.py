@@ -998,11 +998,15 @@ def test_the_resume_help_and_readme_name_every_setting_a_resume_may_change(capsy
 
 def test_every_help_shows_a_default_for_each_flag_that_has_one(capsys):
     """No entry of any command's help reads "(default: )" (the sweep lists printed their empty
-    tuple as nothing): a list not given says what that means."""
+    tuple as nothing): a list not given says what that means; and no default said in words is
+    followed by a second one ("... RUN/policy.npz). (default: None)")."""
     for command in ("train", "sweep", "eval", "export", "render", "plot", "presets"):
         code, out, _ = main([command, "--help"], capsys)
-        assert code == 0 and "(default:" in out, command
-        assert "(default: )" not in " ".join(out.replace("│", " ").split()), command
+        assert code == 0 and "default" in out, command
+        text = " ".join(out.replace("│", " ").split())
+        assert "(default: )" not in text, command
+        # (a default said in words is not followed by tyro's own "(default: None)")
+        assert not re.search(r"default: [^()]*\)\.? \(default: ", text), command
     assert "Actor learning rates to try. (default: not swept)" in " ".join(
         main(["sweep", "--help"], capsys)[1].replace("│", " ").split()
     )

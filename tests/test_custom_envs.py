@@ -510,6 +510,33 @@ def test_make_train_takes_an_object_and_vmaps_over_seeds():
 
 
 @pytest.mark.runs
+def test_nan_rewards_from_an_environment_are_named_as_its_own(tmp_path):
+    """A step whose reward turns NaN after 40 env steps stops the run naming the environment's
+    rewards first (the losses and values it poisons follow), not the learner alone; the
+    chunk before it is recorded with its finite mean reward."""
+
+    def reset_counted(key):
+        x = jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0)
+        return (x, jnp.zeros((), jnp.int32)), x
+
+    def step_counted(state, action):
+        x, count = state[0] + 0.1 * action, state[1] + 1
+        reward = jnp.where(count > 10, jnp.nan, -jnp.sum(x**2))  # (4 envs: 40 env steps)
+        return (x, count), x, reward, jnp.zeros((), bool)
+
+    env = FunctionalEnv(reset_counted, step_counted, observation_size=2, action_size=2,
+                        episode_length=1000, name="nan-later")  # fmt: skip
+    cfg = TrainConfig(**{**TINY, "eval_every": 32, "total_steps": 96, "warmup_steps": 64})
+    with pytest.raises(errors.NonFiniteError) as info:
+        train(cfg, tmp_path / "run", env=env, progress=False)
+    said = str(info.value)
+    assert said.startswith("non-finite rewards from the environment (its step returned NaN or "
+                           "inf)"), said  # fmt: skip
+    assert "in the chunk ending at env step 64" in said
+    (record,) = read_records(tmp_path / "run")
+    assert record["env_steps"] == 32 and np.isfinite(record["reward_mean"])
+
+
 def test_a_run_of_an_object_records_it_and_resumes_only_with_it(tmp_path, capsys):
     """config.json records ``object/drift``; resuming without the object (CLI or eval) is one
     line saying what to do; with it the run goes on; no traced programs are stored."""
