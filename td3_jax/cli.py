@@ -889,6 +889,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.rundir import interrupted_message, is_sweep_dir
 
     command, cfg, preset_name, source = _parse_train(args, sweeping)
+    if sweeping and command.resume:
+        _check_sweep_to_resume(command.out)
     sweep = _sweep_values(command, args) if sweeping else None
     from td3_jax import envs
 
@@ -944,6 +946,16 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         return
     ranked = sweeping or (command.resume and is_sweep_dir(command.out))  # (also train --resume)
     _print_end(records, cfg, command, time.perf_counter() - started, ranked)
+
+
+def _check_sweep_to_resume(out: Path) -> None:
+    """``td3-jax sweep --resume`` of a run that ``td3-jax train`` started is one line naming
+    the command that resumes it (a sweep's table would rank settings it never swept)."""
+    from td3_jax import rundir
+
+    if (Path(out) / rundir.CONFIG_FILE).exists() and not rundir.is_sweep_dir(out):
+        raise ConfigError(f"{out} holds a run of td3-jax train, not a sweep: resume it with "
+                          f"td3-jax train --out {shlex.quote(str(out))} --resume")  # fmt: skip
 
 
 def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
@@ -1147,17 +1159,26 @@ def render_main(args: list[str]) -> None:
 
 
 def plot_main(args: list[str]) -> None:
-    from td3_jax.curves import draw_curve, mixed_envs_warning, plot_comparison, run_labels
+    from td3_jax.curves import (
+        draw_curve,
+        mixed_envs_warning,
+        no_return_warning,
+        plot_comparison,
+        run_labels,
+    )
 
     command = _parse(PlotCommand, args, "td3-jax plot")
     out = _plot_path(command.run, command.out)
     curves = [_curve_to_plot(run) for run in command.run]
+    warnings = [mixed_envs_warning(curves)]
+    warnings += [
+        no_return_warning(curve, run) for curve, run in zip(curves, command.run, strict=True)
+    ]
+    for warning in filter(None, warnings):
+        print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
     if len(curves) == 1:
         print(draw_curve(curves[0], out))
     else:
-        mixed = mixed_envs_warning(curves)
-        if mixed:
-            print(f"td3-jax: warning: {mixed}", file=sys.stderr, flush=True)
         print(plot_comparison(curves, run_labels(command.run), out))
 
 

@@ -17,6 +17,7 @@ __all__ = [
     "Curve",
     "draw_curve",
     "mixed_envs_warning",
+    "no_return_warning",
     "plot_comparison",
     "plot_curve",
     "read_curve",
@@ -184,6 +185,15 @@ def mixed_envs_warning(curves: Sequence[Curve]) -> str | None:
         return None
     return (f"these runs trained different environments ({', '.join(envs)}); their returns "
             "share one axis")  # fmt: skip
+
+
+def no_return_warning(curve: Curve, run_dir: Path) -> str | None:
+    """A warning when no record of a run has a finite mean return (each is null: a run that
+    diverged, or an environment's NaN rewards): its figure would be empty axes."""
+    if any(math.isfinite(value) for value in curve.mean):
+        return None
+    return (f"{run_dir}: no record has a finite evaluation return (each is null or infinite), "
+            "so its curve is empty")  # fmt: skip
 
 
 def _band_name(curve: Curve) -> str:

@@ -418,12 +418,18 @@ def no_checkpoint_error(out_dir: Path) -> ConfigError:
 
 
 def is_sweep_dir(out_dir: Path) -> bool:
-    """Whether ``out_dir`` holds a sweep's run (its config.json has a :data:`SWEEP` section);
-    False where the file is missing or unreadable."""
+    """Whether ``out_dir`` holds a sweep's run: its config.json has a :data:`SWEEP` section,
+    or (a sweep written before that section) its members.json lists swept values; False where
+    config.json is missing or unreadable."""
     try:
-        return SWEEP in json.loads((Path(out_dir) / CONFIG_FILE).read_text())
+        if SWEEP in json.loads((Path(out_dir) / CONFIG_FILE).read_text()):
+            return True
+        listing = json.loads((Path(out_dir) / MEMBERS_FILE).read_text())
     except (OSError, ValueError, TypeError):
         return False
+    return isinstance(listing, list) and any(
+        isinstance(m, dict) and bool(m.get("overrides")) for m in listing
+    )
 
 
 def resume_command(out_dir: Path) -> str:

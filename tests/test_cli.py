@@ -270,8 +270,8 @@ def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
 def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(tmp_path, capsys):
     """A mistyped preset names the closest presets; a `train --sweep-*` flag points to `td3-jax
     sweep` with the same flags; an environment name that suggests nothing says how names are
-    written instead of listing every one, and a module path without its function says how to
-    name the function."""
+    written instead of listing every one, a module path without its function says how to
+    name the function, and a function named after its module by a dot is given the colon."""
     out = str(tmp_path / "run")
     cases = {
         ("train", "--preset", "pendullum"): "unknown preset 'pendullum'; did you mean pendulum "
@@ -283,6 +283,9 @@ def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(
             "environment is given as module.path:function, a function of td3_jax.envs returning "
             "it (--env td3_jax.envs:FUNCTION), and a known one as SOURCE/NAME (`td3-jax envs` "
             "lists all",
+        ("train", "--env", "td3_jax.envs.make_point"): "unknown environment "
+            "'td3_jax.envs.make_point'; your own environment is given as module.path:function: "
+            "did you mean --env td3_jax.envs:make_point? (`td3-jax envs` lists all",
         ("train", "--env", "xyz"): "unknown environment 'xyz'; names are SOURCE/NAME, SOURCE "
             "one of brax, playground, gymnax (`td3-jax envs` lists all",
         ("train", "--env", "gymnax/zzzzzz"): "unknown environment 'gymnax/zzzzzz'; gymnax has "
@@ -1010,6 +1013,15 @@ def test_every_help_shows_a_default_for_each_flag_that_has_one(capsys):
     assert "Actor learning rates to try. (default: not swept)" in " ".join(
         main(["sweep", "--help"], capsys)[1].replace("│", " ").split()
     )
+
+
+def test_a_sweep_resume_of_a_train_run_names_the_train_resume(finished_run, tmp_path, capsys):
+    run_dir = _copy_run(finished_run, tmp_path)
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    code, _, err = main(["sweep", "--out", str(run_dir), "--resume"], capsys)
+    assert_one_line_error(code, err, f"{run_dir} holds a run of td3-jax train, not a sweep: "
+                          f"resume it with td3-jax train --out {run_dir} --resume")  # fmt: skip
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
 
 
 def test_a_resume_shorter_than_a_stopped_run_says_it_is_not_complete(finished_run, tmp_path,

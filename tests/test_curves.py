@@ -10,6 +10,7 @@ import pytest
 
 from td3_jax.curves import (
     mixed_envs_warning,
+    no_return_warning,
     plot_comparison,
     plot_curve,
     read_curve,
@@ -104,3 +105,18 @@ def test_the_images_are_written_in_the_format_their_suffix_names(tmp_path):
     path = plot_comparison(curves, ["a", "b"], tmp_path / "both.pdf")
     assert path.read_bytes()[:5] == b"%PDF-"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "one", "one.svg"]
+
+
+def test_a_run_without_a_finite_return_is_warned_about(tmp_path):
+    """Every record null (JSON's NaN) or infinite: its figure would be empty axes."""
+    records = [_one_member(1, -1.0, 0.0, 1.0), _one_member(2, -1.0, 0.0, 2.0)]
+    records[0]["eval_return_mean"], records[1]["eval_return_mean"] = None, float("-inf")
+    run = _write_records(tmp_path / "nan", records)
+    said = no_return_warning(read_curve(run), run)
+    assert (
+        said == f"{run}: no record has a finite evaluation return (each is null or "
+        "infinite), so its curve is empty"
+    )
+    records[1]["eval_return_mean"] = -3.0
+    finite = _write_records(tmp_path / "one", records)
+    assert no_return_warning(read_curve(finite), finite) is None

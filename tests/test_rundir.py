@@ -1007,3 +1007,29 @@ def test_a_file_system_that_refuses_locks_is_one_line_for_starting_and_probing(
         assert str(caught.value).endswith("use a run directory on a local disk")
     # eval, render and export of a run without a checkpoint only read it: no lock needed
     assert "holds no checkpoint (its run stopped" in str(rundir.no_checkpoint_error(tmp_path))
+
+
+def test_a_sweep_directory_is_told_by_its_sweep_section_or_its_swept_members(tmp_path):
+    """config.json's sweep section, or (older sweeps) a members.json with swept values, makes a
+    sweep; seeds alone, or no readable config.json, do not."""
+    cases = {
+        "section": ({"env": "e", "sweep": {"settings": ["tau"]}}, None, True),
+        "old-sweep": ({"env": "e"}, [{"seed": 0, "overrides": {"tau": 0.1}}], True),
+        "seeds": (
+            {"env": "e"},
+            [{"seed": 0, "overrides": {}}, {"seed": 1, "overrides": {}}],
+            False,
+        ),
+        "one-run": ({"env": "e"}, None, False),
+        "bad-members": ({"env": "e"}, "{oops", False),
+        "no-config": (None, [{"seed": 0, "overrides": {"tau": 0.1}}], False),
+    }
+    for name, (config, listing, sweep) in cases.items():
+        run = tmp_path / name
+        run.mkdir()
+        if config is not None:
+            (run / rundir.CONFIG_FILE).write_text(json.dumps(config))
+        if listing is not None:
+            text = listing if isinstance(listing, str) else json.dumps(listing)
+            (run / rundir.MEMBERS_FILE).write_text(text)
+        assert rundir.is_sweep_dir(run) == sweep, name

@@ -74,6 +74,11 @@ def _unknown_message(name: str, source: str) -> str:
     if guesses:
         return f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? ({every})"
     if "/" not in name and "." in name:  # a module path without its function
+        module, _, function = name.rpartition(".")
+        if not _module_exists(name) and _module_exists(module):  # (the last dot meant ':')
+            return (f"unknown environment {name!r}; your own environment is given as "
+                    f"module.path:function: did you mean --env {module}:{function}? "
+                    f"({every})")  # fmt: skip
         return (f"unknown environment {name!r}; your own environment is given as "
                 f"module.path:function, a function of {name} returning it "
                 f"(--env {name}:FUNCTION), and a known one as SOURCE/NAME ({every})")  # fmt: skip
@@ -84,6 +89,17 @@ def _unknown_message(name: str, source: str) -> str:
         return f"unknown environment {name!r}{hint}; {every}"
     return (f"unknown environment {name!r}; names are SOURCE/NAME, SOURCE one of "
             f"{', '.join(_SOURCES)} ({every})")  # fmt: skip
+
+
+def _module_exists(module: str) -> bool:
+    """Whether ``module`` can be imported from here (found, not imported: a dotted name's
+    parent packages are)."""
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
 
 
 def known_names() -> list[str]:
