@@ -470,7 +470,10 @@ def config_changes(
 ) -> dict[str, list]:
     """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other,
     naming what the run used: a setting ``population``'s members override as their values
-    (``--sweep-tau 0.01 0.02``), not ``saved``'s, which they override."""
+    (``--sweep-tau 0.01 0.02``), not ``saved``'s, which they override; a run of an object
+    resumed without one says to pass the object again."""
+    if saved.env.startswith(custom.OBJECT_PREFIX) and not cfg.env.startswith(custom.OBJECT_PREFIX):
+        raise custom.object_run_error(saved.env)  # (a resume without the object: env= left out)
     changes, safe = {}, _safe_on_resume(saved)
     swept = swept_values(population)
     for field in dataclasses.fields(TrainConfig):

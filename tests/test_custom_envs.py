@@ -549,6 +549,12 @@ def test_a_run_of_an_object_records_it_and_resumes_only_with_it(tmp_path, capsys
                  ["eval", "--run", str(out)]):  # fmt: skip
         code, _, err = main(args, capsys)
         assert_one_line_error(code, err, "object/drift was handed to td3-jax as a Python object")
+    with pytest.raises(
+        errors.CustomEnvironmentError,
+        match=r"^object/drift was handed to "
+        r"td3-jax as a Python object.*: pass the object again \(env=obj",
+    ):
+        train(dataclasses.replace(cfg, total_steps=64), out, resume=True, progress=False)
     records = train(dataclasses.replace(cfg, total_steps=64), out, env=drift(limit=8),
                     resume=True, progress=False)  # fmt: skip
     assert [r["env_steps"] for r in records] == [64] and records[0]["env"] == "object/drift"
