@@ -1138,7 +1138,16 @@ def export_main(args: list[str]) -> None:
     command = _parse(ExportCommand, args, "td3-jax export")
     path, policy = export_run(command.run, command.format, command.out, command.member)
     print(path)
-    print(summary(policy))
+    print(summary(policy, _member_label(command.run, policy.member)))
+
+
+def _member_label(run_dir: Path, member: int) -> str:
+    """Member ``member``'s seed and swept values (``actor_lr=0.001 seed=1``) in a run of
+    several members; empty for a run of one."""
+    from td3_jax import rundir
+
+    population = rundir.load_members(run_dir, rundir.load_config(run_dir))
+    return population[member].label() if len(population) > 1 else ""
 
 
 def render_main(args: list[str]) -> None:

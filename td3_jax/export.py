@@ -526,11 +526,13 @@ def _network_summary(policy: PolicyArrays) -> str:
     return ", layer norm" if policy.layer_norm else ""
 
 
-def summary(policy: PolicyArrays) -> str:
-    """One line: environment, member, sizes, action bounds and what is not the default (layer
-    norm, a residual actor, normalised observations)."""
+def summary(policy: PolicyArrays, label: str = "") -> str:
+    """One line: environment, member (and its ``label``: seed and swept values), sizes, action
+    bounds and what is not the default (layer norm, a residual actor, normalised
+    observations)."""
+    member = f"{policy.member} ({label})" if label else f"{policy.member}"
     return (
-        f"{policy.env} member {policy.member} at {policy.env_steps} env steps: "
+        f"{policy.env} member {member} at {policy.env_steps} env steps: "
         f"obs {policy.observation_size} -> action {policy.action_size} in "
         f"[{_bounds(policy.action_low)}, {_bounds(policy.action_high)}]"
         f"{_network_summary(policy)}"

@@ -451,18 +451,20 @@ def test_cli_exports_the_best_member(tiny_run, tmp_path, capsys):
     returns = [m["eval_return_mean"] for m in records[-1]["per_member"]]
     best = int(np.argmax(returns))
     cli.main(["export", "--run", str(tiny_run), "--format", "onnx"])
-    cli.main(["export", "--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "x")])
+    cli.main(
+        ["export", "--run", str(tiny_run), "--format", "npz", "--out", str(tmp_path / "x.npz")]
+    )
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == str(tiny_run / "policy.onnx") and lines[2] == str(tmp_path / "x")
-    assert lines[1] == (f"gymnax/Pendulum-v1 member {best} at 64 env steps: obs 3 -> action 1 "
-                        "in [-2, 2], normalised observations")  # fmt: skip
+    assert lines[0] == str(tiny_run / "policy.onnx") and lines[2] == str(tmp_path / "x.npz")
+    assert lines[1] == (f"gymnax/Pendulum-v1 member {best} (seed={3 + best}) at 64 env steps: "
+                        "obs 3 -> action 1 in [-2, 2], normalised observations")  # fmt: skip
     _, program, state, _ = export.restore_checkpoint(tiny_run)
     stats = jax.tree.map(lambda x: x[best], state.obs_stats)
     assert float(stats.count) > 0 and not np.allclose(stats.mean, 0.0)
     params = jax.tree.map(lambda x: x[best], state.agent.actor_params)
     obs = random_rows(3, stats)
     want = np.asarray(jax_policy(program.env, program.spec.agent.actor, params, stats)(obs))
-    check_same("cli npz", policy_file.load(tmp_path / "x")(obs), want)
+    check_same("cli npz", policy_file.load(tmp_path / "x.npz")(obs), want)
     check_same("cli onnx", onnx_actions(tiny_run / "policy.onnx", obs), want)
     assert np.all(np.abs(want) <= 2.0)
 
@@ -471,7 +473,7 @@ def test_cli_member_flag(tiny_run, tmp_path, capsys):
     out = tmp_path / "m1.npz"
     cli.main(["export", "--run", str(tiny_run), "--format", "npz", "--member", "1", "--out",
               str(out)])  # fmt: skip
-    assert "member 1 at 64 env steps" in capsys.readouterr().out
+    assert "member 1 (seed=4) at 64 env steps" in capsys.readouterr().out
     assert int(policy_file.load(out).arrays["member"]) == 1
     # With --member the records are not read: a damaged metrics.jsonl does not stop it (it
     # does where they choose the best member).
@@ -481,7 +483,7 @@ def test_cli_member_flag(tiny_run, tmp_path, capsys):
     (damaged / "metrics.jsonl").write_text("\n".join([lines[0][:20], *lines]) + "\n")
     cli.main(["export", "--run", str(damaged), "--format", "npz", "--member", "1", "--out",
               str(tmp_path / "m1-again.npz")])  # fmt: skip
-    assert "member 1 at 64 env steps" in capsys.readouterr().out
+    assert "member 1 (seed=4) at 64 env steps" in capsys.readouterr().out
     code, err = cli_error(capsys, "export", "--run", str(damaged), "--format", "npz")
     assert code == 2 and "metrics.jsonl is not a JSON record" in err, err
 
