@@ -115,7 +115,8 @@ class TrainCommand(TrainConfig):
     quiet: bool = False
     """No progress display (a live bar on a terminal, else one line per evaluation)."""
     time_budget_s: float | None = None
-    """Stop after the first chunk that ends past this wall-clock budget (compile included)."""
+    """Stop after the first chunk that ends past this wall-clock budget (compile included):
+    checkpointed, exit status 0, and a last line naming the --resume that continues it."""
     devices: int | None = None
     """Data-parallel over this many devices (default: all); num_envs and batch stay global."""
     coordinator_address: str | None = None
