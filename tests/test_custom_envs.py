@@ -115,6 +115,8 @@ BAD = {
     "inverted bounds": (dict(action_low=1.0, action_high=0.0), "must be below action_high"),
     "bounds' shape": (dict(action_low=[0.0, 0.0, 0.0]), "action_low has shape (3,)"),
     "missing attribute": (dict(step=lambda x, a: (x, x.obs, 0.0, False)), "AttributeError"),
+    "action size": (dict(action_size=3), "step(state, action) with an action of float32[3] "
+                    "(action_size) failed when traced: TypeError: add got incompatible shapes"),
 }  # fmt: skip
 
 

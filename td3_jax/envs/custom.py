@@ -437,7 +437,8 @@ def check_environment(env: Environment) -> Environment:
     state, row = reset
     _check_observation(env, "reset(key)", row)
     action = jax.ShapeDtypeStruct((env.action_size,), jnp.float32)
-    stepped = _traced(env.name, "step(state, action)", env.step_fn, state, action, key)
+    given = f"step(state, action) with an action of float32[{env.action_size}] (action_size)"
+    stepped = _traced(env.name, given, env.step_fn, state, action, key)
     if not (isinstance(stepped, tuple) and len(stepped) == 4):
         raise CustomEnvironmentError(f"{env.name}: step(state, action) must return (state, "
                                      "observation, reward, terminated), got "
