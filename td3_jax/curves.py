@@ -35,7 +35,8 @@ class Curve(NamedTuple):
     ``wall``: seconds from launch when the record was written; ``mean``: the mean return (over
     episodes for one run, over members for several); ``lower``/``upper``: the band drawn around
     it (mean ± std over episodes, or the 95% bootstrap CI over members); ``members``: each
-    member's mean return per point (empty for a run of one member).
+    member's mean return per point (empty for a run of one member); ``swept``: each member's
+    swept values as ``actor_lr=0.001`` (empty strings for seeds alone).
     """
 
     env: str
@@ -47,6 +48,7 @@ class Curve(NamedTuple):
     band: str
     members: list[list[float]]
     policy_steps: bool
+    swept: tuple[str, ...] = ()
 
 
 def _number(value: Any) -> float:
@@ -85,25 +87,42 @@ def read_curve(run_dir: Path) -> Curve | None:
         members = [[_number(r["per_member"][i]["eval_return_mean"]) for r in records]
                    for i in range(count)]  # fmt: skip
         band = "mean over members, 95% bootstrap CI"
+        swept = tuple(" ".join(f"{k}={v:g}" for k, v in sorted(m.get("settings", {}).items()))
+                      for m in records[-1]["per_member"])  # fmt: skip
     else:
         std = [_number(r["eval_return_std"]) for r in records]
         lower = [m - d for m, d in zip(mean, std, strict=True)]
         upper = [m + d for m, d in zip(mean, std, strict=True)]
-        members, band = [], "mean ± std over episodes"
+        members, band, swept = [], "mean ± std over episodes", ()
     return Curve(
         env=str(records[-1].get("env", "")), steps=[evaluated_steps(r) for r in records],
         wall=[_number(r["wall_time_s"]) for r in records], mean=mean, lower=lower, upper=upper,
         band=band, members=members, policy_steps="eval_policy_env_steps" in records[-1],
+        swept=swept,
     )  # fmt: skip
 
 
-def _draw(axes: Sequence[Any], curve: Curve, label: str | None, color: Any) -> None:
+def _draw_members(ax: Any, x: list, curve: Curve, colors: Sequence[Any]) -> None:
+    """A run's members as thin lines; a sweep's coloured and named by their swept values (one
+    legend entry a setting, its seeds sharing the colour)."""
+    settings = list(dict.fromkeys(curve.swept)) if any(curve.swept) else []
+    for i, member in enumerate(curve.members):
+        if not settings:
+            ax.plot(x, member, lw=0.8, alpha=0.45)
+            continue
+        k = settings.index(curve.swept[i])
+        first = curve.swept.index(curve.swept[i]) == i
+        ax.plot(x, member, lw=0.9, alpha=0.6, color=colors[k % len(colors)],
+                label=curve.swept[i] if first else None)  # fmt: skip
+
+
+def _draw(axes: Sequence[Any], curve: Curve, label: str | None, color: Any,
+          colors: Sequence[Any] = ()) -> None:  # fmt: skip
     """``curve`` on both axes (env steps, wall-clock): its members thin, its mean with a
     marker, its band shaded; ``label`` names it in a comparison (else the band does)."""
     for ax, x in zip(axes, (curve.steps, curve.wall), strict=True):
         if label is None:  # (a comparison draws only each run's mean and band)
-            for member in curve.members:
-                ax.plot(x, member, lw=0.8, alpha=0.45)
+            _draw_members(ax, x, curve, colors or [color])
         ax.plot(x, curve.mean, marker="o", ms=3, label=label or curve.band,
                 color=color if label or not curve.members else "black")  # fmt: skip
         ax.fill_between(x, curve.lower, curve.upper, alpha=0.2 if label else 0.25,
@@ -121,7 +140,7 @@ def _save(labelled: Sequence[tuple[Curve, str | None]], path: Path, title: str) 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for index, (curve, label) in enumerate(labelled):
-        _draw(axes, curve, label, colors[index % len(colors)])
+        _draw(axes, curve, label, colors[index % len(colors)], colors)
     in_chunk = any(curve.policy_steps for curve, _ in labelled)
     step_label = "environment steps of the evaluated policy" if in_chunk else "environment steps"
     for ax, x_label in zip(axes, (step_label, "wall-clock (s)"), strict=True):

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from td3_jax.curves import (
+    _draw_members,
     mixed_envs_warning,
     no_return_warning,
     plot_comparison,
@@ -57,6 +58,48 @@ def test_a_run_of_several_members_keeps_each_member_and_the_ci_band(tmp_path):
     assert curve.members == [[1.0, 3.0], [2.0, 4.0]]
     assert curve.lower == [0.5, 2.5] and curve.upper == [3.5, 5.5]
     assert curve.steps == [10, 20] and not curve.policy_steps
+    assert curve.swept == ("", "")  # (seeds alone: no swept values)
+
+
+class _Axes:
+    """Records what is drawn on it: each line's y values, colour and legend label."""
+
+    def __init__(self):
+        self.lines = []
+
+    def plot(self, x, y, **style):
+        self.lines.append((list(y), style.get("color"), style.get("label")))
+
+
+def test_a_sweeps_members_are_coloured_and_named_by_their_swept_values(tmp_path):
+    """Two learning rates x two seeds: the seeds of one rate share a colour, and each rate is
+    named once in the legend; a run of seeds alone keeps its unnamed member lines."""
+    settings = [
+        {"actor_lr": 0.001},
+        {"actor_lr": 0.001},
+        {"actor_lr": 0.0003},
+        {"actor_lr": 0.0003},
+    ]
+    members = [{"eval_return_mean": float(i), "seed": i % 2, "settings": settings[i]}
+               for i in range(4)]  # fmt: skip
+    record = {
+        "env": "e",
+        "env_steps": 10,
+        "wall_time_s": 1.0,
+        "eval_return_mean": 1.5,
+        "eval_return_ci95_low": 0.0,
+        "eval_return_ci95_high": 3.0,
+        "per_member": members,
+    }
+    curve = read_curve(_write_records(tmp_path / "sweep", [record]))  # fmt: skip
+    assert curve.swept == ("actor_lr=0.001",) * 2 + ("actor_lr=0.0003",) * 2
+    ax = _Axes()
+    _draw_members(ax, curve.steps, curve, ["red", "blue"])
+    assert ax.lines == [([0.0], "red", "actor_lr=0.001"), ([1.0], "red", None),
+                        ([2.0], "blue", "actor_lr=0.0003"), ([3.0], "blue", None)]  # fmt: skip
+    ax = _Axes()
+    _draw_members(ax, curve.steps, curve._replace(swept=("", "", "", "")), ["red"])
+    assert [line[1:] for line in ax.lines] == [(None, None)] * 4
 
 
 def test_no_record_is_no_curve_and_an_edited_record_is_named(tmp_path):
