@@ -281,6 +281,31 @@ def test_a_factory_is_found_from_the_current_directory_or_said_in_one_line(
     assert needle in str(caught.value) and "\n" not in str(caught.value)
 
 
+def test_a_factory_importing_mjx_in_its_body_does_not_print_its_warp_notes(
+    tmp_path, monkeypatch, capsys
+):
+    """MJX's "Failed to import warp" lines, printed when a factory's body imports Brax where
+    Warp is not installed, are dropped as they are for td3-jax's own imports; the factory's
+    other output stays."""
+    (tmp_path / "noisy_factories.py").write_text(textwrap.dedent("""
+        import jax.numpy as jnp
+        from td3_jax.envs import FunctionalEnv
+
+        def make():
+            print("Failed to import warp: No module named 'warp'")
+            print("building a still world")
+            print("Failed to import mujoco_warp: No module named 'warp'")
+            still = lambda x, a: (x, x, -jnp.sum(x**2), jnp.zeros((), bool))
+            return FunctionalEnv(lambda key: (jnp.zeros(2), jnp.zeros(2)), still,
+                                 observation_size=2, action_size=2)
+        """))  # fmt: skip
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "noisy_factories", raising=False)
+    made = envs.make("noisy_factories:make")
+    assert made.observation_size == 2
+    assert capsys.readouterr().out == "building a still world\n"
+
+
 TYPO_FACTORIES = """
 import json
 

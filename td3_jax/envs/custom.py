@@ -184,7 +184,8 @@ def load_factory(spec: str) -> Any:
         raise CustomEnvironmentError(f"{spec} is not callable ({type(factory).__name__}): "
                                      "td3-jax calls it with no arguments")  # fmt: skip
     try:
-        return factory()
+        with without_warp_import_notes():  # (a factory importing Brax or MJX in its body)
+            return factory()
     except Exception as err:
         raise CustomEnvironmentError(f"{spec}: calling it raised {_one_line(err)}") from err
 
