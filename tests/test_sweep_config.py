@@ -54,4 +54,8 @@ def test_a_sweeps_config_json_is_each_members_values_through_resume_eval_and_exp
     policy = tmp_path / "member2.npz"
     code, stdout, err = main(["export", "--run", str(out), "--format", "npz", "--member", "2",
                               "--out", str(policy)], capsys)  # fmt: skip
-    assert code == 0 and policy.is_file() and "member 2 at 192 env steps" in stdout, err
+    assert (
+        code == 0
+        and policy.is_file()
+        and "member 2 (actor_lr=0.001 tau=0.01 seed=7) at 192 env steps" in stdout
+    ), err
