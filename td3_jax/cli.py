@@ -78,8 +78,14 @@ subcommands:
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 #: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
 Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]
-#: A flag whose help says its default in words (tyro would add "(default: None)").
-DEFAULT_IN_HELP = tyro.conf.arg(help_behavior_hint="")
+
+
+def default_in_help(metavar: str) -> Any:
+    """A flag whose help says its default in words: no "(default: None)" from tyro, and
+    ``metavar`` instead of ``{None}|PATH``."""
+    return tyro.conf.arg(metavar=metavar, help_behavior_hint="")
+
+
 #: The values a sweep tries for one setting (none: the setting is not swept).
 SweptValues = Annotated[tuple[float, ...], tyro.conf.arg(help_behavior_hint="(default: not swept)")]
 
@@ -201,10 +207,10 @@ class ExportCommand:
     format: Annotated[str, tyro.conf.arg(metavar="{onnx,npz}")]
     """onnx (opset 17, needs pip install 'td3-jax[export]') or npz (run it with NumPy alone:
     td3_jax/policy_file.py)."""
-    out: Annotated[Path | None, DEFAULT_IN_HELP] = None
+    out: Annotated[Path | None, default_in_help("PATH")] = None
     """Output file, ending in .onnx or .npz as --format says (default: RUN/policy.onnx or
     RUN/policy.npz)."""
-    member: Annotated[int | None, DEFAULT_IN_HELP] = None
+    member: Annotated[int | None, default_in_help("INT")] = None
     """Member (seed / swept setting) to export, from 0 (default: the best in the checkpoint's
     evaluation in metrics.jsonl; member 0 for a single-seed run)."""
 
@@ -219,7 +225,7 @@ class RenderCommand:
 
     run: Path
     """Run directory written by `td3-jax train`."""
-    out: Annotated[Path | None, DEFAULT_IN_HELP] = None
+    out: Annotated[Path | None, default_in_help("PATH")] = None
     """Video file, .mp4 or .gif, not one that exists, but the run's own RUN/rollout.mp4 and
     RUN/rollout.gif (the default, with --gif the latter), which a later render replaces."""
     gif: bool = False
@@ -228,10 +234,10 @@ class RenderCommand:
     """Episodes to render, one after another."""
     seed: int = 12345
     """Seed of the evaluation environments (td3-jax eval's default)."""
-    member: Annotated[int | None, DEFAULT_IN_HELP] = None
+    member: Annotated[int | None, default_in_help("INT")] = None
     """Member of a multi-seed run or sweep (its index in members.json); default: the highest
     return of the checkpoint's evaluation in metrics.jsonl, as td3-jax export picks."""
-    camera: Annotated[str | None, DEFAULT_IN_HELP] = None
+    camera: Annotated[str | None, default_in_help("NAME|INDEX")] = None
     """A camera of the model, by name or index (-1: MuJoCo's free camera); default: a free
     camera tracking the root body."""
     width: int = 320
@@ -250,7 +256,7 @@ class PlotCommand:
     run: Annotated[tuple[Path, ...], tyro.conf.arg(metavar="DIR [DIR ...]")]
     """Run directories written by `td3-jax train` or `td3-jax sweep`: one, or several to
     compare."""
-    out: Annotated[Path | None, DEFAULT_IN_HELP] = None
+    out: Annotated[Path | None, default_in_help("PATH")] = None
     """Image to write, .png, .pdf or .svg (replaced where it exists); default: RUN/curve.png
     for one run; several runs need it."""
 
@@ -882,6 +888,8 @@ def _parse_train(args: list[str], sweeping: bool) -> tuple[Any, TrainConfig, str
     cfg = TrainConfig(**{f.name: getattr(command, f.name) for f in dataclasses.fields(TrainConfig)})
     idle_wandb_flags(cfg, _given_fields(args))
     _check_process_flags(command)
+    if sweeping and command.resume:
+        _check_sweep_to_resume(command.out)
     return command, cfg, preset_name, source
 
 
@@ -890,8 +898,6 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax.rundir import interrupted_message, is_sweep_dir
 
     command, cfg, preset_name, source = _parse_train(args, sweeping)
-    if sweeping and command.resume:
-        _check_sweep_to_resume(command.out)
     sweep = _sweep_values(command, args) if sweeping else None
     from td3_jax import envs
 
@@ -993,9 +999,10 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
     print(done_line(records[-1], command.out, process_s, resumed_at, pooled,
                     word="stopped" if early else "done"))  # fmt: skip
     if early:
-        out = shlex.quote(str(command.out))
+        from td3_jax.rundir import resume_command
+
         print(f"stopped by --time-budget-s {command.time_budget_s:g} at {taken:,} of "
-              f"{cfg.run_steps:,} env steps; td3-jax train --out {out} --resume "
+              f"{cfg.run_steps:,} env steps; {resume_command(command.out)} "
               "continues it")  # fmt: skip
     if sweeping and "per_member" in records[-1]:
         print_sweep_ranking(records[-1])

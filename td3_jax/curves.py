@@ -56,6 +56,14 @@ def _number(value: Any) -> float:
     return math.nan if value is None else float(value)
 
 
+def _swept_text(member: Any) -> str:
+    """A per-member record's swept values as ``actor_lr=0.001 tau=0.01`` (a hand-edited value
+    that is not a number shown as it is)."""
+    settings = member.get("settings") if isinstance(member, dict) else None
+    items = sorted(settings.items()) if isinstance(settings, dict) else []
+    return " ".join(f"{k}={v:g}" if isinstance(v, int | float) else f"{k}={v}" for k, v in items)
+
+
 def _check_plottable(records: list, path: Path, band_keys: tuple[str, ...]) -> None:
     """A one-line ConfigError for a record of ``path`` that is not an object holding what the
     curve draws (env steps, time, the mean return and ``band_keys``): a hand-edited file."""
@@ -87,8 +95,7 @@ def read_curve(run_dir: Path) -> Curve | None:
         members = [[_number(r["per_member"][i]["eval_return_mean"]) for r in records]
                    for i in range(count)]  # fmt: skip
         band = "mean over members, 95% bootstrap CI"
-        swept = tuple(" ".join(f"{k}={v:g}" for k, v in sorted(m.get("settings", {}).items()))
-                      for m in records[-1]["per_member"])  # fmt: skip
+        swept = tuple(_swept_text(m) for m in records[-1]["per_member"])
     else:
         std = [_number(r["eval_return_std"]) for r in records]
         lower = [m - d for m, d in zip(mean, std, strict=True)]

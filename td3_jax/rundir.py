@@ -23,6 +23,7 @@ import errno
 import fcntl
 import json
 import os
+import shlex
 import socket
 import time
 import types
@@ -434,8 +435,9 @@ def is_sweep_dir(out_dir: Path) -> bool:
 
 def resume_command(out_dir: Path) -> str:
     """``td3-jax sweep --out OUT --resume`` for a sweep's directory (:func:`is_sweep_dir`; it
-    then ends with the sweep's ranking), else ``td3-jax train``'s."""
-    return f"td3-jax {'sweep' if is_sweep_dir(out_dir) else 'train'} --out {out_dir} --resume"
+    then ends with the sweep's ranking), else ``td3-jax train``'s; OUT quoted for a shell."""
+    command = "sweep" if is_sweep_dir(out_dir) else "train"
+    return f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume"
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:

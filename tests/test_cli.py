@@ -267,7 +267,9 @@ def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
         assert name in err
 
 
-def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(tmp_path, capsys):
+def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(
+    tmp_path, capsys, monkeypatch
+):
     """A mistyped preset names the closest presets; a `train --sweep-*` flag points to `td3-jax
     sweep` with the same flags; an environment name that suggests nothing says how names are
     written instead of listing every one, a module path without its function says how to
@@ -286,16 +288,30 @@ def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(
         ("train", "--env", "td3_jax.envs.make_point"): "unknown environment "
             "'td3_jax.envs.make_point'; your own environment is given as module.path:function: "
             "did you mean --env td3_jax.envs:make_point? (`td3-jax envs` lists all",
+        ("train", "--env", "my_env_here.make"): "unknown environment 'my_env_here.make'; your "
+            "own environment is given as module.path:function: did you mean --env "
+            "my_env_here:make? (`td3-jax envs` lists all",
+        ("train", "--env", "broken_pkg_here.envs.make"): "unknown environment "
+            "'broken_pkg_here.envs.make'; your own environment is given as module.path:function, "
+            "a function of broken_pkg_here.envs.make returning it",
+        ("train", "--env", "brax.ant"): "unknown environment 'brax.ant'; did you mean brax/ant? "
+            "(`td3-jax envs` lists all",
         ("train", "--env", "xyz"): "unknown environment 'xyz'; names are SOURCE/NAME, SOURCE "
             "one of brax, playground, gymnax (`td3-jax envs` lists all",
         ("train", "--env", "gymnax/zzzzzz"): "unknown environment 'gymnax/zzzzzz'; gymnax has "
             "Pendulum-v1, MountainCarContinuous-v0 (`td3-jax envs` lists all",
     }  # fmt: skip
+    (tmp_path / "my_env_here.py").write_text("def make():\n    return None\n")
+    (tmp_path / "broken_pkg_here").mkdir()
+    (tmp_path / "broken_pkg_here" / "__init__.py").write_text("raise RuntimeError('no')\n")
+    monkeypatch.chdir(tmp_path)  # (the current directory, where a factory is looked for too)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
     for args, message in cases.items():
         code, stdout, err = main([*args, "--out", out], capsys)
         assert_one_line_error(code, err)
         assert err.strip().startswith(f"td3-jax: error: {message}"), err
-        assert stdout == "" and "brax/ant" not in err
+        assert stdout == "" and ("brax/ant" not in err or args[2] == "brax.ant")
+    assert str(tmp_path) not in sys.path  # (looked in, not left on the path)
     assert not (tmp_path / "run").exists()
 
 
@@ -1005,11 +1021,13 @@ def test_every_help_shows_a_default_for_each_flag_that_has_one(capsys):
     followed by a second one ("... RUN/policy.npz). (default: None)")."""
     for command in ("train", "sweep", "eval", "export", "render", "plot", "presets"):
         code, out, _ = main([command, "--help"], capsys)
-        assert code == 0 and "default" in out, command
+        assert code == 0 and "default" in out, command  # (plot's only default is in words)
         text = " ".join(out.replace("│", " ").split())
         assert "(default: )" not in text, command
         # (a default said in words is not followed by tyro's own "(default: None)")
         assert not re.search(r"default: [^()]*\)\.? \(default: ", text), command
+        if command in ("export", "render", "plot"):  # (each of their defaults is in words)
+            assert "(default: None)" not in text and "{None}" not in text, command
     assert "Actor learning rates to try. (default: not swept)" in " ".join(
         main(["sweep", "--help"], capsys)[1].replace("│", " ").split()
     )

@@ -306,6 +306,29 @@ def test_a_factory_importing_mjx_in_its_body_does_not_print_its_warp_notes(
     assert capsys.readouterr().out == "building a still world\n"
 
 
+def test_the_warp_notes_filter_passes_each_other_line_as_it_ends(monkeypatch):
+    """A line reaches standard output as soon as its newline is written (a slow factory's
+    progress shows), a note is dropped even when written in pieces, and a last line without
+    its newline is kept; without a standard output nothing is filtered or raised."""
+    import io
+
+    from td3_jax.envs.physics import without_warp_import_notes
+
+    out = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", out)
+    with without_warp_import_notes():
+        print("step 1 of 2")
+        assert out.getvalue() == "step 1 of 2\n"
+        sys.stdout.write("Failed to import ")
+        sys.stdout.write("warp: No module named 'warp'\nstep 2")
+        assert out.getvalue() == "step 1 of 2\n"
+        sys.stdout.write(" of 2\ndone")
+    assert out.getvalue() == "step 1 of 2\nstep 2 of 2\ndone"
+    monkeypatch.setattr(sys, "stdout", None)
+    with without_warp_import_notes():
+        pass
+
+
 TYPO_FACTORIES = """
 import json
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import os
+import sys
 from typing import Any
 
 from td3_jax.envs import brax as _brax
@@ -39,6 +41,7 @@ from td3_jax.envs.custom import (
     object_label,
 )
 from td3_jax.envs.menagerie import MissingAssetsError, candidates, first_holding, robot
+from td3_jax.envs.physics import without_warp_import_notes
 from td3_jax.errors import CustomEnvironmentError, UnknownEnvironmentError
 
 #: Each source module has ``names() -> list[str]`` and
@@ -75,7 +78,9 @@ def _unknown_message(name: str, source: str) -> str:
         return f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? ({every})"
     if "/" not in name and "." in name:  # a module path without its function
         module, _, function = name.rpartition(".")
-        if not _module_exists(name) and _module_exists(module):  # (the last dot meant ':')
+        if module in _SOURCES:  # (brax.ant: a known one's slash typed as a dot)
+            return f"unknown environment {name!r}; did you mean {module}/{function}? ({every})"
+        if function.isidentifier() and not _module_exists(name) and _module_exists(module):
             return (f"unknown environment {name!r}; your own environment is given as "
                     f"module.path:function: did you mean --env {module}:{function}? "
                     f"({every})")  # fmt: skip
@@ -92,14 +97,20 @@ def _unknown_message(name: str, source: str) -> str:
 
 
 def _module_exists(module: str) -> bool:
-    """Whether ``module`` can be imported from here (found, not imported: a dotted name's
-    parent packages are)."""
+    """Whether ``module`` can be imported from here, the current directory included as a
+    factory's import has it (found, not imported; a dotted name's parent packages are, and
+    anything they raise counts as not found)."""
     import importlib.util
 
+    path = [*sys.path, os.getcwd()] if "" not in sys.path else sys.path
+    saved, sys.path[:] = list(sys.path), path
     try:
-        return importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):
+        with without_warp_import_notes():
+            return importlib.util.find_spec(module) is not None
+    except Exception:  # (a parent package that fails on import)
         return False
+    finally:
+        sys.path[:] = saved
 
 
 def known_names() -> list[str]:

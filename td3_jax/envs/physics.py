@@ -114,18 +114,40 @@ def contact_capacity(task_naconmax: int, worlds: int, per_world: int | None) -> 
 WARP_IMPORT_NOTES = ("Failed to import warp:", "Failed to import mujoco_warp:")
 
 
+class _WithoutNotes(io.TextIOBase):
+    """A text stream that passes each line written to ``stream`` as soon as it ends, less the
+    lines starting with :data:`WARP_IMPORT_NOTES`."""
+
+    def __init__(self, stream: Any):
+        self.stream, self.pending = stream, ""
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, text: str) -> int:
+        lines = (self.pending + text).splitlines(True)
+        self.pending = lines.pop() if lines and not lines[-1].endswith("\n") else ""
+        self.stream.write("".join(x for x in lines if not x.startswith(WARP_IMPORT_NOTES)))
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
 @contextlib.contextmanager
 def without_warp_import_notes() -> Iterator[None]:
-    """Drops MJX's :data:`WARP_IMPORT_NOTES` from what is printed inside; other output passes
-    (at the end)."""
-    caught = io.StringIO()
+    """Drops MJX's :data:`WARP_IMPORT_NOTES` from what is printed inside; every other line
+    passes as soon as it is written (no standard output: nothing to filter)."""
+    if sys.stdout is None:
+        yield
+        return
+    filtered = _WithoutNotes(sys.stdout)
     try:
-        with contextlib.redirect_stdout(caught):
+        with contextlib.redirect_stdout(filtered):
             yield
     finally:
-        kept = [line for line in caught.getvalue().splitlines(True)
-                if not line.startswith(WARP_IMPORT_NOTES)]  # fmt: skip
-        sys.stdout.write("".join(kept))
+        if filtered.pending and not filtered.pending.startswith(WARP_IMPORT_NOTES):
+            filtered.stream.write(filtered.pending)  # (a last line without its newline)
 
 
 def import_mjx_quietly() -> bool:
