@@ -323,7 +323,12 @@ def test_the_warp_notes_filter_passes_each_other_line_as_it_ends(monkeypatch):
         sys.stdout.write("warp: No module named 'warp'\nstep 2")
         assert out.getvalue() == "step 1 of 2\n"
         sys.stdout.write(" of 2\ndone")
-    assert out.getvalue() == "step 1 of 2\nstep 2 of 2\ndone"
+        print("\r50%", end="", flush=True)  # (a flushed progress bar passes at once)
+        assert out.getvalue() == "step 1 of 2\nstep 2 of 2\ndone\r50%"
+        print("Failed to", end="", flush=True)  # (what may begin a note waits for its line)
+        assert out.getvalue().endswith("\r50%")
+        print(" import warp: No module named 'warp'")
+    assert out.getvalue() == "step 1 of 2\nstep 2 of 2\ndone\r50%"
     monkeypatch.setattr(sys, "stdout", None)
     with without_warp_import_notes():
         pass

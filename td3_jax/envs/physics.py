@@ -131,6 +131,11 @@ class _WithoutNotes(io.TextIOBase):
         return len(text)
 
     def flush(self) -> None:
+        """Passes a flushed partial line (a ``\r`` progress bar) unless it may begin a note."""
+        notes = WARP_IMPORT_NOTES
+        if self.pending and not any(n.startswith(self.pending[: len(n)]) for n in notes):
+            self.stream.write(self.pending)
+            self.pending = ""
         self.stream.flush()
 
 
