@@ -962,7 +962,7 @@ def _check_sweep_to_resume(out: Path) -> None:
 
     if (Path(out) / rundir.CONFIG_FILE).exists() and not rundir.is_sweep_dir(out):
         raise ConfigError(f"{out} holds a run of td3-jax train, not a sweep: resume it with "
-                          f"td3-jax train --out {shlex.quote(str(out))} --resume")  # fmt: skip
+                          f"{rundir.resume_command(out)}")  # fmt: skip
 
 
 def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
