@@ -23,12 +23,15 @@ import argparse
 import dataclasses
 import json
 import time
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
 from td3_jax import envs, upstream
 from td3_jax.build import make_trainer
+from td3_jax.config import TrainConfig
 from td3_jax.presets import preset
 from td3_jax.types import Transition
 
@@ -135,7 +138,7 @@ def update_rate(cfg, batch_size: int, n: int = 100) -> float:
     return n / timed(run, agent.init(key))
 
 
-def main() -> None:
+def _parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     parser.add_argument("--env", default="brax/ant")
     parser.add_argument("--preset", default="ant")
@@ -144,7 +147,58 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--out", default="throughput.jsonl")
     parser.add_argument("--skip", nargs="*", default=[])
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def _env_rates(args: argparse.Namespace, env: Any, n: int, emit: Callable[..., None]) -> None:
+    """The environment's own rates at ``n`` environments: raw Brax (random or zero actions),
+    through td3-jax's wrapper (with and without the reset branch, one or batched resets)."""
+    if "raw" not in args.skip and args.env.startswith("brax/"):
+        emit(kind="raw_env_steps_per_s", num_envs=n, value=raw_rate(args.env, n, args.steps))
+    if "raw_random" not in args.skip and args.env.startswith("brax/"):
+        value = raw_rate(args.env, n, args.steps, random=True)
+        emit(kind="raw_random_env_steps_per_s", num_envs=n, value=value)
+    if "wrapped" not in args.skip:
+        value, _ = wrapped_rate(env, n, args.steps)
+        emit(kind="wrapped_env_steps_per_s", num_envs=n, value=value)
+        value, _ = wrapped_rate(env, n, args.steps, auto_reset=False)
+        emit(kind="wrapped_no_reset_branch_env_steps_per_s", num_envs=n, value=value)
+    if "wrapped_random" not in args.skip:
+        for kind, slots in (("", None), ("_batch_reset", n)):
+            value, ended = wrapped_rate(env, n, args.steps, random=True, reset_slots=slots)
+            emit(kind=f"wrapped_random{kind}_env_steps_per_s", num_envs=n, value=value,
+                 episodes_ended_per_step=ended)  # fmt: skip
+
+
+def _loop_rates(args: argparse.Namespace, base: TrainConfig, n: int,
+                emit: Callable[..., None]) -> None:  # fmt: skip
+    """The training loop's rate at ``n`` environments with no updates (random actions
+    throughout, as in a warm-up), with per-slot and batched resets."""
+    if "loop" in args.skip:
+        return
+    steps = n * args.steps
+    cfg = dataclasses.replace(base, num_envs=n, updates_per_iter=0, warmup_steps=steps,
+                              eval_every=steps, buffer_size=max(steps, 1))  # fmt: skip
+    emit(kind="loop_no_updates_env_steps_per_s", num_envs=n, value=loop_rate(cfg))
+    if "loop_batch_reset" not in args.skip:
+        value = loop_rate(cfg, batch_reset=True)
+        emit(kind="loop_no_updates_batch_reset_env_steps_per_s", num_envs=n, value=value)
+
+
+def _learner_rates(args: argparse.Namespace, base: TrainConfig, emit: Callable[..., None]) -> None:
+    """Updates per second at each batch size, then the preset's full loop (no warm-up)."""
+    if "updates" not in args.skip:
+        for b in args.batches:
+            emit(kind="updates_per_s", batch_size=b, value=update_rate(base, b))
+    if "full" not in args.skip:
+        cfg = dataclasses.replace(base, warmup_steps=0)
+        emit(kind="full_loop_env_steps_per_s", num_envs=cfg.num_envs,
+             updates_per_iter=cfg.updates_per_iter, batch_size=cfg.batch_size,
+             value=loop_rate(cfg))  # fmt: skip
+
+
+def main() -> None:
+    args = _parse_args()
     base = dataclasses.replace(preset(args.preset), env=args.env)
     env = envs.make(args.env)
     rows = []
@@ -155,50 +209,9 @@ def main() -> None:
         print(json.dumps(row), flush=True)
 
     for n in args.envs:
-        if "raw" not in args.skip and args.env.startswith("brax/"):
-            emit(kind="raw_env_steps_per_s", num_envs=n, value=raw_rate(args.env, n, args.steps))
-        if "raw_random" not in args.skip and args.env.startswith("brax/"):
-            value = raw_rate(args.env, n, args.steps, random=True)
-            emit(kind="raw_random_env_steps_per_s", num_envs=n, value=value)
-        if "wrapped" not in args.skip:
-            value, _ = wrapped_rate(env, n, args.steps)
-            emit(kind="wrapped_env_steps_per_s", num_envs=n, value=value)
-            value, _ = wrapped_rate(env, n, args.steps, auto_reset=False)
-            emit(kind="wrapped_no_reset_branch_env_steps_per_s", num_envs=n, value=value)
-        if "wrapped_random" not in args.skip:
-            for kind, slots in (("", None), ("_batch_reset", n)):
-                value, ended = wrapped_rate(env, n, args.steps, random=True, reset_slots=slots)
-                emit(
-                    kind=f"wrapped_random{kind}_env_steps_per_s",
-                    num_envs=n,
-                    value=value,
-                    episodes_ended_per_step=ended,
-                )
-        if "loop" not in args.skip:
-            cfg = dataclasses.replace(
-                base,
-                num_envs=n,
-                updates_per_iter=0,
-                warmup_steps=n * args.steps,  # random actions throughout, as in a warm-up
-                eval_every=n * args.steps,
-                buffer_size=max(n * args.steps, 1),
-            )
-            emit(kind="loop_no_updates_env_steps_per_s", num_envs=n, value=loop_rate(cfg))
-            if "loop_batch_reset" not in args.skip:
-                value = loop_rate(cfg, batch_reset=True)
-                emit(kind="loop_no_updates_batch_reset_env_steps_per_s", num_envs=n, value=value)
-    if "updates" not in args.skip:
-        for b in args.batches:
-            emit(kind="updates_per_s", batch_size=b, value=update_rate(base, b))
-    if "full" not in args.skip:
-        cfg = dataclasses.replace(base, warmup_steps=0)
-        emit(
-            kind="full_loop_env_steps_per_s",
-            num_envs=cfg.num_envs,
-            updates_per_iter=cfg.updates_per_iter,
-            batch_size=cfg.batch_size,
-            value=loop_rate(cfg),
-        )
+        _env_rates(args, env, n, emit)
+        _loop_rates(args, base, n, emit)
+    _learner_rates(args, base, emit)
     with open(args.out, "a") as f:
         for row in rows:
             f.write(json.dumps(row) + "\n")

@@ -894,20 +894,17 @@ def _parse_train(args: list[str], sweeping: bool) -> tuple[Any, TrainConfig, str
 
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
-    from td3_jax.run import train
-    from td3_jax.rundir import interrupted_message, is_sweep_dir
+    from td3_jax.rundir import is_sweep_dir
 
     command, cfg, preset_name, source = _parse_train(args, sweeping)
     sweep = _sweep_values(command, args) if sweeping else None
     from td3_jax import envs
 
     envs.check_name(cfg.env)  # before anything about the environment is said
-    import jax
-
-    from td3_jax.sharding import initialize_distributed
-
     given_cache = any(arg.split("=", 1)[0] == "--compile-cache" for arg in args)
     program_dir = runtime.enable_compile_cache(command.compile_cache, given=given_cache)
+    from td3_jax.sharding import initialize_distributed
+
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     if source == "device":
         cfg = _scale_to_device(cfg, args)
@@ -923,36 +920,40 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(_when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(typed), command.resume)  # fmt: skip
-    received: list[int] = []
     started = time.perf_counter()
-    stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
-    ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
-    try:
-        signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
-                                       aftermath=ended)  # fmt: skip
-        with preset_noted(cfg, preset_name, given), signals:
-            records = train(
-                cfg,
-                command.out,
-                devices=devices,
-                resume=command.resume,
-                progress=not command.quiet,
-                sweep=sweep,
-                time_budget_s=command.time_budget_s,
-                preset=preset_name,
-                on_prepared=prepared,
-                program_dir=program_dir,
-                stop=stop,
-            )
-    except KeyboardInterrupt:
-        if signal.SIGTERM in received:
-            raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
-        raise Interrupted(ended()) from None
+    with preset_noted(cfg, preset_name, given):
+        records = _train_stoppably(cfg, command, devices=devices, sweep=sweep, preset=preset_name,
+                                   on_prepared=prepared, program_dir=program_dir)  # fmt: skip
     if not records:
         print(nothing_to_do(command.out, cfg))
         return
     ranked = sweeping or (command.resume and is_sweep_dir(command.out))  # (also train --resume)
     _print_end(records, cfg, command, time.perf_counter() - started, ranked)
+
+
+def _train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> list[dict[str, Any]]:
+    """``run.train`` under handlers that turn SIGINT and SIGTERM into a stop at the next chunk
+    (a second signal stops at once); a stop leaves the last checkpoint and says, in one line,
+    what it left (``Interrupted``, exit 130, or 143 for SIGTERM)."""
+    import jax
+
+    from td3_jax.run import train
+    from td3_jax.rundir import interrupted_message
+
+    received: list[int] = []
+    stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
+    ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
+    try:
+        signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
+                                       aftermath=ended)  # fmt: skip
+        with signals:
+            return train(cfg, command.out, resume=command.resume, stop=stop,
+                         progress=not command.quiet, time_budget_s=command.time_budget_s,
+                         **train_options)  # fmt: skip
+    except KeyboardInterrupt:
+        if signal.SIGTERM in received:
+            raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
+        raise Interrupted(ended()) from None
 
 
 def _check_sweep_to_resume(out: Path) -> None:
