@@ -57,6 +57,7 @@ _WRITE_CAUSES = [
     (errno.EDQUOT, "Disk quota exceeded", "the disk quota of {} is exceeded"),
     (errno.EROFS, "Read-only file system", "{} is on a read-only file system"),
     (errno.EACCES, "Permission denied", "no permission to write in {}"),
+    (errno.EPERM, "Operation not permitted", "writing in {} is not permitted"),
 ]
 
 

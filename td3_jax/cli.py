@@ -257,8 +257,9 @@ class PlotCommand:
     """Run directories written by `td3-jax train` or `td3-jax sweep`: one, or several to
     compare."""
     out: Annotated[Path | None, default_in_help("PATH")] = None
-    """Image to write, .png, .pdf or .svg (replaced where it exists); default: RUN/curve.png
-    for one run; several runs need it."""
+    """Image to write, .png, .pdf or .svg: a new file, or a figure td3-jax plot drew before
+    (replaced; any other file is refused); default: RUN/curve.png for one run (replaced);
+    several runs need it."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1203,7 +1204,7 @@ def plot_main(args: list[str]) -> None:
 def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
     """Where ``td3-jax plot`` writes its image: ``out``, checked (a known suffix, an existing
     folder, no run given twice), else the one run's curve.png."""
-    from td3_jax.curves import IMAGE_SUFFIXES
+    from td3_jax.curves import IMAGE_SUFFIXES, is_td3_jax_figure
 
     if not runs:
         raise ConfigError("td3-jax plot: give a run directory: --run DIR [DIR ...]")
@@ -1224,6 +1225,9 @@ def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
     if out.is_dir() or not out.parent.is_dir():
         what = "is a directory" if out.is_dir() else f"is in {out.parent}, which is no directory"
         raise ConfigError(f"--out {out} {what}; give an image file in an existing folder")
+    if out.exists() and not is_td3_jax_figure(out):
+        raise ConfigError(f"--out {out} exists and is not a figure td3-jax plot drew: remove "
+                          "it or choose another name")  # fmt: skip
     return out
 
 
@@ -1304,6 +1308,17 @@ COMMANDS = {
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``td3-jax`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        _dispatch(argv)
+    except BrokenPipeError:  # the reader of our output went away (`td3-jax ... | head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        sys.exit(141)  # 128 + SIGPIPE, as other command-line tools end
+
+
+def _dispatch(argv: list[str]) -> None:
+    """The usage (-h, --help), the version, or the subcommand ``argv[0]`` run on the rest; an
+    unknown or missing subcommand exits 2 with the closest name (the usage where none is
+    given)."""
     if argv[:1] in (["-h"], ["--help"]):
         print(USAGE)
         return
@@ -1320,16 +1335,16 @@ def main(argv: list[str] | None = None) -> None:
         from td3_jax.errors import did_you_mean
 
         hint = did_you_mean(argv[0], list(COMMANDS))
-        print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n\n{USAGE}", file=sys.stderr)
+        names = ", ".join(COMMANDS)
+        print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n(subcommands: {names}; "
+              "td3-jax --help says what each does)", file=sys.stderr)  # fmt: skip
         sys.exit(2)
-    try:
-        _run_reporting_errors(command, argv[1:])
-    except BrokenPipeError:  # the reader of our output went away (`td3-jax ... | head`)
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
-        sys.exit(141)  # 128 + SIGPIPE, as other command-line tools end
+    _run_reporting_errors(command, argv[1:])
 
 
-_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+#: An OSError that says the output cannot be written (full, over quota, read-only, no
+#: permission; EPERM: an immutable file, some network or FUSE mounts): one line, exit 2.
+_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
 
 #: The flags whose value is a run's folder or an output file: given empty, each would mean
 #: the working directory. (An empty --compile-cache means off and an empty --menagerie not
@@ -1348,6 +1363,21 @@ def check_no_empty_path(args: list[str]) -> None:
             raise ConfigError(f"{flag} is {'blank' if given else 'empty'} (an unset shell "
                               "variable?); give the path, or ./ for the working "
                               "directory")  # fmt: skip
+
+
+def expand_home(args: list[str]) -> list[str]:
+    """``args`` with a leading ``~`` of an ``--out`` or ``--run`` value expanded to the home
+    folder, as the shell does for ``--out ~/x`` but not for ``--out=~/x`` or a quoted ``'~/x'``
+    (which made a folder named ``~`` in the working directory, and said ``~/x``)."""
+    expanded = []
+    for before, token in itertools.pairwise([None, *args]):
+        flag, equals, value = token.partition("=")
+        if equals and flag in _PATH_FLAGS and value.startswith("~"):
+            token = f"{flag}={os.path.expanduser(value)}"
+        elif before in _PATH_FLAGS and token.startswith("~"):
+            token = os.path.expanduser(token)
+        expanded.append(token)
+    return expanded
 
 
 def _exit_interrupted(message: str, code: int = 130) -> None:
@@ -1372,7 +1402,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
         check_no_empty_path(args)
-        command(args)
+        command(expand_home(args))
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)
         sys.exit(err.exit_code)

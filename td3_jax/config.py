@@ -101,7 +101,8 @@ class TrainConfig:
     exploration: Literal["gaussian", "ou"] = "gaussian"
     """Exploration noise: gaussian (std expl_noise) or ou (Ornstein-Uhlenbeck)."""
     expl_noise: float = 0.1
-    """Gaussian exploration std, as a fraction of the action range."""
+    """Gaussian exploration std in the agent's actions, [-1, 1] (each environment's bounds
+    rescaled): a fraction of half the action range (0.1 on actions in [-2, 2]: a std of 0.2)."""
     ou_theta: float = 0.15
     """OU mean reversion."""
     ou_sigma: float = 0.3
@@ -219,9 +220,9 @@ class TrainConfig:
     tau: float | None = None
     """Polyak rate of the targets; default: the algorithm's (TD3 0.005, DDPG 0.01)."""
     policy_noise: float = 0.2
-    """TD3 target smoothing noise std."""
+    """TD3 target smoothing noise std, in the agent's [-1, 1] actions (as expl_noise)."""
     noise_clip: float = 0.5
-    """TD3 target smoothing noise clip."""
+    """TD3 target smoothing noise clip, in the agent's [-1, 1] actions."""
     policy_freq: int = 2
     """TD3 actor and target update period (in updates)."""
     keep_checkpoints: int = 3

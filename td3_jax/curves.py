@@ -16,6 +16,7 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "Curve",
     "draw_curve",
+    "is_td3_jax_figure",
     "mixed_envs_warning",
     "no_return_warning",
     "plot_comparison",
@@ -26,6 +27,18 @@ __all__ = [
 
 #: The image formats a figure is written in, by the file's suffix.
 IMAGE_SUFFIXES = (".png", ".pdf", ".svg")
+#: Written into every figure's metadata (PNG's Software, PDF's and SVG's Creator), so that
+#: ``td3-jax plot`` replaces its own figures but no other file (:func:`is_td3_jax_figure`).
+FIGURE_MARK = "td3-jax plot"
+
+
+def is_td3_jax_figure(path: Path) -> bool:
+    """Whether the file ``path`` is a figure td3-jax drew (its metadata holds
+    :data:`FIGURE_MARK`; a figure is a few hundred kB at most, so it is read whole)."""
+    try:
+        return FIGURE_MARK.encode() in Path(path).read_bytes()
+    except OSError:
+        return False
 
 
 class Curve(NamedTuple):
@@ -159,7 +172,9 @@ def _save(labelled: Sequence[tuple[Curve, str | None]], path: Path, title: str) 
     fig.tight_layout()
     temporary = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # (a failed write: old image)
     try:
-        fig.savefig(temporary, dpi=110, format=path.suffix[1:].lower() or "png")
+        form = path.suffix[1:].lower() or "png"
+        mark = {"Software" if form == "png" else "Creator": FIGURE_MARK}
+        fig.savefig(temporary, dpi=110, format=form, metadata=mark)
         temporary.replace(path)
     except OSError as err:  # (named by the image, not the temporary file)
         raise OSError(err.errno, err.strerror, str(path)) from err

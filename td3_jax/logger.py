@@ -30,7 +30,7 @@ __all__ = [
 ]
 
 #: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
-WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
 #: The TensorBoard writers this process has opened (a part of each event file's name).
 _WRITERS_OPENED = itertools.count()
 

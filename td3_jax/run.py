@@ -227,7 +227,7 @@ def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
     text, code = str(err).lower(), getattr(err, "errno", None)
     if code in (errno.ENOSPC, errno.EDQUOT) or "no space" in text or "quota" in text:
         fix = f"free space on the disk holding {out}"
-    elif code in (errno.EROFS, errno.EACCES) or "read-only" in text or "permission" in text:
+    elif code in (errno.EROFS, errno.EACCES, errno.EPERM) or "read-only" in text or "permi" in text:
         fix = f"make {out} writable"
     else:
         fix = "fix that"

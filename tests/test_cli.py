@@ -8,6 +8,7 @@ checks. One tiny training run (module-scoped) serves every assertion about run o
 from __future__ import annotations
 
 import dataclasses
+import errno
 import functools
 import io
 import json
@@ -103,9 +104,10 @@ def test_version_is_the_packaged_version(capsys):
 
 
 @pytest.mark.subprocess  # a child process that imports JAX: 4 s
-def test_output_into_a_closed_pipe_ends_quietly():
+@pytest.mark.parametrize("args", [["train", "--help"], ["--help"]])
+def test_output_into_a_closed_pipe_ends_quietly(args):
     """`td3-jax train --help | head -1`: the reader goes away before the help is written."""
-    proc = subprocess.Popen([sys.executable, "-m", "td3_jax", "train", "--help"],
+    proc = subprocess.Popen([sys.executable, "-m", "td3_jax", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
     proc.stdout.close()  # closed before the child has imported anything: its write fails
     err = proc.stderr.read().decode()
@@ -443,11 +445,30 @@ def test_no_subcommand_prints_the_usage_and_exits_2_and_help_exits_0(capsys):
     assert code == 0 and out.startswith("usage: td3-jax {train,") and err == ""
 
 
-def test_unknown_subcommand_exits_2(capsys):
+def test_unknown_subcommand_exits_2_in_two_lines(capsys):
+    """The closest name first, then the subcommands in one line (not the 20-line usage, which
+    pushed the hint off a short terminal)."""
     code, _, err = main(["fly"], capsys)
     assert code == 2
     assert "unknown subcommand 'fly'" in err and "Traceback" not in err
-    assert "unknown subcommand 'trian'; did you mean 'train'?" in main(["trian"], capsys)[2]
+    lines = main(["trian"], capsys)[2].splitlines()
+    assert lines[0] == "td3-jax: error: unknown subcommand 'trian'; did you mean 'train'?"
+    assert len(lines) == 2 and all(f" {name}" in lines[1] for name in cli.COMMANDS), lines
+
+
+@pytest.mark.parametrize("errno_code", [errno.EPERM, errno.EACCES, errno.EROFS, errno.ENOSPC])
+def test_an_output_the_system_refuses_is_one_line_and_exit_2(errno_code, capsys):
+    """An OSError of an output that cannot be written (EPERM: an immutable config.json met on
+    --resume gave a traceback) is the file and the reason, exit 2."""
+
+    def refused(args):
+        raise OSError(errno_code, os.strerror(errno_code), "runs/x/config.json")
+
+    with pytest.raises(SystemExit) as stop:
+        cli._run_reporting_errors(refused, [])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err == f"td3-jax: error: runs/x/config.json: {os.strerror(errno_code)}\n"
 
 
 def test_the_missing_warp_notes_are_dropped_and_other_output_kept(capsys):
@@ -783,10 +804,13 @@ def test_plot_compares_runs_in_one_image_and_checks_where_it_goes(finished_run, 
         ([str(second), str(second), "--out", str(tmp_path / "x.png")], "second is given twice"),
         (["--out", str(tmp_path / "x.jpg")], "format comes from its suffix, one of .png"),
         (["--out", str(tmp_path / "no" / "x.png")], "which is no directory"),
+        (["--out", str(tmp_path / "thesis.pdf")], "exists and is not a figure td3-jax plot drew"),
     ):
+        (tmp_path / "thesis.pdf").write_bytes(b"%PDF-1.7 a figure of the user's own")
         code, _, err = main(["plot", "--run", str(first), *extra], capsys)
         assert_one_line_error(code, err, said)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "second"]
+    assert (tmp_path / "thesis.pdf").read_bytes() == b"%PDF-1.7 a figure of the user's own"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "second", "thesis.pdf"]
     records = (second / "metrics.jsonl").read_text().replace('"env": "', '"env": "other/')
     (second / "metrics.jsonl").write_text(records)  # (a run of another environment)
     code, stdout, err = main(["plot", "--run", str(first), str(second), "--out",
@@ -1801,3 +1825,13 @@ def test_resume_of_a_directory_that_is_no_run_says_so(tmp_path, capsys):
     code, _, err = main(["train", "--resume", "--out", str(tmp_path)], capsys)
     assert_one_line_error(code, err, f"{tmp_path} is not a td3-jax run directory")
     assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+
+
+def test_a_home_folder_in_out_or_run_is_expanded_however_given(monkeypatch):
+    """``--out=~/x`` (which the shell leaves alone) names the home folder's x, as ``--out ~/x``
+    does; other values, and a ``~`` not at the start, are left as given."""
+    monkeypatch.setenv("HOME", "/home/me")
+    args = ["--out=~/runs/a", "--run", "~/b", "--env", "~/c", "--out", "x~y", "--note=~z"]
+    assert cli.expand_home(args) == [
+        "--out=/home/me/runs/a", "--run", "/home/me/b", "--env", "~/c", "--out", "x~y", "--note=~z"
+    ]  # fmt: skip

@@ -10,6 +10,7 @@ import pytest
 
 from td3_jax.curves import (
     _draw_members,
+    is_td3_jax_figure,
     mixed_envs_warning,
     no_return_warning,
     plot_comparison,
@@ -148,6 +149,9 @@ def test_the_images_are_written_in_the_format_their_suffix_names(tmp_path):
     path = plot_comparison(curves, ["a", "b"], tmp_path / "both.pdf")
     assert path.read_bytes()[:5] == b"%PDF-"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "one", "one.svg"]
+    for figure in (one / "curve.png", tmp_path / "one.svg", path):  # (plot replaces only these)
+        assert is_td3_jax_figure(figure), figure
+    assert not is_td3_jax_figure(one / "metrics.jsonl")
 
 
 def test_a_run_without_a_finite_return_is_warned_about(tmp_path):
