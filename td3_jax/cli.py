@@ -23,7 +23,7 @@ import sys
 import time
 import types
 import typing
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -537,15 +537,26 @@ def _unrecognized(command_type: type, args: list[str], prog: str, listed: list[s
     names = {name.lstrip("-"): name for name in known}
     said = []
     for name in dict.fromkeys(unknown):
-        bare = name.lstrip("-")
-        ends = sorted(n for n in names if n.endswith("-" + bare) and not n.startswith("no-"))
-        other = _OTHER_NAMES.get(bare.replace("_", "-"), ())  # (another library's name)
-        ours = [n for n in other if n in names]
-        close = ours or ends or difflib.get_close_matches(bare, names, n=1, cutoff=0.7)
+        close = _closest_flags(name.lstrip("-"), names) or difflib.get_close_matches(
+            name.lstrip("-"), names, n=1, cutoff=0.7
+        )
         guesses = " or ".join(names[c] for c in close[:4]) + (" or ..." if len(close) > 4 else "")
         said.append(f"{name} (did you mean {guesses}?)" if close else name)
     hint = "" if len(said) == sum("did you mean" in s for s in said) else f" (see {prog} --help)"
     return f"unrecognized option{'s' if len(said) > 1 else ''} {', '.join(said)}{hint}"
+
+
+def _closest_flags(bare: str, names: Iterable[str]) -> list[str]:
+    """The flags (bare: ``actor-lr``) that ``bare`` most likely means, by another library's
+    name (``gamma``: ``discount``) or as the end of ours (``lr``: ``actor-lr``, ``critic-lr``),
+    each also under ``sweep-`` (``sweep-gamma``: ``sweep-discount``); ``[]``: none."""
+    stem = bare.removeprefix("sweep-")
+    prefix = bare[: len(bare) - len(stem)]
+    other = [prefix + n for n in _OTHER_NAMES.get(stem.replace("_", "-"), ())]
+    ours = [n for n in other if n in names]
+    ends = sorted(n for n in names if n.startswith(prefix) and n.endswith("-" + stem)
+                  and not n.startswith("no-") and n != bare)  # fmt: skip
+    return ours or ends
 
 
 def _is_number(text: str) -> bool:

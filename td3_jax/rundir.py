@@ -299,8 +299,9 @@ def check_resume(
         )
     if sweep and members(cfg, sweep) != population:
         raise ConfigError(
-            f"the --sweep-* values differ from the members of the run in {out_dir} "
-            f"({MEMBERS_FILE}); leave them out to resume"
+            f"the --sweep-* values ({sweep_flags(sweep)}) differ from the members of the run in "
+            f"{out_dir} ({sweep_flags(swept_values(population)) or 'no swept setting'}, "
+            f"{MEMBERS_FILE}); leave them out to resume"
         )
     done = steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter
     if cfg.num_chunks < steps[-1]:
@@ -612,6 +613,13 @@ def sweep_entries(values: dict[str, Any], population: Sequence[Member]) -> dict[
         "members": [{"seed": m.seed, **dict(m.overrides)} for m in population],
     }
     return {**swept, SWEEP: section}
+
+
+def sweep_flags(values: dict[str, Sequence[float]]) -> str:
+    """``{"actor_lr": [0.001, 0.0003]}`` as the flags that give it:
+    ``--sweep-actor-lr 0.001 0.0003`` (settings in the dict's order)."""
+    return " ".join(f"--sweep-{name.replace('_', '-')} " + " ".join(f"{v:g}" for v in vals)
+                    for name, vals in values.items())  # fmt: skip
 
 
 def swept_values(population: Sequence[Member]) -> dict[str, list[float]]:

@@ -382,6 +382,13 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "you mean --warmup-steps?)",
         ("train", "--learning-rate", "3e-4", "--out", out):
             "unrecognized option --learning-rate (did you mean --actor-lr or --critic-lr?)",
+        ("sweep", "--sweep-gamma", "0.9", "0.99", "--out", out):  # (it said --sweep-v-max)
+            "unrecognized option --sweep-gamma (did you mean --sweep-discount?)",
+        ("sweep", "--sweep-learning-rate", "1e-3", "3e-4", "--out", out):
+            "unrecognized option --sweep-learning-rate (did you mean --sweep-actor-lr or "
+            "--sweep-critic-lr?)",
+        ("sweep", "--sweep-lr", "1e-3", "--out", out):
+            "unrecognized option --sweep-lr (did you mean --sweep-actor-lr or --sweep-critic-lr?)",
         ("train", "--env_name", "T1", "--actor_learning_rate", "3e-4", "--out", out):  # FastTD3's
             "unrecognized options --env_name (did you mean --env?), --actor_learning_rate (did "
             "you mean --actor-lr?)",

@@ -114,6 +114,8 @@ BAD = {
     "infinite bound": (dict(action_high=float("inf")), "action_high must be 2 finite numbers"),
     "inverted bounds": (dict(action_low=1.0, action_high=0.0), "must be below action_high"),
     "bounds' shape": (dict(action_low=[0.0, 0.0, 0.0]), "action_low has shape (3,)"),
+    "no bound": (dict(action_low=None), "action_low is None; give one number or action_size"),
+    "a bound as text": (dict(action_high="1"), "action_high is '1'; give one number"),
     "missing attribute": (dict(step=lambda x, a: (x, x.obs, 0.0, False)), "AttributeError"),
     "action size": (dict(action_size=3), "step(state, action) with an action of float32[3] "
                     "(action_size) failed when traced: TypeError: add got incompatible shapes"),

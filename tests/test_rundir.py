@@ -332,8 +332,12 @@ def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
     (tmp_path / "checkpoints" / "2").mkdir(parents=True)  # 2 chunks of 64 steps done
     assert rundir.check_resume(tmp_path, SMALL) == (population, {})
     assert rundir.check_resume(tmp_path, SMALL, sweep) == (population, {})
-    with pytest.raises(ConfigError, match="--sweep-\\* values differ"):
-        rundir.check_resume(tmp_path, SMALL, {"actor_lr": [1e-3, 1e-4]})
+    with pytest.raises(ConfigError) as refused:  # (both the given and the run's values said)
+        rundir.check_resume(tmp_path, SMALL, {"actor_lr": [1e-3, 1e-4], "tau": [0.01]})
+    assert str(refused.value).startswith(
+        "the --sweep-* values (--sweep-actor-lr 0.001 0.0001 --sweep-tau 0.01) differ from the "
+        f"members of the run in {tmp_path} (--sweep-actor-lr 0.001 0.0003, members.json); "
+    )
     longer = dataclasses.replace(SMALL, total_steps=512)
     assert rundir.check_resume(tmp_path, longer)[1] == {"total_steps": [128, 512]}
     with pytest.raises(ConfigError, match="--total-steps 64 is less than the 128 env steps"):

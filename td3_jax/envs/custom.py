@@ -370,10 +370,13 @@ def _from_functional(fenv: FunctionalEnv, name: str, episode_length: int | None,
     del options
     size = int(fenv.action_size)
     for which in ("action_low", "action_high"):
-        if np.ndim(getattr(fenv, which)) > 1 or np.size(getattr(fenv, which)) not in (1, size):
-            raise CustomEnvironmentError(f"{name}: {which} has shape "
-                                         f"{np.shape(getattr(fenv, which))}; give one number or "
+        bound = getattr(fenv, which)
+        if np.asarray(bound).dtype.kind not in "biuf":  # (None, text: it read as NaN)
+            raise CustomEnvironmentError(f"{name}: {which} is {bound!r}; give one number or "
                                          f"action_size ({size}) numbers")  # fmt: skip
+        if np.ndim(bound) > 1 or np.size(bound) not in (1, size):
+            raise CustomEnvironmentError(f"{name}: {which} has shape {np.shape(bound)}; give "
+                                         f"one number or action_size ({size}) numbers")  # fmt: skip
 
     def step_fn(state: Any, action: jax.Array, key: jax.Array) -> tuple:
         del key  # a FunctionalEnv keeps any randomness it needs in its state
