@@ -1391,6 +1391,18 @@ def expand_home(args: list[str]) -> list[str]:
     return expanded
 
 
+def repeated_flags_warning(args: list[str]) -> str | None:
+    """A warning naming the flags given more than once in ``args`` (``--seed 0 ... --seed 3``,
+    often a script's defaults followed by an override): only the last of each counts, so an
+    earlier value, such as a first ``--sweep-actor-lr`` list, is dropped. ``None``: none."""
+    flags = [arg.split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
+    repeated = [flag for flag in dict.fromkeys(flags) if flags.count(flag) > 1]
+    if not repeated:
+        return None
+    return (f"{', '.join(repeated)} given more than once: the last of each counts (the earlier "
+            "values are dropped, not added)")  # fmt: skip
+
+
 def _exit_interrupted(message: str, code: int = 130) -> None:
     """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
     background thread, or a chunk or evaluation a Ctrl-C left running on the device (neither can
@@ -1413,6 +1425,8 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
         check_no_empty_path(args)
+        if (warning := repeated_flags_warning(args)) is not None:
+            print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
         command(expand_home(args))
     except Td3JaxError as err:
         print(f"td3-jax: error: {err}", file=sys.stderr)

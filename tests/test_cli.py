@@ -414,6 +414,10 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
     }  # fmt: skip
     for args, message in cases.items():
         code, _, err = main(list(args), capsys)
+        repeated = cli.repeated_flags_warning(list(args))  # (said first: the next test)
+        if repeated is not None:
+            assert err.startswith(f"td3-jax: warning: {repeated}\n"), err
+            err = err.split("\n", 1)[1]
         assert_one_line_error(code, err)
         assert err.strip() == f"td3-jax: error: {message}", args
     assert not (tmp_path / "run").exists()
@@ -1842,3 +1846,21 @@ def test_a_home_folder_in_out_or_run_is_expanded_however_given(monkeypatch):
     assert cli.expand_home(args) == [
         "--out=/home/me/runs/a", "--run", "/home/me/b", "--env", "~/c", "--out", "x~y", "--note=~z"
     ]  # fmt: skip
+
+
+def test_a_flag_given_twice_is_warned_about_once(capsys):
+    """Only the last value of a repeated flag counts (a first --sweep-actor-lr list was dropped
+    without a word); one warning names each such flag, an = form included, nothing else."""
+    args = ["--seed", "3", "--sweep-actor-lr", "1e-4", "--num-envs=4", "--seed=0",
+            "--sweep-actor-lr", "1e-3", "3e-4", "--num-envs", "8", "-1"]  # fmt: skip
+    assert cli.repeated_flags_warning(args) == (
+        "--seed, --sweep-actor-lr, --num-envs given more than once: the last of each counts "
+        "(the earlier values are dropped, not added)"
+    )
+    assert cli.repeated_flags_warning(["--seed", "3", "--out", "--seed-x", "-1", "-1"]) is None
+    code, _, err = main(["eval", "--episodes", "2", "--episodes", "3"], capsys)
+    assert code == 2
+    assert err.splitlines()[0] == (
+        "td3-jax: warning: --episodes given more than once: the last of each counts (the "
+        "earlier values are dropped, not added)"
+    )
