@@ -393,8 +393,20 @@ def _value_error(command_type: type, args: list[str], text: str) -> str | None:
     flag, (kind, several) = match.group(1), kinds
     given = _first_unparsed(_flag_values(args, flag), kind)
     what = "whole number" if kind is int else "number"
-    what = f"{what}s" if several else f"a {what}"
-    return f"{flag} takes {what}, got {' '.join(map(repr, given)) or 'nothing'}"
+    said = f"{flag} takes {what}s" if several else f"{flag} takes a {what}"
+    bad = [value for value in given if not _reads_as(kind, value)]
+    if several and 0 < len(bad) < len(given):  # (name the values it could not read)
+        return f"{said}, got {' '.join(map(repr, bad))} (of {' '.join(given)})"
+    return f"{said}, got {' '.join(map(repr, given)) or 'nothing'}"
+
+
+def _reads_as(kind: type, value: str) -> bool:
+    """Whether ``kind`` (int or float) reads ``value`` (``None``: tyro's "leave it out")."""
+    try:
+        kind(value) if value != "None" else None
+    except ValueError:
+        return False
+    return True
 
 
 def _flag_values(args: list[str], flag: str) -> list[list[str]]:
@@ -413,9 +425,7 @@ def _first_unparsed(occurrences: list[list[str]], kind: type) -> list[str]:
     """The values of the first occurrence that ``kind`` cannot read (the one the parser
     refused: ``--num-envs 4 --num-envs x`` refuses ``x``), else the last one."""
     for values in occurrences:
-        try:
-            [kind(value) for value in values if value != "None"]  # (tyro's "leave it out")
-        except ValueError:
+        if not all(_reads_as(kind, value) for value in values):
             return values
     return occurrences[-1] if occurrences else []
 
@@ -1006,7 +1016,9 @@ def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: f
     """The lines that end a run this process trained: :func:`done_line`, a note when
     ``--time-budget-s`` stopped it before its last step (and how to go on), a sweep's ranking."""
     resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
-    pooled = f" over all {records[-1]['members']} members (per setting below)" if sweeping else ""
+    count = records[-1]["members"]
+    pooled = f" over all {count} members" if count > 1 else " over its 1 member"
+    pooled = f"{pooled} (per setting below)" if sweeping else ""
     taken = records[-1]["env_steps"]
     early = command.time_budget_s is not None and taken < cfg.run_steps
     print(done_line(records[-1], command.out, process_s, resumed_at, pooled,

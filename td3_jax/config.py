@@ -395,7 +395,8 @@ def check_seed(seed: int, members: int = 1) -> None:
     """A :class:`ConfigError` unless ``seed .. seed + members - 1`` are all seeds JAX tells
     apart: in ``[0, MAX_SEED]`` (a larger one silently repeats a smaller one's run)."""
     if seed < 0 or seed + members - 1 > MAX_SEED:
-        last = f" (and the {members} seeds from it)" if members > 1 else ""
+        after = "seed" if members == 2 else f"{members - 1} seeds"
+        last = f" and the {after} after it (to {seed + members - 1})" if members > 1 else ""
         raise ConfigError(f"--seed {seed}{last} must be in [0, {MAX_SEED}]: JAX's random "
                           "keys hold 32 bits of a seed")  # fmt: skip
 
@@ -495,7 +496,7 @@ def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
     for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
         sizes = getattr(cfg, name)
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
-            shown = " ".join(map(str, sizes)) or "none"
+            shown = " ".join(map(str, sizes)) or "no values"
             raise ConfigError(f"{flag(name)} must be positive integers, got {shown}")
     _check_residual_networks(cfg)
     _check_environment(cfg)

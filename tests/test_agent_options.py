@@ -357,7 +357,7 @@ def test_a_residual_critic_needs_blocks_of_one_width():
         validate(TrainConfig(critic_network="resnet"))
     with pytest.raises(ConfigError, match=r"--hidden-sizes must be positive integers, got 0$"):
         validate(TrainConfig(hidden_sizes=(0,)))
-    with pytest.raises(ConfigError, match=r"--critic-hidden-sizes must be .*, got none$"):
+    with pytest.raises(ConfigError, match=r"--critic-hidden-sizes must be .*, got no values$"):
         validate(TrainConfig(critic_hidden_sizes=()))
 
 

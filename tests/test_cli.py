@@ -402,6 +402,10 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "--num-envs takes a whole number, got 'x'",  # (the refused one of a repeated flag)
         ("train", "--total-steps=4000", "--total-steps=nan", "--out", out):
             "--total-steps takes a whole number, got 'nan'",
+        ("sweep", "--sweep-actor-lr", "1e-3", "abc", "3e-4", "--out", out):  # (the bad one)
+            "--sweep-actor-lr takes numbers, got 'abc' (of 1e-3 abc 3e-4)",
+        ("sweep", "--sweep-actor-lr", "x", "y", "--out", out):
+            "--sweep-actor-lr takes numbers, got 'x' 'y'",
         ("train", "--total-steps", "1.5e0", "--out", out):  # (1e4 is one: see the next test)
             "--total-steps takes a whole number, got '1.5e0'",
         # tyro's "Expected one of ('online', 'None', 'offline')" and "Expected 1 values."

@@ -11,6 +11,7 @@ import dataclasses
 
 import pytest
 
+from td3_jax import config
 from td3_jax.build import agent_config, ou_params
 from td3_jax.config import ConfigError, TrainConfig, validate
 from td3_jax.presets import ENV_PRESETS, PRESETS, device_defaults, env_preset, preset
@@ -474,3 +475,16 @@ def test_playgrounds_physics_names_as_a_brax_backend_are_one_clear_error():
                                               "mjx, positional and spring"):  # fmt: skip
             validate(cfg)
     validate(TrainConfig(env="brax/inverted_pendulum", env_backend="spring"))
+
+
+def test_a_seed_whose_members_pass_the_largest_is_said_with_the_last_seed():
+    """``--seed 4294967295 --seeds 2`` trains seeds 4294967295 and 4294967296, the second past
+    JAX's 32 bits: the line names it (it said "and the 2 seeds from it")."""
+    config.check_seed(4294967294, members=2)  # (4294967294 and 4294967295: fine)
+    with pytest.raises(ConfigError) as refused:
+        config.check_seed(4294967295, members=2)
+    assert str(refused.value).startswith(
+        "--seed 4294967295 and the seed after it (to 4294967296) must be in [0, 4294967295]"
+    )
+    with pytest.raises(ConfigError, match=r"^--seed 4294967290 and the 7 seeds after it \(to "):
+        config.check_seed(4294967290, members=8)
