@@ -299,7 +299,8 @@ def test_names_close_to_a_known_one_are_suggested_and_others_say_how_names_look(
         ("train", "--env", "brax.ant"): "unknown environment 'brax.ant'; did you mean brax/ant? "
             "(`td3-jax envs` lists all",
         ("train", "--env", "xyz"): "unknown environment 'xyz'; names are SOURCE/NAME, SOURCE "
-            "one of brax, playground, gymnax (`td3-jax envs` lists all",
+            "one of brax, playground, gymnax (`td3-jax envs` lists all of them), or "
+            "module.path:function for your own",
         ("train", "--env", "gymnax/zzzzzz"): "unknown environment 'gymnax/zzzzzz'; gymnax has "
             "Pendulum-v1, MountainCarContinuous-v0 (`td3-jax envs` lists all",
     }  # fmt: skip

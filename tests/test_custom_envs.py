@@ -257,6 +257,7 @@ NOT_CALLABLE = 3
         ("my_factories:", "neither a factory, written module.path:function"),
         ("my-factories:make", "neither a factory"),
         ("no_such_package.envs:make", "no module 'no_such_package' in"),
+        ("my_factories.py:make", "give the module's name, not its file: --env my_factories:make"),
         ("my_factories:mak", "my_factories has no 'mak'; did you mean 'make'?"),
         ("my_factories:NOT_CALLABLE", "is not callable (int)"),
         ("my_factories_broken:make", "importing my_factories_broken raised ModuleNotFoundError"),

@@ -93,7 +93,7 @@ def _unknown_message(name: str, source: str) -> str:
     if source in _SOURCES:
         return f"unknown environment {name!r}{hint}; {every}"
     return (f"unknown environment {name!r}; names are SOURCE/NAME, SOURCE one of "
-            f"{', '.join(_SOURCES)} ({every})")  # fmt: skip
+            f"{', '.join(_SOURCES)} ({every}), or module.path:function for your own")  # fmt: skip
 
 
 def _module_exists(module: str) -> bool:

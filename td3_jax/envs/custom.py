@@ -199,6 +199,11 @@ def _import(module_name: str, spec: str) -> Any:
             return importlib.import_module(module_name)
     except Exception as err:  # not found; a SyntaxError or an error of the module's own code
         name = getattr(err, "name", None) if isinstance(err, ModuleNotFoundError) else None
+        if module_name.endswith(".py"):  # (a file name: myenvs.py:make)
+            module = module_name.removesuffix(".py").replace(os.sep, ".").strip(".")
+            function = spec.rpartition(":")[2]
+            raise CustomEnvironmentError(f"{spec}: give the module's name, not its file: --env "
+                                         f"{module}:{function}") from err  # fmt: skip
         if name and (module_name + ".").startswith(name + "."):
             raise CustomEnvironmentError(
                 f"{spec}: no module {name!r} in {os.getcwd()} or on the Python path (run from "
