@@ -226,8 +226,8 @@ class RenderCommand:
     run: Path
     """Run directory written by `td3-jax train`."""
     out: Annotated[Path | None, default_in_help("PATH")] = None
-    """Video file, .mp4 or .gif, not one that exists, but the run's own RUN/rollout.mp4 and
-    RUN/rollout.gif (the default, with --gif the latter), which a later render replaces."""
+    """Video file to write, .mp4 or .gif. Default: RUN/rollout.mp4 (with --gif,
+    RUN/rollout.gif), which a later render replaces; any other existing file is refused."""
     gif: bool = False
     """Write a GIF instead of an MP4."""
     episodes: int = 1
