@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import decimal
-import errno
 import functools
 import inspect
 import io
@@ -46,6 +45,7 @@ from td3_jax.config import (
     validate,
     whole_iterations,
 )
+from td3_jax.errors import WRITE_ERRNOS
 from td3_jax.presets import PRESETS, device_defaults, env_preset, preset
 
 if typing.TYPE_CHECKING:
@@ -1226,7 +1226,8 @@ def plot_main(args: list[str]) -> None:
 
 def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
     """Where ``td3-jax plot`` writes its image: ``out``, checked (a known suffix, an existing
-    folder, no run given twice), else the one run's curve.png."""
+    folder, no run given twice; an existing file only where td3-jax drew it, or a run's own
+    curve.png), else the one run's curve.png."""
     from td3_jax.curves import IMAGE_SUFFIXES, is_td3_jax_figure
 
     if not runs:
@@ -1248,9 +1249,11 @@ def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
     if out.is_dir() or not out.parent.is_dir():
         what = "is a directory" if out.is_dir() else f"is in {out.parent}, which is no directory"
         raise ConfigError(f"--out {out} {what}; give an image file in an existing folder")
-    if out.exists() and not is_td3_jax_figure(out):
-        raise ConfigError(f"--out {out} exists and is not a figure td3-jax plot drew: remove "
-                          "it or choose another name")  # fmt: skip
+    own = out.name == "curve.png" and (out.parent / "config.json").is_file()  # (a run's own)
+    if out.exists() and not own and not is_td3_jax_figure(out):
+        raise ConfigError(f"--out {out} exists and is not a figure td3-jax plot drew (or one "
+                          "from an older td3-jax, which did not mark its figures): remove it or "
+                          "choose another name")  # fmt: skip
     return out
 
 
@@ -1333,6 +1336,7 @@ def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         _dispatch(argv)
+        sys.stdout.flush()  # (here, not at exit, where a closed pipe is a traceback and 120)
     except BrokenPipeError:  # the reader of our output went away (`td3-jax ... | head`)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         sys.exit(141)  # 128 + SIGPIPE, as other command-line tools end
@@ -1365,10 +1369,6 @@ def _dispatch(argv: list[str]) -> None:
     _run_reporting_errors(command, argv[1:])
 
 
-#: An OSError that says the output cannot be written (full, over quota, read-only, no
-#: permission; EPERM: an immutable file, some network or FUSE mounts): one line, exit 2.
-_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
-
 #: The flags whose value is a run's folder or an output file: given empty, each would mean
 #: the working directory. (An empty --compile-cache means off and an empty --menagerie not
 #: given, as before.)
@@ -1389,15 +1389,18 @@ def check_no_empty_path(args: list[str]) -> None:
 
 
 def expand_home(args: list[str]) -> list[str]:
-    """``args`` with a leading ``~`` of an ``--out`` or ``--run`` value expanded to the home
-    folder, as the shell does for ``--out ~/x`` but not for ``--out=~/x`` or a quoted ``'~/x'``
-    (which made a folder named ``~`` in the working directory, and said ``~/x``)."""
-    expanded = []
-    for before, token in itertools.pairwise([None, *args]):
-        flag, equals, value = token.partition("=")
-        if equals and flag in _PATH_FLAGS and value.startswith("~"):
-            token = f"{flag}={os.path.expanduser(value)}"
-        elif before in _PATH_FLAGS and token.startswith("~"):
+    """``args`` with a leading ``~`` of an ``--out`` or ``--run`` value (each of ``--run``'s
+    values) expanded to the home folder, as the shell does for ``--out ~/x`` but not for
+    ``--out=~/x``, a quoted ``'~/x'`` or a Python caller's list (which made a folder named
+    ``~`` in the working directory, and said ``~/x``)."""
+    expanded, flag = [], None  # (the path flag whose values follow)
+    for token in args:
+        name, equals, value = token.partition("=")
+        if token.startswith("-"):
+            flag = name if name in _PATH_FLAGS and not equals else None
+            if equals and name in _PATH_FLAGS and value.startswith("~"):
+                token = f"{name}={os.path.expanduser(value)}"
+        elif flag is not None and token.startswith("~"):
             token = os.path.expanduser(token)
         expanded.append(token)
     return expanded
@@ -1451,7 +1454,7 @@ def _run_reporting_errors(command, args: list[str]) -> None:
     except Interrupted as err:
         _exit_interrupted(f"td3-jax: {err}", err.code)
     except OSError as err:  # a full disk, a quota, a read-only file system, no permission
-        if err.errno not in _DISK_ERRNOS:
+        if err.errno not in WRITE_ERRNOS:
             raise
         where = f"{err.filename}: " if err.filename else ""
         print(f"td3-jax: error: {where}{err.strerror}", file=sys.stderr)

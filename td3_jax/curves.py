@@ -33,12 +33,24 @@ FIGURE_MARK = "td3-jax plot"
 
 
 def is_td3_jax_figure(path: Path) -> bool:
-    """Whether the file ``path`` is a figure td3-jax drew (its metadata holds
-    :data:`FIGURE_MARK`; a figure is a few hundred kB at most, so it is read whole)."""
-    try:
-        return FIGURE_MARK.encode() in Path(path).read_bytes()
-    except OSError:
+    """Whether the regular file ``path`` is a figure td3-jax drew: its metadata field holds
+    :data:`FIGURE_MARK` (PNG's Software text chunk near the start, SVG's title near the start,
+    PDF's Creator near the end; only those parts are read). An unreadable file raises its
+    OSError."""
+    path = Path(path)
+    if not path.is_file():
         return False
+    fields = (b"tEXtSoftware\x00", b"<dc:title>", b"/Creator (")
+    marks = [field + FIGURE_MARK.encode() for field in fields]
+    with path.open("rb") as image:
+        head = image.read(_MARK_SPAN)
+        image.seek(max(image.seek(0, os.SEEK_END) - _MARK_SPAN, 0))
+        tail = image.read(_MARK_SPAN)
+    return any(mark in head or mark in tail for mark in marks)
+
+
+#: How much of a figure's start and end :func:`is_td3_jax_figure` reads.
+_MARK_SPAN = 64 * 1024
 
 
 class Curve(NamedTuple):

@@ -11,6 +11,7 @@ re-export their own (``td3_jax.config.ConfigError`` is ``td3_jax.errors.ConfigEr
 from __future__ import annotations
 
 import difflib
+import errno
 from collections.abc import Sequence
 
 
@@ -106,7 +107,15 @@ class UpstreamChanged(Td3JaxError, RuntimeError):
     exit_code = 1
 
 
+#: The errors of a write that the system refused: a full disk, a quota, a read-only file
+#: system, no permission (EPERM: an immutable file, some network or FUSE mounts). Each is one
+#: line naming the file and exit 2 at the command line, and stops a run keeping its last
+#: good checkpoint.
+WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+
+
 __all__ = [
+    "WRITE_ERRNOS",
     "CheckpointError",
     "CheckpointWriteError",
     "ConfigError",

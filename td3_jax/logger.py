@@ -19,7 +19,6 @@ from td3_jax import upstream
 from td3_jax.errors import ConfigError
 
 __all__ = [
-    "WRITE_ERRNOS",
     "MetricsLogger",
     "append_line",
     "check_records",
@@ -29,8 +28,6 @@ __all__ = [
     "write_atomically",
 ]
 
-#: The errors of a write that the disk refused (full, over quota, read-only, not permitted).
-WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
 #: The TensorBoard writers this process has opened (a part of each event file's name).
 _WRITERS_OPENED = itertools.count()
 

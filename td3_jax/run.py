@@ -27,8 +27,14 @@ from td3_jax.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.config import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.curves import plot_curve
 from td3_jax.envs import warp_kernels
-from td3_jax.errors import ConfigError, NonFiniteError, OutputWriteError, PhysicsOverflowError
-from td3_jax.logger import WRITE_ERRNOS, MetricsLogger
+from td3_jax.errors import (
+    WRITE_ERRNOS,
+    ConfigError,
+    NonFiniteError,
+    OutputWriteError,
+    PhysicsOverflowError,
+)
+from td3_jax.logger import MetricsLogger
 from td3_jax.population import Member
 from td3_jax.programs import Programs, Source
 from td3_jax.rundir import (

@@ -27,6 +27,7 @@ from td3_jax.checkpoint import (
     CheckpointError,
     CheckpointWriteError,
     CorruptCheckpointError,
+    _write_cause,
 )
 from td3_jax.config import TrainConfig
 from td3_jax.runtime import quiet_library_logs
@@ -673,3 +674,26 @@ def test_check_space_names_the_larger_part_of_the_train_state_to_shrink(tmp_path
             ckpt.check_space(abstract)
         assert advice in str(err.value) and str(err.value).count("smaller") == 1
     ckpt.close()
+
+
+@pytest.mark.parametrize(
+    ("code", "words"),
+    [
+        (errno.ENOSPC, "no space left on the disk holding {}"),
+        (errno.EDQUOT, "the disk quota of {} is exceeded"),
+        (errno.EROFS, "{} is on a read-only file system"),
+        (errno.EACCES, "no permission to write in {}"),
+        (errno.EPERM, "writing in {} is not permitted"),  # (an immutable file: a traceback once)
+    ],
+)
+def test_a_refused_write_is_said_in_words_raised_or_wrapped(code, words, tmp_path):
+    """The OS's reason, whether the OSError comes itself, as the cause of another error, or
+    only as text inside one (tensorstore's wrapped messages)."""
+    expected = words.format(tmp_path)
+    raised = OSError(code, os.strerror(code))
+    caused = ValueError("the save failed")
+    caused.__cause__ = raised
+    wrapped = RuntimeError(f"Error writing local file: {os.strerror(code)} [source locations]")
+    for err in (raised, caused, wrapped):
+        assert _write_cause(err, tmp_path) == expected, err
+    assert _write_cause(OSError(errno.EIO, "I/O error"), tmp_path).startswith("OSError: ")

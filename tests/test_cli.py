@@ -104,10 +104,12 @@ def test_version_is_the_packaged_version(capsys):
 
 
 @pytest.mark.subprocess  # a child process that imports JAX: 4 s
-@pytest.mark.parametrize("args", [["train", "--help"], ["--help"]])
+@pytest.mark.parametrize("args", [["train", "--help"], ["--help"], ["--version"]])
 def test_output_into_a_closed_pipe_ends_quietly(args):
-    """`td3-jax train --help | head -1`: the reader goes away before the help is written."""
-    proc = subprocess.Popen([sys.executable, "-m", "td3_jax", *args],
+    """`td3-jax train --help | head -1`: the reader goes away before the help is written
+    (buffered, as a pipe's output is by default: then the write comes as the command ends)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    proc = subprocess.Popen([sys.executable, "-m", "td3_jax", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
     proc.stdout.close()  # closed before the child has imported anything: its write fails
     err = proc.stderr.read().decode()
@@ -821,11 +823,20 @@ def test_plot_compares_runs_in_one_image_and_checks_where_it_goes(finished_run, 
         (["--out", str(tmp_path / "x.jpg")], "format comes from its suffix, one of .png"),
         (["--out", str(tmp_path / "no" / "x.png")], "which is no directory"),
         (["--out", str(tmp_path / "thesis.pdf")], "exists and is not a figure td3-jax plot drew"),
+        (["--out", str(tmp_path / "second" / "curve.pdf")], "is not a figure td3-jax plot drew"),
     ):
         (tmp_path / "thesis.pdf").write_bytes(b"%PDF-1.7 a figure of the user's own")
+        (second / "curve.pdf").write_bytes(b"%PDF-1.7 td3-jax plot")  # (the mark, not its field)
         code, _, err = main(["plot", "--run", str(first), *extra], capsys)
         assert_one_line_error(code, err, said)
     assert (tmp_path / "thesis.pdf").read_bytes() == b"%PDF-1.7 a figure of the user's own"
+    (second / "curve.png").write_bytes(b"an unmarked curve.png of an older td3-jax")
+    code, stdout, err = main(
+        ["plot", "--run", str(second), "--out", str(second / "curve.png")], capsys
+    )  # (a run's own curve.png is replaced, marked or not)
+    assert code == 0 and (second / "curve.png").read_bytes()[:4] == b"\x89PNG", err
+    (second / "curve.png").unlink()
+    (second / "curve.pdf").unlink()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["both.pdf", "second", "thesis.pdf"]
     records = (second / "metrics.jsonl").read_text().replace('"env": "', '"env": "other/')
     (second / "metrics.jsonl").write_text(records)  # (a run of another environment)
@@ -1847,10 +1858,12 @@ def test_a_home_folder_in_out_or_run_is_expanded_however_given(monkeypatch):
     """``--out=~/x`` (which the shell leaves alone) names the home folder's x, as ``--out ~/x``
     does; other values, and a ``~`` not at the start, are left as given."""
     monkeypatch.setenv("HOME", "/home/me")
-    args = ["--out=~/runs/a", "--run", "~/b", "--env", "~/c", "--out", "x~y", "--note=~z"]
+    args = ["--out=~/runs/a", "--run", "~/b", "~/c", "--env", "~/d", "--out", "x~y", "--note=~z"]
     assert cli.expand_home(args) == [
-        "--out=/home/me/runs/a", "--run", "/home/me/b", "--env", "~/c", "--out", "x~y", "--note=~z"
+        "--out=/home/me/runs/a", "--run", "/home/me/b", "/home/me/c", "--env", "~/d", "--out",
+        "x~y", "--note=~z",
     ]  # fmt: skip
+    assert cli.expand_home(["--run=~/a", "~/b", "--out"]) == ["--run=/home/me/a", "~/b", "--out"]
 
 
 def test_a_flag_given_twice_is_warned_about_once(capsys):
