@@ -1406,16 +1406,23 @@ def expand_home(args: list[str]) -> list[str]:
     return expanded
 
 
+#: The flags that take a list of values (besides ``--sweep-*``), whose repetition might be
+#: read as adding to the list.
+_LIST_FLAGS = ("--hidden-sizes", "--actor-hidden-sizes", "--critic-hidden-sizes", "--run")
+
+
 def repeated_flags_warning(args: list[str]) -> str | None:
-    """A warning naming the flags given more than once in ``args`` (``--seed 0 ... --seed 3``,
-    often a script's defaults followed by an override): only the last of each counts, so an
-    earlier value, such as a first ``--sweep-actor-lr`` list, is dropped. ``None``: none."""
-    flags = [arg.split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
-    repeated = [flag for flag in dict.fromkeys(flags) if flags.count(flag) > 1]
+    """A warning naming the list flags (``--sweep-*``, :data:`_LIST_FLAGS`) given more than
+    once in ``args``: only the last list counts, so ``--sweep-actor-lr 1e-4 --sweep-actor-lr
+    1e-3 3e-4`` drops 1e-4. ``None``: none. (A repeated one-value flag is an override, as
+    a script's defaults followed by ``--seed 3`` give, and is not warned about.)"""
+    flags = [arg.split("=", 1)[0] for arg in args if arg.startswith("--")]
+    lists = [f for f in flags if f.startswith("--sweep-") or f in _LIST_FLAGS]
+    repeated = [flag for flag in dict.fromkeys(lists) if lists.count(flag) > 1]
     if not repeated:
         return None
-    return (f"{', '.join(repeated)} given more than once: the last of each counts (the earlier "
-            "values are dropped, not added)")  # fmt: skip
+    return (f"{', '.join(repeated)} given more than once: only the last list of each counts "
+            "(the lists are not added together)")  # fmt: skip
 
 
 def _exit_interrupted(message: str, code: int = 130) -> None:

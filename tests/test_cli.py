@@ -1866,19 +1866,20 @@ def test_a_home_folder_in_out_or_run_is_expanded_however_given(monkeypatch):
     assert cli.expand_home(["--run=~/a", "~/b", "--out"]) == ["--run=/home/me/a", "~/b", "--out"]
 
 
-def test_a_flag_given_twice_is_warned_about_once(capsys):
-    """Only the last value of a repeated flag counts (a first --sweep-actor-lr list was dropped
-    without a word); one warning names each such flag, an = form included, nothing else."""
-    args = ["--seed", "3", "--sweep-actor-lr", "1e-4", "--num-envs=4", "--seed=0",
-            "--sweep-actor-lr", "1e-3", "3e-4", "--num-envs", "8", "-1"]  # fmt: skip
+def test_a_list_flag_given_twice_is_warned_about_once(capsys):
+    """Only the last list of a repeated list flag counts (a first --sweep-actor-lr list was
+    dropped without a word): one warning names each such flag, an = form included; a repeated
+    one-value flag is an override (a script's defaults, then --seed 3) and is not warned about."""
+    args = ["--seed", "3", "--sweep-actor-lr", "1e-4", "--hidden-sizes=4", "--seed=0",
+            "--sweep-actor-lr", "1e-3", "3e-4", "--hidden-sizes", "8", "8", "-1"]  # fmt: skip
     assert cli.repeated_flags_warning(args) == (
-        "--seed, --sweep-actor-lr, --num-envs given more than once: the last of each counts "
-        "(the earlier values are dropped, not added)"
+        "--sweep-actor-lr, --hidden-sizes given more than once: only the last list of each "
+        "counts (the lists are not added together)"
     )
-    assert cli.repeated_flags_warning(["--seed", "3", "--out", "--seed-x", "-1", "-1"]) is None
-    code, _, err = main(["eval", "--episodes", "2", "--episodes", "3"], capsys)
+    assert cli.repeated_flags_warning(["--seed", "3", "--seed", "4", "--sweep-tau", "1"]) is None
+    code, _, err = main(["plot", "--run", "a", "--run", "b"], capsys)
     assert code == 2
     assert err.splitlines()[0] == (
-        "td3-jax: warning: --episodes given more than once: the last of each counts (the "
-        "earlier values are dropped, not added)"
+        "td3-jax: warning: --run given more than once: only the last list of each counts (the "
+        "lists are not added together)"
     )
