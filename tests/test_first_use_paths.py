@@ -38,7 +38,7 @@ def test_a_flag_of_numbers_given_text_is_one_clear_line(capsys):
     code, _, err = main(["train", "--num-envs=x"], capsys)
     assert_one_line_error(code, err, "--num-envs takes a whole number, got 'x'")
     code, _, err = main(["train", "--hidden-sizes", "64", "x", "--quiet"], capsys)
-    assert_one_line_error(code, err, "--hidden-sizes takes whole numbers, got '64' 'x'")
+    assert_one_line_error(code, err, "--hidden-sizes takes whole numbers, got 'x' (of 64 x)")
 
 
 def test_an_unknown_environment_is_the_only_output(capsys, tmp_path):
