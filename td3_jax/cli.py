@@ -402,8 +402,10 @@ def _value_error(command_type: type, args: list[str], text: str) -> str | None:
 
 def _reads_as(kind: type, value: str) -> bool:
     """Whether ``kind`` (int or float) reads ``value`` (``None``: tyro's "leave it out")."""
+    if value == "None":
+        return True
     try:
-        kind(value) if value != "None" else None
+        kind(value)
     except ValueError:
         return False
     return True
@@ -1229,6 +1231,7 @@ def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
     folder, no run given twice; an existing file only where td3-jax drew it, or a run's own
     curve.png), else the one run's curve.png."""
     from td3_jax.curves import IMAGE_SUFFIXES, is_td3_jax_figure
+    from td3_jax.rundir import CONFIG_FILE
 
     if not runs:
         raise ConfigError("td3-jax plot: give a run directory: --run DIR [DIR ...]")
@@ -1249,7 +1252,7 @@ def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:
     if out.is_dir() or not out.parent.is_dir():
         what = "is a directory" if out.is_dir() else f"is in {out.parent}, which is no directory"
         raise ConfigError(f"--out {out} {what}; give an image file in an existing folder")
-    own = out.name == "curve.png" and (out.parent / "config.json").is_file()  # (a run's own)
+    own = out.name == "curve.png" and (out.parent / CONFIG_FILE).is_file()  # (a run's own)
     if out.exists() and not own and not is_td3_jax_figure(out):
         raise ConfigError(f"--out {out} exists and is not a figure td3-jax plot drew (or one "
                           "from an older td3-jax, which did not mark its figures): remove it or "
