@@ -26,7 +26,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from td3_jax.checkpoint import Checkpointer, state_bytes
+from td3_jax.runner.checkpoint import Checkpointer, state_bytes
 
 ROW = 512  # floats per ring row
 

@@ -22,7 +22,8 @@ past ``--budget-s`` (or when its own run length ends, whichever comes first):
   exception once past the budget. Brax evaluates ``num_eval_envs`` (128) episodes, stochastic
   policy (Brax's default), between training epochs; ``--num-evals`` sets how many evaluations a
   full run makes (Brax's published recipes use 10 or 20, too few points inside a short budget).
-* td3-jax: ``td3_jax.run.train(cfg, DIR/td3_<env>, progress=False, time_budget_s=budget)`` with
+* td3-jax: ``td3_jax.runner.run.train(cfg, DIR/td3_<env>, progress=False, time_budget_s=budget)``
+with
   ``cfg`` = the preset (``--td3-preset``, default: the env's, cheetah-run's for Playground) with
   ``env``, ``checkpoint_every=10**9`` and ``--td3-flag`` settings. An evaluation (deterministic
   policy, ``eval_envs`` episodes) follows every chunk of ``eval_every`` steps. td3's own
@@ -245,7 +246,7 @@ TD3_PRESET_DEFAULT = "cheetah-run"
 def default_td3_preset(env: str) -> str:
     """The td3-jax preset an environment is compared with: its own (ant, t1, ...), a robot's
     family preset for other locomotion tasks, else cheetah-run's (DM Control Suite)."""
-    from td3_jax import presets
+    from td3_jax.config import presets
 
     name = env_id(env)
     return (
@@ -291,8 +292,8 @@ def literal(value: str) -> Any:
 
 
 def td3_overrides(flags: dict[str, str]) -> dict[str, Any]:
-    """--td3-flag values converted to the types of td3_jax.config.TrainConfig's fields."""
-    from td3_jax.config import TrainConfig
+    """--td3-flag values converted to the types of td3_jax.config.schema.TrainConfig's fields."""
+    from td3_jax.config.schema import TrainConfig
 
     fields = {f.name: str(f.type) for f in dataclasses.fields(TrainConfig)}
     out: dict[str, Any] = {}
@@ -495,8 +496,8 @@ def _playground_env(env_name: str, result: dict[str, Any]) -> Any:
 
 def td3_config(job: dict[str, Any]):
     """The td3-jax TrainConfig of a job (validated) and the settings changed from the preset."""
-    from td3_jax import config as td3_config
-    from td3_jax import presets
+    from td3_jax.config import presets
+    from td3_jax.config import schema as td3_config
 
     overrides: dict[str, Any] = {} if is_brax_env(job["env"]) else {"env_backend": "jax"}
     if job["smoke"]:
@@ -517,11 +518,11 @@ def td3_config(job: dict[str, Any]):
 
 
 def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
-    from td3_jax import run as td3_run
+    from td3_jax.runner import run as td3_run
 
     cfg, overrides = td3_config(job)
     result["settings"] = {"preset": job["td3_preset"], "used": dataclasses.asdict(cfg)}
-    result["source"] = f"td3_jax.presets.PRESETS[{job['td3_preset']!r}] + flags"
+    result["source"] = f"td3_jax.config.presets.PRESETS[{job['td3_preset']!r}] + flags"
     _announce("td3", result["source"], {"env": cfg.env, **overrides})
     run_dir = Path(job["out"]) / f"td3_{job['env']}"
     if run_dir.exists():

@@ -19,10 +19,10 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from td3_jax.config import TrainConfig
-from td3_jax.presets import preset
-from td3_jax.program_cache import HOST_ONLY
-from td3_jax.stats import iqm
+from td3_jax.config.presets import preset
+from td3_jax.config.schema import TrainConfig
+from td3_jax.core.stats import iqm
+from td3_jax.runner.program_cache import HOST_ONLY
 
 #: Final returns at 50M env steps (5 seeds), FlashSAC's paper, and FastTD3's (as FlashSAC
 #: reports them); ``../shared/anchors/README.md``.

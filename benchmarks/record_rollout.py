@@ -1,5 +1,5 @@
 """Saves a run's recorded evaluation episodes (joint positions and rewards per step) to an .npz,
-so the frames can be drawn on another machine (``td3_jax.render.rollout_frames``): the GPU box
+so the frames can be drawn on another machine (``td3_jax.tools.render.rollout_frames``): the GPU box
 trains and rolls out, a machine with OpenGL draws.
 
 Usage: python3 benchmarks/record_rollout.py RUN_DIR OUT.npz [--episodes N] [--seed S]
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from td3_jax import render
+from td3_jax.tools import render
 
 
 def draw(recording: Path, video: Path, steps: int, every: int, size: tuple[int, int],

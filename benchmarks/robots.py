@@ -48,10 +48,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from td3_jax import build, upstream
+from td3_jax.common import upstream
+from td3_jax.config import build
+from td3_jax.config.presets import ENV_PRESETS, preset, robot_preset
 from td3_jax.envs import locomotion, menagerie
 from td3_jax.envs.base import EnvOptions
-from td3_jax.presets import ENV_PRESETS, preset, robot_preset
 
 
 def pack(tasks: list[str], dest: Path) -> list[Path]:

@@ -312,8 +312,8 @@ def main(argv: list[str] | None = None) -> None:
 
 def point_config(point: dict[str, Any]):
     """The point's TrainConfig: the env's preset at the point's sizes, warm-up off."""
-    from td3_jax.config import TrainConfig
-    from td3_jax.presets import env_preset, preset
+    from td3_jax.config.presets import env_preset, preset
+    from td3_jax.config.schema import TrainConfig
 
     name = point["preset"] or env_preset(point["env"])
     base = preset(name) if name else TrainConfig(env=point["env"])
@@ -349,11 +349,11 @@ def abstract_inputs(compiled, program) -> tuple[Any, Any]:
 def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     """``(chunk executable, init executable, hyperparams, seconds)``: built, traced and
     compiled ahead, before any state exists."""
-    from td3_jax import upstream
-    from td3_jax.build import make_population, members
-    from td3_jax.config import validate
-    from td3_jax.programs import jitted
-    from td3_jax.sharding import make_mesh
+    from td3_jax.common import upstream
+    from td3_jax.config.build import make_population, members
+    from td3_jax.config.schema import validate
+    from td3_jax.runner.programs import jitted
+    from td3_jax.runner.sharding import make_mesh
 
     seconds, clock = {}, time.perf_counter()
     mesh = make_mesh(devices)

@@ -1,8 +1,8 @@
 """Wall-clock of K seeds trained in one program, at a fixed per-seed budget.
 
-For each K, runs ``td3_jax.run.train`` with ``seeds=K`` (compile included, no progress display,
-checkpoint only at the end) and reports the wall-clock, the compiled time of one chunk, and the
-final mean evaluation return with its 95% bootstrap CI over seeds.
+For each K, runs ``td3_jax.runner.run.train`` with ``seeds=K`` (compile included, no progress
+display, checkpoint only at the end) and reports the wall-clock, the compiled time of one chunk, and
+the final mean evaluation return with its 95% bootstrap CI over seeds.
 
 Usage: python benchmarks/seeds.py --preset pendulum --seeds 1 4 16 64 --out seeds.jsonl
 """
@@ -17,8 +17,8 @@ import time
 
 import jax
 
-from td3_jax.presets import preset
-from td3_jax.run import train
+from td3_jax.config.presets import preset
+from td3_jax.runner.run import train
 
 
 def main() -> None:

@@ -9,7 +9,7 @@ The first form times what ``td3-jax train`` does before its first evaluation, fr
 launch (``TD3_LAUNCH``, the shell's clock at launch; without it, from the script's first line):
 imports, the accelerator's start-up, environment creation, tracing each program and compiling
 it in a thread while the next is traced (as the command does:
-:func:`td3_jax.programs.compile_ahead`), the init, the first chunk (the early part of it, as
+:func:`td3_jax.runner.programs.compile_ahead`), the init, the first chunk (the early part of it, as
 the command runs it) and the first evaluation. ``--sequential`` compiles each program in turn
 instead, to see each one's cost.
 
@@ -40,11 +40,14 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from td3_jax import build, envs, program_cache, programs, upstream  # noqa: E402
-from td3_jax.build import make_population, members  # noqa: E402
-from td3_jax.presets import preset  # noqa: E402
-from td3_jax.runtime import enable_compile_cache  # noqa: E402
-from td3_jax.sharding import make_mesh  # noqa: E402
+from td3_jax import envs  # noqa: E402
+from td3_jax.common import upstream  # noqa: E402
+from td3_jax.common.runtime import enable_compile_cache  # noqa: E402
+from td3_jax.config import build  # noqa: E402
+from td3_jax.config.build import make_population, members  # noqa: E402
+from td3_jax.config.presets import preset  # noqa: E402
+from td3_jax.runner import program_cache, programs  # noqa: E402
+from td3_jax.runner.sharding import make_mesh  # noqa: E402
 
 FLOOR_STEPS = 100
 

@@ -13,7 +13,7 @@ set -uo pipefail
 out=$1 preset=$2
 shift 2
 mkdir -p "$out"
-env_name=$(python3 -c "from td3_jax.presets import preset; print(preset('$preset').env)") || exit 1
+env_name=$(python3 -c "from td3_jax.config.presets import preset; print(preset('$preset').env)") || exit 1
 for variant in "$@"; do
   name=${variant%%=*} flags=${variant#*=}
   base="$out/${preset}_${name}"

@@ -29,11 +29,12 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from td3_jax import envs, upstream
-from td3_jax.build import make_trainer
-from td3_jax.config import TrainConfig
-from td3_jax.presets import preset
-from td3_jax.types import Transition
+from td3_jax import envs
+from td3_jax.common import upstream
+from td3_jax.config.build import make_trainer
+from td3_jax.config.presets import preset
+from td3_jax.config.schema import TrainConfig
+from td3_jax.core.types import Transition
 
 
 def timed(fn, *args, repeats: int = 2):

@@ -42,9 +42,9 @@ from unittest import mock
 import jax
 import jax.numpy as jnp
 
-from td3_jax import actor_critic as ac
-from td3_jax import distributional, replay
-from td3_jax.types import Transition
+from td3_jax.core import actor_critic as ac
+from td3_jax.core import distributional, replay
+from td3_jax.core.types import Transition
 
 CRITIC_HIDDEN, ACTOR_HIDDEN = (1024, 512, 256), (512, 256, 128)
 NETWORK_SIZES = {"mlp": CRITIC_HIDDEN, "residual": (256, 256)}

@@ -49,7 +49,7 @@ def _compiles_named() -> list[str]:
     timed by :func:`robots._time_warp_compiles` too)."""
     from robots import _time_warp_compiles
 
-    from td3_jax import upstream
+    from td3_jax.common import upstream
 
     _time_warp_compiles()
     names: list[str] = []
@@ -87,7 +87,7 @@ def main() -> None:
     import jax
     from robots import _WARP, unpack
 
-    from td3_jax import upstream
+    from td3_jax.common import upstream
     from td3_jax.envs import locomotion, warp_kernels
     from td3_jax.envs.base import EnvOptions
 

@@ -28,10 +28,10 @@ import numpy as np
 from mujoco import mjx
 
 from td3_jax import envs
-from td3_jax.build import make_train
-from td3_jax.config import TrainConfig
+from td3_jax.config.build import make_train
+from td3_jax.config.schema import TrainConfig
+from td3_jax.core.training import key_for_seed
 from td3_jax.envs import FunctionalEnv
-from td3_jax.training import key_for_seed
 
 XML = """
 <mujoco model="point_mass">
@@ -123,7 +123,7 @@ CONFIG = TrainConfig(env="examples.point_mass:make", total_steps=24_000)
 
 def train(cfg: TrainConfig = CONFIG, seed: int = 0) -> np.ndarray:
     """``[evaluations]`` mean evaluation returns of one run of ``cfg`` on :func:`make`'s
-    environment (:func:`td3_jax.build.make_train`: one compiled program)."""
+    environment (:func:`td3_jax.config.build.make_train`: one compiled program)."""
     run = jax.jit(make_train(cfg, env=make()))
     _, metrics = run(key_for_seed(seed))
     return np.asarray(metrics["eval_returns"]).mean(axis=-1)

@@ -1,36 +1,64 @@
 """td3-jax: TD3 and DDPG on thousands of vectorised environments, in compiled JAX programs.
 
-The public, stable functional API::
+The public, stable API is the names of ``__all__``::
 
+    import jax
     import td3_jax as tj
-    agent = tj.td3(tj.TD3Config(), observation_size, action_size)
-    state = agent.init(key)
-    state, metrics = agent.update(state, tj.Transition(obs, action, reward, next_obs, done), key)
-    buf = tj.replay.add(tj.replay.init(capacity, example_transition), transitions)
-    batch = tj.replay.sample(buf, key, batch_size)
 
-Without JAX importable, the package holds only :mod:`td3_jax.policy_file` (the NumPy-only
-loader of exported policies), so an exported policy runs where JAX is not installed.
+    agent = tj.td3(tj.TD3Config(), observation_size=3, action_size=1)
+    state = agent.init(jax.random.key(0))
+    state, metrics = agent.update(state, batch, jax.random.key(1))   # batch: a tj.Transition
+    ring = tj.replay.add(tj.replay.init(10_000, example_transition), transitions)
+
+    train = tj.make_train(tj.TrainConfig(env="gymnax/Pendulum-v1"))   # pure: jit, vmap it
+    final_state, metrics = jax.jit(train)(tj.key_for_seed(0))
+    records = tj.train(tj.TrainConfig(), "runs/pendulum")           # the host loop, on disk
+
+Everything else (``td3_jax.core``, ``td3_jax.runner``, ...) is importable but may change from one
+version to the next. Names load on first use, so ``import td3_jax`` is cheap and the NumPy-only
+policy reader :mod:`td3_jax.tools.policy_file` works where JAX is not installed.
 """
 
-try:
-    import jax  # noqa: F401  (the API below needs it; td3_jax.policy_file does not)
-except ImportError:  # pragma: no cover - exercised by a subprocess in tests/test_export.py
-    pass
-else:
-    from td3_jax import noise, replay
-    from td3_jax.td3 import DDPGConfig, TD3Config, ddpg, td3
-    from td3_jax.types import Agent, AgentState, Transition
+from __future__ import annotations
 
-__all__ = [
-    "Agent",
-    "AgentState",
-    "DDPGConfig",
-    "TD3Config",
-    "Transition",
-    "ddpg",
-    "noise",
-    "replay",
-    "td3",
-]
-__version__ = "0.1.0"
+import importlib
+from typing import Any
+
+__version__ = "0.2.0"
+
+#: Public name -> (module, attribute; None for the module itself).
+_PUBLIC: dict[str, tuple[str, str | None]] = {
+    "td3": ("td3_jax.core.td3", "td3"),
+    "ddpg": ("td3_jax.core.td3", "ddpg"),
+    "TD3Config": ("td3_jax.core.td3", "TD3Config"),
+    "DDPGConfig": ("td3_jax.core.td3", "DDPGConfig"),
+    "Agent": ("td3_jax.core.types", "Agent"),
+    "AgentState": ("td3_jax.core.types", "AgentState"),
+    "Transition": ("td3_jax.core.types", "Transition"),
+    "replay": ("td3_jax.core.replay", None),
+    "noise": ("td3_jax.core.noise", None),
+    "stats": ("td3_jax.core.stats", None),
+    "envs": ("td3_jax.envs", None),
+    "TrainConfig": ("td3_jax.config.schema", "TrainConfig"),
+    "make_train": ("td3_jax.config.build", "make_train"),
+    "key_for_seed": ("td3_jax.core.training", "key_for_seed"),
+    "train": ("td3_jax.runner.run", "train"),
+}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    """Loads a public name on first use (PEP 562): a lazy import that keeps JAX, Flax and
+    orbax out of ``import td3_jax`` until a name that needs them is asked for."""
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'td3_jax' has no attribute {name!r}")
+    module_name, attribute = _PUBLIC[name]
+    module = importlib.import_module(module_name)
+    value = module if attribute is None else getattr(module, attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

@@ -1,3 +1,3 @@
-from td3_jax.cli import main
+from td3_jax.cli.app import main
 
 main()

@@ -18,7 +18,7 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
-from td3_jax.runtime import CACHE_MAX_BYTES  # noqa: E402
+from td3_jax.common.runtime import CACHE_MAX_BYTES  # noqa: E402
 
 # The CLI's default --compile-cache is ~/.cache/td3-jax/jax (with its traced programs): tests
 # that leave it at its default write into a home of their own, not the user's cache. Under

@@ -16,7 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from td3_jax import cli
+from td3_jax.cli import app as cli
 
 #: A run of 128 steps of 4 Pendulums in two chunks of 64: one evaluation and checkpoint each.
 TINY_FLAGS = [

@@ -57,7 +57,11 @@ def inspect_is_module(value) -> bool:
 def test_every_error_is_one_class_of_the_errors_module_with_its_exit_code():
     """The modules that raise an error re-export errors' class (one class, not a copy); bad
     input exits 2, a run stopped by what it computed exits 3."""
-    from td3_jax import checkpoint, config, envs, errors, export, render, run, upstream
+    from td3_jax import envs
+    from td3_jax.common import errors, upstream
+    from td3_jax.config import schema as config
+    from td3_jax.runner import checkpoint, run
+    from td3_jax.tools import export, render
 
     for module, name in [(config, "ConfigError"), (checkpoint, "CorruptCheckpointError"),
                          (envs, "UnknownEnvironmentError"), (envs, "MissingAssetsError"),

@@ -14,6 +14,7 @@ import os
 import sys
 from typing import Any
 
+from td3_jax.common.errors import CustomEnvironmentError, UnknownEnvironmentError
 from td3_jax.envs import brax as _brax
 from td3_jax.envs import custom as _custom
 from td3_jax.envs import gymnax as _gymnax
@@ -42,7 +43,6 @@ from td3_jax.envs.custom import (
 )
 from td3_jax.envs.menagerie import MissingAssetsError, candidates, first_holding, robot
 from td3_jax.envs.physics import without_warp_import_notes
-from td3_jax.errors import CustomEnvironmentError, UnknownEnvironmentError
 
 #: Each source module has ``names() -> list[str]`` and
 #: ``make(task, *, backend, episode_length) -> Environment`` (Playground's also takes

@@ -34,8 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from td3_jax.axes import max_member
-from td3_jax.errors import EnvironmentOptionError
+from td3_jax.common.axes import max_member
+from td3_jax.common.errors import EnvironmentOptionError
 
 ResetFn = Callable[[jax.Array], tuple[Any, jax.Array]]
 StepFn = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array, jax.Array, jax.Array]]
@@ -61,7 +61,7 @@ class Environment:
       critic_offset: where the critics' observation starts in the row (0 when the actor's
         observation is a prefix of it).
       mj_model: the ``mujoco.MjModel`` a MuJoCo renderer draws (``None``: not a MuJoCo scene);
-        for rendering only (:mod:`td3_jax.render`), training never reads it.
+        for rendering only (:mod:`td3_jax.tools.render`), training never reads it.
       qpos_fn: ``qpos_fn(inner) -> [nq]`` the positions a frame is drawn from (MuJoCo's
         ``qpos``; gymnax's Pendulum: its angle), or ``None`` (not renderable).
       overflow_fn: ``overflow_fn(inner) -> bool``: the physics ran out of a fixed buffer in

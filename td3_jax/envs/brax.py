@@ -6,7 +6,7 @@ from typing import Any
 
 import jax
 
-from td3_jax import upstream
+from td3_jax.common import upstream
 from td3_jax.envs.base import Environment, from_mjx_style
 from td3_jax.envs.physics import import_mjx_quietly
 

@@ -22,7 +22,7 @@ my_pkg.envs:make_arm``, imported from the current directory or the Python path a
 no arguments; config.json records it, so ``--resume``, ``eval``, ``render`` and ``export`` make
 it again. Every environment handed over is checked (:func:`check_environment`): reset and one
 step are traced abstractly (nothing runs) and a missing or wrong part is one line
-(:class:`~td3_jax.errors.CustomEnvironmentError`, exit code 2).
+(:class:`~td3_jax.common.errors.CustomEnvironmentError`, exit code 2).
 """
 
 from __future__ import annotations
@@ -42,12 +42,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from td3_jax.common.errors import CustomEnvironmentError, Td3JaxError, did_you_mean
 from td3_jax.envs import brax as _brax
 from td3_jax.envs import gymnax as _gymnax
 from td3_jax.envs import playground as _playground
 from td3_jax.envs.base import Environment, EnvOptions, action_bound, refuse_locomotion_options
 from td3_jax.envs.physics import without_warp_import_notes
-from td3_jax.errors import CustomEnvironmentError, Td3JaxError, did_you_mean
 
 #: The name an environment handed over as an object gets (``object/<its name>``); a run made
 #: from one records it in config.json, where it stands for an object no file can hold.
@@ -121,8 +121,9 @@ def object_run_error(name: str) -> CustomEnvironmentError:
     """The error for making ``object/...`` again: a run handed an object records only that."""
     return CustomEnvironmentError(
         f"{name} was handed to td3-jax as a Python object, which config.json cannot record: pass "
-        "the object again (env=obj to td3_jax.run.train with resume=True, "
-        "td3_jax.finished.evaluate_run, td3_jax.export.export_run or td3_jax.render.render_run), "
+        "the object again (env=obj to td3_jax.train with resume=True, "
+        "td3_jax.runner.finished.evaluate_run, td3_jax.tools.export.export_run or "
+        "td3_jax.tools.render.render_run), "
         "or train with a factory (--env module.path:function) so that the CLI's --resume, eval, "
         "render and export find it"
     )

@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from td3_jax.common.errors import CustomEnvironmentError
 from td3_jax.envs.base import Environment, action_bound
-from td3_jax.errors import CustomEnvironmentError
 
 __all__ = ["CONTINUOUS", "from_env", "make", "names", "pendulum_angle"]
 

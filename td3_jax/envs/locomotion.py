@@ -31,7 +31,7 @@ import jax.extend.core as jex_core
 import jax.numpy as jnp
 import numpy as np
 
-from td3_jax import upstream
+from td3_jax.common import upstream
 from td3_jax.envs import menagerie, physics, warp_kernels
 from td3_jax.envs.base import Environment, EnvironmentOptionError, EnvOptions
 
@@ -97,7 +97,7 @@ def row(layout: Layout, obs: Any) -> jax.Array:
 
 # ---------------------------------------------------------------------------------------------
 # Is the actor's observation a prefix of the critics'? Read from the traced program (the
-# primitives' names: td3_jax.upstream).
+# primitives' names: td3_jax.common.upstream).
 # ---------------------------------------------------------------------------------------------
 
 

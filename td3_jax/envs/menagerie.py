@@ -1,7 +1,7 @@
 """Where the MuJoCo Menagerie robot folders of Playground's locomotion tasks are found, offline.
 
 Playground reads each robot's meshes from its ``MENAGERIE_PATH`` and, when that folder is
-missing, runs ``git clone`` of the whole Menagerie (both private: :mod:`td3_jax.upstream`).
+missing, runs ``git clone`` of the whole Menagerie (both private: :mod:`td3_jax.common.upstream`).
 td3-jax never lets it: it looks for the robot's folder (e.g. ``booster_t1``) in this order and
 points Playground at the first root that holds it:
 
@@ -19,8 +19,8 @@ import importlib.util
 import os
 from pathlib import Path
 
-from td3_jax import upstream
-from td3_jax.errors import MissingAssetsError
+from td3_jax.common import upstream
+from td3_jax.common.errors import MissingAssetsError
 
 __all__ = [
     "ASSET_PACKAGES",

@@ -16,7 +16,7 @@ from typing import Any
 
 import jax
 
-from td3_jax import upstream
+from td3_jax.common import upstream
 
 __all__ = ["local_device", "place_on_local_devices", "with_local_default"]
 
@@ -52,7 +52,7 @@ def place_on_local_devices() -> bool:
     """Makes MJX's default device this process's own (idempotent). Returns whether MJX was
     found and adjusted (``False``: MJX is not installed); call it after
     ``jax.distributed.initialize`` and before making environments. An MJX without the function
-    wrapped raises :class:`td3_jax.upstream.UpstreamChanged` rather than leaving it alone."""
+    wrapped raises :class:`td3_jax.common.upstream.UpstreamChanged` rather than leaving it alone."""
     from td3_jax.envs.physics import import_mjx_quietly
 
     import_mjx_quietly()  # (first here in a gymnax run: without MJX's notes on a missing Warp)

@@ -21,7 +21,7 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-from td3_jax import runtime, upstream
+from td3_jax.common import runtime, upstream
 
 __all__ = [
     "IMPLS",

@@ -37,7 +37,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from td3_jax import runtime, upstream
+from td3_jax.common import runtime, upstream
 
 __all__ = [
     "BESIDE",
@@ -308,8 +308,8 @@ def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: i
 
 class _Pending(NamedTuple):
     """A precompile running on its own thread (:func:`beside_compile`; counted by
-    :func:`td3_jax.runtime.background_work_running`, so a stopped run exits without waiting for
-    it): ``future`` gives its :class:`Precompiled` or raises its exception; ``cancel`` stops it
+    :func:`td3_jax.common.runtime.background_work_running`, so a stopped run exits without waiting
+    for it): ``future`` gives its :class:`Precompiled` or raises its exception; ``cancel`` stops it
     taking further modules."""
 
     future: Future
@@ -344,7 +344,7 @@ def wait_ready(stop: Any = None) -> list[Precompiled]:
     """Waits for every precompile started beside a compile, says for each how long it took and
     how long this waited (a failure: the warning :func:`precompile_task` gives), and returns
     those that finished. Nothing started: ``[]`` at once. ``stop`` (a
-    :class:`~td3_jax.runtime.StopToken`): once set, the precompiles are dropped
+    :class:`~td3_jax.common.runtime.StopToken`): once set, the precompiles are dropped
     (:func:`drop_pending`) and it raises as the token does."""
     done = []
     try:

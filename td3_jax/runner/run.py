@@ -1,0 +1,675 @@
+"""The host loop: call the compiled chunk, evaluate, log, checkpoint. Nothing else.
+
+A run trains a *population* (:mod:`td3_jax.core.population`): one seed by default, ``--seeds K``
+seeds, or every combination of a sweep times the seeds, all in one compiled program.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import math
+import re
+import sys
+import time
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from td3_jax.common.errors import (
+    WRITE_ERRNOS,
+    ConfigError,
+    NonFiniteError,
+    OutputWriteError,
+    PhysicsOverflowError,
+)
+from td3_jax.common.runtime import StopToken, awaiting_device
+from td3_jax.config.build import bind_environment, members
+from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
+from td3_jax.core.population import Member
+from td3_jax.core.stats import population_stats, return_stats
+from td3_jax.core.training import ring_as_saved
+from td3_jax.envs import warp_kernels
+from td3_jax.runner import programs, tracking
+from td3_jax.runner.checkpoint import Checkpointer, CheckpointWriteError
+from td3_jax.runner.curves import plot_curve
+from td3_jax.runner.logger import MetricsLogger
+from td3_jax.runner.programs import Programs, Source
+from td3_jax.runner.rundir import (
+    CHECKPOINTS,
+    CONFIG_FILE,
+    check_environment_unchanged,
+    check_fresh,
+    check_resume,
+    check_unedited,
+    checkpoint_steps,
+    environment_record,
+    fixed_settings,
+    open_run_dir,
+    previous_outputs,
+    resume_command,
+    run_info,
+    save_config,
+)
+from td3_jax.runner.sharding import (
+    check_memory,
+    host_value,
+    make_mesh,
+    replay_layout_warning,
+    state_shardings,
+)
+
+__all__ = ["train"]
+
+
+def train(
+    cfg: TrainConfig,
+    out_dir: Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    sweep: dict[str, list[float]] | None = None,
+    stop_after_chunks: int | None = None,
+    time_budget_s: float | None = None,
+    devices: int | None = None,
+    preset: str | None = None,
+    on_prepared: Callable[[], None] | None = None,
+    program_dir: Path | None = None,
+    stop: StopToken | None = None,
+    env: Any = None,
+) -> list[dict[str, Any]]:
+    """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
+
+    A fresh run's ``eval_every`` runs as whole iterations and at most the run
+    (:func:`~td3_jax.config.schema.eval_every_within_run`, as the CLI does; with ``progress`` it
+    says so). Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
+    throughout (:mod:`td3_jax.runner.rundir`); a busy one, or a used one without ``resume``, is
+    refused. A full disk stops it with :class:`~td3_jax.common.errors.OutputWriteError` (no half
+    record kept).
+
+    Args:
+      resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
+        may differ from the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME`.
+      progress: show progress (a live bar on a terminal, else one line per evaluation).
+      sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
+        trains ``cfg.seeds`` seeds in one program. A member whose losses or parameters become
+        non-finite is marked diverged (null returns); the run stops when all have diverged.
+      stop_after_chunks: stop (as if interrupted) after this many chunks of this call (tests).
+      time_budget_s: stop after the first chunk that ends past this many seconds of the run's
+        wall-clock (compile included; counted across resumes). The run stays resumable.
+      devices: data-parallel over this many devices (default: all); the numbers do not change.
+      preset: the name of the preset ``cfg`` came from (recorded in config.json).
+      on_prepared: called once settings, directory and environment are checked (not compiled).
+      program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
+      stop: a :class:`~td3_jax.common.runtime.StopToken`; once set (a thread, a signal handler), it
+        stops the run as a Ctrl-C would. Default: a fresh one.
+      env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
+    """
+    check_time_budget(time_budget_s)
+    out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
+    cfg = _eval_every_within_run(cfg, resume, say=progress and writer)
+    with warp_kernels.beside_compile():  # (Warp's kernels may compile while XLA's programs do)
+        prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir,
+                            env)  # fmt: skip
+    cfg, population, changes, source = prepared
+    run_lock = _open_run_dir(out_dir, resume, writer)
+    run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
+               stop if stop is not None else StopToken(), env=source.env)  # fmt: skip
+    try:
+        if on_prepared is not None:
+            on_prepared()
+        _start_and_train(run, source, resume, progress, preset=preset, changes=changes)
+    finally:
+        warp_kernels.drop_pending()  # (a run that ended before its first physics step)
+        _finish(run, run_lock)
+    return run.records
+
+
+def _eval_every_within_run(cfg: TrainConfig, resume: bool, say: bool) -> TrainConfig:
+    """A fresh run's ``cfg`` with ``eval_every`` as whole iterations and at most the run
+    (:func:`~td3_jax.config.schema.eval_every_within_run`; a resume keeps the chunk its checkpoints
+    were written with); ``say``: print what changed (the CLI hands it over changed already,
+    and says so itself)."""
+    if resume:
+        return cfg
+    changed = eval_every_within_run(cfg)
+    if say and changed.eval_every != cfg.eval_every:
+        print(rounding_note(changed, cfg.eval_every), flush=True)
+    return changed
+
+
+def _open_run_dir(out_dir: Path, resume: bool, writer: bool) -> Any:
+    """:func:`~td3_jax.runner.rundir.open_run_dir`; a refusal also drops a Warp precompile started
+    for the run (:func:`~td3_jax.envs.warp_kernels.drop_pending`)."""
+    try:
+        return open_run_dir(out_dir, resume=resume, writer=writer)
+    except BaseException:
+        warp_kernels.drop_pending()
+        raise
+
+
+def check_time_budget(seconds: float | None) -> None:
+    """A one-line ConfigError for a time budget (``--time-budget-s``) that is not a positive,
+    finite number of seconds (a negative one trained a chunk, then stopped)."""
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise ConfigError(f"--time-budget-s must be a positive number of seconds, got {seconds}")
+
+
+def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
+                     preset: str | None, changes: Any) -> None:  # fmt: skip
+    """The run's start (restored, else fresh), its programs compiled and its chunks trained;
+    a run already complete compiles and rewrites nothing, and one stopped before its first
+    chunk writes no outputs (so the same command starts it again)."""
+    state, start_chunk = _start(run, source, resume)
+    if start_chunk >= run.cfg.num_chunks:
+        return
+    _say_resuming(run, start_chunk)
+    run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
+    compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
+    run.stop.raise_if_set()  # (stopped while programs loaded from the cache: nothing written)
+    _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
+                     preset=preset, changes=changes)  # fmt: skip
+
+
+def _say_resuming(run: _Run, start_chunk: int) -> None:
+    """The line a resumed run starts with (by the writing process; nothing for a fresh run)."""
+    if not (run.writer and start_chunk):
+        return
+    path = run.out_dir / CHECKPOINTS / str(start_chunk)
+    steps = start_chunk * run.cfg.steps_per_chunk
+    print(f"resuming from checkpoint {path} (env step {steps})", flush=True)
+
+
+#: What shrinks the training programs' working memory (the train state's own size is checked
+#: before they compile: :func:`td3_jax.runner.sharding.check_memory`).
+_MEMORY_ADVICE = "fewer --eval-envs or --num-envs, or a smaller --batch-size"
+
+
+def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int, progress: bool, *,
+                     resume: bool, preset: str | None, changes: Any) -> None:  # fmt: skip
+    """config.json, the progress display, metrics.jsonl, TensorBoard and W&B, then the chunks;
+    a write the disk refuses (of those or of a checkpoint) is kept in ``run.failed_write``
+    for :func:`_finish` and re-raised."""
+    try:
+        _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
+        run.display = _Progress(run.cfg, start_chunk, enabled=progress and run.writer)
+        run.logger = MetricsLogger(run.out_dir, start_chunk * run.cfg.steps_per_chunk,
+                                   enabled=run.writer, mirror=run.tracker)  # fmt: skip
+        with programs.out_of_memory_as_config_error(jax.local_devices()[0], "training",
+                                                    _MEMORY_ADVICE):  # fmt: skip
+            _loop(run, compiled, state, start_chunk)
+    except (OSError, CheckpointWriteError) as err:
+        if isinstance(err, OSError) and not _refused_write(err):
+            raise
+        run.failed_write = err
+        raise
+
+
+def _finish(run: _Run, run_lock: Any) -> None:
+    """Closes the run's outputs and releases its directory; a run stopped by a failed write
+    then raises :class:`OutputWriteError` (once a checkpoint still being written has finished
+    or failed, so the last good one is known)."""
+    try:
+        run.close()
+    finally:
+        run_lock.release()
+    if run.failed_write is not None:
+        raise _write_failure(run, run.failed_write) from run.failed_write
+
+
+def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
+    """What ``err`` could not write, the run's last good checkpoint and how to go on, in one
+    line (a checkpoint's error names the last good one too: that part is said once)."""
+    out = run.out_dir
+    if isinstance(err, OSError):
+        what = f"could not write {err.filename or out}: {err.strerror or err}"
+    else:
+        what = re.split(r"; (?:the last good checkpoint is|there is no earlier checkpoint)",
+                        str(err))[0]  # fmt: skip
+    text, code = str(err).lower(), getattr(err, "errno", None)
+    if code in (errno.ENOSPC, errno.EDQUOT) or "no space" in text or "quota" in text:
+        fix = f"free space on the disk holding {out}"
+    elif code in (errno.EROFS, errno.EACCES, errno.EPERM) or "read-only" in text or "permi" in text:
+        fix = f"make {out} writable"
+    else:
+        fix = "fix that"
+    steps = checkpoint_steps(out)
+    if steps:
+        newest = steps[-1]
+        last = f"{out / CHECKPOINTS / str(newest)} (env step {newest * run.cfg.steps_per_chunk})"
+        return OutputWriteError(f"{what}; the last good checkpoint is {last}; {fix}, then "
+                                f"continue with: {resume_command(out)}")  # fmt: skip
+    if previous_outputs(out):
+        return OutputWriteError(f"{what}; no checkpoint was written, so there is nothing to "
+                                f"resume: {fix}, then remove {out} (or choose another --out) "
+                                "and start the run again")  # fmt: skip
+    return OutputWriteError(f"{what}; no checkpoint was written (nor anything else to keep): "
+                            f"{fix}, then start the run again")  # fmt: skip
+
+
+def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
+                        ) -> tuple[Programs, Any]:  # fmt: skip
+    """The run's compiled programs, the state's room checked as soon as its shapes are known
+    (:func:`td3_jax.runner.programs.compiled`), and its state: ``state`` restored, else initialised.
+    ``say``: print that it compiles first (a log then shows where the time goes), and from
+    which stored programs (:func:`td3_jax.runner.programs.find`)."""
+    if say:
+        # (a stored program ran before: XLA's persistent cache likely holds it compiled)
+        cached = " (or loading it from the cache)" if source.stored is not None else ""
+        if source.stored is not None:
+            print(f"using the traced programs stored in {source.directory / source.key}")
+        print(f"compiling the training program{cached}...", flush=True)
+    compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
+    warp_kernels.wait_ready(run.stop)  # (before the first physics step)
+    return compiled, compiled.init() if state is None else state
+
+
+def _check_room(run: _Run, mesh: Any, state: Any) -> None:
+    """The state (arrays or shapes) fits in a device's memory and its checkpoints on the disk."""
+    check_memory(state, mesh)
+    run.checkpointer.check_space(state)
+
+
+def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
+                  start_chunk: int) -> None:  # fmt: skip
+    """config.json for the run (or its resume), by the writing process only."""
+    if run.writer:
+        info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
+                        at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
+        if not resume:
+            info.update(environment_record(run.cfg.env, run.env))
+        save_config(run.cfg, run.population, run.out_dir, info)
+        if run.tracker is not None:
+            run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
+
+
+def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
+             program_dir: Path | None, env: Any = None):  # fmt: skip
+    """Checks ``cfg`` and the directory, then finds the run's programs (stored ones, else the
+    environment is made): ``(config, members, resume changes, program source)``, the config
+    naming the environment ``env`` when one is given
+    (:func:`~td3_jax.config.build.bind_environment`). Nothing is written."""
+    cfg, env = bind_environment(cfg, env)
+    validate(cfg, devices=mesh.size)
+    if writer:  # (before anything is traced or compiled)
+        tracking.check_ready(cfg)
+    layout = replay_layout_warning(cfg.replay_shards, mesh.size)
+    if layout and writer:
+        print(f"td3-jax: warning: {layout}", file=sys.stderr)
+    if resume:
+        population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
+    else:
+        check_fresh(out_dir, writer=writer)
+        population, changes = members(cfg, sweep), {}
+    source = programs.find(cfg, population, mesh, program_dir, with_init=not resume, env=env)
+    if resume:  # (the environment just made, before anything is compiled)
+        check_environment_unchanged(out_dir, cfg.env, source.env)
+    return cfg, population, changes, source
+
+
+@dataclasses.dataclass
+class _Run:
+    """The host side of one training call: its outputs and what it has done so far."""
+
+    cfg: TrainConfig
+    out_dir: Path
+    population: list[Member]
+    devices: int
+    writer: bool
+    stop_after_chunks: int | None
+    time_budget_s: float | None
+    stop: StopToken = dataclasses.field(default_factory=StopToken)
+    env: Any = None  # the environment, when this process made it (a stored program has none)
+    checkpointer: Checkpointer | None = None
+    logger: MetricsLogger | None = None
+    tracker: tracking.Tracker | None = None
+    display: _Progress | None = None
+    records: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    diverged: set[int] = dataclasses.field(default_factory=set)
+    clock_start: float = dataclasses.field(default_factory=time.perf_counter)
+    wall_offset: float = 0.0
+    failed_write: Exception | None = None  # the write the disk refused, which stopped the run
+
+    def close(self) -> None:
+        """Closes the outputs, each on its own: the progress display, a checkpoint still being
+        written (finished first), then the logs; redraws the curve (not after a failed write:
+        the resumed run draws it) and ends the W&B run with it. A failure here is a warning,
+        so it never hides the error that ended the run (none where the disk that stopped the
+        run refuses the logs' last flush too: the run's error line says so)."""
+        if self.display is not None:
+            _warn_on_failure(self.display.close, "closing the progress display")
+        if self.checkpointer is not None:
+            if self.writer and self.checkpointer.pending is not None:
+                print(f"td3-jax: finishing checkpoint {self.checkpointer.pending}...",
+                      file=sys.stderr)  # fmt: skip
+            _warn_on_failure(self.checkpointer.close, "")
+        if self.logger is not None:
+            said = self.failed_write is not None
+            _warn_on_failure(self.logger.close, "closing the run's logs",
+                             unless=lambda err: said and _refused_write(err))  # fmt: skip
+        curve = None
+        if self.writer and self.logger is not None and self.failed_write is None:
+            curve = _warn_on_failure(lambda: plot_curve(self.out_dir), "drawing curve.png",
+                                     hint="td3-jax plot redraws the curve")  # fmt: skip
+        if self.tracker is not None:
+            self.tracker.finish(curve)
+
+
+def _refused_write(err: Exception) -> bool:
+    """Whether ``err`` is a write that the disk refused (full, over quota, read-only)."""
+    return isinstance(err, OSError) and err.errno in WRITE_ERRNOS
+
+
+def _warn_on_failure(action: Any, what: str, hint: str = "",
+                     unless: Callable[[Exception], bool] | None = None) -> Any:  # fmt: skip
+    """Runs ``action`` and returns what it returns; an error becomes a warning (and ``None``):
+    ``what`` failed (the error); ``hint``. An error for which ``unless`` is true is dropped."""
+    try:
+        return action()
+    except Exception as err:  # e.g. a full disk: the records are kept, the curve is not
+        if unless is not None and unless(err):
+            return None
+        text = f"{what} failed ({type(err).__name__}: {err})" if what else str(err)
+        print(f"td3-jax: warning: {text}" + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return None
+
+
+def _start(run: _Run, source: Source, resume: bool) -> tuple[Any, int]:
+    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run; the run's
+    checkpointer is opened here."""
+    run.checkpointer = Checkpointer(run.out_dir / CHECKPOINTS, run.cfg.keep_checkpoints)
+    run.clock_start = time.perf_counter()
+    if not resume:
+        return None, 0
+    if run.writer:  # (it holds the run's lock: no other write can be in flight)
+        run.checkpointer.remove_unfinished()
+    abstract = programs.abstract_state(source)
+    check_memory(abstract, source.mesh)
+    shardings = state_shardings(abstract, source.mesh)
+    state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings,
+                                                        resize=ring_as_saved)  # fmt: skip
+    check_unedited(meta.get("settings"), run.cfg, run.out_dir / CONFIG_FILE)
+    run.wall_offset = float(meta["wall_time_s"])
+    run.diverged = set(meta.get("diverged_members", []))
+    return state, start_chunk
+
+
+def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
+    """Chunks, evaluations, records and checkpoints until the run's end or a stop condition.
+
+    A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
+    rest) with an evaluation after each; checkpoints are taken after whole chunks only, written
+    in the background while the next chunk runs (the last one is waited for). Stopped by
+    ``run.stop``, it raises KeyboardInterrupt once that chunk is checkpointed.
+    """
+    cfg = run.cfg
+    early = cfg.early_iterations if start_chunk == 0 else 0
+    completed = start_chunk
+    run.stop.mark_training()  # (a stop from here on waits for the chunk's checkpoint)
+    for index in range(start_chunk, cfg.num_chunks):
+        if _stopping(run, index - start_chunk):
+            break
+        whole = cfg.iters_per_chunk
+        parts = [early, whole - early] if index == 0 and early else [whole]
+        for iterations in parts:
+            with awaiting_device():  # (a Ctrl-C leaves the chunk running on the device)
+                state, record = _chunk_and_record(run, compiled, state, iterations)
+            run.logger.write(record)
+            run.records.append(record)
+            run.display.update(record)
+            run.checkpointer.check()  # a background write that failed stops the run now
+        last = index + 1 == cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
+        if last or (index + 1) % cfg.checkpoint_every == 0:
+            meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
+                    "diverged_members": sorted(run.diverged),
+                    "settings": fixed_settings(cfg)}  # fmt: skip
+            with run.stop.shielded():  # a Ctrl-C now lets the checkpoint be written
+                run.checkpointer.save(index + 1, state, meta, background=not last)
+        completed = index + 1
+    if completed < cfg.num_chunks:  # a stop that came with the last chunk: the run is done
+        run.stop.raise_if_set()  # stopped by its token: as interrupted, once checkpointed
+
+
+def _stopping(run: _Run, chunks_done: int) -> bool:
+    """Whether this call stops before its next chunk (chunk limit, wall-clock budget or its
+    stop token)."""
+    if run.stop.is_set():
+        return True
+    if run.stop_after_chunks is not None and chunks_done >= run.stop_after_chunks:
+        return True
+    budget = run.time_budget_s
+    return bool(run.records) and budget is not None and run.records[-1]["wall_time_s"] >= budget
+
+
+def _chunk_and_record(
+    run: _Run, compiled: Programs, state: Any, iterations: int
+) -> tuple[Any, dict[str, Any]]:
+    """One compiled chunk of ``iterations``, the finiteness check, the evaluation and the
+    record of both."""
+    chunk_start = time.perf_counter()
+    state, metrics = compiled.chunk(compiled.hyperparams, state, np.int32(iterations))
+    metrics = {k: host_value(v) for k, v in metrics.items()}
+    chunk_seconds = time.perf_counter() - chunk_start
+    env_steps = int(metrics.pop("env_steps")[0])
+    updates = int(metrics.pop("agent_steps")[0])
+    policy = metrics.pop("eval_policy_env_steps", None)  # (every member's: one env clock)
+    metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
+    _check_finite(run, metrics, env_steps)
+    _check_physics(run, metrics, env_steps)
+    eval_start = time.perf_counter()
+    returns = host_value(compiled.evaluate(state)).astype(np.float64)
+    eval_seconds = time.perf_counter() - eval_start
+    returns[sorted(run.diverged)] = np.nan
+    record = _record(run, updates, metrics, returns, env_steps)
+    if policy is not None:  # a whole number of env steps, as env_steps is
+        record["eval_policy_env_steps"] = int(policy[0])
+    record["wall_time_s"] = run.wall_offset + time.perf_counter() - run.clock_start
+    record["chunk_s"], record["eval_s"] = chunk_seconds, eval_seconds
+    steps = iterations * run.cfg.env_steps_per_iter
+    record["env_steps_per_s"] = len(run.population) * steps / chunk_seconds
+    record["devices"] = run.devices
+    return state, record
+
+
+def _record(run: _Run, updates, metrics, returns, env_steps) -> dict[str, Any]:
+    cfg, population = run.cfg, run.population
+    record: dict[str, Any] = {
+        "env": cfg.env,
+        "algo": cfg.algo,
+        "seed": cfg.seed,
+        "members": len(population),
+        "env_steps": env_steps,
+        "updates": updates,
+    }
+    alive = [i for i in range(len(population)) if i not in run.diverged]
+    scalars = {k: float(np.mean(v[alive])) for k, v in metrics.items() if k != "params_finite"}
+    if len(population) == 1:
+        return {**record, **return_stats(returns[0]), **scalars}
+    record.update(population_stats(returns[alive]))
+    record.update(scalars)
+    if run.diverged:
+        record["diverged_members"] = [population[i].label() for i in sorted(run.diverged)]
+    record["per_member"] = [_member_record(run, i, metrics, returns)
+                            for i in range(len(population))]  # fmt: skip
+    return record
+
+
+def _member_record(run: _Run, i: int, metrics, returns) -> dict[str, Any]:
+    member = run.population[i]
+    values = {**return_stats(returns[i]), "critic_loss": float(metrics["critic_loss"][i]),
+              "actor_loss": float(metrics["actor_loss"][i])}  # fmt: skip
+    values = {k: (v if math.isfinite(v) else None) for k, v in values.items()}
+    entry = {"seed": member.seed, "settings": dict(member.overrides), **values}
+    return {**entry, "diverged": True} if i in run.diverged else entry
+
+
+#: How a chunk's non-finite mean reward is named: the environment's, not the learner's fault.
+ENV_REWARDS = "rewards from the environment (its step returned NaN or inf)"
+
+
+def _nonfinite(metrics: dict[str, np.ndarray], i: int) -> list[str]:
+    """What is non-finite in member ``i``'s chunk metrics: the environment's rewards first
+    (a cause, where the rest are its consequences), then losses, Q and parameters."""
+    rewards = metrics.get("reward_mean")
+    env = [ENV_REWARDS] if rewards is not None and not math.isfinite(rewards[i]) else []
+    names = [k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])]
+    return env + names + (["parameters"] if metrics["params_finite"][i] < 1.0 else [])
+
+
+def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
+    """Marks newly diverged members of a population; stops a single run, or a population
+    whose members have all diverged, with :class:`NonFiniteError`."""
+    population = run.population
+    bad = {i: _nonfinite(metrics, i) for i in range(len(population)) if i not in run.diverged}
+    bad = {i: names for i, names in bad.items() if names}
+    if len(population) > 1 and len(run.diverged) + len(bad) < len(population):
+        for i, names in bad.items():
+            print(f"td3-jax: warning: member {population[i].label()} diverged (non-finite "
+                  f"{', '.join(names)} at env step {env_steps}); the others go on",
+                  file=sys.stderr)  # fmt: skip
+        run.diverged.update(bad)
+        return
+    if not bad:
+        return
+    try:
+        last, failed = run.checkpointer.latest_step(), ""
+    except CheckpointWriteError as err:  # the write before this chunk failed as well
+        last, failed = run.checkpointer.latest_step(), f"; also, {err}"
+    kept = _kept_checkpoint(run, last)
+    again = "" if last else (f"; {run.out_dir} holds none to resume: remove it (or choose "
+                             "another --out) to start again, with other settings")  # fmt: skip
+    who = lambda i: f" ({population[i].label()})" if len(population) > 1 else ""
+    described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
+    raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
+                         f"stopped, {kept}{failed}{again}")  # fmt: skip
+
+
+def _kept_checkpoint(run: _Run, last: int | None) -> str:
+    """What a stopped run keeps: its newest checkpoint (after ``last`` chunks), if any."""
+    if not last:
+        return "no checkpoint had been written yet"
+    return f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
+
+
+def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
+    """Stops the run with :class:`PhysicsOverflowError` when the physics dropped contacts or
+    constraints in the chunk (MuJoCo Warp's fixed buffers), naming the flags that size them."""
+    overflows = int(np.sum(metrics["physics_overflow"]))
+    if not overflows:
+        return
+    last = run.checkpointer.latest_step()
+    kept = _kept_checkpoint(run, last)
+    raise PhysicsOverflowError(
+        f"MuJoCo Warp's contact or constraint buffer was full in {overflows} environment "
+        f"steps of the chunk ending at env step {env_steps} (contacts or constraints were "
+        f"dropped: wrong physics); stopped, {kept}; raise --nconmax or --njmax (contacts and "
+        "constraints per environment; default: the task's own) in a new run"
+    )
+
+
+class _Progress:
+    """A rich progress bar (env steps, env steps/s, last evaluation return, time left) that fits
+    80 columns; where the output is not a terminal (a log file, a batch job), one plain line per
+    evaluation. A part of the run spent in the random warm-up says so instead of a rate (it
+    steps without updates, far faster than training)."""
+
+    def __init__(self, cfg: TrainConfig, start_chunk: int, enabled: bool, console: Any = None):
+        from rich.console import Console
+
+        self.enabled, self.warmup = enabled, cfg.warmup_steps
+        self.total = cfg.num_chunks * cfg.steps_per_chunk
+        self.done = start_chunk * cfg.steps_per_chunk  # (env steps before the next record)
+        console = console or Console()
+        self.lines = enabled and not console.is_terminal
+        self.title = f"{cfg.algo} {cfg.env}"
+        if enabled and not self.lines:
+            console.print(f"{self.title}: {self.total:,} env steps")
+            self._progress, self._task = _progress_bar(self.total, self.done, console)
+
+    def update(self, record: dict) -> None:
+        start, self.done = self.done, record["env_steps"]
+        rate = _rate_text(record, start, self.warmup, compact=not self.lines)
+        if self.lines:  # the run's wall-clock: compile included, counted across resumes
+            print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, {rate}, "
+                  f"eval {_evaluation_text(record)}, {record['wall_time_s']:.0f} s"
+                  f"{_slow_evaluation(record)}", flush=True)  # fmt: skip
+        elif self.enabled:
+            steps = f"{_count(record['env_steps'])}/{_count(self.total)}"
+            self._progress.update(self._task, completed=record["env_steps"], steps=steps,
+                                  rate=rate,
+                                  ret=_evaluation_text(record, short=True))  # fmt: skip
+
+    def close(self) -> None:
+        if self.enabled and not self.lines:
+            self._progress.stop()
+
+
+def _rate_text(record: dict, start: int, warmup: int, compact: bool = False) -> str:
+    """``12,345 env steps/s`` of the record's part of the run (from ``start`` env steps), or
+    ``warm-up`` where all of it was the random warm-up (``(with warm-up)`` where part was;
+    ``compact``: ``12.35k/s``, for the bar)."""
+    if record["env_steps"] <= warmup:
+        return "warm-up"
+    if compact:
+        return f"{_count(record['env_steps_per_s'])}/s"
+    rate = f"{record['env_steps_per_s']:,.0f} env steps/s"
+    return f"{rate} (with warm-up)" if start < warmup else rate
+
+
+def _slow_evaluation(record: dict) -> str:
+    """``; evaluating took 10.4 s`` where the record's evaluation took a second or more and
+    longer than its chunk's training (the rate shown leaves it out), else nothing."""
+    seconds = record.get("eval_s", 0.0)
+    if seconds < 1.0 or seconds <= record.get("chunk_s", 0.0):
+        return ""
+    return f"; evaluating took {seconds:.1f} s"
+
+
+def _count(value: float) -> str:
+    """A count in at most 6 characters: ``9,999``, ``20.48k``, ``102.4M``."""
+    if value < 10_000:
+        return f"{value:,.0f}"
+    return f"{value / 1e3:.4g}k" if value < 999_950 else f"{value / 1e6:.4g}M"
+
+
+def _evaluation_text(record: dict, short: bool = False) -> str:
+    """The record's mean evaluation return, with the env steps of the policy it is of where
+    that is not the record's own (the evaluation inside the chunk; ``short``: ``@4.096M``)."""
+    text = f"{record['eval_return_mean']:.1f}"
+    policy = record.get("eval_policy_env_steps")
+    if policy is None or policy < 0:
+        return text
+    return f"{text} @{_count(policy)}" if short else f"{text} (policy of {int(policy):,} steps)"
+
+
+def _progress_bar(total: int, completed: int, console: Any) -> tuple[Any, Any]:
+    """A started rich progress bar on ``console`` and its task; the bar takes the width the
+    texts leave (80 columns leave it a dozen)."""
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    progress = Progress(
+        BarColumn(bar_width=None),
+        TextColumn("{task.fields[steps]} steps"),
+        TextColumn("{task.fields[rate]}"),
+        TextColumn("eval {task.fields[ret]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        expand=True,
+    )
+    steps = f"{_count(completed)}/{_count(total)}"
+    task = progress.add_task("", total=total, completed=completed, steps=steps, rate="-",
+                             ret="-")  # fmt: skip
+    progress.start()
+    return progress, task

@@ -1,0 +1,883 @@
+"""The run directory (``--out DIR``): its lock, fresh and resumed starts, config.json (with a
+factory's environment recorded) and members.json. Reading a finished run back (its checkpoint,
+its evaluations) is :mod:`td3_jax.runner.finished`'s.
+
+* **One run at a time.** A run holds an exclusive ``fcntl.flock`` on ``DIR/.lock`` (the file
+  names the holder's pid and host) from before it writes anything until it has written its last
+  output; the kernel drops the lock when the process dies. A second run on ``DIR`` stops with a
+  one-line error and writes nothing.
+* **No silent overwrite.** A fresh run refuses a directory that holds a checkpoint (``--resume``
+  continues it) or a previous run's outputs without a checkpoint (move them away first).
+* **config.json says what each member trained with.** In a sweep each swept setting is the
+  list of its values, and the ``sweep`` section names the swept settings, each member's values
+  and the configuration's own ones (``base``, which the members' values override).
+* **Resume keeps the run's identity.** On ``--resume`` only :data:`SAFE_ON_RESUME` may differ
+  from the saved config.json (``total_steps`` extends or shortens the run); each change is
+  recorded in config.json under ``resume_changes``. Any other difference is a one-line error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import fcntl
+import json
+import os
+import shlex
+import socket
+import time
+import types
+import typing
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from td3_jax.common.errors import LockUnavailableError
+from td3_jax.config.build import agent_config, members, ou_params
+from td3_jax.config.schema import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
+from td3_jax.core.population import Member
+from td3_jax.envs import Environment, custom
+from td3_jax.runner.logger import check_records, write_atomically
+from td3_jax.runner.tracking import WANDB_DIR
+
+__all__ = [
+    "CHECKPOINTS",
+    "CONFIG_FILE",
+    "MEMBERS_FILE",
+    "OUTPUTS",
+    "SAFE_ON_RESUME",
+    "SWEEP",
+    "RunLock",
+    "check_environment_unchanged",
+    "check_fresh",
+    "check_resume",
+    "checkpoint_steps",
+    "config_changes",
+    "environment_record",
+    "interrupted_message",
+    "load_config",
+    "load_members",
+    "load_run_info",
+    "open_run_dir",
+    "previous_outputs",
+    "run_info",
+    "save_config",
+    "sweep_entries",
+    "swept_values",
+]
+
+CONFIG_FILE = "config.json"
+#: config.json's section of a sweep (:func:`sweep_entries`).
+SWEEP = "sweep"
+MEMBERS_FILE = "members.json"
+LOCK_FILE = ".lock"
+CHECKPOINTS = "checkpoints"
+# What a run writes into its directory (a fresh run refuses a directory holding any of them).
+OUTPUTS = (CONFIG_FILE, MEMBERS_FILE, "metrics.jsonl", "tensorboard", "curve.png", CHECKPOINTS)
+# Settings a resumed run may change; every other one fixes the state layout, the key schedule
+# or what the checkpoint means.
+# (``menagerie``: where the robot meshes lie may differ from one machine to the next; the W&B
+# settings say only where the records are mirrored; ``matmuls`` says only which GPU library
+# multiplies, the same computation rounded differently, as on another GPU.)
+SAFE_ON_RESUME = (
+    "total_steps",
+    "matmuls",
+    "keep_checkpoints",
+    "checkpoint_every",
+    "eval_envs",
+    "early_evaluation",
+    "menagerie",
+    *WANDB_SETTINGS,
+)
+# Float hyperparameters: traced values, but changing them mid-run is not reproducible (yet).
+FLOAT_SETTINGS = (*SWEEPABLE, "ou_min_sigma")
+
+
+# --------------------------------------------------------------------------------------------
+# the lock
+# --------------------------------------------------------------------------------------------
+
+
+class RunLock:
+    """An exclusive ``flock`` on ``DIR/.lock`` held by this process until :meth:`release`."""
+
+    def __init__(self, fd: int | None, path: Path):
+        self._fd, self.path = fd, path
+
+    def release(self) -> None:
+        """Unlocks and closes the lock file (the file itself stays)."""
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+
+def acquire_lock(out_dir: Path) -> RunLock:
+    """Locks ``out_dir`` (which must exist) for this process and records its pid and host."""
+    path = Path(out_dir) / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:
+        raise ConfigError(f"--out {out_dir}: cannot open {path} ({err.strerror})") from err
+    try:
+        locked = _try_flock(fd)
+    except OSError as err:  # e.g. ENOLCK: a network file system without locks
+        os.close(fd)
+        raise _cannot_lock(path, err) from None
+    if not locked:
+        os.close(fd)
+        raise in_use_error(out_dir)
+    holder = json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n"
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, holder.encode(), 0)
+    except OSError as err:  # e.g. a full disk
+        RunLock(fd, path).release()
+        raise ConfigError(f"--out {out_dir}: cannot write {path} ({err.strerror})") from err
+    return RunLock(fd, path)
+
+
+def _try_flock(fd: int, attempts: int = 5, pause_s: float = 0.05) -> bool:
+    """Takes the exclusive lock, retrying briefly: another process's :func:`check_not_in_use`
+    probe holds it for an instant, which must not refuse a run that is entitled to it."""
+    for attempt in range(attempts):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if attempt + 1 < attempts:
+                time.sleep(pause_s)
+    return False
+
+
+def check_not_in_use(out_dir: Path) -> None:
+    """Raises :func:`in_use_error` if another process holds ``out_dir``'s lock; creates nothing."""
+    try:
+        fd = os.open(Path(out_dir) / LOCK_FILE, os.O_RDONLY)
+    except OSError:  # no lock file: nobody ever locked it
+        return
+    try:  # shared: it conflicts with the holder's exclusive lock, and needs no write access
+        # (NFS turns flock into a POSIX lock, whose exclusive form needs a writable file)
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise in_use_error(out_dir) from None
+    except OSError as err:
+        raise _cannot_lock(Path(out_dir) / LOCK_FILE, err) from None
+    finally:
+        os.close(fd)  # (also drops this probe's own lock)
+
+
+def _cannot_lock(path: Path, err: OSError) -> LockUnavailableError:
+    """The one line for a lock the file system refuses (``ENOLCK`` on a network file system
+    without locking, ...): no run may go on unlocked, since two could then write one directory."""
+    return LockUnavailableError(
+        f"cannot lock {path} ({err.strerror or err}); a run directory is locked so that two "
+        "runs never write one: use a run directory on a local disk"
+    )
+
+
+def in_use_error(out_dir: Path) -> ConfigError:
+    return ConfigError(
+        f"{out_dir} is in use by another td3-jax run ({lock_holder(out_dir)}); "
+        "wait for it to end or choose another --out"
+    )
+
+
+def lock_holder(out_dir: Path) -> str:
+    """``pid N on HOST`` as recorded by the lock's holder."""
+    try:
+        holder = json.loads((Path(out_dir) / LOCK_FILE).read_text())
+        return f"pid {holder['pid']} on {holder['host']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "pid unknown"  # (the holder is between locking and writing its name)
+
+
+# --------------------------------------------------------------------------------------------
+# what a directory holds
+# --------------------------------------------------------------------------------------------
+
+
+def checkpoint_steps(out_dir: Path) -> list[int]:
+    """The chunk indices of the complete checkpoints in ``out_dir/checkpoints``, ascending."""
+    folder = Path(out_dir) / CHECKPOINTS
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit() and p.is_dir())
+
+
+def previous_outputs(out_dir: Path) -> list[str]:
+    """The names in :data:`OUTPUTS` that ``out_dir`` holds (empty folders do not count)."""
+    found = []
+    for name in OUTPUTS:
+        path = Path(out_dir) / name
+        if path.is_dir() and not any(path.iterdir()):
+            continue
+        if path.exists():
+            found.append(name)
+    return found
+
+
+# --------------------------------------------------------------------------------------------
+# starting a run
+# --------------------------------------------------------------------------------------------
+
+
+def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> None:
+    """Raises one-line errors when a fresh run cannot start in ``out_dir``; creates nothing.
+
+    ``writer``: this process writes the logs (the lock and the outputs are its business; other
+    processes of a multi-process run only check what cannot change under them). ``locked``:
+    this process holds the lock already (a second flock of the file would fail).
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir} is a file, not a directory")
+    if not out_dir.is_dir():
+        if writer:  # (open_run_dir makes it later)
+            _check_can_create(out_dir)
+        return
+    if writer and not locked:
+        check_not_in_use(out_dir)
+    if checkpoint_steps(out_dir):
+        raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
+    outputs = previous_outputs(out_dir) if writer else []
+    if outputs:
+        raise ConfigError(
+            f"{out_dir} holds a previous run's outputs ({', '.join(outputs)}) but no checkpoint "
+            "to resume; move them away or choose another --out"
+        )
+    others = foreign_entries(out_dir) if writer else []
+    if others:
+        raise ConfigError(
+            f"--out {out_dir} is a directory of other files ({', '.join(others[:3])}"
+            f"{', ...' if len(others) > 3 else ''}); a run needs a new or empty directory of "
+            "its own"
+        )
+
+
+def foreign_entries(out_dir: Path) -> list[str]:
+    """Names in ``out_dir`` that no run writes (sorted), e.g. for ``--out ~`` or ``--out /``.
+
+    W&B's folder is a run's too, though not an output that makes a directory used: a run
+    stopped before it wrote anything else (while compiling) can start again in its directory."""
+    ours = {*OUTPUTS, LOCK_FILE, WANDB_DIR}
+    return sorted(p.name for p in Path(out_dir).iterdir() if p.name not in ours)
+
+
+def check_resume(
+    out_dir: Path, cfg: TrainConfig, sweep: dict | None = None, *, writer: bool = True
+) -> tuple[list[Member], dict[str, list]]:
+    """``(members, changes)`` of a resume of ``out_dir`` with ``cfg``; creates nothing.
+
+    ``changes`` maps each changed setting of :data:`SAFE_ON_RESUME` to ``[saved, new]``. Raises
+    one-line errors for a directory without a checkpoint, one in use, a changed structural
+    setting, sweep values other than the saved members' or a run already past ``total_steps``.
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        what = "is not a directory" if out_dir.exists() else "does not exist"
+        raise ConfigError(f"--resume given but {out_dir} {what}: there is no checkpoint to resume")
+    if writer:
+        check_not_in_use(out_dir)
+    steps = checkpoint_steps(out_dir)
+    if not steps and not previous_outputs(out_dir) and not (out_dir / LOCK_FILE).exists():
+        raise ConfigError(f"--resume given but {out_dir} is not a td3-jax run directory "
+                          "(it holds none of a run's files); --out names the run to "
+                          "resume")  # fmt: skip
+    if not steps:
+        raise ConfigError(
+            f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint{_start_instead(out_dir)}"
+        )
+    population = load_members(out_dir, cfg)
+    changes = config_changes(load_config(out_dir), cfg, population)
+    if writer:  # (before config.json is rewritten: a resume that stops writes nothing)
+        check_records(out_dir / "metrics.jsonl")
+    if "total_steps" in changes and cfg.lr_schedule == "cosine":
+        raise ConfigError(
+            "--total-steps cannot change on --resume with --lr-schedule cosine: the schedule's "
+            "length is the run's number of updates (start a new run to train longer)"
+        )
+    if sweep and members(cfg, sweep) != population:
+        raise ConfigError(
+            f"the --sweep-* values ({sweep_flags(sweep)}) differ from the members of the run in "
+            f"{out_dir} ({sweep_flags(swept_values(population)) or 'no swept setting'}, "
+            f"{MEMBERS_FILE}); leave them out to resume"
+        )
+    done = steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter
+    if cfg.num_chunks < steps[-1]:
+        raise ConfigError(
+            f"--total-steps {cfg.total_steps} is less than the {done} env steps the run in "
+            f"{out_dir} has already taken (give more to extend it)"
+        )
+    return population, changes
+
+
+def _check_can_create(out_dir: Path) -> None:
+    """A ConfigError, before the environment is made or anything traced, where a fresh run's
+    missing ``out_dir`` could not be made: its nearest existing parent is a file, or a folder
+    this user may not write in (as :func:`open_run_dir` would say it)."""
+    parent = Path(out_dir).absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        code = errno.ENOTDIR
+    elif _read_only(parent):
+        code = errno.EROFS
+    elif not os.access(parent, os.W_OK | os.X_OK):
+        code = errno.EACCES
+    else:
+        return
+    raise ConfigError(f"--out {out_dir}: cannot create it ({os.strerror(code)})")
+
+
+def _read_only(folder: Path) -> bool:
+    """Whether ``folder``'s file system is mounted read-only (False where it cannot tell)."""
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
+def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock:
+    """Creates (fresh run) and locks ``out_dir``, re-checking a fresh one under the lock.
+
+    Processes other than the writer neither lock nor check; they get a lock that holds nothing.
+    """
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--out {out_dir}: cannot create it ({err.strerror or err})") from err
+    if not writer:
+        return RunLock(None, out_dir / LOCK_FILE)
+    lock = acquire_lock(out_dir)
+    if not resume:
+        try:
+            check_fresh(out_dir, locked=True)
+        except BaseException:
+            lock.release()
+            raise
+    return lock
+
+
+#: What to do with a directory that holds a run's outputs but no checkpoint: a fresh run is
+#: refused there while they stay (:func:`check_fresh`), and there is nothing to resume.
+_MOVE_AWAY = "move it away or choose another --out to train again"
+
+
+def _start_instead(out_dir: Path) -> str:
+    """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
+    where its run stopped before training (a fresh start is accepted there), else move it
+    away (a fresh start there is refused while a run's outputs stay, e.g. a run stopped
+    after its first evaluation but before its first checkpoint, or one whose checkpoints were
+    deleted)."""
+    if not _stopped_before_training(out_dir):
+        return f" (it holds a run's outputs but no checkpoint: {_MOVE_AWAY})"
+    return " (its run stopped before the first: run without --resume to start it)"
+
+
+def _stopped_before_training(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds what a run leaves that stopped before it wrote anything: its
+    lock file (and empty folders), no output and nothing else, so a fresh run may start there."""
+    out_dir = Path(out_dir)
+    return (out_dir / LOCK_FILE).exists() and not (
+        checkpoint_steps(out_dir) or previous_outputs(out_dir) or foreign_entries(out_dir)
+    )
+
+
+def training_holder(out_dir: Path) -> str | None:
+    """``pid N on HOST`` of a td3-jax run that holds ``out_dir``'s lock now, else None; a
+    file system that refuses locks is :class:`LockUnavailableError`."""
+    try:
+        check_not_in_use(out_dir)
+    except LockUnavailableError:
+        raise
+    except ConfigError:
+        return lock_holder(out_dir)
+    return None
+
+
+def holder_for_reader(out_dir: Path) -> str | None:
+    """:func:`training_holder` for a command that only reads ``out_dir`` (``eval``, ``plot``):
+    None also where the file system refuses locks, since a reader takes none."""
+    try:
+        return training_holder(out_dir)
+    except LockUnavailableError:
+        return None
+
+
+def no_checkpoint_error(out_dir: Path) -> ConfigError:
+    """Why a run directory with a config.json has no checkpoint to read (``eval``, ``render``,
+    ``export``): a run training it has not written its first, or there is none to wait for."""
+    holder = holder_for_reader(out_dir)
+    if holder is not None:
+        return ConfigError(f"{out_dir} has no checkpoint yet: a td3-jax run ({holder}) is "
+                           "training it and has not written its first; try again "
+                           "later")  # fmt: skip
+    return ConfigError(f"{out_dir} holds no checkpoint (its run stopped before writing one, or "
+                       "they were removed), so there is no policy to read: train it again with "
+                       "td3-jax train (move it away or give another --out)")  # fmt: skip
+
+
+def is_sweep_dir(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds a sweep's run: its config.json has a :data:`SWEEP` section,
+    or (a sweep written before that section) its members.json lists swept values; False where
+    config.json is missing or unreadable."""
+    try:
+        if SWEEP in json.loads((Path(out_dir) / CONFIG_FILE).read_text()):
+            return True
+        listing = json.loads((Path(out_dir) / MEMBERS_FILE).read_text())
+    except (OSError, ValueError, TypeError):
+        return False
+    return isinstance(listing, list) and any(
+        isinstance(m, dict) and bool(m.get("overrides")) for m in listing
+    )
+
+
+def resume_command(out_dir: Path) -> str:
+    """``td3-jax sweep --out OUT --resume`` for a sweep's directory (:func:`is_sweep_dir`; it
+    then ends with the sweep's ranking), else ``td3-jax train``'s; OUT quoted for a shell."""
+    command = "sweep" if is_sweep_dir(out_dir) else "train"
+    return f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume"
+
+
+def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
+    """What a run stopped by ``cause`` (a Ctrl-C, a SIGTERM) leaves behind, in one line."""
+    steps = checkpoint_steps(out_dir)
+    if steps:
+        newest = Path(out_dir) / CHECKPOINTS / str(steps[-1])
+        if _complete(out_dir, steps[-1]):
+            return f"{cause} after the run's last chunk: the run is complete ({newest})"
+        return f"{cause}; the newest checkpoint is {newest} (continue with: " \
+               f"{resume_command(out_dir)})"  # fmt: skip
+    again = ("remove it or choose another --out to start again" if previous_outputs(out_dir)
+             else "run the same command again to start over")  # fmt: skip
+    return f"{cause} before the first checkpoint: {out_dir} holds none to resume ({again})"
+
+
+def _complete(out_dir: Path, chunks_done: int) -> bool:
+    """Whether ``chunks_done`` chunks finish the run recorded in ``out_dir``'s config.json."""
+    try:
+        return chunks_done >= load_config(out_dir).num_chunks
+    except (ConfigError, OSError, ValueError, TypeError):
+        return False
+
+
+# --------------------------------------------------------------------------------------------
+# the resume policy
+# --------------------------------------------------------------------------------------------
+
+
+def config_changes(
+    saved: TrainConfig, cfg: TrainConfig, population: Sequence[Member] = ()
+) -> dict[str, list]:
+    """``{name: [saved, new]}`` of the changed safe settings; a one-line error for any other,
+    naming what the run used: a setting ``population``'s members override as their values
+    (``--sweep-tau 0.01 0.02``), not ``saved``'s, which they override; a run of an object
+    resumed without one says to pass the object again."""
+    if saved.env.startswith(custom.OBJECT_PREFIX) and not cfg.env.startswith(custom.OBJECT_PREFIX):
+        raise custom.object_run_error(saved.env)  # (a resume without the object: env= left out)
+    changes, safe = {}, _safe_on_resume(saved)
+    swept = swept_values(population)
+    for field in dataclasses.fields(TrainConfig):
+        old, new = getattr(saved, field.name), getattr(cfg, field.name)
+        if old == new or _effective(saved, field.name) == _effective(cfg, field.name):
+            continue
+        if field.name not in safe:
+            used = (as_flag(f"sweep_{field.name}", swept[field.name]) if field.name in swept
+                    else _shown(saved, field.name))  # fmt: skip
+            raise ConfigError(_mismatch(field.name, used, _shown(cfg, field.name), safe))
+        changes[field.name] = [old, new]
+    return changes
+
+
+def fixed_settings(cfg: TrainConfig) -> dict[str, Any]:
+    """The settings of ``cfg`` that a resume may not change (all but :data:`SAFE_ON_RESUME`), as
+    config.json records them: what each checkpoint keeps, so that a resume notices a config.json
+    edited since (:func:`check_unedited`)."""
+    safe = _safe_on_resume(cfg)
+    return json.loads(json.dumps({k: v for k, v in _as_used(cfg).items() if k not in safe}))
+
+
+def check_unedited(recorded: Any, cfg: TrainConfig, path: Path) -> None:
+    """A one-line ConfigError where a setting of ``cfg`` (read from ``path``, config.json)
+    differs from the one the checkpoint was written with (``recorded``: its
+    :func:`fixed_settings`; not a dict: a checkpoint written before they were kept)."""
+    if not isinstance(recorded, dict):
+        return
+    now = fixed_settings(cfg)
+    for name, value in recorded.items():
+        if name not in now or now[name] == value or _same_effect(cfg, name, value):
+            continue
+        raise ConfigError(f"{path}: {name} is {json.dumps(now[name])} but the run's checkpoints "
+                          f"were written with {json.dumps(value)}; was the file edited? Restore "
+                          "its value")  # fmt: skip
+
+
+def _same_effect(cfg: TrainConfig, name: str, value: Any) -> bool:
+    """Whether ``cfg`` with its setting ``name`` as the JSON ``value`` takes effect as ``cfg``."""
+    try:
+        other = dataclasses.replace(cfg, **{name: tuple(value) if isinstance(value, list)
+                                            else value})  # fmt: skip
+        return _effective(other, name) == _effective(cfg, name)
+    except (TypeError, ValueError, ConfigError):
+        return False
+
+
+def _safe_on_resume(saved: TrainConfig) -> tuple[str, ...]:
+    """:data:`SAFE_ON_RESUME`, less ``eval_envs`` for a run whose evaluation worlds are in the
+    environment batch (``--eval-in-chunk``: their number is part of the checkpoint)."""
+    if saved.eval_in_chunk:
+        return tuple(name for name in SAFE_ON_RESUME if name != "eval_envs")
+    return SAFE_ON_RESUME
+
+
+def _effective(cfg: TrainConfig, name: str) -> Any:
+    """The value a setting takes effect with (``None`` stands for the algorithm's default)."""
+    if name in ("hidden_sizes", "actor_lr", "critic_lr", "tau"):
+        value = getattr(agent_config(cfg), name)
+        return tuple(value) if name == "hidden_sizes" else value
+    if name == "ou_min_sigma":
+        return ou_params(cfg).min_sigma
+    return getattr(cfg, name)
+
+
+def _shown(cfg: TrainConfig, name: str) -> str:
+    """A setting as the flag it took effect with: ``--actor-lr 0.001`` for a TD3 run whose
+    --actor-lr was left to the algorithm (``None``); ``no --max-grad-norm`` for one left off."""
+    value = _effective(cfg, name)
+    if value is None and name in ("actor_hidden_sizes", "critic_hidden_sizes"):
+        value = _effective(cfg, "hidden_sizes")
+    return f"no {flag(name)}" if value is None else as_flag(name, value)
+
+
+# Why a setting cannot change on --resume, where a general reason would not say enough.
+_REASONS = {
+    "eval_every": "the checkpoints count chunks of --eval-every env steps",
+    "seed": "the run's random keys derive from it",
+    "seeds": "the members and their states are fixed (members.json)",
+    "num_envs": "it fixes the environment and replay state in the checkpoint",
+    "buffer_size": "it fixes the replay buffer in the checkpoint",
+    "eval_envs": "with --eval-in-chunk the evaluation worlds are in the checkpoint's environments",
+    "return_bound": "its return statistics are part of the checkpoint's state",
+}
+
+
+def _mismatch(name: str, saved: str, given: str, safe_names: tuple[str, ...]) -> str:
+    if name in FLOAT_SETTINGS and name not in _REASONS:
+        why = (
+            "learning rates, tau, noise scales and the discount cannot change on --resume yet "
+            "(the continued run would not be reproducible)"
+        )
+    else:
+        why = _REASONS.get(name, "it fixes the run's state layout, key schedule or meaning")
+    safe = ", ".join(flag(n) for n in safe_names)
+    return (
+        f"{given} given but the run was started with {saved}: "
+        f"{why}; leave it out to resume (only {safe} may change) or start a new --out"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# config.json and members.json
+# --------------------------------------------------------------------------------------------
+
+
+def save_config(
+    cfg: TrainConfig, population: list[Member], out_dir: Path, info: dict | None = None
+) -> None:
+    """Writes config.json (the resolved config, then ``info``: preset, resume_changes, ...;
+    for a sweep, :func:`sweep_entries`) and members.json, each atomically (a temporary file
+    renamed)."""
+    out_dir = Path(out_dir)
+    values = _as_used(cfg)
+    extra = {k: v for k, v in (info or {}).items() if k != SWEEP}  # (made anew: the members')
+    _write_json(out_dir / CONFIG_FILE, {**values, **extra, **sweep_entries(values, population)})
+    listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
+    _write_json(out_dir / MEMBERS_FILE, listing)
+
+
+def sweep_entries(values: dict[str, Any], population: Sequence[Member]) -> dict[str, Any]:
+    """config.json's entries for ``population``'s swept settings (``{}`` where no member
+    overrides one): each swept setting as the list of its values (in the members' order), in
+    place of ``values``' one value, which the members' override, and :data:`SWEEP`:
+    ``settings`` (their names), ``base`` (their values in ``values``, the run's configuration,
+    which :func:`load_config` reads back) and ``members`` (each member's seed and values, in
+    members.json's order)."""
+    swept = swept_values(population)
+    if not swept:
+        return {}
+    section = {
+        "settings": list(swept),
+        "base": {n: values[n] for n in swept},
+        "members": [{"seed": m.seed, **dict(m.overrides)} for m in population],
+    }
+    return {**swept, SWEEP: section}
+
+
+def sweep_flags(values: dict[str, Sequence[float]]) -> str:
+    """``{"actor_lr": [0.001, 0.0003]}`` as the flags that give it:
+    ``--sweep-actor-lr 0.001 0.0003`` (settings in the dict's order)."""
+    return " ".join(f"--sweep-{name.replace('_', '-')} " + " ".join(f"{v:g}" for v in vals)
+                    for name, vals in values.items())  # fmt: skip
+
+
+def swept_values(population: Sequence[Member]) -> dict[str, list[float]]:
+    """``{setting: values}`` of the settings ``population``'s members override, sorted by
+    name, each setting's distinct values in the members' order (``{}``: no member overrides
+    one)."""
+    each = [dict(m.overrides) for m in population]
+    names = sorted({name for overrides in each for name in overrides})
+    return {n: list(dict.fromkeys(o[n] for o in each if n in o)) for n in names}
+
+
+def _sweep_base(raw: dict, path: Path) -> dict[str, Any]:
+    """The swept settings' values in the run's configuration, from config.json's
+    :data:`SWEEP` section (``{}`` without one: not a sweep, or written before sweeps had it)."""
+    if SWEEP not in raw:
+        return {}
+    section = raw[SWEEP]
+    base = section.get("base") if isinstance(section, dict) else None
+    if not isinstance(base, dict):
+        raise ConfigError(f"{path}: its {SWEEP!r} section has no 'base' values of the swept "
+                          "settings (td3-jax writes them there; was the file edited?)")  # fmt: skip
+    return base
+
+
+#: Settings whose ``None`` means "the algorithm's default"
+#: (:func:`td3_jax.config.build.agent_config`).
+_ALGORITHM_DEFAULTS = ("hidden_sizes", "actor_lr", "critic_lr", "tau")
+
+
+def _as_used(cfg: TrainConfig) -> dict[str, Any]:
+    """``cfg`` as config.json records it: the settings left to the algorithm (``None``) as the
+    values the run uses (a TD3 run's ``actor_lr`` 0.001, not null). An older config.json with
+    nulls still loads (:func:`load_config`) and resumes: both mean the same values."""
+    values = dataclasses.asdict(cfg)
+    agent = agent_config(cfg)
+    for name in _ALGORITHM_DEFAULTS:
+        if values[name] is None:
+            values[name] = getattr(agent, name)
+    return values
+
+
+def _write_json(path: Path, value: Any) -> None:
+    write_atomically(path, json.dumps(value, indent=2) + "\n")
+
+
+def require_run_dir(out_dir: Path) -> None:
+    """Raises ConfigError where ``out_dir`` is not a directory (missing, or a file)."""
+    if not Path(out_dir).is_dir():
+        what = "is a file, not a run directory" if Path(out_dir).exists() else "does not exist"
+        raise ConfigError(f"{out_dir} {what} (give the directory td3-jax train wrote to)")
+
+
+def _read_config(out_dir: Path) -> dict:
+    path = Path(out_dir) / CONFIG_FILE
+    require_run_dir(out_dir)
+    if not path.exists():
+        holder = training_holder(out_dir)
+        if holder is not None:
+            raise ConfigError(
+                f"{out_dir} is being started by a td3-jax run ({holder}) and holds "
+                "no config.json or checkpoint yet; try again after its first evaluation"
+            )
+        if _stopped_before_training(out_dir):
+            raise ConfigError(
+                f"{out_dir} holds no {CONFIG_FILE} or checkpoint: its run stopped before it "
+                "trained (run its td3-jax train command again to start it)"
+            )
+        if checkpoint_steps(out_dir):
+            raise ConfigError(
+                f"{out_dir} holds checkpoints but no {CONFIG_FILE} (deleted?), which td3-jax "
+                f"reads to rebuild the run: restore it from a copy (each checkpoint's "
+                f"{CHECKPOINTS}/N/meta/metadata lists, under 'settings', those a resume may "
+                "not change)"
+            )
+        raise ConfigError(f"{out_dir} holds no {CONFIG_FILE}: not a td3-jax run directory"
+                          f"{_run_above(Path(out_dir))}")  # fmt: skip
+    try:
+        raw = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"{path} is not valid JSON ({err}); restore it from a copy (each "
+                          f"checkpoint's {CHECKPOINTS}/N/meta/metadata lists, under 'settings', "
+                          "those a resume may not change)") from err  # fmt: skip
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path} does not hold a configuration (a JSON object)")
+    return raw
+
+
+def _run_above(folder: Path) -> str:
+    """A hint naming the run directory that holds ``folder`` (its checkpoints/ or one
+    checkpoint of it: ``runs/x/checkpoints/3``), else ``""``."""
+    for parent in list(folder.absolute().parents)[:2]:
+        if (parent / CONFIG_FILE).is_file() and CHECKPOINTS in folder.absolute().parts:
+            shown = parent if folder.is_absolute() else os.path.relpath(parent)
+            return f" (its run is {shown}: give that folder)"
+    return ""
+
+
+def load_config(out_dir: Path) -> TrainConfig:
+    """The resolved config a run directory was started with (other keys of config.json, such
+    as ``preset`` and ``resume_changes``, are ignored; see :func:`load_run_info`). A sweep's
+    swept settings, listed in config.json with every member's values, come back as the run's
+    configuration had them (its ``sweep`` section's ``base``; the members: :func:`load_members`)."""
+    raw = _read_config(out_dir)
+    raw.update(_sweep_base(raw, Path(out_dir) / CONFIG_FILE))  # (the lists are the members')
+    for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+        if raw.get(name) is not None:
+            raw[name] = tuple(raw[name])
+    if "impl" not in raw and str(raw.get("env", "")).startswith("playground/"):
+        # written before --impl: Playground ran on Warp with --env-backend warp, else on JAX
+        raw["impl"] = "warp" if raw.get("env_backend") == "warp" else "jax"
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    settings = {k: v for k, v in raw.items() if k in known}
+    _check_setting_types(settings, Path(out_dir) / CONFIG_FILE)
+    return TrainConfig(**settings)
+
+
+def _check_setting_types(settings: dict[str, Any], path: Path) -> None:
+    """A one-line ConfigError for a setting of config.json whose JSON value is not of its
+    field's type (a hand-edited ``"num_envs": "4"``), rather than a traceback later."""
+    hints = typing.get_type_hints(TrainConfig)
+    for name, value in settings.items():
+        if not _json_fits(value, hints[name]):
+            raise ConfigError(f"{path}: {name} is {json.dumps(value)} (expected "
+                              f"{_type_name(hints[name])}); was the file edited? Restore its "
+                              "value")  # fmt: skip
+
+
+def _json_fits(value: Any, hint: Any) -> bool:
+    """Whether the JSON value ``value`` is one of ``hint`` (int, float, bool, str, a Literal,
+    a union with None, ``tuple[int, ...]``)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_json_fits(value, arm) for arm in args)
+    if origin is typing.Literal:
+        return value in args
+    if origin is tuple:
+        return isinstance(value, list | tuple) and all(_json_fits(v, args[0]) for v in value)
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if hint is int:  # (a whole float: TrainConfig(total_steps=1e6) from Python writes 1000000.0)
+        whole = isinstance(value, float) and value.is_integer()
+        return (isinstance(value, int) or whole) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _type_name(hint: Any) -> str:
+    """``hint`` as a reader would say it: "int or null", "one of 'td3', 'ddpg'"."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(arm) for arm in args)
+    if origin is typing.Literal:
+        return "one of " + ", ".join(json.dumps(a) for a in args)
+    if origin is tuple:
+        return "a list of integers" if args[0] is int else "a list"
+    names = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+    return "null" if hint is type(None) else names.get(hint, hint.__name__)
+
+
+def load_run_info(out_dir: Path) -> dict:
+    """The keys of config.json that are not settings: ``preset``, ``resume_changes``, ..."""
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    return {k: v for k, v in _read_config(out_dir).items() if k not in known}
+
+
+def run_info(
+    out_dir: Path, *, resume: bool, preset: str | None, changes: dict, at_env_steps: int
+) -> dict:
+    """config.json's extra keys: a fresh run's preset (if it came from one); on resume, the
+    saved ones plus this resume's ``changes`` appended to ``resume_changes``."""
+    if not resume:
+        return {"preset": preset} if preset else {}
+    info = load_run_info(out_dir)
+    if changes:
+        entry = {"at_env_steps": at_env_steps, **changes}
+        info["resume_changes"] = [*info.get("resume_changes", []), entry]
+    return info
+
+
+def load_members(out_dir: Path, cfg: TrainConfig) -> list[Member]:
+    """The members of a run directory (its seeds and swept settings). A members.json that is
+    not as td3-jax writes it, or that disagrees with config.json (its seeds, or its sweep
+    section's members), raises a one-line ConfigError: an edited file would label (or
+    restore) the members wrongly."""
+    path = Path(out_dir) / MEMBERS_FILE
+    if not path.exists():
+        return members(cfg)
+    try:
+        listing = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path} is not valid JSON ({err}); {_RESTORE_MEMBERS}") from err
+    population = _parse_members(listing, path)
+    expected = _members_in_config(out_dir, population)
+    if expected is not None and population != expected:
+        listed, said = (", ".join(str(m.seed) for m in g) for g in (population, expected))
+        raise ConfigError(f"{path} lists the members of seeds {listed} but config.json says the "
+                          f"run trained seeds {said} (or other swept values); was it edited? "
+                          f"{_RESTORE_MEMBERS.capitalize()}")  # fmt: skip
+    return population
+
+
+#: How to go on from a damaged members.json.
+_RESTORE_MEMBERS = ("restore it from a copy, or delete it: config.json's seed and seeds (and "
+                    "its sweep section) say which members the run has")  # fmt: skip
+
+
+def _parse_members(listing: Any, path: Path) -> list[Member]:
+    """members.json's entries as members; a one-line ConfigError where it is not a non-empty
+    list of ``{"seed": int, "overrides": {setting: number}}``."""
+    if not isinstance(listing, list) or not listing or not all(map(_is_member, listing)):
+        raise ConfigError(f"{path} is not a list of members as td3-jax writes it (each with "
+                          "an integer seed and its overrides); was it edited? "
+                          f"{_RESTORE_MEMBERS.capitalize()}")  # fmt: skip
+    return [Member(seed=m["seed"], overrides=tuple(sorted((k, float(v))
+                   for k, v in m["overrides"].items()))) for m in listing]  # fmt: skip
+
+
+def _is_member(entry: Any) -> bool:
+    """Whether a members.json entry is ``{"seed": int, "overrides": {setting: number}}``."""
+    if not isinstance(entry, dict) or not isinstance(entry.get("overrides"), dict):
+        return False
+    numbers = all(isinstance(v, int | float) for v in entry["overrides"].values())
+    return isinstance(entry.get("seed"), int) and not isinstance(entry["seed"], bool) and numbers
+
+
+def _members_in_config(out_dir: Path, listed: list[Member]) -> list[Member] | None:
+    """The members config.json describes: its sweep section's, else its ``seeds`` seeds from
+    its ``seed``; None where it cannot say (no config.json, or a sweep written before config.json
+    had its sweep section: ``listed`` overrides settings but no section says which)."""
+    path = Path(out_dir) / CONFIG_FILE
+    if not path.exists():
+        return None
+    raw = _read_config(out_dir)
+    section = raw.get(SWEEP)
+    if isinstance(section, dict) and isinstance(section.get("members"), list):
+        swept = section.get("settings") or []
+        return [Member(seed=m.get("seed"), overrides=tuple(sorted(
+                    (k, float(m[k])) for k in swept if k in m)))
+                for m in section["members"] if isinstance(m, dict)]  # fmt: skip
+    if any(m.overrides for m in listed):
+        return None
+    saved = load_config(out_dir)
+    return [Member(seed=saved.seed + k, overrides=()) for k in range(saved.seeds)]
+
+
+def environment_record(env_name: str, env: Environment | None) -> dict:
+    """config.json's ``environment`` entry for a run of a factory (``env_name`` is
+    ``module.path:function``) or of an object (``object/<name>``): ``env``'s sizes, bounds and
+    time limit (:func:`td3_jax.envs.custom.signature`), so that a later ``--resume``, ``eval``,
+    ``render`` or ``export`` notices a changed factory or another object; ``{}`` for
+    environments known by name."""
+    return {"environment": custom.signature(env)} if custom.is_custom(env_name) else {}
+
+
+def check_environment_unchanged(out_dir: Path, env_name: str, env: Environment | None) -> None:
+    """Raises :class:`~td3_jax.common.errors.CustomEnvironmentError` when a factory's or object's
+    run environment ``env``, made or handed now, differs from what its config.json recorded
+    (nothing to check for environments known by name)."""
+    if custom.is_custom(env_name) and env is not None:
+        custom.check_unchanged(env_name, load_run_info(out_dir).get("environment"), env)
