@@ -24,19 +24,19 @@ from td3_jax.common.runtime import CACHE_MAX_BYTES  # noqa: E402
 # that leave it at its default write into a home of their own, not the user's cache. Under
 # pytest-xdist (`-n 2`) the workers share the home their controller made, so a program one
 # worker compiled is a cache hit in the other (JAX's cache writes are file-locked, whole files).
-_SESSION_HOME = "TD3_JAX_TESTS_HOME"
-if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get(_SESSION_HOME)):
-    os.environ[_SESSION_HOME] = tempfile.mkdtemp(prefix="td3-jax-tests-home-")
-os.environ["HOME"] = os.environ[_SESSION_HOME]
+_TESTS_HOME = "TD3_JAX_TESTS_HOME"
+if not (os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get(_TESTS_HOME)):
+    os.environ[_TESTS_HOME] = tempfile.mkdtemp(prefix="td3-jax-tests-home-")
+os.environ["HOME"] = os.environ[_TESTS_HOME]
 
 # Everything in the library is float32 / int32; keep the tests on the same footing.
 jax.config.update("jax_enable_x64", False)
 
 # Compiling dominates on a CPU, and many tests build the same small programs. JAX's persistent
-# compilation cache, in the CLI's default place under this session's fresh home, compiles each
-# distinct program once per test session (in this process and in the CLI processes that tests
+# compilation cache, in the CLI's default place under this test run's fresh home, compiles each
+# distinct program once per test run (in this process and in the CLI processes that tests
 # start without a --compile-cache of their own); a hit is the executable XLA compiled, so no
-# result changes. It starts empty in every session, so nothing carries over between runs.
+# result changes. It starts empty in every test run, so nothing carries over between runs.
 # Tests about the cache itself give their runs a --compile-cache of their own.
 jax.config.update("jax_compilation_cache_dir", os.path.expanduser("~/.cache/td3-jax/jax"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

@@ -1,10 +1,10 @@
 """Every place td3-jax relies on a private name (or a private layout) of the libraries below it.
 
 Each touch is one small function here, named for what it does; callers use these functions and
-never the private names themselves. ``tests/test_upstream.py`` holds one canary test per name:
-it fails, naming the upstream name, when an upstream release renames or removes it. At run time
-a missing name raises :class:`UpstreamChanged` instead of being skipped: nothing here is ever a
-silent no-op (an attribute swapped for domain randomisation is checked to exist first).
+never the private names themselves. ``tests/common/test_upstream.py`` holds one canary test per
+name: it fails, naming the upstream name, when a new upstream version renames or removes it. At
+run time a missing name raises :class:`UpstreamChanged` instead of being skipped: nothing here is
+ever a silent no-op (an attribute swapped for domain randomisation is checked to exist first).
 
 Checked against (``checked`` in each docstring): JAX 0.10.2 and 0.11.2; MuJoCo (``mujoco`` and
 its ``mujoco.mjx``, with the MuJoCo Warp it vendors) 4.0.0; MuJoCo Playground
@@ -165,7 +165,7 @@ def tyro_help_unwrapped_by(unwrap: Callable[[str], str]) -> Iterator[None]:
     """Inside, tyro turns docstrings into help text with ``unwrap`` (text -> paragraphs).
 
     The one exception to this module's rule that nothing is a silent no-op: where a tyro
-    release has renamed the function, nothing is swapped (help text is then only wrapped as
+    version has renamed the function, nothing is swapped (help text is then only wrapped as
     tyro wraps it; every command must still parse), and the canary test fails instead."""
     try:
         module = _private_module(TYRO_UNWRAP[0])

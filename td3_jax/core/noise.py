@@ -30,7 +30,7 @@ def gaussian(
 
 @struct.dataclass
 class OUParams:
-    """Ornstein-Uhlenbeck parameters (the seed's defaults: theta 0.15, sigma 0.3, no decay).
+    """Ornstein-Uhlenbeck parameters (defaults: theta 0.15, sigma 0.3, no decay).
 
     ``sigma`` decays linearly from ``max_sigma`` to ``min_sigma`` over ``decay_period`` steps.
     """
@@ -51,7 +51,7 @@ class OUState:
 
 
 def ou_init(action_size: int, params: OUParams = OUParams()) -> OUState:
-    """A process at rest at ``mu`` (call again at each episode start, as the seed does)."""
+    """A process at rest at ``mu`` (call again at each episode start)."""
     return OUState(x=jnp.full((action_size,), params.mu, jnp.float32), t=jnp.zeros((), jnp.int32))
 
 
@@ -85,7 +85,7 @@ def ou_action(
     params: OUParams = OUParams(),
     max_action: float | jax.Array = 1.0,
 ) -> tuple[OUState, jax.Array]:
-    """The seed's ``get_action``: ``clip(action + ou_step(), -max_action, max_action)``."""
+    """The exploratory action ``clip(action + ou_step(), -max_action, max_action)``."""
     state, x = ou_step(key, state, params)
     return state, jnp.clip(action + x, -max_action, max_action)
 

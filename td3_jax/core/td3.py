@@ -1,7 +1,8 @@
 """TD3 and DDPG: their configs and thin aliases of the one actor-critic builder
 (:func:`td3_jax.core.actor_critic.actor_critic`), in optax's ``alias.py`` style.
 
-TD3 (Fujimoto et al. 2018) follows steps 4 to 15 of the seed notes:
+TD3 follows Algorithm 1 of Fujimoto, van Hoof and Meger (2018), "Addressing Function
+Approximation Error in Actor-Critic Methods" (ICML):
 
 * target action ``a' = clip(pi'(s') + clip(N(0, policy_noise), -noise_clip, noise_clip),
   -max_action, max_action)`` (target policy smoothing);
@@ -12,8 +13,9 @@ TD3 (Fujimoto et al. 2018) follows steps 4 to 15 of the seed notes:
   ``-mean Q1(s, pi(s))`` with the freshly updated critic, one Adam step, then Polyak averaging
   ``target <- tau * online + (1 - tau) * target`` of both actor and critic targets.
 
-DDPG (the seed's tutorial, its missing ``done`` mask fixed) is the same machinery with one
-critic, no target smoothing and the actor and soft target updates on every step.
+DDPG (Lillicrap et al. 2016, "Continuous control with deep reinforcement learning", ICLR),
+with the target masked by ``1 - done`` at terminations, is the same machinery with one critic,
+no target smoothing and the actor and soft target updates on every step.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from td3_jax.core.types import Agent
 
 @struct.dataclass
 class TD3Config:
-    """TD3 hyperparameters. Defaults are the TD3 paper's / the seed notes'.
+    """TD3 hyperparameters. Defaults are the TD3 paper's.
 
     Float fields may be JAX arrays (so a sweep over them is a ``vmap``); ``policy_freq`` and
     ``hidden_sizes`` set the program's structure and are static.
@@ -48,7 +50,7 @@ class TD3Config:
 
 @struct.dataclass
 class DDPGConfig:
-    """DDPG hyperparameters. Defaults are the seed tutorial's (Pendulum, 256-256)."""
+    """DDPG hyperparameters. Defaults suit Pendulum (256-256 networks)."""
 
     discount: float = 0.99
     tau: float = 1e-2

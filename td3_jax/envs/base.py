@@ -6,7 +6,8 @@ obs, reward, terminated)``, plus sizes, the episode length and the action bounds
 adds what every source needs, in one place:
 
 * actions: the agent acts in ``[-1, 1]^action_size``; :func:`step` rescales to the
-  environment's ``[low, high]`` bounds per dimension (the seed's ``NormalizedEnv``);
+  environment's ``[low, high]`` bounds per dimension,
+  ``low + (clip(a, -1, 1) + 1) / 2 * (high - low)``;
 * time limit: after ``episode_length`` steps an episode is *truncated* (``done = 0`` in the
   stored transition, so the target bootstraps); a *termination* from the environment gives
   ``done = 1``;

@@ -19,7 +19,7 @@ thread of its own while the caller goes on to trace and compile its XLA programs
 run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). On an H200
 host of 64 cores, cold caches, a ``t1`` run's first record came 110 s after launch alone on the
 host (Warp ready in 28 s, waited for 0 s), and with two such runs starting at once 129 s
-beside against 180 s first (BENCHMARKS.md, 2026-11-27 eighteenth session).
+beside against 180 s first (BENCHMARKS.md, 2026-11-27, Warp's compile beside XLA's).
 """
 
 from __future__ import annotations

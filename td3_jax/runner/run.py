@@ -211,7 +211,7 @@ def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int
 
 
 def _finish(run: _Run, run_lock: Any) -> None:
-    """Closes the run's outputs and releases its directory; a run stopped by a failed write
+    """Closes the run's outputs and unlocks its directory; a run stopped by a failed write
     then raises :class:`OutputWriteError` (once a checkpoint still being written has finished
     or failed, so the last good one is known)."""
     try:

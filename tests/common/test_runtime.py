@@ -234,13 +234,13 @@ def test_a_second_signal_says_what_the_stop_leaves(monkeypatch, capsys):
 
 
 def test_a_stopped_wait_gives_up_the_compile_thread():
-    stop, release = runtime.StopToken(), threading.Event()
-    future = runtime.in_background(release.wait, 30)
+    stop, unblock = runtime.StopToken(), threading.Event()
+    future = runtime.in_background(unblock.wait, 30)
     assert runtime.background_work_running()
     threading.Timer(0.1, stop.set).start()
     with pytest.raises(KeyboardInterrupt):
         runtime.result(future, stop)
-    release.set()
+    unblock.set()
     assert runtime.result(future) is True
 
 

@@ -1,7 +1,7 @@
 """Canaries for td3_jax.common.upstream: one test per private upstream name td3-jax relies on,
-failing with a message naming it when an upstream release renames or removes it; and the checks that
-turn a missing name into an error instead of a silent no-op. Each test takes a few seconds on a
-CPU (the cache test runs two small Python processes)."""
+failing with a message naming it when a new upstream version renames or removes it; and the checks
+that turn a missing name into an error instead of a silent no-op. Each test takes a few seconds on
+a CPU (the cache test runs two small Python processes)."""
 
 from __future__ import annotations
 
@@ -111,7 +111,7 @@ def test_cublas_matmuls_turn_triton_gemm_off_on_a_gpu_unless_xla_flags_set_it():
 
 
 def test_xla_still_accepts_the_triton_gemm_compile_option():
-    """XLA checks option names on every backend (a CPU rejects unknown ones too), so a release
+    """XLA checks option names on every backend (a CPU rejects unknown ones too), so a version
     that drops it fails here rather than in a GPU run's compile."""
     lowered = jax.jit(lambda x: x @ x).lower(jnp.ones((3, 3)))
     try:

@@ -2,7 +2,7 @@
 (``td3_jax.config.presets``): validation, presets, derived sizes.
 
 The derived quantities are checked against values worked out by hand in the comments, and the
-agent defaults against the numbers of the TD3 paper and the seed DDPG tutorial.
+agent defaults against the numbers of the TD3 paper and of the DDPG Pendulum baseline.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """It learns: whole training runs of the presets from the command line (minutes on a CPU).
 
 The runs are real ``td3-jax train`` processes. Their wall time is mostly XLA compilation, which
-is single-threaded, so every run a session selects is started at once when the first learning
+is single-threaded, so every run a test run selects is started at once when the first learning
 test needs it (each test then waits for its own), and a run nobody selected never starts.
 Returns are deterministic for a seed on a given installation; the thresholds leave a wide margin
 over the values measured when the tests were written (quoted next to each assertion).
@@ -23,8 +23,9 @@ TIMEOUT_S = 600
 
 # Random policy on gymnax/Pendulum-v1 (200-step episodes): about -1200.
 PENDULUM_RANDOM = -1200.0
-# The seed DDPG tutorial's own log: the 10-episode average ends around -590, never beats -457.
-SEED_TUTORIAL_BEST = -457.0
+# A reference DDPG implementation's own log on the same experiment: the 10-episode average ends
+# around -590, never beats -457.
+REFERENCE_DDPG_BEST = -457.0
 # brax/inverted_pendulum (reward 1 per step alive; its own 1000-step episodes, so at most 1000),
 # measured with the trainer's evaluate and with uniform random actions (with 200-step episodes,
 # which no such policy outlives): freshly initialised deterministic policy: 32.3 on average over
@@ -36,7 +37,7 @@ INVERTED_PENDULUM_RANDOM = 5.8
 RUNS = {
     # TD3, 16 environments, (256, 256), the preset's own 20k steps: README's main job.
     "pendulum": ["--preset", "pendulum"],
-    # The seed's experiment (DDPG, OU noise, batch 128, one Pendulum, 20k steps); measured: last
+    # The DDPG Pendulum baseline (OU noise, batch 128, one Pendulum, 20k steps); measured: last
     # three evaluations -124, -124, -150.
     "seed-ddpg-pendulum": ["--preset", "seed-ddpg-pendulum"],
     # TD3 on MJX, 16 environments, 32 updates per iteration, the preset's own 20,480 steps
@@ -45,7 +46,7 @@ RUNS = {
 }
 TEST_RUN = {
     "test_td3_learns_pendulum": "pendulum",
-    "test_seed_ddpg_preset_beats_the_seed_tutorial": "seed-ddpg-pendulum",
+    "test_ddpg_pendulum_preset_beats_the_reference_ddpg": "seed-ddpg-pendulum",
     "test_td3_learns_mjx_inverted_pendulum": "inverted-pendulum",
 }
 
@@ -112,7 +113,7 @@ def test_td3_learns_pendulum(runs):
     assert curve[-1] > PENDULUM_RANDOM + 800, curve
 
 
-def test_seed_ddpg_preset_beats_the_seed_tutorial(runs):
+def test_ddpg_pendulum_preset_beats_the_reference_ddpg(runs):
     records = runs["seed-ddpg-pendulum"].records()
     curve = returns(records)
     # the early evaluation (an eighth of the first 2000-iteration chunk), then every 2000 steps
@@ -122,8 +123,8 @@ def test_seed_ddpg_preset_beats_the_seed_tutorial(runs):
     # measured: -198, -195, -147, -144, -182, -179, -155, -124, -124, -150
     last3 = sum(curve[-3:]) / 3
     assert last3 > -400, curve
-    assert last3 > SEED_TUTORIAL_BEST, curve
-    assert max(curve) > SEED_TUTORIAL_BEST + 200, curve
+    assert last3 > REFERENCE_DDPG_BEST, curve
+    assert max(curve) > REFERENCE_DDPG_BEST + 200, curve
 
 
 def test_td3_learns_mjx_inverted_pendulum(runs):

@@ -177,11 +177,11 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     from td3_jax.common import runtime
     from td3_jax.envs import warp_kernels
 
-    release, ran_on = threading.Event(), []
+    unblock, ran_on = threading.Event(), []
 
     def slow(task, njmax, naconmax):
         ran_on.append(threading.get_ident())
-        assert task == "quick" or release.wait(10)
+        assert task == "quick" or unblock.wait(10)
         if task == "broken":
             raise RuntimeError("no such kernel")
         return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
@@ -206,7 +206,7 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
         assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
     assert warp_kernels._PENDING and not warp_kernels._PENDING[0].future.done()  # (running)
     assert runtime.background_work_running()  # (a stopped run exits without waiting for it)
-    release.set()
+    unblock.set()
     assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
     assert ran_on[3] != threading.get_ident()
     out = capsys.readouterr().out

@@ -101,7 +101,7 @@ def test_a_run_stopped_by_a_full_disk_finishes_its_checkpoint_and_says_nothing_m
 
 
 def _tensorboard_points(run_dir) -> dict[str, list[tuple[int, float]]]:
-    """Each tag's points as TensorBoard shows them: a session start at step ``s`` (a writer's
+    """Each tag's points as TensorBoard shows them: a restart marker at step ``s`` (a writer's
     ``purge_step``) drops every point read before it at a step ``>= s``, in every tag
     (``EventAccumulator._CheckForRestartAndMaybePurge``)."""
     from tensorboardX.proto import event_pb2

@@ -104,8 +104,8 @@ def unsaturated(actions: np.ndarray, env: Environment) -> float:
 
 
 def onnx_actions(path: Path, obs: np.ndarray) -> np.ndarray:
-    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    return session.run(["action"], {"obs": obs})[0]
+    model = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return model.run(["action"], {"obs": obs})[0]
 
 
 def check_same(name: str, got: np.ndarray, want: np.ndarray) -> float:
