@@ -162,7 +162,7 @@ def test_preset_none_is_the_defaults_and_unknown_preset_is_an_error():
         # one step still runs one chunk: 8 envs, 40 // 8 = 5 iterations, 40 steps.
         (TrainConfig(num_envs=8, eval_every=40, total_steps=1), 8, 5, 1, 40),
         # total_steps an exact multiple of a chunk: 1 env, 2000 per chunk, 10 chunks.
-        (TrainConfig(**PRESETS["seed-ddpg-pendulum"]), 1, 2_000, 10, 20_000),
+        (TrainConfig(**PRESETS["ddpg-pendulum"]), 1, 2_000, 10, 20_000),
     ],
 )
 def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks, replay_capacity):
@@ -301,7 +301,7 @@ def test_every_environment_preset_is_made_for_its_environment():
     for env, name in ENV_PRESETS.items():
         assert PRESETS[name]["env"] == env
         assert env_preset(env) == name
-    # every preset with an environment of its own is reachable from it (seed-ddpg-pendulum
+    # every preset with an environment of its own is reachable from it (ddpg-pendulum
     # shares Pendulum with the default `pendulum` preset)
     assert {p["env"] for p in PRESETS.values() if "env" in p} == set(ENV_PRESETS)
     assert env_preset("brax/hopper") is None

@@ -1,6 +1,7 @@
 """The presets as data: every preset, the defaults and the device defaults give exactly the
 TrainConfig recorded in data/presets.json (written from the presets before they became a base
-with overrides), field by field."""
+with overrides and ``seed-ddpg-pendulum`` was renamed), field by field; a former name still
+works and says in one line what it is called now."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from td3_jax.config.presets import PRESETS, device_defaults, preset
+from td3_jax.config.presets import NAMES, PRESETS, RENAMED, device_defaults, preset
 
 RECORDED = json.loads((Path(__file__).parent / "data" / "presets.json").read_text())
 
@@ -20,13 +21,17 @@ def as_recorded(cfg) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg)))
 
 
-@pytest.mark.parametrize("name", sorted(RECORDED["presets"]))
-def test_every_preset_keeps_its_recorded_values(name):
-    assert as_recorded(preset(name)) == RECORDED["presets"][name]
+@pytest.mark.parametrize("recorded_name", sorted(RECORDED["presets"]))
+def test_every_preset_keeps_its_recorded_values(recorded_name):
+    name = RENAMED.get(recorded_name, recorded_name)
+    assert as_recorded(preset(name)) == RECORDED["presets"][recorded_name]
 
 
-def test_no_preset_is_missing_from_the_record():
-    assert set(PRESETS) <= set(RECORDED["presets"])
+def test_the_presets_are_the_recorded_ones_under_their_current_names():
+    current = {RENAMED.get(name, name) for name in RECORDED["presets"]}
+    assert set(NAMES) == current
+    assert set(PRESETS) == current | set(RENAMED)
+    assert not set(RENAMED) & set(NAMES)
 
 
 def test_the_defaults_keep_their_recorded_values():
@@ -38,3 +43,24 @@ def test_device_defaults_keep_their_recorded_values(key):
     env, _, accelerator = key.partition(" accelerator=")
     cfg = device_defaults(env, accelerator == "True")
     assert as_recorded(cfg) == RECORDED["device_defaults"][key]
+
+
+def test_a_former_name_gives_its_preset_and_says_once_that_it_was_renamed(capsys):
+    cfg = preset("seed-ddpg-pendulum")
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith("\n")
+    assert "'seed-ddpg-pendulum' was renamed 'ddpg-pendulum'" in err
+    assert cfg == preset("ddpg-pendulum")
+    assert capsys.readouterr().err == ""  # the current name says nothing
+
+
+def test_the_command_line_takes_a_former_name_and_says_it_was_renamed(capsys):
+    from td3_jax.cli import main
+
+    main(["presets", "seed-ddpg-pendulum"])
+    out, err = capsys.readouterr()
+    assert err.strip().splitlines() == [
+        "td3-jax: preset 'seed-ddpg-pendulum' was renamed 'ddpg-pendulum' (the old name still "
+        "works)"
+    ]
+    assert out.startswith("seed-ddpg-pendulum: ") and "--algo ddpg" in out

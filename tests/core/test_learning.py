@@ -39,14 +39,14 @@ RUNS = {
     "pendulum": ["--preset", "pendulum"],
     # The DDPG Pendulum baseline (OU noise, batch 128, one Pendulum, 20k steps); measured: last
     # three evaluations -124, -124, -150.
-    "seed-ddpg-pendulum": ["--preset", "seed-ddpg-pendulum"],
+    "ddpg-pendulum": ["--preset", "ddpg-pendulum"],
     # TD3 on MJX, 16 environments, 32 updates per iteration, the preset's own 20,480 steps
     # (about a minute on 2 CPU cores, half of it compiling MJX).
     "inverted-pendulum": ["--preset", "inverted-pendulum"],
 }
 TEST_RUN = {
     "test_td3_learns_pendulum": "pendulum",
-    "test_ddpg_pendulum_preset_beats_the_reference_ddpg": "seed-ddpg-pendulum",
+    "test_ddpg_pendulum_preset_beats_the_reference_ddpg": "ddpg-pendulum",
     "test_td3_learns_mjx_inverted_pendulum": "inverted-pendulum",
 }
 
@@ -114,7 +114,7 @@ def test_td3_learns_pendulum(runs):
 
 
 def test_ddpg_pendulum_preset_beats_the_reference_ddpg(runs):
-    records = runs["seed-ddpg-pendulum"].records()
+    records = runs["ddpg-pendulum"].records()
     curve = returns(records)
     # the early evaluation (an eighth of the first 2000-iteration chunk), then every 2000 steps
     assert [r["env_steps"] for r in records] == [250, *range(2_000, 20_001, 2_000)]
