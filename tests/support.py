@@ -2,7 +2,7 @@
 or in a child process, and a run directory's records and TensorBoard events.
 
 One set of tiny flags keeps the programs of the tests' small runs identical, so that the test
-session's compilation cache (tests/conftest.py) compiles them once.
+run's compilation cache (tests/conftest.py) compiles them once.
 """
 
 from __future__ import annotations

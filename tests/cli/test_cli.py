@@ -34,7 +34,9 @@ from support import (
     with_flags,
 )
 
-from td3_jax.cli import app as cli
+from td3_jax.cli import app, argv, commands, interrupts, notes, parsing, tables
+from td3_jax.cli import settings as cli_settings
+from td3_jax.cli import train as cli_train
 from td3_jax.config import schema as config
 from td3_jax.config.presets import NAMES, PRESETS, device_defaults, preset
 from td3_jax.config.schema import TrainConfig
@@ -101,8 +103,36 @@ def test_version_is_the_packaged_version(capsys):
     import tomllib
 
     pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
-    cli.main(["--version"])
+    app.main(["--version"])
     assert capsys.readouterr().out == f"td3-jax {pyproject['project']['version']}\n"
+
+
+@pytest.mark.subprocess  # a child process that imports JAX (for presets): 4 s
+def test_usage_version_and_an_unknown_name_answer_without_importing_jax():
+    """The usage, the version and an unknown subcommand import no subcommand's module (those
+    import the presets, and they JAX: seconds); a subcommand imports its own module only."""
+    quiet = "contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO())"
+    code = (
+        "import contextlib, io, sys\n"
+        "from td3_jax.cli import app\n"
+        "def cli_modules():\n"
+        "    return ' '.join(sorted(m for m in sys.modules if m.startswith('td3_jax.cli.')))\n"
+        "for argv in (['--help'], ['--version'], ['fly']):\n"
+        f"    with contextlib.suppress(SystemExit), {quiet}:\n"
+        "        app.main(argv)\n"
+        "print('jax' in sys.modules, cli_modules())\n"
+        f"with {quiet}:\n"
+        "    app.main(['presets', 'pendulum'])\n"
+        "print(cli_modules())\n"
+    )
+    proc = python(code)
+    assert proc.returncode == 0, proc.stderr
+    answered, listed = proc.stdout.splitlines()
+    jax_loaded, *loaded = answered.split()
+    subcommand_modules = {f"td3_jax.cli.{module}" for module, _ in app.COMMANDS.values()}
+    assert jax_loaded == "False" and "td3_jax.cli.app" in loaded
+    assert not subcommand_modules & set(loaded), loaded
+    assert subcommand_modules & set(listed.split()) == {"td3_jax.cli.listing"}, listed
 
 
 @pytest.mark.subprocess  # a child process that imports JAX: 4 s
@@ -142,7 +172,7 @@ def test_help_text_is_the_docstrings_paragraphs_with_their_list_items():
       more words
     - second
     2. third"""
-    assert cli.help_paragraphs(docstring) == (
+    assert parsing.help_paragraphs(docstring) == (
         "Replay capacity (a ring), capped at the run's length; a --resume that extends it "
         "grows it (exactly).\n\nChoices:\n- first, with more words\n- second\n2. third"
     )
@@ -154,7 +184,7 @@ def test_train_help_wraps_each_flags_text_to_the_terminal(monkeypatch, capsys):
     200 columns --buffer-size's whole text is one line."""
     monkeypatch.setenv("COLUMNS", "200")
     with pytest.raises(SystemExit):
-        cli.main(["train", "--help"])
+        app.main(["train", "--help"])
     (line,) = [ln for ln in capsys.readouterr().out.splitlines() if "--buffer-size INT" in ln]
     assert "once it is full), capped at the run's own length (a ring never holds more rows" in line
 
@@ -239,11 +269,11 @@ def test_a_resume_may_repeat_the_preset_it_was_started_from(tmp_path):
     saved = preset("pendulum")
     rundir.save_config(saved, rundir.members(saved), out, {"preset": "pendulum"})
     same = ["train", "--preset", "pendulum", "--out", str(out), "--resume"]
-    assert cli._base_config(same) == (rundir.load_config(out), None, "resume")
+    assert cli_settings.base_config(same) == (rundir.load_config(out), None, "resume")
     other = ["train", "--preset", "ant", "--out", str(out), "--resume"]
     with pytest.raises(config.ConfigError, match="--preset ant given but the run was started "
                                                  "with --preset pendulum; "):  # fmt: skip
-        cli._base_config(other)
+        cli_settings.base_config(other)
 
 
 def test_a_resume_given_the_eval_every_the_run_was_started_with_keeps_its_chunk(tmp_path):
@@ -254,11 +284,11 @@ def test_a_resume_given_the_eval_every_the_run_was_started_with_keeps_its_chunk(
     started = config.eval_every_within_run(TrainConfig(eval_every=3000, total_steps=6000))
     rundir.save_config(started, rundir.members(started), out)
     again = dataclasses.replace(started, eval_every=3000, total_steps=12_000)
-    assert cli._resumed_settings(again, out).eval_every == 3008
+    assert cli_settings.resumed_settings(again, out).eval_every == 3008
     for other in (4000, 2992):  # another chunk (187 iterations) is still refused
         refused = f"--eval-every {other} given but the run was started with --eval-every 3008: "
         with pytest.raises(config.ConfigError, match=refused):
-            cli._resumed_settings(dataclasses.replace(again, eval_every=other), out)
+            cli_settings.resumed_settings(dataclasses.replace(again, eval_every=other), out)
 
 
 def test_unknown_preset_exits_2(tmp_path, capsys, monkeypatch):
@@ -423,7 +453,7 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
     }  # fmt: skip
     for args, message in cases.items():
         code, _, err = main(list(args), capsys)
-        repeated = cli.repeated_flags_warning(list(args))  # (said first: the next test)
+        repeated = argv.repeated_flags_warning(list(args))  # (said first: the next test)
         if repeated is not None:
             assert err.startswith(f"td3-jax: warning: {repeated}\n"), err
             err = err.split("\n", 1)[1]
@@ -440,7 +470,7 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
 def test_whole_numbers_may_be_written_in_scientific_notation():
     """``--total-steps 1e6`` is a million steps (as users write step counts); a value in that
     notation that is not whole, or a number flag that takes floats, is left to the parser."""
-    parse = functools.partial(cli._parse, cli.TrainCommand, prog="td3-jax train")
+    parse = functools.partial(parsing.parse, commands.TrainCommand, prog="td3-jax train")
     command = parse(["--total-steps", "1e6", "--eval-every=2.5E4", "--hidden-sizes", "6.4e1",
                      "128", "--actor-lr", "1e-3", "--out", "1e6"])  # fmt: skip
     assert (command.total_steps, command.eval_every) == (1_000_000, 25_000)
@@ -473,7 +503,7 @@ def test_unknown_subcommand_exits_2_in_two_lines(capsys):
     assert "unknown subcommand 'fly'" in err and "Traceback" not in err
     lines = main(["trian"], capsys)[2].splitlines()
     assert lines[0] == "td3-jax: error: unknown subcommand 'trian'; did you mean 'train'?"
-    assert len(lines) == 2 and all(f" {name}" in lines[1] for name in cli.COMMANDS), lines
+    assert len(lines) == 2 and all(f" {name}" in lines[1] for name in app.COMMANDS), lines
 
 
 @pytest.mark.parametrize("errno_code", [errno.EPERM, errno.EACCES, errno.EROFS, errno.ENOSPC])
@@ -485,7 +515,7 @@ def test_an_output_the_system_refuses_is_one_line_and_exit_2(errno_code, capsys)
         raise OSError(errno_code, os.strerror(errno_code), "runs/x/config.json")
 
     with pytest.raises(SystemExit) as stop:
-        cli._run_reporting_errors(refused, [])
+        app.run_reporting_errors(refused, [])
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert err == f"td3-jax: error: runs/x/config.json: {os.strerror(errno_code)}\n"
@@ -1346,22 +1376,22 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
     # 16 envs, evaluations every 4000 steps: chunks of 250 iterations of 16 steps
     cfg = TrainConfig(num_envs=16, eval_every=4000, total_steps=100)
     assert cfg.steps_per_chunk == 4000
-    assert cli.rounding_note(cfg).startswith("--total-steps 100 runs as 4000 ")
-    assert cli.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=8000)) is None
-    assert "runs as 12000" in cli.rounding_note(
+    assert config.rounding_note(cfg).startswith("--total-steps 100 runs as 4000 ")
+    assert config.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=8000)) is None
+    assert "runs as 12000" in config.rounding_note(
         TrainConfig(num_envs=16, eval_every=4000, total_steps=8001)
     )
     # --eval-every runs as whole iterations: 130 steps of 4 envs are 32 iterations, 128 steps.
-    note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=130, total_steps=256))
+    note = config.rounding_note(TrainConfig(num_envs=4, eval_every=130, total_steps=256))
     assert note == "--eval-every 130 runs as 128 (whole iterations of 4 env steps)"
-    note = cli.rounding_note(TrainConfig(num_envs=4, eval_every=2, total_steps=8))
+    note = config.rounding_note(TrainConfig(num_envs=4, eval_every=2, total_steps=8))
     assert note.startswith("--eval-every 2 runs as 4 (") and "--total-steps" not in note
     # an in-chunk evaluation keeps its chunk: the note says how to shorten the run
     in_chunk = TrainConfig(num_envs=16, eval_every=4000, total_steps=100, eval_in_chunk=True)
-    note = cli.rounding_note(in_chunk)
+    note = config.rounding_note(in_chunk)
     assert note.startswith("--total-steps 100 runs as 4000 (")
     assert "down to one evaluation episode" in note and "--no-eval-in-chunk ends" in note
-    assert "--no-eval-in-chunk" not in cli.rounding_note(cfg)
+    assert "--no-eval-in-chunk" not in config.rounding_note(cfg)
 
 
 def test_a_resume_says_how_its_steps_round_only_where_total_steps_was_typed(capsys):
@@ -1370,7 +1400,7 @@ def test_a_resume_says_how_its_steps_round_only_where_total_steps_was_typed(caps
     cfg = TrainConfig(num_envs=16, eval_every=4000, total_steps=100, env="gymnax/Pendulum-v1")
     for resumed, given, said in ((False, frozenset(), True), (True, frozenset(), False),
                                  (True, frozenset({"total_steps"}), True)):  # fmt: skip
-        cli._when_prepared(cfg, None, "config", 4000, given, resumed)
+        notes.when_prepared(cfg, None, "config", 4000, given, resumed)
         out = capsys.readouterr().out
         assert ("--total-steps 100 runs as 4000 (" in out) == said, (resumed, given, out)
 
@@ -1389,7 +1419,7 @@ def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
     # need 3 chunks, 8976 steps, for 6000; 188 (3008) need 2, 6016 steps, so the chunk grows
     grown = config.eval_every_within_run(TrainConfig(eval_every=3000, total_steps=6000))
     assert (grown.eval_every, grown.steps_per_chunk, grown.run_steps) == (3008, 3008, 6016)
-    note = cli.rounding_note(grown, asked_eval_every=3000)
+    note = config.rounding_note(grown, asked_eval_every=3000)
     assert note.startswith("--eval-every 3000 runs as 3008 (whole iterations of 16 env steps); ")
     assert note.endswith("--total-steps 6000 runs as 6016 (whole chunks of 3008 steps between "
                          "evaluations; --eval-every sets them)")  # fmt: skip
@@ -1397,12 +1427,12 @@ def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
     # chunks of 2992 exactly (two of 3008 would be 6016)
     low = TrainConfig(eval_every=3000, total_steps=5984)
     assert config.eval_every_within_run(low) is low and low.run_steps == 5984
-    note = cli.rounding_note(lowered, asked_eval_every=100_000)
+    note = config.rounding_note(lowered, asked_eval_every=100_000)
     assert (
         note
         == "--eval-every 100000 is longer than --total-steps 20000: evaluating at its end instead"
     )
-    assert cli.rounding_note(kept, asked_eval_every=4_000) is None
+    assert config.rounding_note(kept, asked_eval_every=4_000) is None
 
 
 def test_a_fresh_run_shorter_than_eval_every_trains_its_own_length_and_resumes_on(tmp_path, capsys):
@@ -1420,36 +1450,36 @@ def test_a_fresh_run_shorter_than_eval_every_trains_its_own_length_and_resumes_o
 
 
 def test_a_run_without_updates_is_warned_that_it_never_learns():
-    assert "never learns" in cli.no_learning_warning(TrainConfig(updates_per_iter=0))
-    assert cli.no_learning_warning(TrainConfig(updates_per_iter=1)) is None
+    assert "never learns" in notes.no_learning_warning(TrainConfig(updates_per_iter=0))
+    assert notes.no_learning_warning(TrainConfig(updates_per_iter=1)) is None
 
 
 def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     ant = preset("ant")
-    assert "sized for a GPU" in cli.cpu_size_warning(ant, "cpu")
-    assert f"{ant.num_envs} environments" in cli.cpu_size_warning(ant, "cpu")
-    assert cli.cpu_size_warning(ant, "gpu") is None
-    assert cli.cpu_size_warning(preset("pendulum"), "cpu") is None
+    assert "sized for a GPU" in notes.cpu_size_warning(ant, "cpu")
+    assert f"{ant.num_envs} environments" in notes.cpu_size_warning(ant, "cpu")
+    assert notes.cpu_size_warning(ant, "gpu") is None
+    assert notes.cpu_size_warning(preset("pendulum"), "cpu") is None
     assert (
         "try --num-envs 16 --total-steps 20000 --batch-size 256 --warmup-steps 1000 "
-        "--eval-every 4000 (" in cli.cpu_size_warning(ant, "cpu")
+        "--eval-every 4000 (" in notes.cpu_size_warning(ant, "cpu")
     )
     long_run = TrainConfig(num_envs=16, total_steps=10_000_000)  # suggests only what is large
-    assert "try --total-steps 20000 (or no --preset)" in cli.cpu_size_warning(long_run, "cpu")
+    assert "try --total-steps 20000 (or no --preset)" in notes.cpu_size_warning(long_run, "cpu")
     # a preset picked for the environment cannot be left out by leaving out --preset
-    assert cli.cpu_size_warning(long_run, "cpu", "env").endswith("try --total-steps 20000")
+    assert notes.cpu_size_warning(long_run, "cpu", "env").endswith("try --total-steps 20000")
     # the steps that run (whole chunks of an in-chunk evaluation), not those asked for
     short = dataclasses.replace(preset("g1"), total_steps=2000)
-    warning = cli.cpu_size_warning(short, "cpu")
+    warning = notes.cpu_size_warning(short, "cpu")
     assert "4096 environments, 4096000 steps" in warning
     assert warning.endswith(
         "try --num-envs 16 --batch-size 256 --warmup-steps 1000 (or no --preset)"
     )
     # a resume keeps the run's sizes: no flag to change them is offered
-    resumed = cli.cpu_size_warning(ant, "cpu", "resume")
+    resumed = notes.cpu_size_warning(ant, "cpu", "resume")
     assert "sized for a GPU" in resumed and "try" not in resumed
     assert resumed.endswith("a resume keeps its sizes, so resume it where a GPU is")
-    long_g1 = cli.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
+    long_g1 = notes.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
     assert (
         "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
         "--eval-every 4000 (" in long_g1
@@ -1461,13 +1491,13 @@ def test_the_cpu_tips_make_a_valid_run_of_the_preset(name):
     """Following the warning's advice is a run that starts: its flags pass the checks a run
     makes before it compiles (g1's batch of 32768 and ant's warm-up of 409600 steps are
     larger than 20000)."""
-    _, cfg, _, _ = cli._parse_train(["--preset", name], sweeping=False)
-    tips = cli.cpu_size_warning(cfg, "cpu").split("try ")[1].removesuffix(" (or no --preset)")
-    _, small, _, _ = cli._parse_train(["--preset", name, *tips.split()], sweeping=False)
+    _, cfg, _, _ = cli_train.parse_train(["--preset", name], sweeping=False)
+    tips = notes.cpu_size_warning(cfg, "cpu").split("try ")[1].removesuffix(" (or no --preset)")
+    _, small, _, _ = cli_train.parse_train(["--preset", name, *tips.split()], sweeping=False)
     small = config.eval_every_within_run(small)  # (as train_main does before validating)
     config.validate(small)
     assert small.num_chunks == 5  # an evaluation and a checkpoint every 4000 of 20000 steps
-    assert cli.cpu_size_warning(small, "cpu") is None
+    assert notes.cpu_size_warning(small, "cpu") is None
     for field in ("batch_size", "warmup_steps"):  # a tip not followed: the run cannot start
         if getattr(cfg, field) >= small.run_steps:
             with pytest.raises(config.ConfigError, match=config.flag(field)):
@@ -1476,28 +1506,28 @@ def test_the_cpu_tips_make_a_valid_run_of_the_preset(name):
 
 def test_a_critic_network_given_against_the_preset_names_the_sizes_it_keeps():
     plain = dataclasses.replace(preset("g1"), critic_network="mlp")
-    note = cli.critic_network_note(plain, "g1", given={"critic_network"})
+    note = notes.critic_network_note(plain, "g1", given={"critic_network"})
     assert note == (
         "--critic-network mlp keeps the --critic-hidden-sizes 256 256 of preset 'g1' (set for "
         "its residual critics); give --critic-hidden-sizes to choose others"
     )
     assert (
-        cli.critic_network_note(plain, "g1", given={"critic_network", "critic_hidden_sizes"})
+        notes.critic_network_note(plain, "g1", given={"critic_network", "critic_hidden_sizes"})
         is None
     )
-    assert cli.critic_network_note(preset("g1"), "g1", given={"critic_network"}) is None  # same
-    assert cli.critic_network_note(plain, None, given={"critic_network"}) is None
-    assert cli.critic_network_note(plain, "g1", given=set()) is None
+    assert notes.critic_network_note(preset("g1"), "g1", given={"critic_network"}) is None  # same
+    assert notes.critic_network_note(plain, None, given={"critic_network"}) is None
+    assert notes.critic_network_note(plain, "g1", given=set()) is None
 
 
 def test_a_preset_without_an_environment_says_which_one_trains():
     classic = preset("td3-classic")
-    warning = cli.unnamed_env_warning(classic, "td3-classic", "preset", given=set())
+    warning = notes.unnamed_env_warning(classic, "td3-classic", "preset", given=set())
     assert warning == ("preset 'td3-classic' sets no environment and no --env was given: "
                        "training gymnax/Pendulum-v1, the default (--env picks one)")  # fmt: skip
-    assert cli.unnamed_env_warning(classic, "td3-classic", "preset", given={"env"}) is None
-    assert cli.unnamed_env_warning(preset("ant"), "ant", "preset", given=set()) is None
-    assert cli.unnamed_env_warning(classic, None, "resume", given=set()) is None
+    assert notes.unnamed_env_warning(classic, "td3-classic", "preset", given={"env"}) is None
+    assert notes.unnamed_env_warning(preset("ant"), "ant", "preset", given=set()) is None
+    assert notes.unnamed_env_warning(classic, None, "resume", given=set()) is None
 
 
 def test_an_evaluation_that_dwarfs_the_training_is_warned_about_and_its_time_shown(capsys):
@@ -1508,11 +1538,11 @@ def test_an_evaluation_that_dwarfs_the_training_is_warned_about_and_its_time_sho
     from td3_jax.runner.run import _Progress
 
     pendulum = preset("pendulum")  # 16 environments, 16 evaluated
-    assert cli.eval_size_warning(pendulum) is None
-    assert cli.eval_size_warning(dataclasses.replace(pendulum, eval_envs=1024)) is None
+    assert notes.eval_size_warning(pendulum) is None
+    assert notes.eval_size_warning(dataclasses.replace(pendulum, eval_envs=1024)) is None
     big = dataclasses.replace(pendulum, eval_envs=100_000)
-    assert cli.eval_size_warning(big).startswith("--eval-envs 100000 is 6250x --num-envs 16: ")
-    assert cli.eval_size_warning(dataclasses.replace(big, num_envs=16_384)) is None
+    assert notes.eval_size_warning(big).startswith("--eval-envs 100000 is 6250x --num-envs 16: ")
+    assert notes.eval_size_warning(dataclasses.replace(big, num_envs=16_384)) is None
     lines = _Progress(pendulum, 0, enabled=True, console=Console(file=io.StringIO()))
     record = {"env_steps": 4000, "env_steps_per_s": 2000.0, "eval_return_mean": -100.0,
               "wall_time_s": 12.0, "chunk_s": 2.0}  # fmt: skip
@@ -1558,7 +1588,7 @@ def test_the_sweep_table_into_a_log_file_is_not_cut_to_80_columns(capsys):
     members = [{"settings": {**settings, "tau": tau}, "eval_return_mean": -100.0 * k - tau}
                for k in range(2) for tau in (0.005, 0.01, 0.02)]  # fmt: skip
     capsys.readouterr()
-    cli.print_sweep_ranking({"env_steps": 4096, "per_member": members})
+    tables.print_sweep_ranking({"env_steps": 4096, "per_member": members})
     out = capsys.readouterr().out
     assert "…" not in out and "final evaluation return after 4096 env steps" in out
     header = next(line for line in out.splitlines() if "rank" in line)
@@ -1596,7 +1626,7 @@ def test_ctrl_c_while_compiling_exits_without_waiting_for_the_compile(
         raise SystemExit(code)
 
     monkeypatch.setattr(run_module, "train", interrupted_train)
-    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    monkeypatch.setattr(interrupts.os, "_exit", fake_exit)
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(tmp_path / "a")], capsys)
     assert (code, exits) == (130, [130]) and "interrupted" in err
     assert runtime.background_work_running()
@@ -1649,7 +1679,7 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
         return real_train(*args, **kwargs)
 
     monkeypatch.setattr(run_module, "train", train_with_a_swallowed_ctrl_c)
-    monkeypatch.setattr(cli.os, "_exit", fake_exit)  # a stored program's read-back may be running
+    monkeypatch.setattr(interrupts.os, "_exit", fake_exit)  # (a stored program may be read back)
     out = tmp_path / "run"
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(out)], capsys)
     assert code == 130
@@ -1753,7 +1783,7 @@ def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(
                          "--out", str(out)], capsys)  # fmt: skip
     assert_one_line_error(code, err, "--impl warp", "needs an NVIDIA GPU", "--impl jax")
     assert not out.exists()
-    chosen, _ = cli._choose_physics(cli.TrainConfig(env="playground/CheetahRun"), None)
+    chosen, _ = cli_settings.choose_physics(TrainConfig(env="playground/CheetahRun"), None)
     assert chosen.impl == "jax"
     said = capsys.readouterr().out
     assert said.startswith("physics: MJX's JAX implementation (--impl jax): MuJoCo Warp ")
@@ -1796,17 +1826,17 @@ def test_preset_source_note_names_the_flags_that_came_from_the_preset():
     cfg = preset("t1")
     message = ("--critic-network residual: --critic-hidden-sizes: not 1024 512 256; "
                "--batch-size too large")  # fmt: skip
-    note = cli.preset_source_note(message, cfg, "t1", given=set())
+    note = notes.preset_source_note(message, cfg, "t1", given=set())
     assert note == " (--critic-hidden-sizes 1024 512 256, --batch-size 32768 from preset 't1')"
     given = {"critic_hidden_sizes", "batch_size"}
-    assert cli.preset_source_note(message, cfg, "t1", given=given) == ""
-    assert cli.preset_source_note(message, cfg, None, given=set()) == ""
-    assert cli.preset_source_note("--critic-network x", cfg, "t1", given=set()) == ""
+    assert notes.preset_source_note(message, cfg, "t1", given=given) == ""
+    assert notes.preset_source_note(message, cfg, None, given=set()) == ""
+    assert notes.preset_source_note("--critic-network x", cfg, "t1", given=set()) == ""
     # neither a sweep flag nor a --no- flag is the preset's setting
-    assert cli.preset_source_note("--sweep-v-max 3; --no-pushes", cfg, "t1", given=set()) == ""
+    assert notes.preset_source_note("--sweep-v-max 3; --no-pushes", cfg, "t1", given=set()) == ""
     # in the message's order, a flag that starts a longer one found where it stands alone
     message = "--critic-lr 1; --critic-hidden-sizes 2; --critic is c51"
-    assert cli.preset_source_note(message, cfg, "t1", given=set()) == (
+    assert notes.preset_source_note(message, cfg, "t1", given=set()) == (
         " (--critic-lr 0.0003, --critic-hidden-sizes 1024 512 256, --critic distributional "
         "from preset 't1')"
     )
@@ -1817,11 +1847,11 @@ def test_preset_noted_adds_the_note_and_keeps_the_error_type():
 
     cfg = preset("t1")
     with pytest.raises(ExportError, match=r"^--batch-size x \(--batch-size 32768 from preset"):
-        with cli.preset_noted(cfg, "t1", given=set()):
+        with notes.preset_noted(cfg, "t1", given=set()):
             raise ExportError("--batch-size x")
     plain = config.ConfigError("--seed x")
     with pytest.raises(config.ConfigError) as caught:
-        with cli.preset_noted(cfg, "t1", given=set()):
+        with notes.preset_noted(cfg, "t1", given=set()):
             raise plain
     assert caught.value is plain  # nothing the preset set: the error as raised
 
@@ -1862,11 +1892,11 @@ def test_a_home_folder_in_out_or_run_is_expanded_however_given(monkeypatch):
     does; other values, and a ``~`` not at the start, are left as given."""
     monkeypatch.setenv("HOME", "/home/me")
     args = ["--out=~/runs/a", "--run", "~/b", "~/c", "--env", "~/d", "--out", "x~y", "--note=~z"]
-    assert cli.expand_home(args) == [
+    assert argv.expand_home(args) == [
         "--out=/home/me/runs/a", "--run", "/home/me/b", "/home/me/c", "--env", "~/d", "--out",
         "x~y", "--note=~z",
     ]  # fmt: skip
-    assert cli.expand_home(["--run=~/a", "~/b", "--out"]) == ["--run=/home/me/a", "~/b", "--out"]
+    assert argv.expand_home(["--run=~/a", "~/b", "--out"]) == ["--run=/home/me/a", "~/b", "--out"]
 
 
 def test_a_list_flag_given_twice_is_warned_about_once(capsys):
@@ -1875,11 +1905,11 @@ def test_a_list_flag_given_twice_is_warned_about_once(capsys):
     one-value flag is an override (a script's defaults, then --seed 3) and is not warned about."""
     args = ["--seed", "3", "--sweep-actor-lr", "1e-4", "--hidden-sizes=4", "--seed=0",
             "--sweep-actor-lr", "1e-3", "3e-4", "--hidden-sizes", "8", "8", "-1"]  # fmt: skip
-    assert cli.repeated_flags_warning(args) == (
+    assert argv.repeated_flags_warning(args) == (
         "--sweep-actor-lr, --hidden-sizes given more than once: only the last list of each "
         "counts (the lists are not added together)"
     )
-    assert cli.repeated_flags_warning(["--seed", "3", "--seed", "4", "--sweep-tau", "1"]) is None
+    assert argv.repeated_flags_warning(["--seed", "3", "--seed", "4", "--sweep-tau", "1"]) is None
     code, _, err = main(["plot", "--run", "a", "--run", "b"], capsys)
     assert code == 2
     assert err.splitlines()[0] == (

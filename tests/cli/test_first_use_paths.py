@@ -100,7 +100,7 @@ def test_hidden_sizes_help_shows_the_default_a_run_gets(capsys):
 
 def test_config_json_records_the_values_the_algorithm_chose(tmp_path):
     # TD3Config: actor and critic Adam 1e-3, tau 0.005, 400-300; DDPGConfig: actor 1e-4,
-    # critic 1e-3, tau 0.01, 256-256 (the seed notes' defaults)
+    # critic 1e-3, tau 0.01, 256-256 (each config's own defaults)
     left = dict(actor_lr=None, critic_lr=None, tau=None, hidden_sizes=None)
     for algo, expected in (("td3", [1e-3, 1e-3, 0.005, [400, 300]]),
                            ("ddpg", [1e-4, 1e-3, 0.01, [256, 256]])):  # fmt: skip
@@ -299,7 +299,7 @@ def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     code, out, err = main(["train", *flags, "--total-steps", "256"], capsys)
     assert code == 0, err
     lines = out.splitlines()
-    # (" (or loading it from the cache)" where this session's tests ran these settings before)
+    # (" (or loading it from the cache)" where earlier tests of this run used these settings)
     compiling = next(i for i, x in enumerate(lines) if x.startswith("compiling the training "))
     early, whole = (line for line in lines if line.startswith("td3 gymnax/Pendulum-v1: "))
     assert lines.index(early) > compiling

@@ -225,29 +225,29 @@ def test_eval_and_export_read_an_in_chunk_run_with_any_episode_count(tmp_path):
 
 
 def test_the_console_says_which_policy_an_in_chunk_return_is_of():
-    from td3_jax.cli import app as cli
+    from td3_jax.cli.notes import done_line
     from td3_jax.runner.run import _evaluation_text
 
     record = {"env_steps": 6400, "wall_time_s": 16.4, "eval_return_mean": -1532.54,
               "eval_return_std": 62.5, "eval_policy_env_steps": 3200.0}  # fmt: skip
     assert _evaluation_text(record) == "-1532.5 (policy of 3,200 steps)"
-    assert cli.done_line(record, "runs/x") == (
+    assert done_line(record, "runs/x") == (
         "done: 6,400 env steps in 16 s; eval return -1532.5 ± 62.5 (policy of 3,200 steps; "
         "td3-jax eval for the final one); outputs in runs/x"
     )
     separate = {k: v for k, v in record.items() if k != "eval_policy_env_steps"}
     assert _evaluation_text(separate) == "-1532.5"
-    assert cli.done_line(separate, "runs/x").endswith("-1532.5 ± 62.5; outputs in runs/x")
+    assert done_line(separate, "runs/x").endswith("-1532.5 ± 62.5; outputs in runs/x")
 
 
 def test_the_done_line_groups_digits_as_the_progress_lines_do():
     """A resumed 50M-step run: every count with thousands separators (it printed 53248000
     beside progress lines' 53,248,000)."""
-    from td3_jax.cli import app as cli
+    from td3_jax.cli.notes import done_line
 
     record = {"env_steps": 53_248_000, "wall_time_s": 615.4, "eval_return_mean": 41.76,
               "eval_return_std": 3.29, "eval_policy_env_steps": 49_152_000.0}  # fmt: skip
-    line = cli.done_line(record, "runs/t1", process_s=250.2, resumed_at=32_768_000)
+    line = done_line(record, "runs/t1", process_s=250.2, resumed_at=32_768_000)
     assert line == (
         "done: 53,248,000 env steps (20,480,000 in this process, in 250 s; 615 s over the "
         "whole run); eval return 41.8 ± 3.3 (policy of 49,152,000 steps; td3-jax eval for the "

@@ -367,7 +367,8 @@ def test_an_offline_run_holds_the_numbers_config_and_curve_and_resumes_its_id(tm
 
 @pytest.mark.processes
 def test_importing_td3_jax_does_not_import_wandb():
-    code = ("import sys, td3_jax.cli.app, td3_jax.runner.run, td3_jax.runner.tracking; "
+    code = ("import sys, td3_jax.cli.app, td3_jax.cli.train, td3_jax.cli.finished, "
+            "td3_jax.runner.run, td3_jax.runner.tracking; "
             "assert 'wandb' not in sys.modules, 'wandb imported'")  # fmt: skip
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)  # fmt: skip

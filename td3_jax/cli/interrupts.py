@@ -1,0 +1,64 @@
+"""Stopping a run from outside: Ctrl-C or SIGTERM stops training at the next chunk (a second
+signal at once), and the command ends with one line saying what the run directory holds and
+the shell's exit status for the signal."""
+
+from __future__ import annotations
+
+import functools
+import os
+import signal
+import sys
+from typing import Any
+
+from td3_jax.common import runtime
+from td3_jax.config.schema import TrainConfig
+
+
+class Interrupted(Exception):
+    """Ctrl-C or SIGTERM during a run; the message says what the run directory holds and
+    ``code`` is the exit status (130 for Ctrl-C, 143 for SIGTERM, as shells report them)."""
+
+    def __init__(self, message: str, code: int = 130):
+        super().__init__(message)
+        self.code = code
+
+
+def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> list[dict[str, Any]]:
+    """``run.train`` of ``cfg`` into ``command.out`` (a train command: its resume, quiet and
+    time-budget flags) under handlers that turn SIGINT and SIGTERM into a stop at the next
+    chunk (a second signal stops at once); a stop leaves the last checkpoint and says, in one
+    line, what it left (``Interrupted``, exit 130, or 143 for SIGTERM). Returns the run's
+    records, one per chunk."""
+    import jax  # lazy: JAX, only for a run
+
+    from td3_jax.runner.run import train  # lazy: imports JAX
+    from td3_jax.runner.rundir import interrupted_message  # lazy: imports JAX
+
+    received: list[int] = []
+    stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
+    ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
+    try:
+        signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
+                                       aftermath=ended)  # fmt: skip
+        with signals:
+            return train(cfg, command.out, resume=command.resume, stop=stop,
+                         progress=not command.quiet, time_budget_s=command.time_budget_s,
+                         **train_options)  # fmt: skip
+    except KeyboardInterrupt:
+        if signal.SIGTERM in received:
+            raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
+        raise Interrupted(ended()) from None
+
+
+def exit_interrupted(message: str, code: int = 130) -> None:
+    """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
+    background thread, or a chunk or evaluation a Ctrl-C left running on the device (neither can
+    be interrupted), is abandoned rather than waited for (the run's outputs are closed by then).
+    Waiting took the rest of the chunk, and tearing down XLA under it could end in SIGSEGV."""
+    print(message, file=sys.stderr)
+    if runtime.background_work_running():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        runtime.forget_abandoned_work()  # (for a caller whose os._exit returns: tests)
+        os._exit(code)
+    sys.exit(code)

@@ -1,0 +1,99 @@
+"""The tables the command line prints with rich: a sweep's settings ranked by their final
+return (with 95% CIs over seeds), and an evaluation's returns per member."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def output_console() -> Any:
+    """A rich console for stdout: a terminal's width, else (a log file, a pipe) as wide as
+    the output needs (rich would cut tables to 80 columns)."""
+    from rich.console import Console  # lazy: rich, only for a table
+
+    console = Console()
+    return console if console.is_terminal else Console(width=100_000)
+
+
+def print_sweep_ranking(record: dict) -> None:
+    """Final returns per swept setting (mean over its seeds), best first, with 95% CIs.
+
+    ``record`` holds ``env_steps`` and ``per_member``: each member's ``settings`` (its swept
+    values) and ``eval_return_mean``. Diverged members (null returns) are left out of their
+    setting's statistics and counted in the ``diverged`` column; a setting whose every seed
+    diverged ranks last.
+    """
+    from rich.table import Table  # lazy: rich, only for a table
+
+    rows = _ranked_settings(record["per_member"])
+    labels = [" ".join(f"{k}={v:g}" for k, v in row[0]) for row in rows]
+    title = f"final evaluation return after {record['env_steps']} env steps"
+    table = Table(title=title, min_width=len(title))
+    for column in ("rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"):
+        width = max(map(len, labels)) if column == "setting" else None
+        table.add_column(column, justify="right", min_width=width, no_wrap=column == "setting")
+    for rank, (label, (_, n, diverged, summary)) in enumerate(zip(labels, rows, strict=True), 1):
+        cells = ["-", "-", "-"]
+        if summary is not None:
+            interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
+            cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
+        table.add_row(str(rank), label, str(n), str(diverged), *cells)
+    output_console().print(table)
+
+
+def _ranked_settings(per_member: list[dict]) -> list[tuple[tuple, int, int, dict | None]]:
+    """``(setting, seeds, diverged, summary)`` per swept setting of ``per_member``, the best
+    mean first: ``setting`` its sorted ``(name, value)`` pairs, ``summary``
+    :func:`~td3_jax.core.stats.summary` of its finite returns (None where every seed
+    diverged: those rank last)."""
+    import numpy as np  # lazy: NumPy, only for a table
+
+    from td3_jax.core import stats  # lazy: NumPy, only for a table
+
+    groups: dict[tuple, list[float | None]] = {}
+    for member in per_member:
+        setting = tuple(sorted(member.get("settings", {}).items()))
+        groups.setdefault(setting, []).append(member["eval_return_mean"])
+    rows = []
+    for setting, returns in groups.items():
+        finite = np.asarray([r for r in returns if r is not None], np.float64)
+        summary = stats.summary(finite) if finite.size else None
+        rows.append((setting, len(returns), len(returns) - finite.size, summary))
+    rows.sort(key=lambda row: -np.inf if row[3] is None else row[3]["mean"], reverse=True)
+    return rows
+
+
+def sweep_record(population: list, returns: Any, diverged: set[int], env_steps: int) -> dict:
+    """The shape :func:`print_sweep_ranking` reads (``per_member``: each member's settings
+    and mean return, ``None`` where it diverged) from ``returns [members, episodes]``."""
+    per_member = [{"settings": dict(member.overrides),
+                   "eval_return_mean": None if i in diverged else float(returns[i].mean())}
+                  for i, member in enumerate(population)]  # fmt: skip
+    return {"env_steps": env_steps, "per_member": per_member}
+
+
+def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
+    """Per-member mean/std/min/max of episode returns (``rows``: ``(label, returns
+    [episodes])``; ``-`` for a member whose returns are ``None``: diverged in training, as the
+    sweep table shows it), then the statistics ``aggregate`` over the other members."""
+    import numpy as np  # lazy: NumPy, only for a table
+    from rich.table import Table  # lazy: rich, only for a table
+
+    table = Table(title=title, min_width=len(title))  # the title on one line
+    for column in ("member", "mean", "std", "min", "max"):
+        table.add_column(column, justify="right")
+    for label, returns in rows:
+        r = None if returns is None else np.asarray(returns)
+        values = ["-"] * 4 if r is None else [f"{v:.1f}" for v in (r.mean(), r.std(), r.min(),
+                                                                    r.max())]  # fmt: skip
+        table.add_row(label, *values)
+    console = output_console()
+    console.print(table)
+    if aggregate:
+        alive = sum(returns is not None for _, returns in rows)
+        console.print(
+            f"over {alive} members: mean {aggregate['eval_return_mean']:.1f} "
+            f"[95% CI {aggregate['eval_return_ci95_low']:.1f}, "
+            f"{aggregate['eval_return_ci95_high']:.1f}], median "
+            f"{aggregate['eval_return_median']:.1f}, IQM {aggregate['eval_return_iqm']:.1f}"
+        )
