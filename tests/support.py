@@ -1,5 +1,6 @@
 """What several test files share: the tiny CLI run's flags, the command line run in this process
-or in a child process, and a run directory's records and TensorBoard events.
+or in a child process, a run directory's records and TensorBoard events, and a fixture that puts
+back the library logging the CLI quiets.
 
 One set of tiny flags keeps the programs of the tests' small runs identical, so that the test
 run's compilation cache (tests/conftest.py) compiles them once.
@@ -10,11 +11,15 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import logging
 import os
 import struct
 import subprocess
 import sys
+import warnings
 from pathlib import Path
+
+import pytest
 
 from td3_jax.cli import app as cli
 
@@ -115,3 +120,19 @@ def tensorboard_events(run_dir: Path) -> list:
             events.append(event_pb2.Event.FromString(data[pos + 12 : pos + 12 + length]))
             pos += 12 + length + 4
     return events
+
+
+@pytest.fixture
+def restored_logging(monkeypatch):
+    """Puts back what :func:`td3_jax.common.runtime.quiet_library_logs` changes: the absl and
+    asyncio loggers' levels and filters, the warning filters and ``sys.unraisablehook``."""
+    import absl.logging  # noqa: F401  (its logger class first)
+
+    loggers = [logging.getLogger(name) for name in ("absl", "asyncio")]
+    saved = [(logger.level, list(logger.filters)) for logger in loggers]
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
+    with warnings.catch_warnings():
+        yield
+    for logger, (level, filters) in zip(loggers, saved, strict=True):
+        logger.setLevel(level)
+        logger.filters[:] = filters

@@ -15,9 +15,13 @@ from pathlib import Path
 
 import pytest
 from rich.console import Console
-from support import TINY_FLAGS, assert_one_line_error, main
+from support import (
+    TINY_FLAGS,
+    assert_one_line_error,
+    main,
+    restored_logging,  # noqa: F401  (a fixture)
+)
 from test_cli import tensorboard_scalars
-from test_runtime import restored_logging  # noqa: F401  (a fixture)
 
 from td3_jax.common import runtime
 from td3_jax.config.schema import TrainConfig
