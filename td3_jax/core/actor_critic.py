@@ -217,7 +217,9 @@ def hyperparams(config: Any, **settings: Any) -> AgentHyperparams:
 
 
 def init(spec: AgentSpec, key: PRNGKey) -> AgentState:
-    """Fresh networks, targets equal to them, optimiser states, ``step = 0``."""
+    """Fresh networks, targets equal to them, optimiser states, ``step = 0``; ``key``: a PRNG
+    key (a ``TypeError`` for anything else, :func:`check_key`)."""
+    check_key(key, "init")
     actor_key, critic_key = jax.random.split(key)
     obs = jnp.zeros((1, spec.observation_size), jnp.float32)
     critic_obs = jnp.zeros((1, critic_input_size(spec)), jnp.float32)
@@ -438,8 +440,11 @@ def update(
 
     Metrics (float32 scalars, :data:`METRIC_NAMES`): ``critic_loss``, ``actor_loss`` (0 where
     the actor was not updated), ``actor_updated``, ``q_mean``, ``target_mean``.
+    Raises ``ValueError`` for a batch of other shapes (:func:`check_batch`) and ``TypeError``
+    for a ``key`` that is no PRNG key (:func:`check_key`), where it is traced.
     """
     check_batch(spec, batch)
+    check_key(key, "update")
     state, metrics = critic_step(spec, hp, state, batch, key)
     state, loss, updated = delayed_actor_step(spec, hp, state, batch, axis_name)
     return state, {**metrics, "actor_loss": loss, "actor_updated": updated}
@@ -460,7 +465,7 @@ def actor_critic(
         update=functools.partial(_bound_update, spec, hp, axis_name),
         act=act,
         actor_apply=act,
-        critic_apply=functools.partial(losses.q_values, spec, hp),
+        critic_apply=functools.partial(_critic_apply, spec, hp),
         config=config,
         spec=spec,
         hyperparams=hp,
@@ -480,6 +485,58 @@ def _act(spec: AgentSpec, params: Params, obs: jax.Array) -> jax.Array:
     return spec.actor.apply(params, obs)
 
 
+def _critic_apply(spec: AgentSpec, hp: AgentHyperparams, params: Params, obs: jax.Array,
+                  action: jax.Array) -> jax.Array:  # fmt: skip
+    """Every critic head's Q-value ``[heads, ...]`` of ``obs [..., o]`` and ``action [..., a]``
+    (:func:`td3_jax.core.losses.q_values`); a ``ValueError`` naming the argument whose width
+    or leading shape is not the critics' (flax would raise its ``ScopeParamShapeError``)."""
+    obs_shape, action_shape = tuple(jnp.shape(obs)), tuple(jnp.shape(action))
+    sizes = {"obs": critic_input_size(spec), "action": spec.action_size}
+    for name, shape in (("obs", obs_shape), ("action", action_shape)):
+        if not shape or shape[-1] != sizes[name]:
+            given = f"of size {shape[-1]}" if shape else "that is a scalar"
+            raise ValueError(
+                f"critic_apply got {name} {given} (shape {list(shape)}); this agent's critics "
+                f"take observations of size {sizes['obs']} and actions of size "
+                f"{sizes['action']} ([..., {sizes['obs']}] and [..., {sizes['action']}])"
+            )
+    if obs_shape[:-1] != action_shape[:-1]:
+        raise ValueError(
+            f"critic_apply got obs of shape {list(obs_shape)} and action of shape "
+            f"{list(action_shape)}; their leading axes must be the same (one action per "
+            "observation)"
+        )
+    return losses.q_values(spec, hp, params, obs, action)
+
+
+def check_key(key: Any, where: str) -> None:
+    """Raises ``TypeError`` naming ``where`` unless ``key`` is one PRNG key: a typed key of
+    shape ``[]`` (``jax.random.key``) or raw ``uint32`` key data of the default
+    implementation's shape (``jax.random.PRNGKey``: ``[2]``); checked where traced, so under
+    ``vmap`` a member's key."""
+    dtype, shape = getattr(key, "dtype", None), getattr(key, "shape", None)
+    if dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key):
+        if tuple(shape) == ():
+            return
+        got = f"an array of {list(shape)} keys"
+    elif dtype is not None and shape is not None:
+        if np.dtype(dtype) == np.uint32 and tuple(shape) == _raw_key_shape():
+            return
+        got = f"an array of shape {list(shape)} and dtype {np.dtype(dtype).name}"
+    else:
+        got = f"{type(key).__name__} {key!r}"
+    raise TypeError(
+        f"{where}'s key must be one PRNG key, jax.random.key(seed) or jax.random.PRNGKey(seed) "
+        f"(split it for several: jax.random.split), got {got}"
+    )
+
+
+@functools.cache
+def _raw_key_shape() -> tuple[int, ...]:
+    """The shape of ``jax.random.PRNGKey``'s key data (``(2,)`` for the default threefry)."""
+    return tuple(jax.eval_shape(jax.random.PRNGKey, 0).shape)
+
+
 def _bound_update(spec, hp, axis_name, state, batch, key):
     return update(spec, hp, state, batch, key, axis_name)
 
@@ -497,6 +554,7 @@ __all__ = [
     "actor_critic",
     "actor_step",
     "bound_weight_norms",
+    "check_key",
     "critic_step",
     "hyperparams",
     "init",

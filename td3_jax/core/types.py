@@ -70,14 +70,18 @@ class Agent(NamedTuple):
     """An actor-critic algorithm as a bundle of pure functions (the optax shape).
 
     Attributes:
-      init: ``init(key) -> AgentState``.
+      init: ``init(key) -> AgentState``; ``key`` is one PRNG key (``jax.random.key(seed)`` or
+        ``jax.random.PRNGKey(seed)``), anything else raises ``TypeError``.
       update: ``update(state, batch: Transition, key) -> (state, metrics)``; one gradient step
-        on a batch ``[batch_size, ...]``. Pure: jit, vmap and scan it.
+        on a batch ``[batch_size, ...]``. Pure: jit, vmap and scan it. A batch of other shapes
+        raises ``ValueError`` naming the field, a ``key`` that is no PRNG key ``TypeError``.
       act: ``act(actor_params, obs[..., obs_size]) -> action[..., action_size]``, deterministic;
         observations of another size raise ``ValueError``.
       actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
       critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``
-        (a distributional critic head's Q-value is its distribution's mean).
+        (a distributional critic head's Q-value is its distribution's mean; ``o`` is the
+        critic observation size); an ``obs`` or ``action`` of another width, or leading axes
+        that differ, raise ``ValueError`` naming the argument.
       config: the config the agent was built from.
       spec: the agent's static structure (:class:`td3_jax.core.actor_critic.AgentSpec`).
       hyperparams: the float settings bound into ``update``

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -923,3 +924,55 @@ def test_act_on_observations_of_another_width_says_both_sizes():
     with pytest.raises(ValueError, match="observations that are a scalar"):
         agent.act(state.actor_params, np.float32(0))
     assert agent.act(state.actor_params, np.zeros((OBS,), np.float32)).shape == (ACT,)
+
+
+def test_critic_apply_on_inputs_of_another_width_names_the_argument():
+    """A wrong width is one ValueError naming ``obs`` or ``action`` and both sizes the critics
+    take (flax raised its ScopeParamShapeError); right widths give each head's Q-value."""
+    agent = build("td3", make_config("td3"))
+    state = init_state("td3", 0)
+    obs, action = np.zeros((4, OBS), np.float32), np.zeros((4, ACT), np.float32)
+    sizes = rf"this agent's critics take observations of size {OBS} and actions of size {ACT}"
+    wide, narrow = np.zeros((4, 5), np.float32), np.zeros((4, 1), np.float32)
+    cases = [
+        ((wide, action), r"^critic_apply got obs of size 5 \(shape \[4, 5\]\)"),
+        ((obs, narrow), r"^critic_apply got action of size 1 \(shape \[4, 1\]\)"),
+        ((np.float32(0), action), r"^critic_apply got obs that is a scalar \(shape"),
+    ]
+    for args, expected in cases:
+        with pytest.raises(ValueError, match=expected) as err:
+            agent.critic_apply(state.critic_params, *args)
+        assert sizes in str(err.value)
+        with pytest.raises(ValueError, match=expected):  # also where it is traced
+            jax.jit(agent.critic_apply)(state.critic_params, *args)
+    with pytest.raises(ValueError, match=r"obs of shape \[4, 3\] and action of shape \[2, 2\]; "
+                       "their leading axes must be the same"):  # fmt: skip
+        agent.critic_apply(state.critic_params, obs, action[:2])
+    # Right widths: one Q-value per head and row, each head's own network on [obs, action].
+    rng = np.random.default_rng(1)
+    obs, action = rng.normal(size=obs.shape).astype(np.float32), rng.normal(size=action.shape)
+    q = agent.critic_apply(state.critic_params, obs, action.astype(np.float32))
+    assert q.shape == (2, 4)
+    assert not np.allclose(q[0], q[1])  # two independently initialised heads
+
+
+def test_a_key_that_is_no_prng_key_is_one_type_error_naming_the_function():
+    """``update(state, batch, 0)`` and ``init(0)`` once raised JAX's invalid-PRNG-key error
+    from deep inside; a batch of keys where one is meant is refused too. A raw key and the
+    typed key of the same seed are the same bits, so they give the same update."""
+    agent = build("td3", make_config("td3"))
+    state, batch = init_state("td3", 0), make_batch(0)
+    advice = re.escape("must be one PRNG key, jax.random.key(seed) or jax.random.PRNGKey(seed)")
+    bad = [(0, "int 0"), (np.zeros(3, np.uint32), "an array of shape [3] and dtype uint32"),
+           (np.zeros(2, np.int32), "an array of shape [2] and dtype int32"),
+           (jax.random.split(jax.random.key(0), 3), "an array of [3] keys")]  # fmt: skip
+    for key, said in bad:
+        with pytest.raises(TypeError, match=f"^update's key {advice}") as err:
+            agent.update(state, batch, key)
+        assert str(err.value).endswith(f", got {said}")
+        with pytest.raises(TypeError, match=f"^init's key {advice}"):
+            agent.init(key)
+    raw, typed = (agent.update(state, batch, k)
+                  for k in (jax.random.PRNGKey(1), jax.random.key(1)))  # fmt: skip
+    for a, b in zip(jax.tree.leaves(raw), jax.tree.leaves(typed), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
