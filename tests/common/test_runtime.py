@@ -14,10 +14,11 @@ import time
 import warnings
 
 import pytest
+from configs import tiny_config
+from support import TINY_FLAGS
 
 from td3_jax.cli import app as cli
 from td3_jax.common import runtime
-from td3_jax.config.schema import TrainConfig
 from td3_jax.runner import run as run_module
 from td3_jax.runner.logger import read_metrics
 from td3_jax.runner.rundir import interrupted_message
@@ -135,21 +136,12 @@ def test_the_comparison_sees_a_change(loaded):
     assert set(found["loggers"]) == {"absl", "asyncio"}
 
 
-TINY = TrainConfig(env="gymnax/Pendulum-v1", num_envs=4, total_steps=128, eval_every=64,
-                   warmup_steps=32, batch_size=16, updates_per_iter=1, hidden_sizes=(8,),
-                   eval_envs=2, episode_length=16, buffer_size=256)  # fmt: skip
-TINY_FLAGS = ["--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--total-steps", "128",
-              "--eval-every", "64", "--warmup-steps", "32", "--batch-size", "16",
-              "--updates-per-iter", "1", "--hidden-sizes", "8", "--eval-envs", "2",
-              "--episode-length", "16", "--buffer-size", "256"]  # fmt: skip
-
-
 def test_a_stop_token_set_before_train_stops_it_before_anything_compiles(tmp_path):
     stop = runtime.StopToken()
     stop.set()
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
-        run_module.train(TINY, out, progress=False, stop=stop)
+        run_module.train(tiny_config(), out, progress=False, stop=stop)
     assert read_metrics(out / "metrics.jsonl") == [] and stop.is_set()
     assert interrupted_message(out).startswith("interrupted before the first checkpoint")
 
