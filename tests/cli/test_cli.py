@@ -181,12 +181,15 @@ def test_help_text_is_the_docstrings_paragraphs_with_their_list_items():
 def test_train_help_wraps_each_flags_text_to_the_terminal(monkeypatch, capsys):
     """A flag's docstring lines are not its help's line breaks (tyro kept every indented
     docstring line as a break of its own: ragged text at any width but the source's): at
-    200 columns --buffer-size's whole text is one line."""
+    200 columns the first line of --buffer-size's text runs across its docstring's first
+    line break (tyro writes the text beside the flag, or on the line below it)."""
     monkeypatch.setenv("COLUMNS", "200")
     with pytest.raises(SystemExit):
         app.main(["train", "--help"])
-    (line,) = [ln for ln in capsys.readouterr().out.splitlines() if "--buffer-size INT" in ln]
-    assert "once it is full), capped at the run's own length (a ring never holds more rows" in line
+    lines = capsys.readouterr().out.splitlines()
+    (at,) = [i for i, line in enumerate(lines) if "--buffer-size INT" in line]
+    across = "once it is full), capped at the run's own length (a ring never holds more rows"
+    assert any(across in line for line in lines[at : at + 2]), lines[at : at + 2]
 
 
 # --------------------------------------------------------------------------------------------
