@@ -16,13 +16,14 @@ import os
 import sys
 from collections.abc import Callable
 
+from td3_jax import __version__
 from td3_jax.cli.argv import check_no_empty_path, expand_home, repeated_flags_warning
 from td3_jax.cli.interrupts import Interrupted, exit_interrupted
 from td3_jax.cli.messages import error, warn
 from td3_jax.common import runtime
-from td3_jax.common.errors import WRITE_ERRNOS, Td3JaxError
+from td3_jax.common.errors import WRITE_ERRNOS, Td3JaxError, did_you_mean
 
-__all__ = ["main"]
+__all__ = ["COMMANDS", "USAGE", "main", "run_reporting_errors", "subcommand"]
 
 USAGE = """\
 usage: td3-jax {train,sweep,eval,export,render,plot,envs,presets} [FLAGS]
@@ -83,13 +84,9 @@ def _dispatch(argv: list[str]) -> None:
         print(f"{USAGE}\ntd3-jax: error: a subcommand is required", file=sys.stderr)
         sys.exit(2)
     if argv[0] in ("-V", "--version"):
-        from td3_jax import __version__
-
         print(f"td3-jax {__version__}")
         return
     if argv[0] not in COMMANDS:
-        from td3_jax.common.errors import did_you_mean
-
         hint = did_you_mean(argv[0], list(COMMANDS))
         names = ", ".join(COMMANDS)
         print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n(subcommands: {names}; "

@@ -14,6 +14,17 @@ import typing
 
 from td3_jax.config.schema import ConfigError, TrainConfig
 
+__all__ = [
+    "check_no_empty_path",
+    "expand_home",
+    "flag_value",
+    "flag_values",
+    "given_fields",
+    "number_kinds",
+    "repeated_flags_warning",
+    "whole_numbers_written_out",
+]
+
 #: A number in scientific notation (``1e6``, ``2.5E+4``), as users write step counts.
 _SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d{1,4}", re.ASCII)
 

@@ -13,6 +13,21 @@ import tyro
 from td3_jax.config.presets import PRESETS
 from td3_jax.config.schema import TrainConfig
 
+__all__ = [
+    "EnvsCommand",
+    "EvalCommand",
+    "ExportCommand",
+    "PlotCommand",
+    "PresetName",
+    "PresetsCommand",
+    "RenderCommand",
+    "SweepCommand",
+    "SweptValues",
+    "TrainCommand",
+    "Widths",
+    "default_in_help",
+]
+
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 #: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
 Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]

@@ -23,6 +23,8 @@ from td3_jax.runner.curves import (
     run_labels,
 )
 
+__all__ = ["eval_main", "export_main", "plot_main", "render_main"]
+
 
 def eval_main(args: list[str]) -> None:
     """``td3-jax eval ARGS``: the returns of the run's newest checkpoint per member, then the

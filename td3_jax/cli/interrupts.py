@@ -13,6 +13,8 @@ from typing import Any
 from td3_jax.common import runtime
 from td3_jax.config.schema import TrainConfig
 
+__all__ = ["Interrupted", "exit_interrupted", "train_stoppably"]
+
 
 class Interrupted(Exception):
     """Ctrl-C or SIGTERM during a run; the message says what the run directory holds and

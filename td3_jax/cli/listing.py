@@ -8,6 +8,8 @@ from td3_jax.cli.parsing import parse
 from td3_jax.config.presets import PRESETS, preset
 from td3_jax.config.schema import ConfigError, as_flag
 
+__all__ = ["envs_main", "envs_table", "presets_main"]
+
 
 def envs_main(args: list[str]) -> None:
     """One line per environment: its name, the td3-jax extra it needs, whether it runs here

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import sys
 
+__all__ = ["error", "warn"]
+
 
 def warn(warning: str) -> None:
     """Prints ``warning`` to stderr as ``td3-jax: warning: WARNING``, at once."""

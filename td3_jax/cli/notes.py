@@ -21,6 +21,19 @@ from td3_jax.config.schema import (
     rounding_note,
 )
 
+__all__ = [
+    "cpu_size_warning",
+    "critic_network_note",
+    "done_line",
+    "eval_size_warning",
+    "no_learning_warning",
+    "nothing_to_do",
+    "preset_noted",
+    "preset_source_note",
+    "unnamed_env_warning",
+    "when_prepared",
+]
+
 
 def preset_source_note(message: str, cfg: TrainConfig, preset_name: str | None,
                        given: set[str]) -> str:  # fmt: skip

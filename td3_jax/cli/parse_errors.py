@@ -12,6 +12,8 @@ from collections.abc import Iterable
 from td3_jax.cli.argv import flag_values, number_kinds
 from td3_jax.config.schema import SWEEPABLE, flag
 
+__all__ = ["parse_error"]
+
 #: Other libraries' names for td3-jax's flags (CleanRL, Stable-Baselines3, FastTD3), offered
 #: for an unknown flag of that name: ``--gamma`` (did you mean --discount?).
 _OTHER_NAMES = {

@@ -17,6 +17,8 @@ from td3_jax.cli.parse_errors import parse_error
 from td3_jax.common import upstream
 from td3_jax.config.schema import ConfigError
 
+__all__ = ["help_paragraphs", "parse"]
+
 #: A line that starts an item of a list in a docstring (``- x``, ``* x``, ``1. x``, ``2) x``).
 _LIST_ITEM = re.compile(r"\s*([-*]|\d+[.)])\s")
 

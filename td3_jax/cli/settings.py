@@ -13,6 +13,8 @@ from td3_jax.cli.commands import TrainCommand
 from td3_jax.config.presets import device_defaults, env_preset, preset
 from td3_jax.config.schema import ConfigError, TrainConfig, whole_iterations
 
+__all__ = ["base_config", "choose_physics", "resumed_settings", "scale_to_device"]
+
 
 def base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     """``(defaults, preset, source)`` for the train flags ``args``, ``source`` saying where

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+__all__ = ["output_console", "print_returns_table", "print_sweep_ranking", "sweep_record"]
+
 
 def output_console() -> Any:
     """A rich console for stdout: a terminal's width, else (a log file, a pipe) as wide as

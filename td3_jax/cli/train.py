@@ -26,6 +26,8 @@ from td3_jax.config.schema import (
     validate,
 )
 
+__all__ = ["parse_train", "sweep_main", "sweep_values", "train_main"]
+
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
     """``td3-jax train ARGS`` (``sweeping``: ``td3-jax sweep ARGS``): checks the settings,
