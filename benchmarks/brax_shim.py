@@ -2,7 +2,7 @@
 
 For the benchmarks only: the td3_jax library never imports ``brax.training`` and never needs this.
 
-Newer JAX releases removed APIs that brax 0.14's ``brax.training`` uses. JAX 0.10 already raises
+Newer JAX versions removed APIs that brax 0.14's ``brax.training`` uses. JAX 0.10 already raises
 ``AttributeError`` for ``jax.device_put_replicated`` (deprecated, then removed), and the GPU
 machine's JAX 0.11 likewise; Brax PPO/SAC call it to replicate their train state for
 ``jax.pmap``. :func:`install` adds, only where JAX lacks them:
@@ -23,7 +23,7 @@ machine's JAX 0.11 likewise; Brax PPO/SAC call it to replicate their train state
 * ``jax.experimental.pjit`` (the module, imported by ``brax.training.replay_buffers``): a
   stand-in whose ``pjit`` is ``jax.jit``, if importing the real one fails.
 * ``jax.pmap``: still present in JAX 0.11 (re-implemented on ``jax.shard_map``); if a later
-  release drops it, a single-device stand-in (``jax.jit`` of ``jax.vmap`` with the same axis
+  version drops it, a single-device stand-in (``jax.jit`` of ``jax.vmap`` with the same axis
   name, so ``psum``/``pmean`` over it still work) that refuses more than one device.
 
 Each shim is installed only when the attribute is missing, so on a JAX that still has them

@@ -4,7 +4,7 @@ foreground (``Checkpointer.save``) and in the background (``save(..., background
 
 Usage::
 
-    python benchmarks/checkpoint_write.py --gb 15.5 --dir /path/on/the/disk/to/measure
+    python -m benchmarks.checkpoint_write --gb 15.5 --dir /path/on/the/disk/to/measure
 
 The state is one float32 ring of ``--gb`` gigabytes (filled with random values on the device,
 like a replay buffer; G1's preset holds 15.5 GB) and a few small arrays. Prints one JSON line:

@@ -1,21 +1,26 @@
-"""Brax PPO, Brax SAC and td3-jax on one environment, each for the same wall-clock budget.
+"""Brax PPO, Brax SAC and td3-jax on one environment, each in a process of its own, each to its
+own run length or the same wall-clock budget. The suite (:mod:`benchmarks.suite`) runs its
+baselines through it.
 
 Usage (from the project root):
 
-  python3 benchmarks/compare.py --env ant --budget-s 120 --out DIR \\
+  python -m benchmarks.compare --env ant --out DIR [--budget-s 120] \\
       [--algos ppo sac td3] [--td3-preset ant] [--td3-flag KEY=VALUE ...] \\
       [--ppo-flag KEY=VALUE ...] [--sac-flag KEY=VALUE ...] [--sac-recipe playground-dmc] \\
-      [--num-evals 40] [--seed N] [--smoke]
+      [--num-evals 40] [--seed N] [--impl warp] [--smoke]
 
-Environments: ``ant``, ``halfcheetah``, ``humanoid`` (Brax, MJX backend) and any MuJoCo Playground
-DM Control Suite task such as ``CheetahRun`` (loaded with ``impl="jax"``).
+Environments: ``ant``, ``halfcheetah``, ``humanoid`` (Brax, MJX backend), any MuJoCo Playground
+DM Control Suite task such as ``CheetahRun`` and Playground's locomotion tasks such as
+``T1JoystickFlatTerrain`` (PPO only: Playground's own recipe for the task). ``--impl`` is the
+physics of a Playground task: MuJoCo Warp (``warp``, Playground's default since 0.2, where the
+robots' PPO runs by default) or MJX's JAX physics (``jax``, DM Control's default here).
 
 Each algorithm runs in its own fresh Python process (spawned one after the other), so none
 inherits another's compiled code or GPU memory. Its clock starts when that process starts
 working (before it imports JAX or starts the GPU): imports, the accelerator's start-up,
 environment creation, tracing, compilation and the evaluations are all inside the measured
-wall-clock. An algorithm stops at its first evaluation
-past ``--budget-s`` (or when its own run length ends, whichever comes first):
+wall-clock. An algorithm stops when its own run length ends, or at its first evaluation past
+``--budget-s`` where one is given:
 
 * Brax PPO / SAC (``brax.training.agents.{ppo,sac}.train.train``): ``progress_fn`` records
   ``(wall_s, num_steps, metrics["eval/episode_reward"])`` at every evaluation and raises a private
@@ -64,10 +69,6 @@ from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-for _path in (str(ROOT), str(HERE)):  # td3_jax and brax_shim importable without installing
-    if _path not in sys.path:
-        sys.path.insert(0, _path)
 
 ALGOS = ("ppo", "sac", "td3")
 BRAX_ENVS = ("ant", "halfcheetah", "humanoid")
@@ -430,7 +431,7 @@ def _brax_train_kwargs(algo: str, used: dict[str, Any]) -> tuple[Any, dict[str, 
 
 
 def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
-    import brax_shim
+    from benchmarks import brax_shim
 
     result["shimmed"] = brax_shim.install()
     import numpy as np
@@ -455,7 +456,7 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
             )
         )
         print(f"[{algo}] {wall:7.1f} s  {int(num_steps):>12,} steps  return {ret:9.1f}", flush=True)
-        if wall >= budget:
+        if budget is not None and wall >= budget:
             raise _BudgetReached
 
     start = job["launch"]
@@ -466,7 +467,7 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
     else:
         from mujoco_playground import wrapper
 
-        environment = _playground_env(env_name, result)
+        environment = _playground_env(env_name, job["impl"], settings["used"], result)
         if not hasattr(wrapper, "wrap_for_brax_training"):
             raise RuntimeError("this Playground has no wrapper.wrap_for_brax_training")
         kwargs["wrap_env_fn"] = wrapper.wrap_for_brax_training
@@ -478,19 +479,23 @@ def _run_brax(job: dict[str, Any], result: dict[str, Any]) -> None:
     result["wall_s_total"] = time.perf_counter() - start
 
 
-def _playground_env(env_name: str, result: dict[str, Any]) -> Any:
-    """A Playground task for Brax PPO/SAC: DM Control Suite with ``impl="jax"``; a locomotion
-    task built as td3-jax builds it (offline Menagerie assets, ``impl="jax"``, pushes off as in
-    the td3-jax presets and FastTD3's published runs, no domain randomisation)."""
+def _playground_env(env_name: str, impl: str, used: dict[str, Any],
+                    result: dict[str, Any]) -> Any:  # fmt: skip
+    """A Playground task for Brax PPO/SAC on the physics ``impl``: DM Control Suite as
+    Playground loads it; a locomotion task built as td3-jax builds it (offline Menagerie
+    assets, pushes off as in the td3-jax presets and FastTD3's published runs, no domain
+    randomisation, the task's own Warp buffers for the recipe's ``num_envs``)."""
     if not is_locomotion_env(env_name):
         from mujoco_playground import dm_control_suite
 
-        return dm_control_suite.load(env_name, config_overrides={"impl": "jax"})
+        return dm_control_suite.load(env_name, config_overrides={"impl": impl})
     from td3_jax.envs import locomotion
     from td3_jax.envs.base import EnvOptions
 
-    environment, _ = locomotion.load(env_name, options=EnvOptions(pushes=False))
-    result["env_config"] = {"impl": "jax", "pushes": "off", "domain_randomization": False}
+    worlds = max(int(used.get("num_envs", 1)), int(used.get("num_eval_envs", 128)))
+    options = EnvOptions(pushes=False, impl=impl, worlds=worlds)
+    environment, _ = locomotion.load(env_name, impl=impl, options=options)
+    result["env_config"] = {"impl": impl, "pushes": "off", "domain_randomization": False}
     return environment
 
 
@@ -499,7 +504,7 @@ def td3_config(job: dict[str, Any]):
     from td3_jax.config import presets
     from td3_jax.config import schema as td3_config
 
-    overrides: dict[str, Any] = {} if is_brax_env(job["env"]) else {"env_backend": "jax"}
+    overrides: dict[str, Any] = {} if is_brax_env(job["env"]) else {"impl": job.get("impl")}
     if job["smoke"]:
         overrides.update(SMOKE["td3"])
     if job["seed"] is not None:
@@ -551,7 +556,7 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
                 )
             )
             print(f"[td3] {wall:7.1f} s  {steps:>12,} steps  return {ret:9.1f}", flush=True)
-            if wall >= budget and not keep:
+            if budget is not None and wall >= budget and not keep:
                 raise _BudgetReached
             return out
 
@@ -562,7 +567,7 @@ def _run_td3(job: dict[str, Any], result: dict[str, Any]) -> None:
     # checkpoint, for td3-jax render/export afterwards; evaluations past the budget are kept in
     # the CSV but not counted in the table.
     keep = job.get("td3_checkpoint", False)
-    own_budget = budget - (time.perf_counter() - start) if keep else budget
+    own_budget = budget - (time.perf_counter() - start) if keep and budget else budget
     try:
         td3_run.train(cfg, run_dir, progress=False, time_budget_s=own_budget)
         result["stopped_by"] = "budget, checkpointed" if keep else "run length"
@@ -656,7 +661,10 @@ def published_at(curve: list[tuple[float, float]], t: float) -> float | None:
     return float(np.interp(t, times, returns))
 
 
-def plot(path: Path, env: str, budget: float, results: dict[str, dict], device: str) -> None:
+def plot(path: Path, env: str, budget: float | None, span: float, results: dict[str, dict],
+         device: str) -> None:  # fmt: skip
+    """Return against wall-clock, one line per algorithm, FastTD3's published curves up to
+    3.5 times ``span`` (the budget, else the longest run), the budget where one was given."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -675,11 +683,12 @@ def plot(path: Path, env: str, budget: float, results: dict[str, dict], device: 
                 label=labels.get(algo, algo),
             )
     for algo, curve in published_curves(env).items():
-        shown = [(t, r) for t, r in curve if t <= budget * 3.5]
+        shown = [(t, r) for t, r in curve if t <= span * 3.5]
         if shown:
             ax.plot(*zip(*shown, strict=True), linestyle=":", marker="x", markersize=4,
                     label=f"{algo} (published, A100)")  # fmt: skip
-    ax.axvline(budget, color="grey", linestyle="--", linewidth=1, label=f"budget {budget:g} s")
+    if budget:
+        ax.axvline(budget, color="grey", linestyle="--", linewidth=1, label=f"budget {budget:g} s")
     ax.set_xlabel("wall-clock s (start-up and compile included)")
     ax.set_ylabel("eval episode return")
     ax.set_title(f"{env} on {device}")
@@ -768,7 +777,11 @@ def build_parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--env", required=True, help="ant, halfcheetah, humanoid or CheetahRun")
-    parser.add_argument("--budget-s", type=float, required=True, help="wall-clock per algorithm")
+    parser.add_argument("--budget-s", type=float, default=None,
+                        help="wall-clock per algorithm (default: each to its own run length)")
+    parser.add_argument("--impl", choices=("warp", "jax"), default=None,
+                        help="a Playground task's physics (default: warp for the locomotion "
+                        "tasks, jax for DM Control)")  # fmt: skip
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     parser.add_argument("--td3-preset", default=None, help="td3-jax preset (default: per env)")
@@ -834,7 +847,8 @@ def run_algo(job: dict[str, Any], context: Any) -> dict[str, Any]:
     the process left none)."""
     result_path = Path(job["result_path"])
     result_path.unlink(missing_ok=True)
-    print(f"== {job['algo']} on {job['env']}, budget {job['budget_s']:g} s", flush=True)
+    limit = f"budget {job['budget_s']:g} s" if job["budget_s"] else "to its own run length"
+    print(f"== {job['algo']} on {job['env']}, {limit}", flush=True)
     process = context.Process(target=_worker, args=(job,), name=f"compare-{job['algo']}")
     process.start()
     process.join()
@@ -858,7 +872,8 @@ def summary_record(args: argparse.Namespace, env: str, results: dict[str, dict],
                    started: dt.datetime) -> dict[str, Any]:  # fmt: skip
     """The JSON summary: date, command, device, versions and each algorithm's settings."""
     devices = [r["device"] for r in results.values() if r.get("device")]
-    within = lambda rows: sum(r["wall_s"] <= args.budget_s for r in rows)
+    budget = args.budget_s or float("inf")
+    within = lambda rows: sum(r["wall_s"] <= budget for r in rows)
     return {
         "date": started.isoformat(timespec="seconds"),
         "command": [Path(sys.executable).name, *sys.argv],
@@ -876,20 +891,27 @@ def summary_record(args: argparse.Namespace, env: str, results: dict[str, dict],
     }  # fmt: skip
 
 
+def span_of(budget: float | None, results: dict[str, dict]) -> float:
+    """The wall-clock the tables cover: the budget, else the longest run's last evaluation."""
+    walls = [r["wall_s"] for result in results.values() for r in result["rows"]]
+    return budget or max(walls, default=1.0)
+
+
 def print_report(args: argparse.Namespace, env: str, results: dict[str, dict], device: str,
                  stem: Path) -> None:  # fmt: skip
     """The table, the published curves at the same times and what was written."""
+    span = span_of(args.budget_s, results)
+    limit = f"budget {args.budget_s:g} s" if args.budget_s else "each to its own run length"
     print()
-    print(f"{env}, budget {args.budget_s:g} s per algorithm, {device}"
-          + (" (SMOKE)" if args.smoke else ""))  # fmt: skip
+    print(f"{env}, {limit}, {device}" + (" (SMOKE)" if args.smoke else ""))
     print("eval return of the last evaluation at or before each time (compile included):")
-    print(table(results, args.budget_s))
+    print(table(results, span))
     print(
         "the same, counted from each algorithm's first evaluation (start-up set aside), and "
         "its steady rate (from its second evaluation on):"
     )
-    print(table_from_first(results, args.budget_s))
-    points = time_points(args.budget_s)
+    print(table_from_first(results, span))
+    points = time_points(span)
     for algo, curve in published_curves(env).items():
         values = [published_at(curve, t) for t in points]
         cells = ", ".join(f"@{t:g} s {'-' if v is None else f'{v:.1f}'}"
@@ -906,14 +928,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     env = resolve_env(parser, args.env)
-    if args.budget_s <= 0:
+    if args.budget_s is not None and args.budget_s <= 0:
         parser.error("--budget-s must be positive")
+    impl = args.impl or ("warp" if is_locomotion_env(env) else "jax")
     flags = {algo: parse_flags(getattr(args, f"{algo}_flag"), f"--{algo}-flag")
              for algo in ("ppo", "sac", "td3")}  # fmt: skip
     td3_preset = args.td3_preset or default_td3_preset(env)
     if "td3" in args.algos:  # bad td3 settings fail here, before any run starts
         td3_config(dict(env=env, smoke=args.smoke, seed=args.seed, flags=flags["td3"],
-                        td3_preset=td3_preset))  # fmt: skip
+                        td3_preset=td3_preset, impl=impl))  # fmt: skip
     parts = args.out / f"compare_{env}_parts"
     parts.mkdir(parents=True, exist_ok=True)
     started = dt.datetime.now(dt.UTC)
@@ -922,7 +945,7 @@ def main(argv: list[str] | None = None) -> int:
     for algo in [] if args.merge else args.algos:
         job = dict(algo=algo, env=env, budget_s=args.budget_s, smoke=args.smoke, seed=args.seed,
                    flags=flags[algo], num_evals=args.num_evals or None,
-                   sac_recipe=args.sac_recipe, td3_preset=td3_preset,
+                   sac_recipe=args.sac_recipe, td3_preset=td3_preset, impl=impl,
                    td3_checkpoint=args.td3_checkpoint, out=str(args.out),
                    result_path=str(parts / f"{algo}.json"))  # fmt: skip
         results[algo] = run_algo(job, context)
@@ -930,7 +953,8 @@ def main(argv: list[str] | None = None) -> int:
     device = summary["device"]["device_kind"] if summary["device"] else "unknown device"
     stem = args.out / f"compare_{env}"
     write_csv(stem.with_suffix(".csv"), env, results)
-    plot(stem.with_suffix(".png"), env, args.budget_s, results, device)
+    plot(stem.with_suffix(".png"), env, args.budget_s, span_of(args.budget_s, results), results,
+         device)
     stem.with_suffix(".json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print_report(args, env, results, device, stem)
     return 1 if any(r["status"] != "ok" for r in results.values()) else 0

@@ -1,12 +1,13 @@
-"""The 50M-step humanoid table of issue #29: each task's final returns over the seeds run, their
-IQM, and FlashSAC's and FastTD3's published finals (``../shared/anchors/README.md``).
+"""The 50M-step humanoid table: each task's final returns over the seeds run, their IQM, and
+FlashSAC's and FastTD3's published finals (:data:`PUBLISHED`); and :func:`run_label`, a run
+named by its preset and the flags that differ from it.
 
-Reads the ``metrics.jsonl`` files kept in ``benchmarks/results/`` (each named ``*metrics.jsonl``,
-with its run's ``config.json`` beside it as ``*config.json`` where kept); a run counts where it
-has a record at ``--steps`` env steps. A seed run twice counts once (the file later in path
-order). Pushes and domain randomisation come from the config (unknown without one).
+Reads runs' ``metrics.jsonl`` files (run directories, or files named ``*metrics.jsonl`` with
+their run's config.json beside them as ``*config.json`` where kept); a run counts where it has
+a record at ``--steps`` env steps. A seed run twice counts once (the file later in path order).
+Pushes and domain randomisation come from the config (unknown without one).
 
-    python benchmarks/humanoid_table.py [--steps 53248000] [FILES...]
+    python -m benchmarks.humanoid_table [--steps 53248000] RUN_DIR_OR_METRICS_FILE...
 """
 
 from __future__ import annotations
@@ -14,18 +15,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 from pathlib import Path
 from typing import Any, NamedTuple
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from td3_jax.config.presets import preset
-from td3_jax.config.schema import TrainConfig
+from td3_jax.config.schema import TrainConfig, as_flag
 from td3_jax.core.stats import iqm
 from td3_jax.runner.program_cache import HOST_ONLY
 
-#: Final returns at 50M env steps (5 seeds), FlashSAC's paper, and FastTD3's (as FlashSAC
-#: reports them); ``../shared/anchors/README.md``.
+#: Final returns at 50M env steps (5 seeds): FlashSAC's paper (arXiv 2604.04539), and
+#: FastTD3's as FlashSAC reports them.
 PUBLISHED = {
     "T1JoystickFlatTerrain": (38.5, 35.0),
     "T1JoystickRoughTerrain": (34.6, 30.6),
@@ -51,23 +50,49 @@ NOT_LEARNING = (*HOST_ONLY, "total_steps", "impl", "matmuls", "eval_every", "eva
                 "eval_in_chunk", "pushes", "domain_randomization")  # fmt: skip
 
 
-def changes_from_preset(config: dict[str, Any]) -> list[str]:
-    """``NAME VALUE`` for each setting of a run's config.json that differs from its preset's
-    (settings of :data:`NOT_LEARNING` left out; a setting missing from an older config.json
-    is the default it ran with); ``["preset unknown"]`` without a preset."""
-    name = config.get("preset")
-    if name is None:
-        return ["preset unknown"]
-    base, defaults = preset(name), TrainConfig()
-    changes = []
+#: Settings whose None means "the algorithm's own value", which config.json records instead.
+ALGORITHM_DEFAULTS = ("hidden_sizes", "actor_lr", "critic_lr", "tau")
+
+
+def differences(config: dict[str, Any]) -> list[tuple[str, Any]]:
+    """``(setting, value)`` for each setting of a run's config.json that differs from its
+    preset's, in TrainConfig's order (settings of :data:`NOT_LEARNING` left out, and those of
+    :data:`ALGORITHM_DEFAULTS` that the preset leaves to the algorithm; a setting missing from
+    an older config.json is the default it ran with)."""
+    base, defaults = preset(config["preset"]), TrainConfig()
+    found = []
     for field in dataclasses.fields(TrainConfig):
         want = getattr(base, field.name)
         got = config.get(field.name, getattr(defaults, field.name))
-        if field.name in NOT_LEARNING or _same(got, want):
+        if want is None and field.name in ALGORITHM_DEFAULTS:
             continue
-        shown = " ".join(map(str, got)) if isinstance(got, list | tuple) else f"{got}"
-        changes.append(f"{field.name} {shown}")
-    return changes
+        if field.name not in NOT_LEARNING and not _same(got, want):
+            found.append((field.name, tuple(got) if isinstance(got, list) else got))
+    return found
+
+
+def changes_from_preset(config: dict[str, Any]) -> list[str]:
+    """``NAME VALUE`` for each of :func:`differences`; ``["preset unknown"]`` without a
+    preset."""
+    if config.get("preset") is None:
+        return ["preset unknown"]
+    return [f"{name} {' '.join(map(str, value)) if isinstance(value, tuple) else value}"
+            for name, value in differences(config)]  # fmt: skip
+
+
+def run_label(config: dict[str, Any]) -> str:
+    """A run as ``PRESET FLAGS``: its preset's name and the flags of the settings that differ
+    from it (:func:`differences`, then pushes and domain randomisation where they differ), so
+    that ``td3-jax train --preset PRESET FLAGS`` trains it again; a ValueError without a
+    preset."""
+    name = config.get("preset")
+    if name is None:
+        raise ValueError("the run's config.json names no preset")
+    base = preset(name)
+    shown = [*differences(config),
+             *[(setting, config[setting]) for setting in ("pushes", "domain_randomization")
+               if setting in config and config[setting] != getattr(base, setting)]]  # fmt: skip
+    return " ".join([name, *(as_flag(setting, value) for setting, value in shown)])
 
 
 def _same(got: Any, want: Any) -> bool:
@@ -121,13 +146,21 @@ def table(finals: list[Final]) -> str:
     return "\n".join(rows)
 
 
+def metrics_files(paths: list[Path]) -> list[Path]:
+    """The ``metrics.jsonl`` of each run directory in ``paths`` and each file given as is."""
+    return [path / "metrics.jsonl" if path.is_dir() else path for path in paths]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("files", nargs="*", type=Path)
+    parser.add_argument("runs", nargs="+", type=Path,
+                        help="run directories or *metrics.jsonl files")  # fmt: skip
     parser.add_argument("--steps", type=int, default=53_248_000)
     args = parser.parse_args(argv)
-    files = args.files or sorted(Path(__file__).parent.glob("results/**/*metrics.jsonl"))
-    finals = [f for f in (final_of(path, args.steps) for path in files) if f is not None]
+    missing = [str(path) for path in metrics_files(args.runs) if not path.is_file()]
+    if missing:
+        parser.error(f"no metrics.jsonl at {', '.join(missing)}")
+    finals = [f for f in (final_of(path, args.steps) for path in metrics_files(args.runs)) if f]
     print(table(finals) if finals else f"no run has a record at {args.steps:,} env steps")
 
 

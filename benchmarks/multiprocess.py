@@ -15,8 +15,8 @@ difference per quantity and whether all are within ``--rtol``/``--atol``. Output
 Flags after ``--`` (or unknown ones) go to ``td3-jax train`` and replace the default tiny
 Pendulum configuration (:data:`TINY`).
 
-  python benchmarks/multiprocess.py --processes 2 --devices-per-process 2 --out /tmp/mp  # CPU
-  python benchmarks/multiprocess.py --processes 2 --devices-per-process 4 --out $OUT/mp \
+  python -m benchmarks.multiprocess --processes 2 --devices-per-process 2 --out /tmp/mp  # CPU
+  python -m benchmarks.multiprocess --processes 2 --devices-per-process 4 --out DIR/mp \
       -- --env brax/ant --num-envs 8192 --batch-size 16384 --total-steps 4194304 \
       --eval-every 2097152 --replay-shards 8 --warmup-steps 0                               # GPU
 """

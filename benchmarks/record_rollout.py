@@ -2,8 +2,8 @@
 so the frames can be drawn on another machine (``td3_jax.tools.render.rollout_frames``): the GPU box
 trains and rolls out, a machine with OpenGL draws.
 
-Usage: python3 benchmarks/record_rollout.py RUN_DIR OUT.npz [--episodes N] [--seed S]
-       python3 benchmarks/record_rollout.py --draw OUT.npz VIDEO.gif [--steps N] [--every K]
+Usage: python -m benchmarks.record_rollout RUN_DIR OUT.npz [--episodes N] [--seed S]
+       python -m benchmarks.record_rollout --draw OUT.npz VIDEO.gif [--steps N] [--every K]
          [--dt S]
          (the first episode, its first N steps, every K-th frame; the environment is made from
          the name in the .npz, which needs its assets here but compiles nothing)

@@ -12,14 +12,13 @@ A diagnostic: it replaces ``flax.linen.LayerNorm`` in this process only. On the 
 with the robot presets' cuBLAS matmuls:
 
     export XLA_FLAGS=--xla_gpu_enable_triton_gemm=false
-    for v in base none rms nof32 slowvar; do python3 benchmarks/residual_norms.py $v; done
+    for v in base none rms nof32 slowvar; do python -m benchmarks.residual_norms $v; done
 """
 
 from __future__ import annotations
 
 import functools
 import sys
-from pathlib import Path
 
 import flax.linen as nn
 
@@ -54,10 +53,10 @@ def patch_layer_norm(variant: str) -> None:
 def main() -> None:
     variant = sys.argv[1] if len(sys.argv) > 1 else ""
     if variant not in VARIANTS:
-        raise SystemExit(f"usage: residual_norms.py VARIANT (one of {', '.join(VARIANTS)})")
+        raise SystemExit(f"usage: python -m benchmarks.residual_norms VARIANT (one of "
+                         f"{', '.join(VARIANTS)})")
     patch_layer_norm(variant)
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import updates  # (after the patch: the networks are built inside its calls)
+    from benchmarks import updates  # (after the patch: the networks are built in its calls)
 
     sys.argv = ["updates.py", "--out", f"/tmp/residual_norms_{variant}", "--batches", "32768",
                 "--shapes", "103x216x29", "--networks", "residual", "--critics", "distributional",

@@ -9,30 +9,25 @@ time and env steps/s of the raw physics and of the full training loop (one chunk
         iterations; the first call compiles and fills the ring, the second is timed with every
         iteration updating. ``critic_loss`` of the timed chunk is reported (finite: it trained).
 
-Robot folders travel as ``.tar.xz`` (about a third of their size; the device carries 64 MiB in
-all, .whl included). Here, once::
+Usage (the robots' assets from the ``locomotion`` extra, or ``--menagerie`` a MuJoCo Menagerie
+root holding the robot folders, as ``MENAGERIE_ROOT`` does)::
 
-  python benchmarks/robots.py --pack .assets --tasks T1JoystickFlatTerrain Go1Getup ...
+  python -m benchmarks.robots --impl warp --tasks T1JoystickFlatTerrain --envs 1024 4096 \\
+      --out DIR
 
-writes ``.assets/booster_t1.tar.xz``, ``.assets/unitree_go1.tar.xz`` (keep ``.assets`` out of git
-with ``/.assets/`` in ``.git/info/exclude``). There::
-
-  python3 benchmarks/robots.py --menagerie .assets --tasks ... --envs 1024 4096 --out $OUT
-
-unpacks them into a temporary Menagerie root (plain robot folders in --menagerie work too: the
-``MENAGERIE_ROOT`` layout ``DIR/booster_t1/...``). Results: ``$OUT/robots.jsonl`` (a line per
-measurement, written as they come) and a table at the end.
+Results: ``DIR/robots.jsonl`` (a line per measurement, written as they come) and a table at the
+end.
 
 Order: each physics in turn (all of the first --impl's cells before the next one's), then the
 number of environments, then the task, so a command cut short loses the slowest cells (JAX
 physics at the most environments). A line with the seconds since start is printed as each part
 begins, so a cell cut off by a time limit still says how long it ran. With Warp, the seconds its
 kernels spent compiling (``warp_compile_s``, modules compiled: ``warp_modules``; cached ones
-cost nothing here) are counted apart from the compile seconds that include them. Since the
-sixteenth session td3-jax compiles Warp's modules when it makes the task
-(``td3_jax.envs.warp_kernels``, on several threads), so the raw compile seconds no longer
-include the modules it lists (``warp_compile_s`` still sums every module's compile, now over
-threads that overlap); set ``TD3_JAX_WARP_PRECOMPILE=0`` to measure as earlier sessions did.
+cost nothing here) are counted apart from the compile seconds that include them. td3-jax
+compiles Warp's modules when it makes the task (``td3_jax.envs.warp_kernels``, on several
+threads), so the raw compile seconds do not include the modules it lists (``warp_compile_s``
+still sums every module's compile, over threads that overlap); ``TD3_JAX_WARP_PRECOMPILE=0``
+leaves each module to compile at its first launch instead.
 """
 
 from __future__ import annotations
@@ -40,8 +35,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import tarfile
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,35 +44,8 @@ import jax.numpy as jnp
 from td3_jax.common import upstream
 from td3_jax.config import build
 from td3_jax.config.presets import ENV_PRESETS, preset, robot_preset
-from td3_jax.envs import locomotion, menagerie
+from td3_jax.envs import locomotion
 from td3_jax.envs.base import EnvOptions
-
-
-def pack(tasks: list[str], dest: Path) -> list[Path]:
-    """Writes ``dest/<robot folder>.tar.xz`` for each task's robot (found as td3-jax finds it)."""
-    dest.mkdir(parents=True, exist_ok=True)
-    written = []
-    for folder in sorted({menagerie.robot(t)[0] for t in tasks}):
-        root = menagerie.find_root(next(t for t in tasks if menagerie.robot(t)[0] == folder))
-        path = dest / f"{folder}.tar.xz"
-        with tarfile.open(path, "w:xz") as tar:
-            tar.add(root / folder, arcname=folder)
-        written.append(path)
-        print(f"{path}: {path.stat().st_size / 2**20:.1f} MiB", flush=True)
-    return written
-
-
-def unpack(source: Path) -> Path:
-    """A Menagerie root holding every robot of ``source`` (archives unpacked, folders linked)."""
-    root = Path(tempfile.mkdtemp(prefix="menagerie-"))
-    for item in sorted(source.iterdir()):
-        if item.name.endswith(".tar.xz"):
-            with tarfile.open(item) as tar:
-                tar.extractall(root, filter="data")
-        elif item.is_dir():
-            (root / item.name).symlink_to(item.resolve())
-    return root
-
 
 _WARP = {"s": 0.0, "n": 0}
 
@@ -250,19 +216,15 @@ def main() -> None:
                         help="loop: the networks' matmul precision, each in turn")  # fmt: skip
     parser.add_argument("--updates", type=int, nargs="*", default=[0],
                         help="loop: updates per iteration, each in turn (0: preset's)")  # fmt: skip
-    parser.add_argument("--menagerie", type=Path, help="robot folders or their .tar.xz")
-    parser.add_argument("--pack", type=Path, help="write the tasks' robots as .tar.xz here")
+    parser.add_argument("--menagerie", type=Path, help="a MuJoCo Menagerie root (robot folders)")
     parser.add_argument("--budget-s", type=float, default=540.0,
                         help="start no new measurement after this many seconds")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("."))
     args = parser.parse_args()
-    if args.pack:
-        pack(args.tasks, args.pack)
-        return
     start = args.start = time.perf_counter()
     if "warp" in args.impl:
         _time_warp_compiles()
-    root = unpack(args.menagerie) if args.menagerie else None
+    root = args.menagerie
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     cells = [(i, n, t, p, u) for i in args.impl for n in args.envs for t in args.tasks

@@ -29,10 +29,10 @@ compile or GPU autotuning overlaps a measurement. Outputs in ``--out DIR``:
 ``scaling.json`` (meta + rows), ``scaling.csv``, ``scaling.md`` (date, device, versions,
 commit, table). Robots' meshes: ``MENAGERIE_ROOT`` is passed through to every point.
 
-  python benchmarks/scaling.py --env brax/ant playground/T1JoystickFlatTerrain \
+  python -m benchmarks.scaling --env brax/ant playground/T1JoystickFlatTerrain \
       --devices 1 2 --iterations 50 --jobs 4 --out results/scaling
   XLA_FLAGS=--xla_force_host_platform_device_count=4 JAX_PLATFORMS=cpu \
-      python benchmarks/scaling.py --env brax/inverted_pendulum --devices 1 2 4 --smoke --out /tmp/s
+      python -m benchmarks.scaling --env brax/inverted_pendulum --devices 1 2 4 --smoke --out /tmp/s
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ For each K, runs ``td3_jax.runner.run.train`` with ``seeds=K`` (compile included
 display, checkpoint only at the end) and reports the wall-clock, the compiled time of one chunk, and
 the final mean evaluation return with its 95% bootstrap CI over seeds.
 
-Usage: python benchmarks/seeds.py --preset pendulum --seeds 1 4 16 64 --out seeds.jsonl
+Usage: python -m benchmarks.seeds --preset pendulum --seeds 1 4 16 64 --out seeds.jsonl
 """
 
 from __future__ import annotations

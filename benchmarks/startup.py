@@ -2,8 +2,8 @@
 
 Usage::
 
-    TD3_LAUNCH=$(date +%s.%N) python benchmarks/startup.py --preset ant [--set KEY=VALUE ...]
-    TD3_LAUNCH=$(date +%s.%N) python benchmarks/startup.py --preset ant --floor
+    TD3_LAUNCH=$(date +%s.%N) python -m benchmarks.startup --preset ant [--set KEY=VALUE ...]
+    TD3_LAUNCH=$(date +%s.%N) python -m benchmarks.startup --preset ant --floor
 
 The first form times what ``td3-jax train`` does before its first evaluation, from process
 launch (``TD3_LAUNCH``, the shell's clock at launch; without it, from the script's first line):

@@ -13,7 +13,7 @@ Measures, each on its second (compiled) call:
   updates  gradient updates per second of the TD3 update at several batch sizes;
   full     env steps per second of the full loop with a preset's settings.
 
-Usage: python benchmarks/throughput.py --env brax/ant --envs 1024 4096 --batches 256 8192
+Usage: python -m benchmarks.throughput --env brax/ant --envs 1024 4096 --batches 256 8192
 Prints a table and writes JSON lines to --out.
 """
 

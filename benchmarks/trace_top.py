@@ -1,14 +1,14 @@
 """The GPU kernels of a JAX profiler trace by total time, and the matmuls' share.
 
 Reads a ``perfetto_trace.json.gz`` that ``jax.profiler.trace(..., create_perfetto_trace=True)``
-wrote (e.g. ``benchmarks/updates.py --profile DIR``: one per combination, in
+wrote (e.g. ``python -m benchmarks.updates --profile DIR``: one per combination, in
 ``DIR/plugins/profile/<time>/``) and prints, for the events of the device processes (those
 named ``/device:...``, e.g. ``/device:GPU:0``; memory copies on their streams count as
 "other"): the time of every stream, the time of the matrix products
 (cuBLAS/cuBLASLt kernels: ``nvjet``, ``gemm``, ``xmma``, ``cutlass`` in their names) against
 everything else (XLA's fused elementwise and reduction kernels), and the ``--top`` kernels.
 
-    python3 benchmarks/trace_top.py [--top 25] TRACE...
+    python -m benchmarks.trace_top [--top 25] TRACE...
 """
 
 from __future__ import annotations

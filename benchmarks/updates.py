@@ -23,7 +23,7 @@ and/or residual (two blocks of 128, FlashSAC's, ``--actor-network residual``);
 step. The robot presets' cuBLAS matmuls: run with
 ``XLA_FLAGS=--xla_gpu_enable_triton_gemm=false``.
 
-Usage (from the project root): python3 benchmarks/updates.py --out DIR
+Usage (from the project root): python -m benchmarks.updates --out DIR
 Prints a table and writes DIR/updates.csv (and DIR/updates.jsonl).
 """
 

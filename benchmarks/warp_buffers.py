@@ -5,10 +5,10 @@ uniform random actions in [-1, 1] (the warm-up policy of a td3-jax run), with au
 reports per step the largest constraint count of any environment (``nefc``, sized by
 ``njmax``) and the contacts of all environments (``nacon``, sized by ``nconmax`` times the
 number of environments), then their maxima and 99.9th percentiles over the run, beside the
-task's own settings. On the GPU machine, after the staging calls::
+task's own settings. On a GPU with MuJoCo Warp installed (``pip install -e '.[warp]'``)::
 
-  bash benchmarks/warp_gpu.sh python3 benchmarks/warp_buffers.py --menagerie $MEN \\
-      --tasks G1JoystickFlatTerrain T1JoystickFlatTerrain --envs 4096 --steps 3000 --out $OUT
+  python -m benchmarks.warp_buffers --tasks G1JoystickFlatTerrain T1JoystickFlatTerrain \\
+      --envs 4096 --steps 3000 --out DIR
 """
 
 from __future__ import annotations

@@ -2,13 +2,13 @@
 with and without compiling Warp's kernels on several threads first
 (:func:`td3_jax.envs.warp_kernels.precompile`). One JSON line on stdout (and in --out).
 
-Each process uses its own empty kernel cache. On the GPU machine, one mode after the other
-(at once they would share the CPU cores that compile):
+Each process uses its own empty kernel cache. On a GPU, one mode after the other (at once
+they would share the CPU cores that compile):
 
-    python benchmarks/warp_precompile.py --task T1JoystickFlatTerrain --menagerie $MEN \\
-        --workers 0 --out $OUT/serial.json
-    python benchmarks/warp_precompile.py --task T1JoystickFlatTerrain --menagerie $MEN \\
-        --workers 8 --out $OUT/parallel.json
+    python -m benchmarks.warp_precompile --task T1JoystickFlatTerrain --workers 0 \\
+        --out DIR/serial.json
+    python -m benchmarks.warp_precompile --task T1JoystickFlatTerrain --workers 8 \\
+        --out DIR/parallel.json
 
 ``--workers 0``: no precompile (each module compiles at its first launch, one at a time), as
 with ``TD3_JAX_WARP_PRECOMPILE=0``; ``--workers N``: td3-jax's precompile on N threads (its
@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -30,14 +29,12 @@ START = time.perf_counter()
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 # The task is made without td3-jax's own precompile; --workers runs it here, timed apart.
 os.environ["TD3_JAX_WARP_PRECOMPILE"] = "0"
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def _arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", default="T1JoystickFlatTerrain")
-    parser.add_argument("--menagerie", type=Path)
+    parser.add_argument("--menagerie", type=Path, help="a MuJoCo Menagerie root")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--workers", type=int, default=0)
     parser.add_argument("--out", type=Path)
@@ -47,8 +44,7 @@ def _arguments() -> argparse.Namespace:
 def _compiles_named() -> list[str]:
     """The names of the Warp modules compiled from now on, in order (each compile counted and
     timed by :func:`robots._time_warp_compiles` too)."""
-    from robots import _time_warp_compiles
-
+    from benchmarks.robots import _time_warp_compiles
     from td3_jax.common import upstream
 
     _time_warp_compiles()
@@ -85,14 +81,14 @@ def main() -> None:
 
     warp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="warp-cache-")
     import jax
-    from robots import _WARP, unpack
 
+    from benchmarks.robots import _WARP
     from td3_jax.common import upstream
     from td3_jax.envs import locomotion, warp_kernels
     from td3_jax.envs.base import EnvOptions
 
     names = _compiles_named()
-    root = str(unpack(args.menagerie)) if args.menagerie else None
+    root = str(args.menagerie) if args.menagerie else None
     options = EnvOptions(menagerie=root, impl="warp", worlds=args.envs)
     env, config = locomotion.load(args.task, impl="warp", options=options)
     task = getattr(env, "unwrapped", env)

@@ -1,4 +1,4 @@
-"""The multi-process rehearsal (benchmarks/multiprocess.py): 2 CPU processes x 2 forced host
+"""The multi-process rehearsal (benchmarks.multiprocess): 2 CPU processes x 2 forced host
 devices through jax.distributed (gloo collectives) against 1 process x 4 devices.
 
 One end-to-end run (about a minute on 2 cores: three processes compile the tiny Pendulum
@@ -96,7 +96,7 @@ def test_two_processes_of_two_devices_give_the_four_device_numbers(tmp_path):
     order of float sums in gloo's all-reduce)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "multiprocess.py"), "--platform", "cpu",
+        [sys.executable, "-m", "benchmarks.multiprocess", "--platform", "cpu",
          "--processes", "2", "--devices-per-process", "2", "--out", str(tmp_path)],
         env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -121,7 +121,7 @@ def test_an_mjx_environment_trains_in_two_processes(tmp_path):
              "--buffer-size", "128", "--episode-length", "16", "--replay-shards", "2",
              "--compile-cache", "off"]  # fmt: skip
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "multiprocess.py"), "--platform", "cpu",
+        [sys.executable, "-m", "benchmarks.multiprocess", "--platform", "cpu",
          "--processes", "2", "--devices-per-process", "1", "--side-by-side", "--out",
          str(tmp_path), "--", *flags],
         env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=600,
