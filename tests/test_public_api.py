@@ -1,5 +1,5 @@
-"""The library's public surface: every module's ``__all__`` names what it defines, and every
-``td3_jax`` name the README's library section uses is public."""
+"""The library's public surface: every module's ``__all__`` names what it defines, and the
+README's Python quickstart uses only the top-level public names (``import td3_jax as tj``)."""
 
 from __future__ import annotations
 
@@ -30,24 +30,27 @@ def test_every_module_has_an_all_naming_what_exists(name):
     assert not missing, f"{name}.__all__ names what it does not define: {missing}"
 
 
-def library_section() -> str:
+def python_section() -> str:
+    """The README's Python quickstart: from its heading to the next one."""
     text = README.read_text()
-    return text[text.index("## The library") : text.index("### Details that matter")]
+    start = text.index("## Python")
+    return text[start : text.index("\n## ", start + 1)]
 
 
-def test_the_readme_library_section_uses_public_names_only():
-    """``tj.X``, ``tj.M.X``, ``training.X`` and ``build.X`` in the section are in their module's
-    __all__."""
-    code = "\n".join(re.findall(r"```python\n(.*?)```", library_section(), re.S))
-    used = set(re.findall(r"\b(tj|training|build)\.([A-Za-z_]\w*)(?:\.([A-Za-z_]\w*))?", code))
-    assert len(used) > 10  # the section's two examples were read
-    assert {("build", "make_spec", ""), ("build", "hyperparams", "")} <= used
-    for prefix, first, second in used:
-        module = td3_jax if prefix == "tj" else importlib.import_module(f"td3_jax.{prefix}")
-        assert first in module.__all__, f"{prefix}.{first} is not public"
-        inner = getattr(module, first)
+def test_the_readme_python_section_uses_top_level_public_names_only():
+    """The quickstart imports ``td3_jax as tj`` and nothing deeper; every ``tj.X`` it uses is in
+    ``td3_jax.__all__``, and every ``tj.M.X`` of a public module ``M`` in ``M.__all__``."""
+    code = "\n".join(re.findall(r"```python\n(.*?)```", python_section(), re.S))
+    imports = re.findall(r"^\s*(?:from|import)\s+(td3_jax\S*)(.*)$", code, re.M)
+    assert imports and all(name == "td3_jax" and rest.strip() == "as tj" for name, rest in imports)
+    assert "td3_jax." not in code  # (no module below the public surface)
+    used = set(re.findall(r"\btj\.([A-Za-z_]\w*)(?:\.([A-Za-z_]\w*))?", code))
+    assert {first for first, _ in used} >= {"TrainConfig", "make_train", "key_for_seed", "td3"}
+    for first, second in used:
+        assert first in td3_jax.__all__, f"tj.{first} is not public"
+        inner = getattr(td3_jax, first)
         if second and inspect_is_module(inner):
-            assert second in inner.__all__, f"{prefix}.{first}.{second} is not public"
+            assert second in inner.__all__, f"tj.{first}.{second} is not public"
 
 
 def inspect_is_module(value) -> bool:
