@@ -289,17 +289,3 @@ def test_the_metrics_page_names_every_field_of_a_runs_records(tmp_path):
     described = dict((name, what) for name, _, what in gen.METRICS)["per_member"]
     for key in records[-1]["per_member"][0]:
         assert f"`{key}`" in described or key.startswith("eval_return_"), key
-
-
-# The examples the docs show ------------------------------------------------------------------
-
-
-@pytest.mark.slow
-def test_the_custom_loop_example_learns_pendulum():
-    """examples/custom_loop.py, the TD3 loop written from the public names, climbs from a
-    random policy's return (about -1400) to a swinging-up one within its default 20k steps."""
-    from examples import custom_loop
-
-    returns = custom_loop.train(20_000)
-    assert returns[0] < -900, returns  # (the untrained policy: no swing-up)
-    assert returns[-1] > -600 and returns[-1] - returns[0] > 500, returns
