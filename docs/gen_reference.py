@@ -142,7 +142,27 @@ def cli_page() -> str:
         field_docstrings(cls)  # (a flag without a docstring stops the generator)
         parts.append(f"## td3-jax {name}\n")
         parts.append("```text\n" + help_text([name, "--help"]) + "\n```\n")
+    parts.append(other_names_section())
     return "\n".join(parts)
+
+
+def other_names_section() -> str:
+    """The flags of CleanRL, Stable-Baselines3 and FastTD3 that the command line answers with
+    its own (``--gamma``: did you mean ``--discount``?), from the table the parser uses."""
+    from td3_jax.cli.parse_errors import _OTHER_NAMES  # (the parser's own table, read as is)
+
+    rows = ["| there | here |", "| --- | --- |"]
+    for there, here in sorted(_OTHER_NAMES.items()):
+        rows.append(f"| `--{there}` | {', '.join(f'`--{flag}`' for flag in here)} |")
+    return (
+        "## Flag names from other libraries\n\n"
+        "Coming from CleanRL, Stable-Baselines3 or FastTD3: an unknown flag of one of these "
+        "names (with `-` or `_`) is answered with the flag it is here. Steps here are env steps "
+        "summed over the environments: FastTD3's `--total_timesteps`, `--learning_starts` and "
+        "`--eval_interval` count vectorised steps, so multiply them by its `--num_envs`.\n\n"
+        + "\n".join(rows)
+        + "\n"
+    )
 
 
 # config.md -------------------------------------------------------------------------------------
@@ -240,7 +260,18 @@ def api_page() -> str:
         "The stable surface is `import td3_jax as tj` and the names below "
         "(`td3_jax.__all__`); everything else (`td3_jax.core`, `td3_jax.runner`, ...) is "
         "importable and lists what it offers in its own `__all__`, but may change from one "
-        "version to the next. Names load on first use, so `import td3_jax` stays cheap.\n",
+        "version to the next. Names load on first use, so `import td3_jax` stays cheap, and "
+        "importing it changes no process-wide state (log levels, hooks, signal handlers); the "
+        "command line quiets orbax's and asyncio's log lines with "
+        "`td3_jax.common.runtime.quiet_library_logs()`, which a program may call too.\n",
+        "Around the program, the modules that serve the command line are yours to call: "
+        "`td3_jax.runner.finished.evaluate_run(out_dir, episodes, seed)` reads a run back and "
+        "evaluates its newest checkpoint per member (`td3-jax eval`); "
+        "`td3_jax.tools.export.export_run` and `td3_jax.tools.render.render_run` are `export` "
+        "and `render`; `td3_jax.config.build` turns a `TrainConfig` into the program's static "
+        "spec and traced floats ([static and traced settings]"
+        "(../concepts/static-and-traced.md)), and `td3_jax.core.training` is the program "
+        "itself.\n",
     ]
     for name in td3_jax.__all__:
         module, attribute = td3_jax._PUBLIC[name]
