@@ -2,15 +2,19 @@
 
 A checkpoint holds every leaf of the :class:`~td3_jax.core.training.TrainState` (parameters,
 targets, optimiser states, normaliser, replay buffer, environment states, RNG keys and counters)
-plus a small JSON record of host-side progress, the arrays' layout and a SHA-256 of every array.
+plus a small JSON record of host-side progress, the arrays' layout, a checksum of every array
+and a SHA-256 of the record itself.
 Orbax writes each checkpoint to a temporary folder and renames it when complete, so a run killed
 mid-write keeps its previous checkpoint; only the newest ``keep`` are kept. A save may run in
 the background (``background=True``): it returns once the arrays are copied off the device, so
 the caller may reuse (donate) them, and the disk write overlaps the caller's next work.
 
 Failures are clean: a restored array whose bytes differ from those saved (bit rot, a garbled
-file) makes the checkpoint corrupt, and restoring the newest checkpoint then falls back to the
-next older one with a one-line warning; a failed write (a full disk) removes what it left and
+file), or a record whose text differs from that saved (one flipped byte of
+``N/meta/metadata``), makes the checkpoint corrupt, and restoring the newest checkpoint then
+falls back to the next older one with a one-line warning; damage to orbax's own files of a
+checkpoint either fails its read (corrupt, the same fallback) or leaves what is restored
+unchanged, which the checksums verify; a failed write (a full disk) removes what it left and
 raises :class:`CheckpointWriteError` naming the last good checkpoint. Orbax's own log records,
 and the errors its callbacks still raise after a failed read, are left to the program: the
 CLI drops them (:func:`td3_jax.common.runtime.quiet_library_logs`).
@@ -20,6 +24,8 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
+import json
 import math
 import shutil
 import sys
@@ -45,7 +51,9 @@ from td3_jax.runner.memory import larger_network_advice, size_text, state_bytes
 # Orbax writes <step>.orbax-checkpoint-tmp (older versions: ...-tmp-<time>) and renames it.
 _TMP_MARK = ".orbax-checkpoint-tmp"
 _HASH = "mix32"
-_META_KEYS = ("layout", "checksums", "format")  # what save adds to the caller's meta
+#: The record's own checksum: ``"sha256:<hex>"`` of the rest of the record (:func:`_sealed`).
+_RECORD_SUM = "record_checksum"
+_META_KEYS = ("layout", "checksums", "format", _RECORD_SUM)  # what save adds to the caller's meta
 #: The checkpoint format; 1 (no "format" key) was written before the trainer redesign of
 #: 2026-11-22 (other optimiser-state layout, no evaluation key in the state); 2 before the
 #: per-environment exploration draws (``TrainState.expl_draw``) could be in the state. A run
@@ -120,7 +128,8 @@ class Checkpointer:
             "format": FORMAT,
         }
         args = ocp.args.Composite(
-            state=ocp.args.StandardSave(_stored_leaves(state)), meta=ocp.args.JsonSave(record)
+            state=ocp.args.StandardSave(_stored_leaves(state)),
+            meta=ocp.args.JsonSave(_sealed(record)),
         )
         try:
             manager = self._orbax()
@@ -259,6 +268,7 @@ class Checkpointer:
         if step not in self.steps():
             raise CheckpointError(f"no checkpoint {path} (steps found: {self.steps()})")
         meta = self._read(step, meta=ocp.args.JsonRestore())["meta"]
+        _check_record(meta, path)
         saved, grow = abstract_state, None
         if resize is not None and isinstance(meta, dict):
             saved, grow = resize(abstract_state, meta.get("layout"))
@@ -281,6 +291,15 @@ class Checkpointer:
             return self._orbax().restore(step, args=ocp.args.Composite(**items))
         except Exception as err:  # orbax raises many types; all mean "unusable checkpoint"
             raise _unusable(self.directory / str(step), err) from err
+
+    def read_meta(self, step: int) -> dict:
+        """The record checkpoint ``step`` was saved with (the caller's ``meta`` as :meth:`save`
+        got it), without its arrays; a damaged or unreadable one raises
+        :class:`CorruptCheckpointError`."""
+        path = self.directory / str(step)
+        meta = self._read(step, meta=ocp.args.JsonRestore())["meta"]
+        _check_record(meta, path)
+        return {k: v for k, v in meta.items() if k not in _META_KEYS}
 
     def _write_failed(self, step: int, err: Exception) -> CheckpointWriteError:
         """Removes what the failed save of ``step`` left and describes the failure."""
@@ -337,6 +356,34 @@ def _restore_target(abstract_state: Any, shardings: Any) -> Any:
     return jax.tree.map(
         lambda x, s: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=s), abstract_state, shardings
     )
+
+
+def _record_checksum(record: dict) -> str:
+    """``"sha256:<hex>"`` of ``record`` as canonical JSON (sorted keys, no spaces)."""
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"))
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def _sealed(record: dict) -> dict:
+    """``record`` as its JSON file will hold it (tuples as lists, keys as strings), plus its
+    checksum under :data:`_RECORD_SUM`."""
+    plain = json.loads(json.dumps(record))
+    return {**plain, _RECORD_SUM: _record_checksum(plain)}
+
+
+def _check_record(meta: Any, path: Path) -> None:
+    """Raises :class:`CorruptCheckpointError` where the record read back is not the one saved:
+    not a JSON object, or not matching its own checksum (a record saved without one, by an
+    older version, passes)."""
+    if not isinstance(meta, dict):
+        raise CorruptCheckpointError(f"checkpoint {path} is corrupt (its metadata is damaged)")
+    if _RECORD_SUM not in meta:
+        return
+    rest = {k: v for k, v in meta.items() if k != _RECORD_SUM}
+    if meta[_RECORD_SUM] != _record_checksum(rest):
+        raise CorruptCheckpointError(
+            f"checkpoint {path} is corrupt (its metadata fails its checksum)"
+        )
 
 
 def _check_layout(meta: Any, abstract_state: Any, path: Path) -> None:

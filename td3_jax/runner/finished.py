@@ -28,6 +28,7 @@ from td3_jax.runner.programs import run_compiled
 from td3_jax.runner.rundir import (
     CHECKPOINTS,
     CONFIG_FILE,
+    check_config_unedited,
     check_environment_unchanged,
     check_unedited,
     checkpoint_steps,
@@ -66,8 +67,10 @@ def run_program(
     inside its chunks (whose checkpoints hold its own evaluation worlds). ``env``: the
     environment object of a run trained on one (``object/<name>``: none can be made from
     config.json). A factory's or object's environment must be the one the run trained on
-    (:func:`check_environment_unchanged`)."""
+    (:func:`check_environment_unchanged`), and config.json's settings those its newest intact
+    checkpoint was written with (:func:`check_config_unedited`)."""
     cfg = _physics_here(load_config(out_dir))
+    check_config_unedited(out_dir, cfg)  # (before the environment is made from it)
     population = load_members(out_dir, cfg)
     made = _handed_environment(cfg, env)
     program = make_population(cfg, population, env=made)

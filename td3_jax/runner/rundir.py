@@ -7,7 +7,10 @@ its evaluations) is :mod:`td3_jax.runner.finished`'s.
   output; the kernel drops the lock when the process dies. A second run on ``DIR`` stops with a
   one-line error and writes nothing.
 * **No silent overwrite.** A fresh run refuses a directory that holds a checkpoint (``--resume``
-  continues it) or a previous run's outputs without a checkpoint (move them away first).
+  continues it) or a previous run's records without a checkpoint (move them away first). What a
+  run leaves that ended before its first record (killed, even by ``kill -9`` or the kernel's
+  out-of-memory killer: config.json, an empty metrics.jsonl) is no run to keep: the same
+  command starts over there, once no live process holds the lock.
 * **config.json says what each member trained with.** In a sweep each swept setting is the
   list of its values, and the ``sweep`` section names the swept settings, each member's values
   and the configuration's own ones (``base``, which the members' values override).
@@ -32,7 +35,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from td3_jax.common.errors import LockUnavailableError
+from td3_jax.common.errors import CheckpointError, LockUnavailableError
 from td3_jax.config.build import agent_config, members, ou_params
 from td3_jax.config.schema import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
 from td3_jax.core.population import Member
@@ -48,11 +51,13 @@ __all__ = [
     "SAFE_ON_RESUME",
     "SWEEP",
     "RunLock",
+    "check_config_unedited",
     "check_environment_unchanged",
     "check_fresh",
     "check_resume",
     "checkpoint_steps",
     "config_changes",
+    "ended_before_recording",
     "environment_record",
     "interrupted_message",
     "load_config",
@@ -241,7 +246,7 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
     if checkpoint_steps(out_dir):
         raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
     outputs = previous_outputs(out_dir) if writer else []
-    if outputs:
+    if outputs and not ended_before_recording(out_dir):
         raise ConfigError(
             f"{out_dir} holds a previous run's outputs ({', '.join(outputs)}) but no checkpoint "
             "to resume; move them away or choose another --out"
@@ -253,6 +258,18 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
             f"{', ...' if len(others) > 3 else ''}); a run needs a new or empty directory of "
             "its own"
         )
+
+
+def ended_before_recording(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds only what a run leaves that ended before its first evaluation
+    record (a kill, an out-of-memory kill, a crash): no checkpoint, no record (metrics.jsonl
+    missing or empty), no curve and no file of others. Nothing there is worth keeping, so a
+    fresh run may start in it (its lock is checked apart)."""
+    out_dir = Path(out_dir)
+    metrics = out_dir / "metrics.jsonl"
+    records = metrics.exists() and not (metrics.is_file() and metrics.stat().st_size == 0)
+    drawn = (out_dir / "curve.png").exists()
+    return not (checkpoint_steps(out_dir) or records or drawn or foreign_entries(out_dir))
 
 
 def foreign_entries(out_dir: Path) -> list[str]:
@@ -289,7 +306,9 @@ def check_resume(
             f"--resume given but {out_dir / CHECKPOINTS} has no checkpoint{_start_instead(out_dir)}"
         )
     population = load_members(out_dir, cfg)
-    changes = config_changes(load_config(out_dir), cfg, population)
+    saved = load_config(out_dir)
+    check_config_unedited(out_dir, saved)  # (an edited config.json first: cfg may come from it)
+    changes = config_changes(saved, cfg, population)
     if writer:  # (before config.json is rewritten: a resume that stops writes nothing)
         check_records(out_dir / "metrics.jsonl")
     if "total_steps" in changes and cfg.lr_schedule == "cosine":
@@ -367,11 +386,11 @@ _MOVE_AWAY = "move it away or choose another --out to train again"
 
 def _start_instead(out_dir: Path) -> str:
     """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
-    where its run stopped before training (a fresh start is accepted there), else move it
-    away (a fresh start there is refused while a run's outputs stay, e.g. a run stopped
-    after its first evaluation but before its first checkpoint, or one whose checkpoints were
-    deleted)."""
-    if not _stopped_before_training(out_dir):
+    where its run ended before its first record (:func:`ended_before_recording`: a fresh start
+    is accepted there), else move it away (a fresh start there is refused while a run's
+    records stay, e.g. a run stopped after its first evaluation but before its first
+    checkpoint, or one whose checkpoints were deleted)."""
+    if not ended_before_recording(out_dir):
         return f" (it holds a run's outputs but no checkpoint: {_MOVE_AWAY})"
     return " (its run stopped before the first: run without --resume to start it)"
 
@@ -414,6 +433,10 @@ def no_checkpoint_error(out_dir: Path) -> ConfigError:
         return ConfigError(f"{out_dir} has no checkpoint yet: a td3-jax run ({holder}) is "
                            "training it and has not written its first; try again "
                            "later")  # fmt: skip
+    if ended_before_recording(out_dir):
+        return ConfigError(f"{out_dir} holds no checkpoint (its run stopped before its first "
+                           "evaluation), so there is no policy to read: run its td3-jax train "
+                           "command again to start it over")  # fmt: skip
     return ConfigError(f"{out_dir} holds no checkpoint (its run stopped before writing one, or "
                        "they were removed), so there is no policy to read: train it again with "
                        "td3-jax train (move it away or give another --out)")  # fmt: skip
@@ -497,6 +520,27 @@ def fixed_settings(cfg: TrainConfig) -> dict[str, Any]:
     edited since (:func:`check_unedited`)."""
     safe = _safe_on_resume(cfg)
     return json.loads(json.dumps({k: v for k, v in _as_used(cfg).items() if k not in safe}))
+
+
+def check_config_unedited(out_dir: Path, saved: TrainConfig) -> None:
+    """:func:`check_unedited` of ``saved`` (``out_dir``'s config.json) against the settings
+    recorded in its newest checkpoint whose record is intact (damaged ones are skipped, as a
+    restore skips them; no checkpoint: nothing to check), before anything is restored: a
+    hand-edited ``num_envs`` or ``env`` is then named as the setting it is, not as the arrays
+    it changes."""
+    from td3_jax.runner.checkpoint import Checkpointer  # (lazy: orbax)
+
+    checkpointer = Checkpointer(Path(out_dir) / CHECKPOINTS, create=False)
+    try:
+        for step in reversed(checkpointer.steps()):
+            try:
+                recorded = checkpointer.read_meta(step).get("settings")
+            except CheckpointError:
+                continue
+            check_unedited(recorded, saved, Path(out_dir) / CONFIG_FILE)
+            return
+    finally:
+        checkpointer.close()
 
 
 def check_unedited(recorded: Any, cfg: TrainConfig, path: Path) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import builtins
 import dataclasses
 import errno
+import hashlib
 import json
 import logging
 import os
@@ -311,9 +312,18 @@ def bit_rot(directory: Path) -> Path:
     return path
 
 
-def edit_meta(directory: Path, edit) -> None:
+def edit_meta(directory: Path, edit, *, seal: bool = False) -> None:
+    """Rewrites a checkpoint's record as ``edit`` returns it, without its own checksum (as
+    versions before it wrote records) or, with ``seal``, with the checksum of the new text (an
+    intact record of other contents): SHA-256 of the record as canonical JSON."""
     path = directory / "meta" / "metadata"
-    path.write_text(json.dumps(edit(json.loads(path.read_text()))))
+    record = json.loads(path.read_text())
+    del record["record_checksum"]
+    record = edit(record)
+    if seal:
+        text = json.dumps(record, sort_keys=True, separators=(",", ":"))
+        record["record_checksum"] = "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+    path.write_text(json.dumps(record))
 
 
 @pytest.fixture()
@@ -349,7 +359,7 @@ def test_a_wrong_recorded_checksum_names_the_array(three_steps):
         meta["checksums"][victim] = f"{kind}:0:0"  # the right kind of checksum, a wrong value
         return meta
 
-    edit_meta(directory / "2", replace_checksum)
+    edit_meta(directory / "2", replace_checksum, seal=True)
     with pytest.raises(CorruptCheckpointError) as err:
         Checkpointer(directory).restore(jax.eval_shape(lambda: trees[2]), step=2)
     assert str(err.value) == (
@@ -429,6 +439,82 @@ def test_when_every_checkpoint_is_corrupt_the_error_names_each_of_them(three_ste
         f"checkpoint {directory / '3'} is corrupt (array ['big'] fails its checksum)" + fix
     )
     only.close()
+
+
+def replace_once(path: Path, old: bytes, new: bytes) -> None:
+    """Replaces the first ``old`` in ``path`` by ``new`` of its length (the size kept)."""
+    data = path.read_bytes()
+    assert len(old) == len(new) and old in data
+    path.write_bytes(data.replace(old, new, 1))
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+@pytest.mark.parametrize(
+    ("old", "new"),
+    [(b'"float32"', b'"float22"'), (b'"step": 3', b'"step": 7')],
+    ids=["layout-dtype", "progress-value"],
+)
+def test_a_damaged_metadata_byte_falls_back_to_the_previous_checkpoint(
+    three_steps, capsys, old, new
+):
+    """One byte of checkpoint 3's record changed, the JSON still valid: a dtype of its layout
+    (once reported as "does not match this run's configuration", and for a run's settings as
+    an edited config.json) or a value of the caller's record (once restored as if saved). Its
+    checksum fails, so the restore uses checkpoint 2, saying so once."""
+    directory, trees = three_steps
+    replace_once(directory / "3" / "meta" / "metadata", old, new)
+    ckpt = Checkpointer(directory)
+    restored, meta, step = ckpt.restore(jax.eval_shape(lambda: trees[3]))
+    assert (meta, step) == ({"step": 2}, 2)
+    assert_bit_exact(restored, trees[2])
+    assert capsys.readouterr().err.splitlines() == [
+        f"td3-jax: warning: checkpoint {directory / '3'} is corrupt (its metadata fails its "
+        f"checksum); using checkpoint {directory / '2'}"
+    ]
+    with pytest.raises(CorruptCheckpointError, match="its metadata fails its checksum"):
+        ckpt.restore(jax.eval_shape(lambda: trees[3]), step=3)  # an explicit step: no fallback
+    with pytest.raises(CorruptCheckpointError, match="its metadata fails its checksum"):
+        ckpt.read_meta(3)
+    assert ckpt.read_meta(2) == {"step": 2}
+    ckpt.close()
+
+
+def _flipped_at(path: Path, fraction: float) -> bytes:
+    """``path``'s bytes with the lowest bit of the byte at ``fraction`` of its length flipped."""
+    data = bytearray(path.read_bytes())
+    data[min(int(len(data) * fraction), len(data) - 1)] ^= 0x01
+    return bytes(data)
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_one_flipped_bit_in_any_file_restores_checkpoint_3_exactly_or_falls_back(
+    three_steps, capsys
+):
+    """Every file of a checkpoint, one bit flipped at a quarter, half and three quarters of
+    it: the restore gives either checkpoint 3 bit for bit with its record (the flip was in a
+    byte nothing restored depends on) or checkpoint 2 with one warning naming 3; never an
+    error, never other values. The record and the array data always fall back."""
+    directory, trees = three_steps
+    abstract = jax.eval_shape(lambda: trees[3])
+    outcomes = {}
+    for path in sorted(p for p in (directory / "3").rglob("*") if p.is_file()):
+        intact = path.read_bytes()
+        for fraction in (0.25, 0.5, 0.75):
+            path.write_bytes(_flipped_at(path, fraction))
+            restored, meta, step = Checkpointer(directory).restore(abstract)
+            path.write_bytes(intact)
+            warning = capsys.readouterr().err
+            assert (meta, step) == ({"step": step}, step) and step in (2, 3), path
+            assert_bit_exact(restored, trees[step])
+            if step == 2:
+                assert warning.startswith(f"td3-jax: warning: checkpoint {directory / '3'} is ")
+                assert warning.endswith(f"; using checkpoint {directory / '2'}\n")
+            else:
+                assert warning == ""
+            outcomes.setdefault(path.relative_to(directory / "3").as_posix(), set()).add(step)
+    assert outcomes["meta/metadata"] == {2}
+    data = [name for name in outcomes if _is_array_data(directory / "3" / name)]
+    assert any(outcomes[name] == {2} for name in data)
 
 
 def test_a_newest_checkpoint_of_another_configuration_does_not_fall_back(tmp_path, capsys):

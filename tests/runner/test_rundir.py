@@ -229,6 +229,11 @@ def test_reading_a_run_without_a_checkpoint_says_why(tmp_path):
             finished.restore_on_one_device(program, tmp_path)
     finally:
         lock.release()
+    with pytest.raises(ConfigError, match=r"holds no checkpoint \(its run stopped before its "
+                       r"first evaluation\), so there is no policy to read: run its td3-jax "
+                       r"train command again to start it over$"):  # fmt: skip
+        finished.restore_on_one_device(program, tmp_path)  # (no record: a fresh start there)
+    (tmp_path / "metrics.jsonl").write_text('{"env_steps": 64}\n')  # a record, no checkpoint
     with pytest.raises(ConfigError, match=r"holds no checkpoint \(its run stopped before "
                        r"writing one, or they were removed\), so there is no policy to read: "
                        r"train it again with td3-jax train \(move it away or give another "
@@ -273,16 +278,20 @@ def test_resume_of_a_missing_directory_creates_nothing(tmp_path):
 
 
 def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
-    """What such a run leaves (its released lock, an empty checkpoints folder): --resume
+    """What such a run leaves (its lock file, no longer held, an empty checkpoints folder;
+    config.json and an empty metrics.jsonl where it ended before its first record): --resume
     refuses, saying to start without it, and a fresh start is accepted."""
     rundir.acquire_lock(tmp_path).release()
     (tmp_path / "checkpoints").mkdir()
-    with pytest.raises(ConfigError, match="run without --resume to start it"):
-        rundir.check_resume(tmp_path, SMALL)
-    rundir.check_fresh(tmp_path)
-    # A run with outputs but no checkpoint (stopped after its first evaluation, or its
+    for name, text in (("", ""), ("config.json", "{}"), ("metrics.jsonl", "")):
+        if name:
+            (tmp_path / name).write_text(text)
+        with pytest.raises(ConfigError, match="run without --resume to start it"):
+            rundir.check_resume(tmp_path, SMALL)
+        rundir.check_fresh(tmp_path)
+    # A run with records but no checkpoint (stopped after its first evaluation, or its
     # checkpoints deleted) cannot start fresh there either: move it away.
-    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "metrics.jsonl").write_text('{"env_steps": 64}\n')
     with pytest.raises(ConfigError) as refused:
         rundir.check_resume(tmp_path, SMALL)
     assert str(refused.value).endswith(
@@ -291,6 +300,46 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
     )
     with pytest.raises(ConfigError, match="previous run's outputs"):
         rundir.check_fresh(tmp_path)
+    (tmp_path / "metrics.jsonl").write_text("")  # no record, but a curve (or a file of others)
+    for name in ("curve.png", "notes.txt"):
+        (tmp_path / name).write_text("x")
+        with pytest.raises(ConfigError, match=r"previous run's outputs|directory of other files"):
+            rundir.check_fresh(tmp_path)
+        (tmp_path / name).unlink()
+    rundir.check_fresh(tmp_path)
+
+
+def test_a_run_killed_before_its_first_record_starts_over_with_the_same_call(tmp_path):
+    """A run SIGKILLed (kill -9, the kernel's out-of-memory killer) after it wrote config.json,
+    members.json, an empty metrics.jsonl and TensorBoard's file, before its first evaluation:
+    once its lock died with it, the same call trains there from the start (it used to be
+    refused as "a previous run's outputs ... but no checkpoint to resume"); while a live
+    process holds the lock, it is refused as in use."""
+    out = tmp_path / "run"
+    cfg = dataclasses.replace(SMALL, hidden_sizes=(8,))
+    holder = lock_holding_process(
+        "import dataclasses\nfrom td3_jax.config.build import members\n"
+        "from td3_jax.config.schema import TrainConfig\nfrom td3_jax.runner.logger import "
+        f"MetricsLogger\ncfg = TrainConfig(**{dataclasses.asdict(cfg)!r})\n"
+        f"lock = rundir.open_run_dir({str(out)!r}, resume=False)\n"
+        f"rundir.save_config(cfg, members(cfg), lock.path.parent)\n"
+        "MetricsLogger(lock.path.parent, 0)"
+    )
+    try:
+        with pytest.raises(ConfigError, match="in use by another td3-jax run"):
+            rundir.check_fresh(out)
+    finally:
+        holder.kill()  # SIGKILL: no clean-up code runs
+        holder.wait()
+    left = sorted(p.name for p in out.iterdir())
+    assert left == [".lock", "config.json", "members.json", "metrics.jsonl", "tensorboard"]
+    assert (out / "metrics.jsonl").stat().st_size == 0 and rundir.checkpoint_steps(out) == []
+    rundir.check_fresh(out)
+    with pytest.raises(ConfigError, match="run without --resume to start it"):
+        rundir.check_resume(out, cfg)
+    assert [r["env_steps"] for r in run_module.train(cfg, out, progress=False)] == [64, 128]
+    assert [r["env_steps"] for r in read_records(out)] == [64, 128]
+    assert rundir.checkpoint_steps(out) == [1, 2]
 
 
 def test_a_damaged_or_edited_members_json_is_refused_in_one_line(tmp_path):
@@ -503,10 +552,54 @@ def test_a_resume_refuses_a_config_json_edited_since_its_checkpoint(tmp_path, ca
                     ["export", "--run", str(out), "--format", "npz"]):  # fmt: skip
         code, _, err = main(command, capsys)
         assert code == 2 and "discount is 0.5 but the run's checkpoints were written" in err, err
+    # A size or the environment edited: named as the setting, not as the arrays it changes
+    # (".env_state...: saved [1, 4] int32, expected [1, 2] int32").
+    edits = [('"num_envs": 4', '"num_envs": 2', 'num_envs is 2 but the run\'s checkpoints were '
+              'written with 4;'),
+             ('"env": "gymnax/Pendulum-v1"', '"env": "gymnax/MountainCarContinuous-v0"',
+              'env is "gymnax/MountainCarContinuous-v0" but the run\'s checkpoints were written '
+              'with "gymnax/Pendulum-v1";')]  # fmt: skip
+    for old, new, said in edits:
+        path.write_text(saved.replace(old, new))
+        for command in (["train", "--out", str(out), "--resume", "--total-steps", "192"],
+                        ["eval", "--run", str(out), "--episodes", "2"],
+                        ["export", "--run", str(out), "--format", "npz"]):  # fmt: skip
+            code, _, err = main(command, capsys)
+            assert code == 2 and err.strip() == f"td3-jax: error: {path}: {said} was the file " \
+                "edited? Restore its value", err  # fmt: skip
     path.write_text(saved)
     assert main(["train", "--out", str(out), "--resume", "--total-steps", "192", "--quiet"],
                 capsys)[0] == 0  # fmt: skip
     assert [r["env_steps"] for r in read_records(out)] == [64, 128, 192]
+
+
+def test_a_damaged_newest_record_falls_back_for_resume_eval_and_export(tmp_path, capsys):
+    """One byte of the newest checkpoint's record changed ("float32" to "float22", its
+    precision setting): eval, export and --resume use the checkpoint before it, with one
+    warning naming the damaged one; none says config.json (intact) was edited. The resume
+    continues from env step 64 and repeats the first run's record at 128 exactly."""
+    out = tmp_path / "run"
+    assert main(["train", *TINY_FLAGS, "--out", str(out)], capsys)[0] == 0
+    first = read_records(out)
+    record = out / "checkpoints" / "2" / "meta" / "metadata"
+    text = record.read_text()
+    assert text.count('"precision": "float32"') == 1
+    record.write_text(text.replace('"precision": "float32"', '"precision": "float22"'))
+    newest, before = out / "checkpoints" / "2", out / "checkpoints" / "1"
+    warning = (f"td3-jax: warning: checkpoint {newest} is corrupt (its metadata fails its "
+               f"checksum); using checkpoint {before}")  # fmt: skip
+    for command in (["eval", "--run", str(out), "--episodes", "2"],
+                    ["export", "--run", str(out), "--format", "npz"]):  # fmt: skip
+        code, _, err = main(command, capsys)
+        assert code == 0 and err.strip().splitlines() == [warning], err
+    code, stdout, err = main(["train", "--out", str(out), "--resume", "--total-steps", "192"],
+                             capsys)  # fmt: skip
+    assert code == 0 and err.strip().splitlines() == [warning], err
+    assert f"resuming from checkpoint {out / 'checkpoints' / '1'} (env step 64)" in stdout
+    records = read_records(out)
+    assert [r["env_steps"] for r in records] == [64, 128, 192]
+    same = lambda r: {k: v for k, v in r.items() if k not in VOLATILE}
+    assert same(records[1]) == same(first[1])  # (the same numbers, trained again from 64)
 
 
 #: SMALL as config.json records it (the settings it leaves to TD3 as TD3's values).
