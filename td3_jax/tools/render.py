@@ -22,6 +22,11 @@
   ``mujoco.egl`` / ``mujoco.osmesa`` module and MuJoCo's renderer is driven directly.
 * **Writing** (:func:`write_video`): MP4 (H.264 through imageio-ffmpeg, whose wheel holds the
   ffmpeg binary) or GIF (Pillow).
+* **Bounded memory.** Frames are drawn as the writer takes them (:func:`frame_stream`): an MP4
+  holds one frame at a time whatever ``--episodes``. A GIF's encoder (Pillow) holds every frame
+  until it writes the file, so a GIF that would not fit in the memory available now is refused
+  in one line once the rollout's length is known, before any frame is drawn
+  (:func:`check_gif_memory`).
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ import os
 import subprocess
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -223,9 +228,9 @@ def _with_buffer(model: Any, width: int, height: int) -> Any:
 
 
 def _draw_scene(model: Any, camera_index: int | None, positions: np.ndarray,
-                width: int, height: int) -> np.ndarray:  # fmt: skip
-    """``[n, height, width, 3]`` uint8 frames of ``positions [n, nq]`` (a GL context is
-    current)."""
+                width: int, height: int) -> Iterator[np.ndarray]:  # fmt: skip
+    """``[height, width, 3]`` uint8 frames of ``positions [n, nq]``, one per row, each drawn as
+    it is taken (a GL context is current while they are)."""
     import mujoco
 
     data, scene = mujoco.MjData(model), mujoco.MjvScene(model, maxgeom=10_000)
@@ -233,19 +238,43 @@ def _draw_scene(model: Any, camera_index: int | None, positions: np.ndarray,
     camera = _camera(model, camera_index, positions[0] if len(positions) else None)
     option, perturb = mujoco.MjvOption(), mujoco.MjvPerturb()
     viewport = mujoco.MjrRect(0, 0, width, height)
-    frames = np.empty((len(positions), height, width, 3), np.uint8)
     try:
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, context)
-        for i, qpos in enumerate(positions):
+        for qpos in positions:
             data.qpos[:] = qpos
             mujoco.mj_forward(model, data)
             mujoco.mjv_updateScene(model, data, option, perturb, camera,
                                    mujoco.mjtCatBit.mjCAT_ALL.value, scene)  # fmt: skip
             mujoco.mjr_render(viewport, scene, context)
-            mujoco.mjr_readPixels(frames[i], None, viewport, context)
+            frame = np.empty((height, width, 3), np.uint8)
+            mujoco.mjr_readPixels(frame, None, viewport, context)
+            yield frame[::-1]  # OpenGL's rows run bottom-up
     finally:
         context.free()
-    return frames[:, ::-1]  # OpenGL's rows run bottom-up
+
+
+def scene_frames(
+    model: Any,
+    positions: np.ndarray,
+    *,
+    camera: str | None = None,
+    width: int = 320,
+    height: int = 240,
+    backend: str | None = None,
+) -> Iterator[np.ndarray]:
+    """``[height, width, 3]`` uint8 frames of MuJoCo ``model`` at each row of ``positions [n,
+    nq]`` (``qpos``), seen by ``camera`` (:func:`camera_id`), on ``backend`` (default
+    :func:`default_gl_backend`), drawn one at a time as they are taken (the OpenGL context
+    lives until the last one is taken or the iterator is closed)."""
+    model = _with_buffer(model, width, height)
+    index = camera_id(model, camera)
+    context = gl_context(backend or default_gl_backend(), width, height)
+    try:
+        with contextlib.closing(_draw_scene(model, index, np.asarray(positions, np.float64),
+                                            width, height)) as frames:  # fmt: skip
+            yield from frames
+    finally:
+        context.free()
 
 
 def render_positions(
@@ -257,16 +286,10 @@ def render_positions(
     height: int = 240,
     backend: str | None = None,
 ) -> np.ndarray:
-    """``[n, height, width, 3]`` uint8 frames of MuJoCo ``model`` at ``positions [n, nq]``
-    (``qpos``), seen by ``camera`` (:func:`camera_id`), on ``backend`` (default
-    :func:`default_gl_backend`)."""
-    model = _with_buffer(model, width, height)
-    index = camera_id(model, camera)
-    context = gl_context(backend or default_gl_backend(), width, height)
-    try:
-        return _draw_scene(model, index, np.asarray(positions, np.float64), width, height)
-    finally:
-        context.free()
+    """``[n, height, width, 3]`` uint8: :func:`scene_frames`, all held at once."""
+    frames = list(scene_frames(model, positions, camera=camera, width=width, height=height,
+                               backend=backend))  # fmt: skip
+    return np.stack(frames) if frames else np.empty((0, height, width, 3), np.uint8)
 
 
 def draw_pendulum(angle: float, width: int, height: int) -> np.ndarray:
@@ -384,6 +407,39 @@ def rollout(run_dir: Path, *, episodes: int = 1, seed: int = 12345, member: int 
                    env_steps=meta.get("env_steps"))  # fmt: skip
 
 
+def episode_frames(
+    rollout_: Rollout,
+    episode: int,
+    *,
+    camera: str | None = None,
+    width: int = 320,
+    height: int = 240,
+    backend: str | None = None,
+) -> Iterator[np.ndarray]:
+    """Labelled frames ``[height, width, 3]`` (uint8) of episode ``episode`` of a
+    :class:`Rollout`, one per step, each drawn as it is taken (see :func:`scene_frames` for
+    ``camera`` and ``backend``)."""
+    env = rollout_.env
+    check_renderable(env)
+    positions, rewards = rollout_.positions[episode], rollout_.rewards[episode]
+    if env.mj_model is None:
+        drawn = (draw_pendulum(float(q[0]), width, height) for q in positions)
+    else:
+        drawn = scene_frames(env.mj_model, positions, camera=camera, width=width,
+                             height=height, backend=backend)  # fmt: skip
+    with contextlib.closing(drawn):
+        for frame, so_far in zip(drawn, np.cumsum(rewards), strict=True):
+            yield label(frame, f"ep {episode + 1}  return {so_far:.1f}")
+
+
+def frame_stream(rollout_: Rollout, **drawing: Any) -> Iterator[np.ndarray]:
+    """:func:`episode_frames` of every episode, one after another (``drawing``: its
+    ``camera``, ``width``, ``height`` and ``backend``): one frame in memory at a time."""
+    for episode in range(len(rollout_.positions)):
+        with contextlib.closing(episode_frames(rollout_, episode, **drawing)) as frames:
+            yield from frames
+
+
 def rollout_frames(
     rollout_: Rollout,
     *,
@@ -393,21 +449,10 @@ def rollout_frames(
     backend: str | None = None,
 ) -> list[np.ndarray]:
     """Labelled frames ``[length_e, height, width, 3]`` (uint8) of each episode of a
-    :class:`Rollout` (see :func:`render_positions` for ``camera`` and ``backend``)."""
-    env = rollout_.env
-    check_renderable(env)
-    episodes = []
-    for e, (positions, rewards) in enumerate(zip(rollout_.positions, rollout_.rewards,
-                                                 strict=True)):  # fmt: skip
-        if env.mj_model is None:
-            frames = [draw_pendulum(float(q[0]), width, height) for q in positions]
-        else:
-            frames = render_positions(env.mj_model, positions, camera=camera, width=width,
-                                      height=height, backend=backend)  # fmt: skip
-        so_far = np.cumsum(rewards)
-        episodes.append(np.stack([label(f, f"ep {e + 1}  return {r:.1f}")
-                                  for f, r in zip(frames, so_far, strict=True)]))  # fmt: skip
-    return episodes
+    :class:`Rollout`, all held at once (:func:`frame_stream` draws them one at a time)."""
+    drawing = dict(camera=camera, width=width, height=height, backend=backend)
+    return [np.stack(list(episode_frames(rollout_, e, **drawing)))
+            for e in range(len(rollout_.positions))]  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -428,23 +473,26 @@ def video_path(run_dir: Path, out: Path | None, gif: bool) -> Path:
     return out
 
 
-def write_video(path: Path, frames: np.ndarray, fps: float) -> Path:
-    """Writes ``frames [n, h, w, 3]`` (uint8) to ``path``: H.264 MP4 (imageio-ffmpeg; odd
-    sizes are padded to even) or a looping GIF (Pillow), by its suffix. ``OSError`` where
-    nothing was written."""
+def write_video(path: Path, frames: Iterable[np.ndarray], fps: float) -> Path:
+    """Writes ``frames`` (``[h, w, 3]`` uint8 each: an array ``[n, h, w, 3]``, a list or an
+    iterator) to ``path``: H.264 MP4 (imageio-ffmpeg; odd sizes are padded to even), each
+    frame handed to ffmpeg as it comes, or a looping GIF (Pillow, which holds them all until
+    it writes), by its suffix. ``OSError`` where nothing was written."""
     import imageio.v2 as imageio
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".gif":
-        imageio.mimwrite(path, list(frames), format="GIF", duration=1000.0 / fps, loop=0)
-        return path
+    gif = path.suffix.lower() == ".gif"
+    if gif:
+        options = dict(format="GIF", duration=1000.0 / fps, loop=0)
+    else:
+        options = dict(format="FFMPEG", fps=fps, macro_block_size=2, ffmpeg_log_level="error")
     before = _written(path)
-    with _forking():
-        imageio.mimwrite(path, list(frames), format="FFMPEG", fps=fps, macro_block_size=2,
-                         ffmpeg_log_level="error")  # fmt: skip
-    if _written(path) in (before, None) or path.stat().st_size == 0:  # (ffmpeg says why only)
-        raise OSError(f"ffmpeg wrote nothing to {path}")
+    with _forking(), imageio.get_writer(path, mode="I", **options) as writer:
+        for frame in frames:
+            writer.append_data(frame)
+    if not gif and (_written(path) in (before, None) or path.stat().st_size == 0):
+        raise OSError(f"ffmpeg wrote nothing to {path}")  # (ffmpeg only says why)
     return path
 
 
@@ -510,12 +558,18 @@ def check_destination(path: Path, replace: bool = False) -> list[Path]:
     return made
 
 
-def _write(out: Path, frames: np.ndarray, fps: float) -> None:
-    """:func:`write_video`, its OSError (a disk that filled during the rollout) a RenderError."""
+def _write(out: Path, frames: Iterable[np.ndarray], fps: float) -> None:
+    """:func:`write_video`, its OSError (a full disk) a RenderError; a video left unfinished
+    (the write or a frame's drawing failed, a Ctrl-C) is removed."""
+    before = _written(Path(out))
     try:
         write_video(out, frames, fps)
-    except OSError as err:
-        raise RenderError(f"--out {out}: cannot write it ({err.strerror or err})") from err
+    except BaseException as err:
+        if _written(Path(out)) != before:
+            Path(out).unlink(missing_ok=True)
+        if isinstance(err, OSError):
+            raise RenderError(f"--out {out}: cannot write it ({err.strerror or err})") from err
+        raise
 
 
 def _remove_folders(made: list[Path]) -> None:
@@ -523,6 +577,44 @@ def _remove_folders(made: list[Path]) -> None:
     for folder in reversed(made):
         with contextlib.suppress(OSError):
             folder.rmdir()
+
+
+#: Bytes of memory per pixel of each frame that a GIF's encoder holds until it writes the file
+#: (imageio keeps every frame as an RGB image, 3 bytes, and Pillow adds its paletted copy and
+#: deltas: 5.2 to 5.6 measured for 300 to 1200 frames of 320 x 240), rounded up.
+GIF_BYTES_PER_PIXEL = 6
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available now without swapping (``MemAvailable`` of /proc/meminfo, else
+    the free physical pages), ``None`` where neither can be read."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return None
+
+
+def check_gif_memory(frames: int, width: int, height: int, available: int | None = None) -> None:
+    """Raises :class:`RenderError` before any frame is drawn where a GIF of ``frames`` frames
+    of ``width x height`` would not fit in the memory available now (``available`` bytes,
+    default :func:`available_memory`; unknown: no check): its encoder holds every frame
+    (:data:`GIF_BYTES_PER_PIXEL`), where an MP4 is written frame by frame."""
+    from td3_jax.runner.memory import size_text
+
+    available = available_memory() if available is None else available
+    need = frames * width * height * GIF_BYTES_PER_PIXEL
+    if available is None or need <= available:
+        return
+    raise RenderError(
+        f"a GIF of {frames:,} frames of {width}x{height} needs about {size_text(need)} of memory "
+        f"(its encoder holds every frame until it writes the file) and {size_text(available)} "
+        "is available: write an MP4 instead (no --gif, and an --out ending in .mp4 if one is "
+        "given; it is written frame by frame), or render fewer --episodes or smaller frames "
+        "(--width, --height)"
+    )
 
 
 #: The largest frame side ``render`` draws (8K; a frame of 100000 x 100000 pixels is 30 GB).
@@ -547,9 +639,10 @@ def check_settings(episodes: int, width: int, height: int, fps: float) -> None:
 def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345,
                member: int | None = None, camera: str | None = None, width: int = 320,
                height: int = 240, fps: float = 30.0, env: Any = None) -> Rendered:  # fmt: skip
-    """Renders ``episodes`` evaluation episodes of a run (:func:`rollout`,
-    :func:`rollout_frames`) one after the other into the video ``out`` (``env``: the
-    environment object of a run trained on one)."""
+    """Renders ``episodes`` evaluation episodes of a run (:func:`rollout`) one after the other
+    into the video ``out``, each frame drawn as the writer takes it (:func:`frame_stream`; a
+    GIF that would not fit in memory is refused first, :func:`check_gif_memory`). ``env``: the
+    environment object of a run trained on one."""
     check_settings(episodes, width, height, fps)
     check_writer(out)
     from td3_jax.runner.rundir import require_run_dir
@@ -560,13 +653,15 @@ def render_run(run_dir: Path, out: Path, *, episodes: int = 1, seed: int = 12345
     try:
         result = rollout(run_dir, episodes=episodes, seed=seed, member=member,
                          check=functools.partial(check_scene, camera=camera), env=env)  # fmt: skip
-        frames = rollout_frames(result, camera=camera, width=width, height=height)
-        _write(out, np.concatenate(frames), fps)
+        lengths = [len(p) for p in result.positions]
+        if Path(out).suffix.lower() == ".gif":
+            check_gif_memory(sum(lengths), width, height)
+        _write(out, frame_stream(result, camera=camera, width=width, height=height), fps)
     except BaseException:  # (no checkpoint, no OpenGL, a bad member: no folder left behind)
         _remove_folders(made)
         raise
-    return Rendered(Path(out), result.member, [len(f) for f in frames],
-                    [float(r) for r in result.returns], result.env_steps)  # fmt: skip
+    return Rendered(Path(out), result.member, lengths, [float(r) for r in result.returns],
+                    result.env_steps)  # fmt: skip
 
 
 __all__ = [
@@ -574,6 +669,8 @@ __all__ = [
     "GLUnavailableError",
     "NotRenderableError",
     "RenderError",
+    "check_gif_memory",
+    "frame_stream",
     "render_run",
     "rollout",
     "write_video",

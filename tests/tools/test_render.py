@@ -14,6 +14,7 @@ import io
 import json
 import os
 import re
+import tracemalloc
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -270,3 +271,92 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_rollout(tmp_path):
     assert not (tmp_path / "a").exists()
     video = render.write_video(tmp_path / "new" / "v.mp4", np.zeros((2, 8, 8, 3), np.uint8), 10.0)
     assert video.stat().st_size > 0
+
+
+# --------------------------------------------------------------------------------------------
+# memory: frames drawn as the writer takes them
+# --------------------------------------------------------------------------------------------
+
+BIG_W, BIG_H = 160, 120  # 57,600 bytes a frame
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    from td3_jax import envs
+
+    return envs.make("gymnax/Pendulum-v1")
+
+
+def pendulum_rollout(env, episodes: int, length: int = 30) -> render.Rollout:
+    """A :class:`render.Rollout` made by hand (nothing compiles): ``episodes`` episodes of
+    ``length`` steps, the angle sweeping and a reward of -1 a step."""
+    positions = [(np.linspace(0.0, 6.0, length) + e)[:, None] for e in range(episodes)]
+    rewards = [np.full(length, -1.0, np.float32) for _ in range(episodes)]
+    return render.Rollout(env, 0, np.full(episodes, -float(length)), positions, rewards)
+
+
+def peak_bytes_writing(path: Path, rollout_: render.Rollout) -> int:
+    """The peak of Python's traced allocations (numpy's arrays among them) while the rollout's
+    frames are drawn and written to ``path``, above what was allocated before."""
+    tracemalloc.start()
+    try:
+        frames = render.frame_stream(rollout_, width=BIG_W, height=BIG_H)
+        render.write_video(path, frames, 30.0)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_an_mp4_is_written_frame_by_frame_in_memory_that_does_not_grow_with_episodes(
+    tmp_path, pendulum
+):
+    """render drew every frame into one array, then copied them all into one more before
+    ffmpeg got the first: --episodes 40 on Pendulum peaked at 4.1 GB. Streamed, 20 episodes
+    (600 frames, 34.6 MB if held) peak as 2 episodes do: a few frames' worth."""
+    frame = BIG_W * BIG_H * 3
+    few = peak_bytes_writing(tmp_path / "few.mp4", pendulum_rollout(pendulum, 2))
+    many = peak_bytes_writing(tmp_path / "many.mp4", pendulum_rollout(pendulum, 20))
+    assert many < 12 * frame and many < 1.5 * few + 2 * frame, (few, many)
+    with render._forking():  # (ffmpeg reads it back)
+        assert len(imageio.mimread(tmp_path / "many.mp4", memtest=False)) == 600  # every frame
+
+
+def test_a_streamed_gif_is_the_gif_of_the_frames_held_at_once(tmp_path, pendulum):
+    """Drawing frames as the writer takes them changes nothing in the file: the GIF written
+    from :func:`render.frame_stream` is byte for byte the one written from every frame held
+    (:func:`render.rollout_frames`), and it has each episode's frames in order."""
+    rollout_ = pendulum_rollout(pendulum, 3, length=8)
+    held = np.concatenate(render.rollout_frames(rollout_, width=32, height=24))
+    render.write_video(tmp_path / "held.gif", held, 10.0)
+    render.write_video(tmp_path / "streamed.gif",
+                       render.frame_stream(rollout_, width=32, height=24), 10.0)  # fmt: skip
+    assert (tmp_path / "streamed.gif").read_bytes() == (tmp_path / "held.gif").read_bytes()
+    assert held.shape == (24, 24, 32, 3)
+    first = render.label(render.draw_pendulum(0.0, 32, 24), "ep 1  return -1.0")
+    np.testing.assert_array_equal(held[0], first)
+
+
+def test_a_gif_that_would_not_fit_in_memory_is_refused_before_a_frame_is_drawn(
+    tmp_path, capsys, monkeypatch
+):
+    """A GIF's encoder holds every frame (about 6 bytes a pixel): 2 episodes of 12 frames of
+    32x32 need 147,456 bytes; with less available the render stops in one line, having drawn
+    nothing and written nothing; an MP4 of the same is written (frame by frame)."""
+    need = 2 * 12 * 32 * 32 * render.GIF_BYTES_PER_PIXEL
+    render.check_gif_memory(24, 32, 32, available=need)  # fits exactly
+    with pytest.raises(render.RenderError, match=r"^a GIF of 24 frames of 32x32 needs about "
+                       r"0\.1 MB of memory .* and 0\.1 MB is available: write an MP4"):  # fmt: skip
+        render.check_gif_memory(24, 32, 32, available=need - 1)
+    run = make_run(tmp_path / "pendulum", "gymnax/Pendulum-v1", episode_length=12)
+    drawn = []
+    real_draw = render.draw_pendulum
+    monkeypatch.setattr(render, "draw_pendulum", lambda *a: drawn.append(a) or real_draw(*a))
+    monkeypatch.setattr(render, "available_memory", lambda: need - 1)
+    flags = ["--episodes", "2", "--width", "32", "--height", "32"]
+    code, _, err = main(["render", "--run", str(run), "--gif", *flags], capsys)
+    assert_one_line_error(code, err, "a GIF of 24 frames of 32x32 needs about", "--episodes")
+    assert drawn == [] and not (run / "rollout.gif").exists()
+    code, _, err = main(["render", "--run", str(run), *flags], capsys)
+    assert code == 0, err
+    with render._forking():  # (ffmpeg reads it back)
+        assert len(drawn) == 24 and len(imageio.mimread(run / "rollout.mp4")) == 24
