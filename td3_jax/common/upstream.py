@@ -108,11 +108,10 @@ def compile_options(platform: str, matmuls: str = "auto", xla_flags: str | None 
     """The compile options of a run's programs on ``platform`` (``jax.Device.platform``).
 
     ``matmuls="cublas"`` on a GPU turns XLA's Triton GEMM emitter off, so cuBLAS runs the
-    matrix products: a C51 TD3 update of batch 32768 with FastTD3's networks took 2.76 ms
-    instead of 3.39 ms on an H100, but the ant preset's loop ran 10% slower (BENCHMARKS.md,
-    2026-11-25 and 2026-11-22). ``"auto"`` leaves XLA's choice. Where ``xla_flags`` (default:
-    the ``XLA_FLAGS`` environment variable) sets the option itself, it stands and nothing is
-    added; on other platforms no option is given.
+    matrix products (faster for the robot presets' C51 update, slower for the ant preset's
+    loop: docs/benchmarks.md, "Playground robot presets"). ``"auto"`` leaves XLA's choice.
+    Where ``xla_flags`` (default: the ``XLA_FLAGS`` environment variable) sets the option
+    itself, it stands and nothing is added; on other platforms no option is given.
     """
     flags = os.environ.get("XLA_FLAGS", "") if xla_flags is None else xla_flags
     named = {flag.lstrip("-").split("=", 1)[0] for flag in flags.split()}

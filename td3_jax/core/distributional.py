@@ -54,9 +54,9 @@ def project(probs: jax.Array, target_z: jax.Array, v_min: jax.Array, v_max: jax.
       without the ``[..., atoms, atoms]`` weights of the dense form ``sum_j p_j max(0, 1 -
       |b_j - i|)``: as ``l`` is sorted, the atoms with ``l_j = i`` are a contiguous run, found
       from the prefix sums of the histogram of ``l`` (:func:`_run_starts`), and each run's sum
-      is a difference of prefix sums of the masses (:func:`_run_sums`). On an H100 this made
-      a C51 update of batch 32768 with two heads 20% faster than the dense form (BENCHMARKS.md,
-      2026-11-25, a 1.5x faster C51 update).
+      is a difference of prefix sums of the masses (:func:`_run_sums`): no ``[..., atoms,
+      atoms]`` weight tensor is formed, which makes a large batch's C51 update faster than the
+      dense form (``benchmarks/updates.py --projections library einsum`` measures both).
     """
     num_atoms = probs.shape[-1]
     delta = (v_max - v_min) / (num_atoms - 1)

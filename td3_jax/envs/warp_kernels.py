@@ -16,10 +16,8 @@ call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compi
 training run's environment is made there), on a machine of 8 cores or more, it runs on a
 thread of its own while the caller goes on to trace and compile its XLA programs, and
 :func:`wait_ready` waits for it before the first physics step: Warp's compile then costs the
-run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). On an H200
-host of 64 cores, cold caches, a ``t1`` run's first record came 110 s after launch alone on the
-host (Warp ready in 28 s, waited for 0 s), and with two such runs starting at once 129 s
-beside against 180 s first (BENCHMARKS.md, 2026-11-27, Warp's compile beside XLA's).
+run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). The
+start-up it saves is measured in docs/benchmarks.md (the T1 flat table's start-up column).
 """
 
 from __future__ import annotations
