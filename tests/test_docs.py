@@ -289,3 +289,34 @@ def test_the_metrics_page_names_every_field_of_a_runs_records(tmp_path):
     described = dict((name, what) for name, _, what in gen.METRICS)["per_member"]
     for key in records[-1]["per_member"][0]:
         assert f"`{key}`" in described or key.startswith("eval_return_"), key
+
+
+# Pages that restate the code -----------------------------------------------------------------
+
+
+def test_the_run_directory_page_names_every_setting_a_resume_may_change():
+    """The resume paragraph lists exactly the settings ``rundir.SAFE_ON_RESUME`` lets change
+    (the W&B ones as ``--wandb*``)."""
+    from td3_jax.config.schema import WANDB_SETTINGS, flag
+    from td3_jax.runner.rundir import SAFE_ON_RESUME
+
+    page = (DOCS / "concepts" / "run-directory.md").read_text()
+    paragraph = page.split("**What may change on resume.**")[1].split("\n\n")[0]
+    listed = re.sub(r"\([^)]*\)", "", paragraph.split(";")[0])  # (the list, asides left out)
+    assert "the `--wandb*` flags" in listed
+    named = set(re.findall(r"`(--[a-z-]+)`", listed))
+    assert named == {flag(name) for name in set(SAFE_ON_RESUME) - set(WANDB_SETTINGS)}
+
+
+def test_the_export_page_imports_only_what_the_export_extra_installs():
+    """The deployment block needs nothing beyond td3-jax and its export extra."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    requirements = [*project["dependencies"], *project["optional-dependencies"]["export"]]
+    installed = {re.split(r"[<>=\[ ]", requirement)[0] for requirement in requirements}
+    page = DOCS / "guides" / "export.md"
+    (code,) = [code for _, marker, code in fenced_blocks(page, "python") if marker == SLOW]
+    imported = set(re.findall(r"^(?:import|from) (\w+)", code, re.M))
+    assert imported == {"numpy", "onnx", "td3_jax"}
+    assert imported - {"td3_jax"} <= installed, (imported, installed)
