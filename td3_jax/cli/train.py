@@ -45,17 +45,19 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(notes.when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(typed), command.resume)  # fmt: skip
-    started = time.perf_counter()
+    started, started_at = time.perf_counter(), []
     with notes.preset_noted(cfg, preset_name, given):
         records = train_stoppably(cfg, command, devices=devices, sweep=sweep, preset=preset_name,
-                                  on_prepared=prepared, program_dir=program_dir)  # fmt: skip
+                                  on_prepared=prepared, program_dir=program_dir,
+                                  on_started=started_at.append)  # fmt: skip
     if not records:
         print(notes.nothing_to_do(command.out, cfg))
         return
     from td3_jax.runner.rundir import is_sweep_dir  # lazy: imports JAX
 
     ranked = sweeping or (command.resume and is_sweep_dir(command.out))  # (also train --resume)
-    _print_end(records, cfg, command, time.perf_counter() - started, ranked)
+    resumed_at = started_at[0] if command.resume and started_at else None
+    _print_end(records, cfg, command, time.perf_counter() - started, ranked, resumed_at)
 
 
 def sweep_main(args: list[str]) -> None:
@@ -161,14 +163,12 @@ def _completed(cfg: TrainConfig, command: Any, source: str,
 
 
 def _print_end(records: list[dict], cfg: TrainConfig, command: Any, process_s: float,
-               sweeping: bool) -> None:  # fmt: skip
-    """The lines that end a run this process trained: :func:`~td3_jax.cli.notes.done_line`, a
-    note when ``--time-budget-s`` stopped it before its last step (and how to go on), a
-    sweep's ranking."""
-    resumed_at = records[0]["env_steps"] - cfg.steps_per_chunk if command.resume else None
-    count = records[-1]["members"]
-    pooled = f" over all {count} members" if count > 1 else " over its 1 member"
-    pooled = f"{pooled} (per setting below)" if sweeping else ""
+               sweeping: bool, resumed_at: int | None = None) -> None:  # fmt: skip
+    """The lines that end a run this process trained (resumed at ``resumed_at`` env steps, if
+    it was): :func:`~td3_jax.cli.notes.done_line` with what its ± is over
+    (:func:`~td3_jax.cli.notes.members_note`), a note when ``--time-budget-s`` stopped it
+    before its last step (and how to go on), a sweep's ranking."""
+    pooled = notes.members_note(records[-1], sweeping)
     taken = records[-1]["env_steps"]
     early = command.time_budget_s is not None and taken < cfg.run_steps
     print(notes.done_line(records[-1], command.out, process_s, resumed_at, pooled,

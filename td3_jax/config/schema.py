@@ -35,7 +35,9 @@ class TrainConfig:
     num_envs: int = 16
     """Environments stepped in parallel."""
     total_steps: int = 20_000
-    """Environment steps (summed over environments); rounded up to whole evaluation chunks."""
+    """Environment steps (summed over environments); the run ends here, rounded up to a whole
+    iteration (its last chunk is shortened; with --eval-in-chunk it is a whole chunk, which an
+    evaluation round needs)."""
     steps_per_iter: int = 1
     """Vectorised environment steps per iteration."""
     updates_per_iter: int = 8
@@ -55,7 +57,7 @@ class TrainConfig:
     eval_every: int = 4_000
     """Environment steps between evaluations (one compiled chunk); also the checkpoint period.
     Runs as whole iterations (those below it; a fresh run from the command line takes those
-    above it where that trains fewer steps past --total-steps). A fresh run from the command
+    above it where that makes fewer chunks of the run). A fresh run from the command
     line lowers it to --total-steps where it is longer (not with --eval-in-chunk, whose chunk
     holds a whole episode)."""
     eval_envs: int = 16
@@ -270,29 +272,49 @@ class TrainConfig:
 
     @property
     def num_chunks(self) -> int:
+        """Chunks of the run (evaluations after the early one), the last one possibly short."""
         return max(
             1, math.ceil(self.total_steps / (self.iters_per_chunk * self.env_steps_per_iter))
         )
 
     @property
     def replay_capacity(self) -> int:
-        """Transitions the replay ring holds: ``buffer_size``, or the run's own length where
+        """Transitions the replay ring holds: ``buffer_size``, or :attr:`chunked_steps` where
         that is smaller (the ring then never wraps, so a resume that extends the run grows it
-        exactly: :func:`td3_jax.core.training.grow_ring`)."""
-        return min(self.buffer_size, self.run_steps)
+        exactly: :func:`td3_jax.core.replay.resize_slices`; a run that ends inside its last
+        chunk leaves the rest empty, so its numbers are those of the whole chunks' run)."""
+        return min(self.buffer_size, self.chunked_steps)
+
+    @property
+    def run_iterations(self) -> int:
+        """Iterations the run takes: ``total_steps`` rounded up to a whole iteration (the last
+        chunk is shortened to end there), or to whole chunks with ``eval_in_chunk`` (an
+        evaluation round needs its whole chunk: a shortened one would leave the run's last
+        round unfinished, and a resume that extends the run would start its next round
+        elsewhere than a straight run does)."""
+        whole_chunks = self.num_chunks * self.iters_per_chunk
+        if self.eval_in_chunk:
+            return whole_chunks
+        return min(whole_chunks, max(1, -(-self.total_steps // self.env_steps_per_iter)))
 
     @property
     def run_steps(self) -> int:
-        """Environment steps the run takes: ``total_steps`` rounded up to whole chunks."""
+        """Environment steps the run takes (per member): :attr:`run_iterations` of
+        ``env_steps_per_iter``."""
+        return self.run_iterations * self.env_steps_per_iter
+
+    @property
+    def chunked_steps(self) -> int:
+        """Environment steps of :attr:`num_chunks` whole chunks: what
+        :func:`td3_jax.config.build.make_train` runs (and the replay ring is sized for)."""
         return self.num_chunks * self.iters_per_chunk * self.env_steps_per_iter
 
     @property
     def total_updates(self) -> int:
         """Gradient updates the run takes: ``updates_per_iter`` in every iteration from the
         first whose collected steps reach ``warmup_steps`` (at least 1)."""
-        iters = self.num_chunks * self.iters_per_chunk
         first = max(1, math.ceil(self.warmup_steps / self.env_steps_per_iter))
-        return max(1, (iters - first + 1) * self.updates_per_iter)
+        return max(1, (self.run_iterations - first + 1) * self.updates_per_iter)
 
     @property
     def scale_rewards(self) -> bool:
@@ -442,9 +464,10 @@ def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     chunk past ``total_steps`` (``--total-steps 20000 --eval-every 100000`` trains 20000 steps,
     not 100000). An in-chunk evaluation keeps its chunk: a round of evaluation episodes must
     fit in one. An ``eval_every`` that is not whole iterations runs as the whole iterations
-    below it, or above it where that trains fewer steps past ``total_steps`` (16 environments,
-    ``--eval-every 3000 --total-steps 6000``: chunks of 3008 steps, 6016 in all, not 3 of
-    2992)."""
+    below it, or above it where whole chunks of those would run fewer steps past
+    ``total_steps`` (16 environments, ``--eval-every 3000 --total-steps 6000``: chunks of 3008
+    steps, 2 of them, the second ending at 6000; not 3 of 2992; compared as
+    :attr:`TrainConfig.chunked_steps`)."""
     per_iter = cfg.env_steps_per_iter  # (a chunk is whole iterations)
     if per_iter <= 0 or cfg.eval_every <= 0:
         return cfg  # (validate names the impossible setting)
@@ -454,12 +477,13 @@ def eval_every_within_run(cfg: TrainConfig) -> TrainConfig:
     if down in (0, up):  # (whole iterations already, or fewer steps than one: runs as one)
         return cfg
     rounded_up = dataclasses.replace(cfg, eval_every=up)
-    return rounded_up if rounded_up.run_steps < cfg.run_steps else cfg
+    return rounded_up if rounded_up.chunked_steps < cfg.chunked_steps else cfg
 
 
 def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str | None:
     """The line saying that ``--eval-every`` runs as whole iterations and ``--total-steps`` as
-    whole chunks, and that an ``asked_eval_every`` longer than the run was lowered to
+    a whole iteration (whole chunks with ``--eval-in-chunk``: :attr:`TrainConfig.run_steps`),
+    and that an ``asked_eval_every`` longer than the run was lowered to
     ``--total-steps`` (:func:`~td3_jax.config.schema.eval_every_within_run`); None when nothing
     changed."""
     notes = []
@@ -471,13 +495,14 @@ def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str 
         notes.append(f"--eval-every {asked} runs as {cfg.steps_per_chunk} (whole "
                      f"iterations of {cfg.env_steps_per_iter} env steps)")  # fmt: skip
     runs = cfg.run_steps
-    if runs != cfg.total_steps:
-        how = "--eval-every sets them"
-        if cfg.eval_in_chunk:  # (eval_every_within_run keeps such a chunk: a round must fit)
-            how += (", with --eval-in-chunk down to one evaluation episode's iterations; "
-                    "--no-eval-in-chunk ends the run at --total-steps")  # fmt: skip
+    if runs != cfg.total_steps and cfg.eval_in_chunk:  # (a round needs its whole chunk)
         notes.append(f"--total-steps {cfg.total_steps} runs as {runs} (whole chunks of "
-                     f"{cfg.steps_per_chunk} steps between evaluations; {how})")  # fmt: skip
+                     f"{cfg.steps_per_chunk} steps between evaluations, as --eval-in-chunk "
+                     "needs; --eval-every sets them, down to one evaluation episode's "
+                     "iterations; --no-eval-in-chunk ends the run at --total-steps)")  # fmt: skip
+    elif runs != cfg.total_steps:
+        notes.append(f"--total-steps {cfg.total_steps} runs as {runs} (a whole iteration of "
+                     f"{cfg.env_steps_per_iter} env steps)")  # fmt: skip
     return "; ".join(notes) or None
 
 
@@ -618,8 +643,10 @@ def _check_counts(cfg: TrainConfig) -> None:
                           f"{cfg.steps_per_iter} is {cfg.env_steps_per_iter:,} env steps, more "
                           f"than the {MAX_COUNT:,} a run can count (int32 counters in the "
                           "compiled program)")  # fmt: skip
-    if cfg.run_steps > MAX_COUNT:
-        runs = f" (run as {cfg.run_steps:,}: whole chunks)" * (cfg.run_steps != cfg.total_steps)
+    if cfg.chunked_steps > MAX_COUNT:  # (make_train runs whole chunks: its counters too)
+        runs = f" (run as {cfg.chunked_steps:,}: whole chunks)" * (
+            cfg.chunked_steps != cfg.total_steps
+        )
         raise ConfigError(f"--total-steps {cfg.total_steps:,}{runs} is more than the "
                           f"{MAX_COUNT:,} env steps a run can count (int32 counters in the "
                           "compiled program)")  # fmt: skip
@@ -666,7 +693,7 @@ def _batch_advice(cfg: TrainConfig, longer_run: str) -> str:
     """``try --batch-size B or ...``: a batch that the run's ring holds (at most 256, a
     multiple of --replay-shards), or ``longer_run`` (empty: none) with a ring of one batch."""
     shards = cfg.replay_shards
-    fitting = max(shards, min(256, cfg.replay_capacity) // shards * shards)
+    fitting = max(shards, min(256, cfg.replay_capacity, cfg.run_steps) // shards * shards)
     ring = "" if cfg.buffer_size >= cfg.batch_size else f"--buffer-size {cfg.batch_size} or more"
     bigger = " with ".join(part for part in (longer_run, ring) if part)
     return f"try --batch-size {fitting}" + (f", or {bigger}" if bigger else "")
@@ -690,7 +717,7 @@ def _check_replay(cfg: TrainConfig) -> None:
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
                           f"replay buffer holds only {capacity}: give --buffer-size {least} at "
                           f"least{varied}")  # fmt: skip
-    if cfg.batch_size > cfg.run_steps:
+    if cfg.updates_per_iter and cfg.batch_size > cfg.run_steps:  # (no updates: never sampled)
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
             f"run collects (--total-steps {cfg.total_steps}): it would never update; "

@@ -28,6 +28,7 @@ from td3_jax.common.errors import (
     OutputWriteError,
     PhysicsOverflowError,
 )
+from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device
 from td3_jax.config.build import bind_environment, members
 from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
@@ -37,8 +38,10 @@ from td3_jax.core.training import ring_as_saved
 from td3_jax.envs import warp_kernels
 from td3_jax.runner import programs, tracking
 from td3_jax.runner.checkpoint import Checkpointer, CheckpointWriteError
+from td3_jax.runner.critic_growth import growth_warning
 from td3_jax.runner.curves import plot_curve
 from td3_jax.runner.logger import MetricsLogger
+from td3_jax.runner.memory import working_bytes
 from td3_jax.runner.programs import Programs, Source
 from td3_jax.runner.rundir import (
     CHECKPOINTS,
@@ -82,6 +85,7 @@ def train(
     program_dir: Path | None = None,
     stop: StopToken | None = None,
     env: Any = None,
+    on_started: Callable[[int], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
 
@@ -109,6 +113,11 @@ def train(
       stop: a :class:`~td3_jax.common.runtime.StopToken`; once set (a thread, a signal handler), it
         stops the run as a Ctrl-C would. Default: a fresh one.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
+      on_started: called once with the env steps the run starts from (0 for a fresh run; on
+        resume, those of the checkpoint restored), before anything is compiled.
+
+    The run ends at ``cfg.total_steps`` rounded up to a whole iteration (its last chunk
+    shortened; whole chunks with ``eval_in_chunk``: :attr:`TrainConfig.run_steps`).
     """
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
@@ -123,7 +132,8 @@ def train(
     try:
         if on_prepared is not None:
             on_prepared()
-        _start_and_train(run, source, resume, progress, preset=preset, changes=changes)
+        _start_and_train(run, source, resume, progress, preset=preset, changes=changes,
+                         on_started=on_started)  # fmt: skip
     finally:
         warp_kernels.drop_pending()  # (a run that ended before its first physics step)
         _finish(run, run_lock)
@@ -161,28 +171,30 @@ def check_time_budget(seconds: float | None) -> None:
 
 
 def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
-                     preset: str | None, changes: Any) -> None:  # fmt: skip
+                     preset: str | None, changes: Any,
+                     on_started: Callable[[int], None] | None = None) -> None:  # fmt: skip
     """The run's start (restored, else fresh), its programs compiled and its chunks trained;
     a run already complete compiles and rewrites nothing, and one stopped before its first
     chunk writes no outputs (so the same command starts it again)."""
-    state, start_chunk = _start(run, source, resume)
-    if start_chunk >= run.cfg.num_chunks:
+    state = _start(run, source, resume)
+    if on_started is not None:
+        on_started(run.start_steps)
+    if run.start_steps >= run.cfg.run_steps:
         return
-    _say_resuming(run, start_chunk)
+    _say_resuming(run)
     run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
     compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
     run.stop.raise_if_set()  # (stopped while programs loaded from the cache: nothing written)
-    _write_and_train(run, compiled, state, start_chunk, progress, resume=resume,
-                     preset=preset, changes=changes)  # fmt: skip
+    _write_and_train(run, compiled, state, progress, resume=resume, preset=preset,
+                     changes=changes)  # fmt: skip
 
 
-def _say_resuming(run: _Run, start_chunk: int) -> None:
+def _say_resuming(run: _Run) -> None:
     """The line a resumed run starts with (by the writing process; nothing for a fresh run)."""
-    if not (run.writer and start_chunk):
+    if not (run.writer and run.start_chunk):
         return
-    path = run.out_dir / CHECKPOINTS / str(start_chunk)
-    steps = start_chunk * run.cfg.steps_per_chunk
-    print(f"resuming from checkpoint {path} (env step {steps})", flush=True)
+    path = run.out_dir / CHECKPOINTS / str(run.start_chunk)
+    print(f"resuming from checkpoint {path} (env step {run.start_steps})", flush=True)
 
 
 #: What shrinks the training programs' working memory (the train state's own size is checked
@@ -190,19 +202,19 @@ def _say_resuming(run: _Run, start_chunk: int) -> None:
 _MEMORY_ADVICE = "fewer --eval-envs or --num-envs, or a smaller --batch-size"
 
 
-def _write_and_train(run: _Run, compiled: Programs, state: Any, start_chunk: int, progress: bool, *,
-                     resume: bool, preset: str | None, changes: Any) -> None:  # fmt: skip
+def _write_and_train(run: _Run, compiled: Programs, state: Any, progress: bool, *, resume: bool,
+                     preset: str | None, changes: Any) -> None:  # fmt: skip
     """config.json, the progress display, metrics.jsonl, TensorBoard and W&B, then the chunks;
     a write the disk refuses (of those or of a checkpoint) is kept in ``run.failed_write``
     for :func:`_finish` and re-raised."""
     try:
-        _write_config(run, resume=resume, preset=preset, changes=changes, start_chunk=start_chunk)
-        run.display = _Progress(run.cfg, start_chunk, enabled=progress and run.writer)
-        run.logger = MetricsLogger(run.out_dir, start_chunk * run.cfg.steps_per_chunk,
-                                   enabled=run.writer, mirror=run.tracker)  # fmt: skip
+        _write_config(run, resume=resume, preset=preset, changes=changes)
+        run.display = _Progress(run.cfg, run.start_steps, enabled=progress and run.writer)
+        run.logger = MetricsLogger(run.out_dir, run.start_steps, enabled=run.writer,
+                                   mirror=run.tracker)  # fmt: skip
         with programs.out_of_memory_as_config_error(jax.local_devices()[0], "training",
                                                     _MEMORY_ADVICE):  # fmt: skip
-            _loop(run, compiled, state, start_chunk)
+            _loop(run, compiled, state)
     except (OSError, CheckpointWriteError) as err:
         if isinstance(err, OSError) and not _refused_write(err):
             raise
@@ -241,7 +253,7 @@ def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
     steps = checkpoint_steps(out)
     if steps:
         newest = steps[-1]
-        last = f"{out / CHECKPOINTS / str(newest)} (env step {newest * run.cfg.steps_per_chunk})"
+        last = f"{out / CHECKPOINTS / str(newest)} (env step {_steps_after(run, newest)})"
         return OutputWriteError(f"{what}; the last good checkpoint is {last}; {fix}, then "
                                 f"continue with: {resume_command(out)}")  # fmt: skip
     if previous_outputs(out):
@@ -257,35 +269,56 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
     """The run's compiled programs, the state's room checked as soon as its shapes are known
     (:func:`td3_jax.runner.programs.compiled`), and its state: ``state`` restored, else initialised.
     ``say``: print that it compiles first (a log then shows where the time goes), and from
-    which stored programs (:func:`td3_jax.runner.programs.find`)."""
+    which stored programs (:func:`td3_jax.runner.programs.find`). XLA's slow-compile alarm and
+    MLIR's lines about a damaged stored program are left out of stderr meanwhile (the first
+    becomes one line, the second is warned of by the program store:
+    :func:`~td3_jax.common.library_noise.filtered_stderr`)."""
     if say:
         # (a stored program ran before: XLA's persistent cache likely holds it compiled)
         cached = " (or loading it from the cache)" if source.stored is not None else ""
         if source.stored is not None:
             print(f"using the traced programs stored in {source.directory / source.key}")
         print(f"compiling the training program{cached}...", flush=True)
-    compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
+    with filtered_stderr():
+        compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
     warp_kernels.wait_ready(run.stop)  # (before the first physics step)
     return compiled, compiled.init() if state is None else state
 
 
 def _check_room(run: _Run, mesh: Any, state: Any) -> None:
-    """The state (arrays or shapes) fits in a device's memory and its checkpoints on the disk."""
-    check_memory(state, mesh)
+    """The state (its shapes) and the programs' working memory fit in the memory a device has
+    available now (a restored state is there already: only the working memory is checked) and
+    its checkpoints on the disk."""
+    working = working_bytes(state, run.cfg, mesh.size)
+    check_memory(state, mesh, working, resident=run.start_chunk > 0)
     run.checkpointer.check_space(state)
 
 
-def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any,
-                  start_chunk: int) -> None:  # fmt: skip
+def _write_config(run: _Run, *, resume: bool, preset: str | None, changes: Any) -> None:
     """config.json for the run (or its resume), by the writing process only."""
     if run.writer:
+        changes = _changes_as_trained(run, changes) if resume else changes
         info = run_info(run.out_dir, resume=resume, preset=preset, changes=changes,
-                        at_env_steps=start_chunk * run.cfg.steps_per_chunk)  # fmt: skip
+                        at_env_steps=run.start_steps)  # fmt: skip
         if not resume:
             info.update(environment_record(run.cfg.env, run.env))
         save_config(run.cfg, run.population, run.out_dir, info)
         if run.tracker is not None:
             run.tracker.set_config(json.loads((run.out_dir / CONFIG_FILE).read_text()))
+
+
+def _changes_as_trained(run: _Run, changes: dict[str, list]) -> dict[str, list]:
+    """A resume's ``changes`` (``{setting: [saved, new]}`` against config.json) with the
+    total_steps the restored checkpoint was written under as its saved value: config.json's
+    may have been edited by hand since (no entry where the run keeps that value; ``changes``
+    as they are for a checkpoint that does not record it)."""
+    before = run.trained_total_steps
+    if before is None:
+        return changes
+    rest = {name: change for name, change in changes.items() if name != "total_steps"}
+    if before == run.cfg.total_steps:
+        return rest
+    return {"total_steps": [before, run.cfg.total_steps], **rest}
 
 
 def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: Any, writer: bool,
@@ -331,6 +364,10 @@ class _Run:
     display: _Progress | None = None
     records: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     diverged: set[int] = dataclasses.field(default_factory=set)
+    start_chunk: int = 0  # the checkpoint the run resumed from (0: a fresh run)
+    start_steps: int = 0  # the env steps it holds (a run's shortened last chunk: not whole)
+    trained_total_steps: int | None = None  # the total_steps it was written under, if recorded
+    warned_of_growth: bool = False  # (growth_warning: said once per run)
     clock_start: float = dataclasses.field(default_factory=time.perf_counter)
     wall_offset: float = 0.0
     failed_write: Exception | None = None  # the write the disk refused, which stopped the run
@@ -379,60 +416,110 @@ def _warn_on_failure(action: Any, what: str, hint: str = "",
         return None
 
 
-def _start(run: _Run, source: Source, resume: bool) -> tuple[Any, int]:
-    """``(restored state, chunk index)`` on resume, ``(None, 0)`` for a fresh run; the run's
-    checkpointer is opened here."""
+def _start(run: _Run, source: Source, resume: bool) -> Any:
+    """The restored state on resume (``run.start_chunk`` and ``run.start_steps`` say where its
+    checkpoint left the run), ``None`` for a fresh run; the run's checkpointer is opened here.
+    The state is checked to fit (with the programs' working memory) before it is restored."""
     run.checkpointer = Checkpointer(run.out_dir / CHECKPOINTS, run.cfg.keep_checkpoints)
     run.clock_start = time.perf_counter()
     if not resume:
-        return None, 0
+        return None
     if run.writer:  # (it holds the run's lock: no other write can be in flight)
         run.checkpointer.remove_unfinished()
     abstract = programs.abstract_state(source)
-    check_memory(abstract, source.mesh)
+    check_memory(abstract, source.mesh, working_bytes(abstract, run.cfg, source.mesh.size))
     shardings = state_shardings(abstract, source.mesh)
-    state, meta, start_chunk = run.checkpointer.restore(abstract, shardings=shardings,
-                                                        resize=ring_as_saved)  # fmt: skip
+    state, meta, run.start_chunk = run.checkpointer.restore(abstract, shardings=shardings,
+                                                            resize=ring_as_saved)  # fmt: skip
     check_unedited(meta.get("settings"), run.cfg, run.out_dir / CONFIG_FILE)
+    run.start_steps = int(meta.get("env_steps", run.start_chunk * run.cfg.steps_per_chunk))
+    run.trained_total_steps = meta.get("total_steps")
+    _check_resumable(run)
     run.wall_offset = float(meta["wall_time_s"])
     run.diverged = set(meta.get("diverged_members", []))
-    return state, start_chunk
+    return state
 
 
-def _loop(run: _Run, compiled: Programs, state: Any, start_chunk: int) -> None:
+def _check_resumable(run: _Run) -> None:
+    """A one-line ConfigError for a resume that cannot go on as its run: a ``--total-steps``
+    below the steps its checkpoint has taken, or a cosine schedule's length changed (also by
+    a config.json whose total_steps was edited by hand since that checkpoint)."""
+    cfg, out = run.cfg, run.out_dir
+    if run.start_steps > cfg.run_steps:
+        raise ConfigError(f"--total-steps {cfg.total_steps} is less than the {run.start_steps} "
+                          f"env steps the run in {out} has already taken (give more to extend "
+                          "it)")  # fmt: skip
+    trained = run.trained_total_steps
+    if cfg.lr_schedule == "cosine" and trained is not None and trained != cfg.total_steps:
+        raise ConfigError(f"--total-steps cannot change on --resume with --lr-schedule cosine "
+                          f"(the run in {out} was trained for {trained}, not "
+                          f"{cfg.total_steps}): the schedule's length is the run's number of "
+                          "updates (start a new run to train longer)")  # fmt: skip
+
+
+def chunk_calls(cfg: TrainConfig, done: int) -> list[tuple[int, list[int]]]:
+    """``(chunk index, [iterations of each call])`` of every chunk a run of ``cfg`` still
+    trains after ``done`` iterations: whole chunks of ``iters_per_chunk``, the last one
+    shortened to end at :attr:`~td3_jax.config.schema.TrainConfig.run_iterations` (the same
+    compiled program: its iteration count is an argument), the first one only the rest of a
+    chunk the run stopped inside (a run extended past its shortened last chunk, which then
+    ends where a straight run's chunk does); a fresh run's first chunk as two calls, its
+    ``early_iterations`` and the rest, with an evaluation after each."""
+    per, end = cfg.iters_per_chunk, cfg.run_iterations
+    plan = []
+    for index in range(done // per, cfg.num_chunks):
+        begin, stop = max(index * per, done), min((index + 1) * per, end)
+        early = cfg.early_iterations if begin == 0 else 0
+        if stop > begin:
+            plan.append((index, [early, stop - early] if 0 < early < stop else [stop - begin]))
+    return plan
+
+
+def _loop(run: _Run, compiled: Programs, state: Any) -> None:
     """Chunks, evaluations, records and checkpoints until the run's end or a stop condition.
 
-    A fresh run's first chunk is two calls of the same program (``early_iterations``, then the
-    rest) with an evaluation after each; checkpoints are taken after whole chunks only, written
-    in the background while the next chunk runs (the last one is waited for). Stopped by
-    ``run.stop``, it raises KeyboardInterrupt once that chunk is checkpointed.
+    The chunks are :func:`chunk_calls`' (one compiled program, whatever their lengths), each
+    call followed by an evaluation and a record; a checkpoint follows whole chunks only, and
+    the run's last one, written in the background while the next chunk runs (the last one is
+    waited for). Stopped by ``run.stop``, it raises KeyboardInterrupt once that chunk is
+    checkpointed.
     """
     cfg = run.cfg
-    early = cfg.early_iterations if start_chunk == 0 else 0
-    completed = start_chunk
+    chunks, stopped = 0, False
     run.stop.mark_training()  # (a stop from here on waits for the chunk's checkpoint)
-    for index in range(start_chunk, cfg.num_chunks):
-        if _stopping(run, index - start_chunk):
+    for index, calls in chunk_calls(cfg, run.start_steps // cfg.env_steps_per_iter):
+        if _stopping(run, chunks):
+            stopped = True
             break
-        whole = cfg.iters_per_chunk
-        parts = [early, whole - early] if index == 0 and early else [whole]
-        for iterations in parts:
+        for iterations in calls:
             with awaiting_device():  # (a Ctrl-C leaves the chunk running on the device)
                 state, record = _chunk_and_record(run, compiled, state, iterations)
             run.logger.write(record)
             run.records.append(record)
             run.display.update(record)
+            _warn_of_critic_growth(run)
             run.checkpointer.check()  # a background write that failed stops the run now
-        last = index + 1 == cfg.num_chunks or _stopping(run, index + 1 - start_chunk)
+        chunks += 1
+        last = index + 1 == cfg.num_chunks or _stopping(run, chunks)
         if last or (index + 1) % cfg.checkpoint_every == 0:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
-                    "diverged_members": sorted(run.diverged),
+                    "diverged_members": sorted(run.diverged), "total_steps": cfg.total_steps,
                     "settings": fixed_settings(cfg)}  # fmt: skip
             with run.stop.shielded():  # a Ctrl-C now lets the checkpoint be written
                 run.checkpointer.save(index + 1, state, meta, background=not last)
-        completed = index + 1
-    if completed < cfg.num_chunks:  # a stop that came with the last chunk: the run is done
+    if stopped:  # (a stop that came with the last chunk: the run is done)
         run.stop.raise_if_set()  # stopped by its token: as interrupted, once checkpointed
+
+
+def _warn_of_critic_growth(run: _Run) -> None:
+    """The warning of :func:`~td3_jax.runner.critic_growth.growth_warning`, once per run, by
+    the writing process."""
+    if run.warned_of_growth or not run.writer:
+        return
+    warning = growth_warning(run.records)
+    if warning is not None:
+        run.warned_of_growth = True
+        print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
 def _stopping(run: _Run, chunks_done: int) -> bool:
@@ -553,7 +640,15 @@ def _kept_checkpoint(run: _Run, last: int | None) -> str:
     """What a stopped run keeps: its newest checkpoint (after ``last`` chunks), if any."""
     if not last:
         return "no checkpoint had been written yet"
-    return f"the last good checkpoint (after {last * run.cfg.steps_per_chunk} env steps) is kept"
+    return f"the last good checkpoint (after {_steps_after(run, last)} env steps) is kept"
+
+
+def _steps_after(run: _Run, chunks: int) -> int:
+    """The env steps of checkpoint ``chunks`` of the run: where the restored one left it, else
+    whole chunks up to the run's end (its last chunk may be shortened)."""
+    if chunks == run.start_chunk:
+        return run.start_steps
+    return min(chunks * run.cfg.steps_per_chunk, run.cfg.run_steps)
 
 
 def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
@@ -578,12 +673,12 @@ class _Progress:
     evaluation. A part of the run spent in the random warm-up says so instead of a rate (it
     steps without updates, far faster than training)."""
 
-    def __init__(self, cfg: TrainConfig, start_chunk: int, enabled: bool, console: Any = None):
+    def __init__(self, cfg: TrainConfig, start_steps: int, enabled: bool, console: Any = None):
         from rich.console import Console
 
         self.enabled, self.warmup = enabled, cfg.warmup_steps
-        self.total = cfg.num_chunks * cfg.steps_per_chunk
-        self.done = start_chunk * cfg.steps_per_chunk  # (env steps before the next record)
+        self.total = cfg.run_steps
+        self.done = start_steps  # (env steps before the next record)
         console = console or Console()
         self.lines = enabled and not console.is_terminal
         self.title = f"{cfg.algo} {cfg.env}"

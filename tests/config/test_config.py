@@ -97,7 +97,7 @@ def test_validate_rejects(changes, match):
     [
         dict(discount=0.0),
         dict(discount=1.0),
-        dict(total_steps=1),  # rounded up to one whole chunk
+        dict(total_steps=101),  # the warm-up's 100 steps and one iteration more (104)
         dict(warmup_steps=0),
         dict(tau=1.0),
         # batch exactly the buffer's size, one iteration exactly filling it
@@ -170,8 +170,9 @@ def test_derived_quantities(cfg, env_steps_per_iter, iters_per_chunk, num_chunks
     assert cfg.iters_per_chunk == iters_per_chunk
     assert cfg.num_chunks == num_chunks
     assert cfg.replay_capacity == replay_capacity
-    # The chunks cover at least total_steps environment steps.
-    assert cfg.run_steps == num_chunks * iters_per_chunk * env_steps_per_iter >= cfg.total_steps
+    # The chunks cover total_steps; the run ends at it, rounded up to a whole iteration.
+    assert cfg.chunked_steps == num_chunks * iters_per_chunk * env_steps_per_iter >= cfg.run_steps
+    assert cfg.run_steps == -(-cfg.total_steps // env_steps_per_iter) * env_steps_per_iter
 
 
 def test_replay_capacity_follows_the_run_up_to_buffer_size():

@@ -711,14 +711,15 @@ def test_the_example_learns_to_reach_the_target():
 
 @pytest.mark.runs
 def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, capsys):
-    """4 environments: --eval-every 30 is not whole iterations; 32 (3 chunks, 96 steps) trains
-    fewer steps past 90 than 28 (4 chunks, 112). An eval_every past the run is lowered to it
-    (64 steps: one evaluation at the end, not a chunk of 200)."""
+    """4 environments: --eval-every 30 is not whole iterations; 32 (3 chunks, 96 steps) runs
+    fewer steps past 90 than 28 (4 chunks, 112), and the run ends at 92, a whole iteration
+    past 90 (its last chunk shortened). An eval_every past the run is lowered to it (64 steps:
+    one evaluation at the end, not a chunk of 200)."""
     from td3_jax.runner import run
 
     cfg = TrainConfig(**{**TINY, "eval_every": 30, "total_steps": 90})
     records = train(cfg, tmp_path / "run", env=drift(limit=8), progress=True)
-    assert [r["env_steps"] for r in records] == [32, 64, 96]
+    assert [r["env_steps"] for r in records] == [32, 64, 92]
     out = capsys.readouterr().out
     assert "--eval-every 30 runs as 32 (whole iterations of 4 env steps)" in out
     longer = dataclasses.replace(cfg, eval_every=200, total_steps=64)

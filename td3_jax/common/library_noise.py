@@ -1,0 +1,84 @@
+"""What the libraries write straight to the process's stderr, below Python, where td3-jax says
+it better itself: XLA's slow-compile alarm (a banner of asterisks asking for a bug report, while
+a robot's physics compiles on a CPU, which takes minutes) and MLIR's lines about a stored
+program it cannot deserialise (the program store warns of the entry itself and traces the
+programs again).
+
+:func:`filtered_stderr` passes the process's file descriptor 2 through a small filter process
+for the span of a block (``python -I -S``, stdlib only): every other line goes through as it
+was written, in order, Python's own writes included; the alarm becomes one line of td3-jax's
+(:data:`STILL_COMPILING`, once per block), MLIR's lines are dropped. The filter is a process,
+not a thread, so that a process ending at once (a second Ctrl-C's ``os._exit``, an abort)
+loses nothing it wrote: the filter drains the pipe until its last writer is gone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+
+__all__ = ["ALARM", "DROPPED", "STILL_COMPILING", "filtered_stderr"]
+
+#: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
+ALARM = "Very slow compile?"
+#: Text of the lines dropped (besides lines of asterisks alone, the alarm's banner): the
+#: alarm's log line and MLIR's deserialisation errors.
+DROPPED = (
+    "slow_operation_alarm.cc",
+    "invalid Type index",
+    "failed to deserialize portable artifact",
+)
+#: The line that stands for XLA's slow-compile alarm.
+STILL_COMPILING = (
+    "td3-jax: still compiling (a robot's physics takes XLA minutes to compile on a CPU; the "
+    "compile cache keeps the result for the next run)"
+)
+
+# The filter process (arguments: STILL_COMPILING, ALARM, *DROPPED): lines of stdin to stdout
+# as bytes (any encoding passes), each flushed; an empty line right after a dropped one (the
+# alarm's banner ends with one) is dropped too.
+_FILTER = r"""
+import sys
+ours, alarm, *dropped = [text.encode() for text in sys.argv[1:]]
+said, after, out = False, False, sys.stdout.buffer
+for line in sys.stdin.buffer:
+    stripped = line.strip()
+    drop = bool(stripped and not stripped.strip(b"*")) or any(t in line for t in (alarm, *dropped))
+    if drop and alarm in line and not said:
+        said = True
+        out.write(ours + b"\n")
+    elif not drop and (stripped or not after):
+        out.write(line)
+    after = drop
+    out.flush()
+"""
+
+
+@contextlib.contextmanager
+def filtered_stderr() -> Iterator[None]:
+    """Passes file descriptor 2 through the filter process for the block (see the module's
+    docstring); where the filter cannot start, the block runs unfiltered."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        child = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, STILL_COMPILING,
+                                  ALARM, *DROPPED], stdin=subprocess.PIPE, stdout=saved,
+                                 stderr=saved)  # fmt: skip
+    except OSError:
+        os.close(saved)
+        yield
+        return
+    os.dup2(child.stdin.fileno(), 2)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(Exception):  # (a closed sys.stderr: nothing left to flush)
+            sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+        child.stdin.close()  # its last line written, the filter ends
+        with contextlib.suppress(subprocess.TimeoutExpired):  # (a child process of the
+            child.wait(timeout=5)  # block may still hold the pipe: the filter outlives it)
