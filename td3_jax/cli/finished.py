@@ -4,12 +4,14 @@ runs compared)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from td3_jax.cli.commands import EvalCommand, ExportCommand, PlotCommand, RenderCommand
 from td3_jax.cli.messages import warn
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_returns_table, print_sweep_ranking, sweep_record
+from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.config.schema import ConfigError, check_seed
 from td3_jax.runner.curves import (
     IMAGE_SUFFIXES,
@@ -23,7 +25,7 @@ from td3_jax.runner.curves import (
     run_labels,
 )
 
-__all__ = ["eval_main", "export_main", "plot_main", "render_main"]
+__all__ = ["check_mujoco_gl", "eval_main", "export_main", "plot_main", "render_main"]
 
 
 def eval_main(args: list[str]) -> None:
@@ -36,7 +38,8 @@ def eval_main(args: list[str]) -> None:
     if command.episodes <= 0:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
     check_seed(command.seed)
-    cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
+    with filtered_stderr():  # (XLA's slow-compile alarm: a robot's evaluation on a CPU)
+        cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
     title = (
         f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
         f"{command.episodes} episodes each"
@@ -79,16 +82,30 @@ def render_main(args: list[str]) -> None:
 
     command = parse(RenderCommand, args, "td3-jax render")
     check_seed(command.seed)
+    check_mujoco_gl(os.environ.get("MUJOCO_GL", ""), render.KNOWN_GL)
     out = render.video_path(command.run, command.out, command.gif)
-    rendered = render.render_run(
-        command.run, out, episodes=command.episodes, seed=command.seed, member=command.member,
-        camera=command.camera, width=command.width, height=command.height, fps=command.fps,
-    )  # fmt: skip
+    with filtered_stderr():  # (XLA's slow-compile alarm: a robot's rollout on a CPU)
+        rendered = render.render_run(
+            command.run, out, episodes=command.episodes, seed=command.seed,
+            member=command.member, camera=command.camera, width=command.width,
+            height=command.height, fps=command.fps,
+        )  # fmt: skip
     print(rendered.path)
     for e, (frames, ret) in enumerate(zip(rendered.lengths, rendered.returns, strict=True)):
         print(f"member {rendered.member} episode {e + 1}: {frames} frames, return {ret:.2f}")
     if rendered.env_steps is not None:
         print(f"(the policy of the checkpoint at {rendered.env_steps} env steps)")
+
+
+def check_mujoco_gl(value: str, choices: tuple[str, ...]) -> None:
+    """A one-line ConfigError for a ``MUJOCO_GL`` (``value``) that names none of the OpenGL
+    backends render draws with (``choices``), before anything imports MuJoCo, whose import
+    refuses an unknown one in words of its own; empty: render picks one that works here."""
+    given = value.strip()
+    if given and given.lower() not in choices:
+        raise ConfigError(f"MUJOCO_GL={given} is not one of {', '.join(choices)}, the OpenGL "
+                          "backends td3-jax render draws with: set one of them, or unset "
+                          "MUJOCO_GL and render picks one that works here")  # fmt: skip
 
 
 def plot_main(args: list[str]) -> None:
@@ -103,10 +120,14 @@ def plot_main(args: list[str]) -> None:
     ]
     for warning in filter(None, warnings):
         warn(warning)
-    if len(curves) == 1:
-        print(draw_curve(curves[0], out))
-    else:
-        print(plot_comparison(curves, run_labels(command.run), out))
+    try:
+        if len(curves) == 1:
+            print(draw_curve(curves[0], out))
+        else:
+            print(plot_comparison(curves, run_labels(command.run), out))
+    except OSError as err:  # (named by the figure: not a temporary file written beside it)
+        raise ConfigError(f"cannot write {out}: {err.strerror or err}; --out FILE draws the "
+                          "figure elsewhere") from err  # fmt: skip
 
 
 def _plot_path(runs: tuple[Path, ...], out: Path | None) -> Path:

@@ -22,10 +22,14 @@ from td3_jax.config.schema import (
 )
 
 __all__ = [
+    "CPU_SIZES",
     "cpu_size_warning",
+    "cpu_tips",
     "critic_network_note",
     "done_line",
     "eval_size_warning",
+    "gpu_sized",
+    "members_note",
     "no_learning_warning",
     "nothing_to_do",
     "preset_noted",
@@ -95,26 +99,53 @@ def unnamed_env_warning(cfg: TrainConfig, preset_name: str | None, source: str,
             f"{cfg.env}, the default (--env picks one)")  # fmt: skip
 
 
+#: A run's size on a CPU: evaluations, checkpoints and the whole run in minutes (the
+#: ``pendulum`` preset's sizes).
+CPU_SIZES = {"num_envs": 16, "total_steps": 20_000, "batch_size": 256, "warmup_steps": 1000,
+             "eval_every": 4000, "eval_envs": 16}  # fmt: skip
+
+
+def gpu_sized(cfg: TrainConfig) -> bool:
+    """Whether ``cfg`` is sized for an accelerator: thousands of environments, millions of
+    steps, batches of thousands or evaluation rounds inside whole chunks (whose chunk holds an
+    episode of every environment)."""
+    return (cfg.num_envs >= 1024 or cfg.run_steps >= 5_000_000 or cfg.batch_size > 4096
+            or cfg.eval_in_chunk)  # fmt: skip
+
+
+def cpu_tips(cfg: TrainConfig) -> list[str]:
+    """Every flag that sizes ``cfg`` for a CPU (:data:`CPU_SIZES`), each only where ``cfg``'s
+    own value is larger: the environments, the run's steps, the batch, the warm-up, the
+    in-chunk evaluation, the evaluation period and its episodes. Together they make a valid run
+    of the steps it keeps (a batch and a warm-up within them) that ends at --total-steps."""
+    steps = 20_000 if cfg.run_steps >= 5_000_000 else cfg.total_steps  # (after the tips)
+    batch = min(CPU_SIZES["batch_size"], steps)
+    warmup = min(CPU_SIZES["warmup_steps"], steps // 2)
+    tips = (
+        (f"--num-envs {CPU_SIZES['num_envs']}", cfg.num_envs > 64),
+        (f"--total-steps {steps}", steps != cfg.total_steps),
+        (f"--batch-size {batch}", cfg.batch_size > 4096 or cfg.batch_size > steps),
+        (f"--warmup-steps {warmup}", cfg.warmup_steps > 10_000 or cfg.warmup_steps >= steps),
+        ("--no-eval-in-chunk", cfg.eval_in_chunk),
+        (f"--eval-every {CPU_SIZES['eval_every']}", cfg.eval_every > 20_000),
+        (f"--eval-envs {CPU_SIZES['eval_envs']}", cfg.eval_envs > 64),
+    )
+    return [tip for tip, larger in tips if larger]
+
+
 def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> str | None:
-    """A warning when a run sized for an accelerator is about to start on a CPU, with the flags
-    that size it for one (together they make a valid run: a batch and a warm-up within the
-    steps). ``source`` is where the settings came from
-    (:func:`~td3_jax.cli.settings.base_config`): only a ``--preset`` given can be left out."""
-    steps = cfg.run_steps  # (what runs: whole chunks)
-    if backend != "cpu" or (cfg.num_envs < 1024 and steps < 5_000_000):
+    """A warning when a run sized for an accelerator (:func:`gpu_sized`) is about to start on
+    a CPU, with every flag that sizes it for one (:func:`cpu_tips`). ``source`` is where the
+    settings came from (:func:`~td3_jax.cli.settings.base_config`): only a ``--preset`` given
+    can be left out."""
+    if backend != "cpu" or not gpu_sized(cfg):
         return None
-    sizes = (("--num-envs 16", cfg.num_envs >= 1024),
-             ("--total-steps 20000", steps >= 5_000_000),
-             ("--batch-size 256", cfg.batch_size > 4096),
-             ("--warmup-steps 1000", cfg.warmup_steps > 10_000),
-             ("--no-eval-in-chunk", steps >= 5_000_000 and cfg.eval_in_chunk),
-             # (evaluations, and checkpoints, in the 20000 steps: else one chunk, all or nothing)
-             ("--eval-every 4000", steps >= 5_000_000 and cfg.eval_every > 20_000))  # fmt: skip
+    steps = cfg.run_steps  # (what runs: whole chunks with an in-chunk evaluation)
     if source == "resume":  # (its sizes cannot change)
         return (f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
                 f"batch {cfg.batch_size}) and JAX found only a CPU: it will train for hours; "
                 "a resume keeps its sizes, so resume it where a GPU is")  # fmt: skip
-    tips = [tip for tip, large in sizes if large]  # (only what is sized for a GPU)
+    tips = cpu_tips(cfg)
     alternative = " (or no --preset)" if source == "preset" else ""
     return (
         f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
@@ -212,6 +243,27 @@ def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
         go_on = f"td3-jax train --out {shlex.quote(str(out))} --resume --total-steps {more}"
         further = f"{go_on} goes on to {more:,}"
     return f"nothing to do: the run in {out} is complete ({done} env steps); {further}"
+
+
+def members_note(last: dict, sweeping: bool = False) -> str:
+    """What the ± of the done line of a run of several members is over (the spread of their
+    mean returns): `` over 4 seeds``, a sweep's `` over all 4 members (per setting below)``,
+    and, where some diverged, that only the others count and how many did not (``last``: the
+    run's last record, its ``members`` and ``diverged_members``). Empty for a run of one seed
+    outside a sweep, whose ± is over its evaluation episodes."""
+    count = last["members"]
+    if count == 1 and not sweeping:
+        return ""
+    unit = "member" if sweeping else "seed"
+    diverged = len(last.get("diverged_members") or [])
+    below = "per setting below" if sweeping else ""
+    if not diverged:
+        over = f" over all {count} {unit}s" if count > 1 else f" over its 1 {unit}"
+        return f"{over} ({below})" if below else over
+    alive = count - diverged
+    them = f"{alive} {unit}s that" if alive > 1 else f"1 {unit} that"
+    counted = f"{diverged} of {count} diverged" + (f"; {below}" if below else "")
+    return f" over the {them} did not diverge ({counted})"
 
 
 def done_line(last: dict, out: Path, process_s: float | None = None,

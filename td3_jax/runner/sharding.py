@@ -26,7 +26,14 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from td3_jax.common.errors import ConfigError
-from td3_jax.runner.memory import larger_network_advice, size_text, state_bytes
+from td3_jax.runner.memory import (
+    WORKING_ADVICE,
+    available_memory,
+    larger_network_advice,
+    size_text,
+    state_bytes,
+    working_total,
+)
 
 AXIS = "data"
 _SPLIT = (".env_state", ".ou_state", ".expl_draw", ".buffer.data", ".returns.returns")
@@ -50,69 +57,88 @@ def check_devices(num_devices: int | None) -> None:
 
 
 def memory_of(device: Any) -> tuple[int, str] | None:
-    """``(bytes, what)``: the memory ``device`` can hold arrays in (an accelerator's own, the
-    host's for a CPU), or ``None`` where it cannot be told."""
+    """``(bytes, what)``: the memory ``device`` has available for new arrays now (an
+    accelerator's own less what it holds, by its statistics; for a CPU the host's available
+    memory, :func:`~td3_jax.runner.memory.available_memory`), and the words that name it in a
+    message (``"this machine's memory has"``); ``None`` where it cannot be told."""
     stats = None
     try:
         stats = device.memory_stats()
     except Exception:  # not every backend reports statistics
         stats = None
     if stats and stats.get("bytes_limit"):
-        return int(stats["bytes_limit"]), f"each {device.device_kind} holds"
-    if device.platform == "cpu" and hasattr(os, "sysconf"):
-        try:
-            total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-        except (ValueError, OSError):
-            return None
-        return int(total), "this machine's memory is"
+        free = int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+        return max(free, 0), f"each {device.device_kind}'s memory has"
+    if device.platform == "cpu":
+        available = available_memory()
+        return None if available is None else (available, "this machine's memory has")
     return None
 
 
-def check_memory(abstract_state: Any, mesh: Mesh) -> None:
+def check_memory(abstract_state: Any, mesh: Mesh, working: dict[str, int] | None = None, *,
+                 resident: bool = False) -> None:  # fmt: skip
     """Raises :class:`ConfigError` before anything is allocated when the train state (arrays
-    or their shapes) cannot fit in a device's memory: one line with both sizes and the flags
-    that shrink it (the replay ring is nearly all of a large state)."""
-
+    or their shapes) and ``working``, the programs' working memory per device
+    (:func:`~td3_jax.runner.memory.working_bytes`; none given: the state alone), do not fit in
+    the memory a device has available now: one line with the sizes, what is available and the
+    flags that shrink the largest part. ``resident``: the state is in memory already (restored),
+    so only the working memory is still to come."""
     device = mesh.devices.flat[0]
     memory = memory_of(device)
     if memory is None:
         return
     limit, what = memory
     share = 1 if device.platform == "cpu" else mesh.size  # CPU "devices" share the host's
-    need = state_bytes(abstract_state) // share
-    if need <= limit:
+    state = 0 if resident else state_bytes(abstract_state) // share
+    extra = working_total(working or {})
+    if state + extra <= limit:
         return
     ring = state_bytes(abstract_state.buffer) // share
     networks = state_bytes(abstract_state.agent)  # (replicated: every device holds them all)
-    raise ConfigError(
-        f"the train state needs {size_text(need)} per device (the replay ring "
-        f"{size_text(ring)}, the networks and their optimiser states {size_text(networks)}) "
-        f"but {what} {size_text(limit)}; use {_memory_advice(abstract_state, networks > ring)}"
-    )
+    parts = {**(working or {}), "ring": 0 if resident else ring,
+             "networks": (0 if resident else networks) + (working or {}).get("networks", 0)}
+    needs = (f"the train state needs {size_text(state)} per device (the replay ring "
+             f"{size_text(ring)}, the networks and their optimiser states {size_text(networks)})")
+    if working:
+        needs = _with_working(needs, state, extra, resident)
+    raise ConfigError(f"{needs} but {what} {size_text(limit)} available now; use "
+                      f"{_memory_advice(abstract_state, parts)}")  # fmt: skip
 
 
-def _memory_advice(abstract_state: Any, networks_larger: bool) -> str:
-    """The flags that shrink a train state, the likeliest first: fewer members where the run
-    has several (each has its own networks and ring; the agent's leaves are ``[members,
-    ...]``), else the larger part's size."""
-    shrink = "a smaller --buffer-size"
-    if networks_larger:
+def _with_working(needs: str, state: int, extra: int, resident: bool) -> str:
+    """``needs`` (the train state's sizes) with the programs' working memory after it; a
+    resident state's is said as already in memory."""
+    if resident:
+        return (f"the training programs need about {size_text(extra)} of working memory per "
+                f"device beside the restored train state ({needs.split(' per device ')[1]})")
+    return (f"{needs} and the training programs about {size_text(extra)} of working memory, "
+            f"{size_text(state + extra)} in all,")
+
+
+def _memory_advice(abstract_state: Any, parts: dict[str, int]) -> str:
+    """The flags that shrink the largest part of what a run needs (``parts``: ``ring``,
+    ``networks`` and :func:`~td3_jax.runner.memory.working_bytes`' parts), the likeliest first:
+    fewer members where the run has several (each has its own networks, ring and
+    environments; the agent's leaves are ``[members, ...]``), then that part's own flag."""
+    largest = max(parts, key=lambda name: parts[name])
+    if largest == "networks":
         shrink = larger_network_advice(abstract_state.agent)
+    else:
+        shrink = WORKING_ADVICE.get(largest, "a smaller --buffer-size")
     leaves = jax.tree.leaves(abstract_state.agent)
     count = int(leaves[0].shape[0]) if leaves and leaves[0].shape else 1
-    envs = "" if networks_larger else " or fewer --num-envs"  # (the ring's default size)
     if count > 1:
         return (f"fewer --seeds or sweep values (the run has {count:,} members, each with its "
-                f"own networks and ring), {shrink if envs else 'or ' + shrink}{envs}")  # fmt: skip
-    return f"{shrink}{envs.replace(' or', ', or')}"
+                f"own networks, ring and environments), or {shrink}")  # fmt: skip
+    return shrink
 
 
 def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) -> None:
     """Raises :class:`ConfigError` before a compiled program runs when its outputs and working
-    memory (XLA's ``memory_analysis``) cannot fit in ``device``'s memory: one line with both
-    sizes, ``doing`` (what the program is for, e.g. ``"evaluating 1,000 episodes"``) and
-    ``advice`` (the flag that shrinks it). Memory the device already holds (a restored train
-    state) counts against it where the device says how much. Nothing is checked where either
+    memory (XLA's ``memory_analysis``) do not fit in the memory ``device`` has available now
+    (:func:`memory_of`: memory it already holds, a restored train state, is not available):
+    one line with both sizes, ``doing`` (what the program is for, e.g. ``"evaluating 1,000
+    episodes"``) and ``advice`` (the flag that shrinks it). Nothing is checked where either
     size is unknown."""
 
     memory = memory_of(device)
@@ -121,21 +147,11 @@ def check_program_memory(compiled: Any, device: Any, doing: str, advice: str) ->
         need = int(stats.temp_size_in_bytes) + int(stats.output_size_in_bytes)
     except Exception:  # not every backend analyses its programs
         return
-    held = _bytes_in_use(device)
-    if memory is None or need + held <= memory[0]:
+    if memory is None or need <= memory[0]:
         return
     limit, what = memory
-    holding = f" and {size_text(held)} of it is in use" if held else ""
     raise ConfigError(f"{doing} needs {size_text(need)} of working memory but {what} "
-                      f"{size_text(limit)}{holding}; use {advice}")  # fmt: skip
-
-
-def _bytes_in_use(device: Any) -> int:
-    """The bytes ``device`` holds now, by its own statistics (0 where it keeps none: a CPU)."""
-    try:
-        return int((device.memory_stats() or {}).get("bytes_in_use", 0))
-    except Exception:  # not every backend reports statistics
-        return 0
+                      f"{size_text(limit)} available now; use {advice}")  # fmt: skip
 
 
 def replay_layout_warning(replay_shards: int, num_devices: int) -> str | None:

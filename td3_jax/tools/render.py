@@ -52,6 +52,7 @@ from td3_jax import envs
 from td3_jax.common.errors import GLUnavailableError, NotRenderableError, RenderError
 from td3_jax.core import training
 from td3_jax.runner.logger import probe_write
+from td3_jax.runner.memory import available_memory
 
 #: Headless OpenGL backends tried, in order, when ``MUJOCO_GL`` is not set.
 GL_BACKENDS = ("egl", "osmesa")
@@ -585,23 +586,11 @@ def _remove_folders(made: list[Path]) -> None:
 GIF_BYTES_PER_PIXEL = 6
 
 
-def available_memory() -> int | None:
-    """Bytes of memory available now without swapping (``MemAvailable`` of /proc/meminfo, else
-    the free physical pages), ``None`` where neither can be read."""
-    with contextlib.suppress(OSError, ValueError):
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    with contextlib.suppress(OSError, ValueError, AttributeError):
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    return None
-
-
 def check_gif_memory(frames: int, width: int, height: int, available: int | None = None) -> None:
     """Raises :class:`RenderError` before any frame is drawn where a GIF of ``frames`` frames
     of ``width x height`` would not fit in the memory available now (``available`` bytes,
-    default :func:`available_memory`; unknown: no check): its encoder holds every frame
-    (:data:`GIF_BYTES_PER_PIXEL`), where an MP4 is written frame by frame."""
+    default :func:`~td3_jax.runner.memory.available_memory`; unknown: no check): its encoder
+    holds every frame (:data:`GIF_BYTES_PER_PIXEL`), where an MP4 is written frame by frame."""
     from td3_jax.runner.memory import size_text
 
     available = available_memory() if available is None else available

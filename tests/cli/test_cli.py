@@ -699,15 +699,16 @@ def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run
     # The check itself, on a program whose size is known: a 1000 x 250 float32 output, 1 MB.
     compiled = jax.jit(lambda: jnp.ones((1000, 250), jnp.float32)).lower().compile()
     device = jax.devices()[0]
-    monkeypatch.setattr(sharding, "memory_of", lambda d: (999_999, "the test's memory is"))
+    monkeypatch.setattr(sharding, "memory_of", lambda d: (999_999, "the test's memory has"))
     with pytest.raises(config.ConfigError, match=r"^making it needs 1\.0 MB of working memory but "
-                       r"the test's memory is 1\.0 MB; use less$"):  # fmt: skip
+                       r"the test's memory has 1\.0 MB available now; use less$"):  # fmt: skip
         sharding.check_program_memory(compiled, device, "making it", "less")
-    monkeypatch.setattr(sharding, "memory_of", lambda d: (10**9, "the test's memory is"))
+    monkeypatch.setattr(sharding, "memory_of", lambda d: (10**9, "the test's memory has"))
     sharding.check_program_memory(compiled, device, "making it", "less")  # fits: no error
     monkeypatch.undo()
 
-    class Gpu:  # a device of 2 MB that holds 1.5 MB (a restored train state) or 0.5 MB
+    class Gpu:  # a device of 2 MB that holds 1.5 MB (a restored train state) or 0.5 MB: what
+        # it has available for the program is the rest
         platform, device_kind, in_use = "gpu", "Fake GPU", 1_500_000
 
         def memory_stats(self):
@@ -716,7 +717,7 @@ def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run
     with pytest.raises(
         config.ConfigError,
         match=r"^making it needs 1\.0 MB of working memory but "
-        r"each Fake GPU holds 2\.0 MB and 1\.5 MB of it is in use; use less$",
+        r"each Fake GPU's memory has 0\.5 MB available now; use less$",
     ):
         sharding.check_program_memory(compiled, Gpu(), "making it", "less")
     Gpu.in_use = 500_000
@@ -738,13 +739,13 @@ def test_an_evaluation_too_big_for_memory_is_refused_before_it_runs(finished_run
         run_compiled(TrainConfig(), lambda: (_ for _ in ()).throw(
             jax.errors.JaxRuntimeError("INTERNAL: something else")))  # fmt: skip
     # eval: 5000 parallel episodes' states and activations do not fit in 0.1 MB.
-    monkeypatch.setattr(sharding, "memory_of", lambda d: (10**5, "the test's memory is"))
+    monkeypatch.setattr(sharding, "memory_of", lambda d: (10**5, "the test's memory has"))
     args = ["eval", "--run", str(finished_run[0]), "--episodes", "5000"]
     code, stdout, stderr = main(args, capsys)
     assert code == 2 and "mean" not in stdout, (code, stdout, stderr)
     line = stderr.strip().splitlines()[-1]
     assert line.startswith("td3-jax: error: evaluating 5,000 episodes of each member needs ")
-    assert line.endswith("but the test's memory is 0.1 MB; use fewer --episodes")
+    assert line.endswith("but the test's memory has 0.1 MB available now; use fewer --episodes")
 
 
 def test_training_that_runs_out_of_device_memory_is_one_line(tmp_path, monkeypatch, capsys):
@@ -1375,13 +1376,17 @@ def test_a_corrupt_newest_checkpoint_falls_back_to_the_previous_one(finished_run
     assert re.search(r"\b64\s+env\s+steps", out)  # checkpoint 1 is the state after 64 steps
 
 
-def test_total_steps_rounded_up_to_whole_chunks_is_announced():
-    # 16 envs, evaluations every 4000 steps: chunks of 250 iterations of 16 steps
+def test_total_steps_rounded_up_to_a_whole_iteration_is_announced():
+    # 16 envs, evaluations every 4000 steps: chunks of 250 iterations of 16 steps; the run
+    # ends at --total-steps rounded up to a whole iteration (7 of 16 steps: 112)
     cfg = TrainConfig(num_envs=16, eval_every=4000, total_steps=100)
-    assert cfg.steps_per_chunk == 4000
-    assert config.rounding_note(cfg).startswith("--total-steps 100 runs as 4000 ")
+    assert cfg.steps_per_chunk == 4000 and cfg.run_steps == 112
+    assert config.rounding_note(cfg) == (
+        "--total-steps 100 runs as 112 (a whole iteration of 16 env steps)"
+    )
     assert config.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=8000)) is None
-    assert "runs as 12000" in config.rounding_note(
+    assert config.rounding_note(TrainConfig(num_envs=16, eval_every=4000, total_steps=6000)) is None
+    assert "runs as 8016 (" in config.rounding_note(
         TrainConfig(num_envs=16, eval_every=4000, total_steps=8001)
     )
     # --eval-every runs as whole iterations: 130 steps of 4 envs are 32 iterations, 128 steps.
@@ -1398,14 +1403,14 @@ def test_total_steps_rounded_up_to_whole_chunks_is_announced():
 
 
 def test_a_resume_says_how_its_steps_round_only_where_total_steps_was_typed(capsys):
-    """A fresh run and a resume given --total-steps say that 100 steps run as 4000; a plain
+    """A fresh run and a resume given --total-steps say that 100 steps run as 112; a plain
     --resume, whose fresh start said so, does not repeat it."""
     cfg = TrainConfig(num_envs=16, eval_every=4000, total_steps=100, env="gymnax/Pendulum-v1")
     for resumed, given, said in ((False, frozenset(), True), (True, frozenset(), False),
                                  (True, frozenset({"total_steps"}), True)):  # fmt: skip
         notes.when_prepared(cfg, None, "config", 4000, given, resumed)
         out = capsys.readouterr().out
-        assert ("--total-steps 100 runs as 4000 (" in out) == said, (resumed, given, out)
+        assert ("--total-steps 100 runs as 112 (" in out) == said, (resumed, given, out)
 
 
 def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
@@ -1419,13 +1424,12 @@ def test_an_eval_every_longer_than_the_run_is_lowered_to_it():
     in_chunk = TrainConfig(eval_every=100_000, total_steps=20_000, eval_in_chunk=True)
     assert config.eval_every_within_run(in_chunk) is in_chunk  # a round must fit in a chunk
     # 3000 steps of 16 environments are not whole iterations: 187 of them (2992 steps) would
-    # need 3 chunks, 8976 steps, for 6000; 188 (3008) need 2, 6016 steps, so the chunk grows
+    # need 3 chunks for 6000; 188 (3008) need 2, the second shortened to end at 6000
     grown = config.eval_every_within_run(TrainConfig(eval_every=3000, total_steps=6000))
-    assert (grown.eval_every, grown.steps_per_chunk, grown.run_steps) == (3008, 3008, 6016)
+    assert (grown.eval_every, grown.steps_per_chunk, grown.num_chunks) == (3008, 3008, 2)
+    assert grown.run_steps == 6000
     note = config.rounding_note(grown, asked_eval_every=3000)
-    assert note.startswith("--eval-every 3000 runs as 3008 (whole iterations of 16 env steps); ")
-    assert note.endswith("--total-steps 6000 runs as 6016 (whole chunks of 3008 steps between "
-                         "evaluations; --eval-every sets them)")  # fmt: skip
+    assert note == "--eval-every 3000 runs as 3008 (whole iterations of 16 env steps)"
     # ... and stays 187 iterations where 188 would not train fewer steps: 5984 steps are two
     # chunks of 2992 exactly (two of 3008 would be 6016)
     low = TrainConfig(eval_every=3000, total_steps=5984)
@@ -1465,8 +1469,9 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert notes.cpu_size_warning(preset("pendulum"), "cpu") is None
     assert (
         "try --num-envs 16 --total-steps 20000 --batch-size 256 --warmup-steps 1000 "
-        "--eval-every 4000 (" in notes.cpu_size_warning(ant, "cpu")
+        "--eval-every 4000 --eval-envs 16 (" in notes.cpu_size_warning(ant, "cpu")
     )
+    assert notes.cpu_size_warning(preset("td3-classic"), "cpu") is None  # a CPU recipe
     long_run = TrainConfig(num_envs=16, total_steps=10_000_000)  # suggests only what is large
     assert "try --total-steps 20000 (or no --preset)" in notes.cpu_size_warning(long_run, "cpu")
     # a preset picked for the environment cannot be left out by leaving out --preset
@@ -1476,7 +1481,16 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     warning = notes.cpu_size_warning(short, "cpu")
     assert "4096 environments, 4096000 steps" in warning
     assert warning.endswith(
-        "try --num-envs 16 --batch-size 256 --warmup-steps 1000 (or no --preset)"
+        "try --num-envs 16 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
+        "--eval-every 4000 --eval-envs 16 (or no --preset)"
+    )
+    # part of the advice followed (the issue's t1 run): the rest is still asked for, since
+    # the in-chunk evaluation still makes a chunk of 4,096,000 steps
+    part = dataclasses.replace(preset("t1"), total_steps=8192, num_envs=16, batch_size=256,
+                               warmup_steps=1000)  # fmt: skip
+    assert part.run_steps == 4_096_000
+    assert notes.cpu_size_warning(part, "cpu").endswith(
+        "try --no-eval-in-chunk --eval-every 4000 --eval-envs 16 (or no --preset)"
     )
     # a resume keeps the run's sizes: no flag to change them is offered
     resumed = notes.cpu_size_warning(ant, "cpu", "resume")
@@ -1485,7 +1499,7 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     long_g1 = notes.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
     assert (
         "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
-        "--eval-every 4000 (" in long_g1
+        "--eval-every 4000 --eval-envs 16 (" in long_g1
     )
 
 
