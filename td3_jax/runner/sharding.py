@@ -97,20 +97,21 @@ def check_memory(abstract_state: Any, mesh: Mesh, working: dict[str, int] | None
     networks = state_bytes(abstract_state.agent)  # (replicated: every device holds them all)
     parts = {**(working or {}), "ring": 0 if resident else ring,
              "networks": (0 if resident else networks) + (working or {}).get("networks", 0)}
-    needs = (f"the train state needs {size_text(state)} per device (the replay ring "
-             f"{size_text(ring)}, the networks and their optimiser states {size_text(networks)})")
-    if working:
-        needs = _with_working(needs, state, extra, resident)
-    raise ConfigError(f"{needs} but {what} {size_text(limit)} available now; use "
-                      f"{_memory_advice(abstract_state, parts)}")  # fmt: skip
+    sizes = (f"the replay ring {size_text(ring)}, the networks and their optimiser states "
+             f"{size_text(networks)}")
+    raise ConfigError(f"{_needs(sizes, state, extra, resident)} but {what} {size_text(limit)} "
+                      f"available now; use {_memory_advice(abstract_state, parts)}")  # fmt: skip
 
 
-def _with_working(needs: str, state: int, extra: int, resident: bool) -> str:
-    """``needs`` (the train state's sizes) with the programs' working memory after it; a
-    resident state's is said as already in memory."""
+def _needs(sizes: str, state: int, extra: int, resident: bool) -> str:
+    """What a run needs, in words: the train state's bytes (``sizes``: its parts) and the
+    programs' working memory (``extra``), or that alone beside a ``resident`` state."""
     if resident:
         return (f"the training programs need about {size_text(extra)} of working memory per "
-                f"device beside the restored train state ({needs.split(' per device ')[1]})")
+                f"device beside the restored train state ({sizes})")
+    needs = f"the train state needs {size_text(state)} per device ({sizes})"
+    if not extra:
+        return needs
     return (f"{needs} and the training programs about {size_text(extra)} of working memory, "
             f"{size_text(state + extra)} in all,")
 
