@@ -1,0 +1,96 @@
+"""td3-jax speaks, not its libraries: XLA's slow-compile alarm becomes one line of td3-jax's,
+MLIR's lines about a damaged stored program are dropped where td3-jax warns of it itself, and
+render checks ``MUJOCO_GL`` before MuJoCo's import refuses it in its own words."""
+
+from __future__ import annotations
+
+import pytest
+from support import TINY_FLAGS, assert_one_line_error, main, python
+
+from td3_jax.cli import app as cli
+from td3_jax.common.library_noise import STILL_COMPILING
+
+#: What XLA writes when a compile takes minutes (jaxlib 0.9, a T1 chunk on a CPU).
+ALARM = (
+    "E1129 04:22:11.256265   21347 slow_operation_alarm.cc:73] \n"
+    "********************************\n"
+    "[Compiling module jit_call for CPU] Very slow compile? If you want to file a bug, run with "
+    "envvar XLA_FLAGS=--xla_dump_to=/tmp/foo and attach the results.\n"
+    "********************************\n"
+    "\n"
+)
+#: What MLIR writes when a stored program's bytes are damaged (then JAX raises).
+MLIR = (
+    'loc("-":0:0): error: invalid Type index: 16047\n'
+    "error: failed to deserialize portable artifact using StableHLO_v1.17.0\n"
+)
+
+FILTERED = f"""
+import os, sys
+from td3_jax.common.library_noise import filtered_stderr
+print("before", file=sys.stderr, flush=True)
+with filtered_stderr():
+    os.write(2, {ALARM.encode()!r})
+    print("ours, in order", file=sys.stderr, flush=True)
+    os.write(2, {MLIR.encode()!r} + b"a line of its own\\n\\n")
+    os.write(2, {ALARM.encode()!r})  # (said once)
+    sys.stderr.write("unfinished")
+print(" line", file=sys.stderr)
+"""
+
+
+def test_the_alarm_becomes_one_line_and_mlirs_lines_go_while_the_rest_passes_in_order():
+    proc = python(FILTERED)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == (
+        f"before\n{STILL_COMPILING}\nours, in order\na line of its own\n\nunfinished line\n"
+    )
+
+
+def test_a_process_ending_at_once_inside_the_block_loses_nothing_it_wrote():
+    """A second Ctrl-C ends the process with os._exit while the filter holds its stderr: the
+    line said just before still arrives (the filter is a process that drains the pipe)."""
+    code = ("import os, sys\nfrom td3_jax.common.library_noise import filtered_stderr\n"
+            "with filtered_stderr():\n"
+            "    print('td3-jax: interrupted again: stopping now', file=sys.stderr, flush=True)\n"
+            "    os._exit(130)\n")  # fmt: skip
+    proc = python(code)
+    assert proc.returncode == 130
+    assert proc.stderr == "td3-jax: interrupted again: stopping now\n"
+
+
+def _exit_code(args: list[str]) -> int:
+    try:
+        cli.main(args)
+    except SystemExit as exit_:
+        return exit_.code if isinstance(exit_.code, int) else 1
+    return 0
+
+
+@pytest.mark.runs
+def test_a_damaged_stored_program_is_td3_jaxs_one_warning_without_mlirs_lines(tmp_path, capfd):
+    """The program store's entry, its chunk's bytes flipped, is warned of and traced again;
+    MLIR's own lines about it, written below Python, do not reach stderr."""
+    cache = tmp_path / "cache"
+    flags = [*TINY_FLAGS, "--quiet", "--compile-cache", str(cache)]
+    assert _exit_code(["train", *flags, "--out", str(tmp_path / "first")]) == 0
+    (chunk,) = (cache / "programs").glob("*/chunk.bin")
+    data = bytearray(chunk.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 40] = bytes(b ^ 0xFF for b in data[middle : middle + 40])
+    chunk.write_bytes(bytes(data))
+    capfd.readouterr()
+    assert _exit_code(["train", *flags, "--out", str(tmp_path / "second")]) == 0
+    err = capfd.readouterr().err
+    assert "td3-jax: warning: ignored the unusable traced programs in" in err, err
+    assert "invalid Type index" not in err and "deserialize portable artifact" not in err, err
+
+
+def test_render_checks_mujoco_gl_before_mujoco_does(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MUJOCO_GL", "bogus")
+    code, _, err = main(["render", "--run", str(tmp_path / "run")], capsys)
+    assert_one_line_error(code, err, "MUJOCO_GL=bogus is not one of egl, osmesa, glfw", "unset")
+    from td3_jax.cli.finished import check_mujoco_gl
+
+    for value in ("", "egl", " OSMesa ", "glfw"):  # (as MuJoCo reads it: any case, trimmed)
+        check_mujoco_gl(value, ("egl", "osmesa", "glfw"))
