@@ -322,7 +322,8 @@ def check_resume(
             f"{out_dir} ({sweep_flags(swept_values(population)) or 'no swept setting'}, "
             f"{MEMBERS_FILE}); leave them out to resume"
         )
-    done = steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter
+    # (whole chunks, or the run's end where its last chunk was shortened)
+    done = min(steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter, saved.run_steps)
     if cfg.num_chunks < steps[-1]:
         raise ConfigError(
             f"--total-steps {cfg.total_steps} is less than the {done} env steps the run in "
