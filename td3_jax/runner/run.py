@@ -87,37 +87,29 @@ def train(
     env: Any = None,
     on_started: Callable[[int], None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``.
-
-    A fresh run's ``eval_every`` runs as whole iterations and at most the run
-    (:func:`~td3_jax.config.schema.eval_every_within_run`, as the CLI does; with ``progress`` it
-    says so). Returns this call's evaluation records (also in metrics.jsonl). ``out_dir`` is locked
-    throughout (:mod:`td3_jax.runner.rundir`); a busy one, or a used one without ``resume``, is
-    refused. A full disk stops it with :class:`~td3_jax.common.errors.OutputWriteError` (no half
-    record kept).
+    """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``, locked
+    throughout (:mod:`~td3_jax.runner.rundir`; a busy one, or a used one without ``resume``, is
+    refused), until ``cfg.total_steps`` rounded up to a whole iteration
+    (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl). A
+    full disk stops it with :class:`~td3_jax.common.errors.OutputWriteError`.
 
     Args:
-      resume: continue from the newest good checkpoint in ``out_dir`` with its members; ``cfg``
-        may differ from the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME`.
+      resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
+        the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME`.
       progress: show progress (a live bar on a terminal, else one line per evaluation).
-      sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``; every combination
-        trains ``cfg.seeds`` seeds in one program. A member whose losses or parameters become
-        non-finite is marked diverged (null returns); the run stops when all have diverged.
-      stop_after_chunks: stop (as if interrupted) after this many chunks of this call (tests).
+      sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``, each combination
+        with ``cfg.seeds`` seeds in one program; a member whose numbers become non-finite is
+        marked diverged, and the run stops when all have.
+      stop_after_chunks: stop (as if interrupted) after this many chunks of this call.
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
-        wall-clock (compile included; counted across resumes). The run stays resumable.
+        wall-clock, counted across resumes (the run stays resumable).
       devices: data-parallel over this many devices (default: all); the numbers do not change.
-      preset: the name of the preset ``cfg`` came from (recorded in config.json).
-      on_prepared: called once settings, directory and environment are checked (not compiled).
-      program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
-      stop: a :class:`~td3_jax.common.runtime.StopToken`; once set (a thread, a signal handler), it
-        stops the run as a Ctrl-C would. Default: a fresh one.
+      preset, program_dir: the preset ``cfg`` came from (for config.json); the traced
+        programs' store (:mod:`td3_jax.runner.program_cache`).
+      on_prepared, on_started: called once settings and environment are checked, and with the
+        env steps the run starts from (0 when fresh), both before anything is compiled.
+      stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
-      on_started: called once with the env steps the run starts from (0 for a fresh run; on
-        resume, those of the checkpoint restored), before anything is compiled.
-
-    The run ends at ``cfg.total_steps`` rounded up to a whole iteration (its last chunk
-    shortened; whole chunks with ``eval_in_chunk``: :attr:`TrainConfig.run_steps`).
     """
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
@@ -445,7 +437,11 @@ def _check_resumable(run: _Run) -> None:
     below the steps its checkpoint has taken, or a cosine schedule's length changed (also by
     a config.json whose total_steps was edited by hand since that checkpoint)."""
     cfg, out = run.cfg, run.out_dir
-    if run.start_steps > cfg.run_steps:
+    # A checkpoint of td3-jax 0.1 (no total_steps recorded): its runs ended on whole chunks,
+    # past --total-steps, and such a run is done, not cut short.
+    done_as_before = (run.trained_total_steps is None
+                      and run.start_chunk * cfg.steps_per_chunk >= cfg.total_steps)  # fmt: skip
+    if run.start_steps > cfg.run_steps and not done_as_before:
         raise ConfigError(f"--total-steps {cfg.total_steps} is less than the {run.start_steps} "
                           f"env steps the run in {out} has already taken (give more to extend "
                           "it)")  # fmt: skip
@@ -501,7 +497,10 @@ def _loop(run: _Run, compiled: Programs, state: Any) -> None:
             run.checkpointer.check()  # a background write that failed stops the run now
         chunks += 1
         last = index + 1 == cfg.num_chunks or _stopping(run, chunks)
-        if last or (index + 1) % cfg.checkpoint_every == 0:
+        # The rest of the chunk a restored checkpoint stopped inside would be saved under that
+        # checkpoint's own number, deleting it first: kept unless the run ends there.
+        rewrites_restored = index + 1 == run.start_chunk and not last
+        if (last or (index + 1) % cfg.checkpoint_every == 0) and not rewrites_restored:
             meta = {"wall_time_s": record["wall_time_s"], "env_steps": record["env_steps"],
                     "diverged_members": sorted(run.diverged), "total_steps": cfg.total_steps,
                     "settings": fixed_settings(cfg)}  # fmt: skip

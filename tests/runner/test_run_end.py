@@ -129,6 +129,31 @@ def test_a_run_extended_past_its_shortened_end_equals_the_straight_run(tmp_path,
     assert changes == [{"at_env_steps": 100, "total_steps": [100, 256]}]
 
 
+def test_extending_a_shortened_run_keeps_its_checkpoint_until_a_new_one(tmp_path, capsys,
+                                                                        monkeypatch):  # fmt: skip
+    """The rest of the chunk the run ended inside is not saved under the restored
+    checkpoint's own number (which would delete that checkpoint first, the run's only one with
+    --keep-checkpoints 1): the next checkpoint is the next whole chunk's."""
+    out = tmp_path / "run"
+    code, _, err = main(["train", *TINY_FLAGS, "--total-steps", "100", "--keep-checkpoints",
+                         "1", "--out", str(out), "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    saved = []
+    real_save = run_module.Checkpointer.save
+
+    def recording_save(self, step, *args, **kwargs):
+        saved.append(step)
+        return real_save(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(run_module.Checkpointer, "save", recording_save)
+    code, out_text, err = main(["train", "--resume", "--total-steps", "256", "--out", str(out),
+                                "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    assert "(env step 100)" in out_text
+    assert saved == [3, 4]  # not 2, the checkpoint it resumed from
+    assert [r["env_steps"] for r in read_records(out)] == [64, 100, 128, 192, 256]
+
+
 @pytest.mark.runs
 def test_a_run_stopped_before_its_shortened_chunk_resumes_to_the_straight_run(tmp_path):
     """Stopped after its first chunk, a 100-step run resumes to the numbers of one never
