@@ -104,10 +104,10 @@ def train(
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock, counted across resumes (the run stays resumable).
       devices: data-parallel over this many devices (default: all); the numbers do not change.
-      preset, program_dir: the preset ``cfg`` came from (for config.json); the traced
-        programs' store (:mod:`td3_jax.runner.program_cache`).
-      on_prepared, on_started: called once settings and environment are checked, and with the
-        env steps the run starts from (0 when fresh), both before anything is compiled.
+      preset: the preset ``cfg`` came from (recorded in config.json).
+      program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
+      on_prepared: called once settings and environment are checked (nothing compiled yet).
+      on_started: called with the env steps the run starts from (0 when fresh).
       stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
