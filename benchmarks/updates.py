@@ -1,4 +1,4 @@
-"""Gradient updates per second of the TD3 update with FastTD3-size networks (issue 14).
+"""Gradient updates per second of the TD3 update with FastTD3-size networks.
 
 For every combination of critic (plain, distributional C51 with 101 atoms), precision (float32,
 bfloat16 matmuls), batch size, (observation, action) size and C51 projection, ``--updates`` TD3

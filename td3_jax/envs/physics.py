@@ -49,7 +49,7 @@ PLAYGROUND_WORLDS = 8192
 #: MuJoCo Warp's overflow flags (its ``OverflowType``) that mean dropped contacts, constraints
 #: or collision pairs, i.e. wrong physics: all but the solver's and line search's iteration
 #: limits (bits 9 and 10), which Playground's tasks reach by design (few iterations). Checked
-#: against Warp's own flags by ``tests/test_upstream.py``.
+#: against Warp's own flags by ``tests/common/test_upstream.py``.
 WRONG_PHYSICS = (1 << 9) - 1 | (1 << 11)
 _ITERATION_LIMITS = (1 << 9) | (1 << 10)
 

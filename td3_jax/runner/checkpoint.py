@@ -236,7 +236,7 @@ class Checkpointer:
 
     def close(self) -> None:
         """Waits for outstanding writes (a failed one raises :class:`CheckpointWriteError`)
-        and releases orbax's resources."""
+        and frees orbax's resources."""
         try:
             self.wait()
         finally:

@@ -221,7 +221,7 @@ def _finish(run: _Run, run_lock: Any) -> None:
     try:
         run.close()
     finally:
-        run_lock.release()
+        run_lock.unlock()
     if run.failed_write is not None:
         raise _write_failure(run, run.failed_write) from run.failed_write
 

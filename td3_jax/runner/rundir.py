@@ -104,12 +104,12 @@ FLOAT_SETTINGS = (*SWEEPABLE, "ou_min_sigma")
 
 
 class RunLock:
-    """An exclusive ``flock`` on ``DIR/.lock`` held by this process until :meth:`release`."""
+    """An exclusive ``flock`` on ``DIR/.lock`` held by this process until :meth:`unlock`."""
 
     def __init__(self, fd: int | None, path: Path):
         self._fd, self.path = fd, path
 
-    def release(self) -> None:
+    def unlock(self) -> None:
         """Unlocks and closes the lock file (the file itself stays)."""
         if self._fd is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
@@ -137,7 +137,7 @@ def acquire_lock(out_dir: Path) -> RunLock:
         os.ftruncate(fd, 0)
         os.pwrite(fd, holder.encode(), 0)
     except OSError as err:  # e.g. a full disk
-        RunLock(fd, path).release()
+        RunLock(fd, path).unlock()
         raise ConfigError(f"--out {out_dir}: cannot write {path} ({err.strerror})") from err
     return RunLock(fd, path)
 
@@ -375,7 +375,7 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
         try:
             check_fresh(out_dir, locked=True)
         except BaseException:
-            lock.release()
+            lock.unlock()
             raise
     return lock
 

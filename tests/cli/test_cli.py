@@ -945,7 +945,7 @@ def test_plot_says_why_there_is_nothing_to_plot(finished_run, tmp_path, capsys):
     try:
         code, _, err = main(["plot", "--run", str(started)], capsys)
     finally:
-        lock.release()
+        lock.unlock()
     assert_one_line_error(code, err, f"has no evaluation yet: a td3-jax run (pid {os.getpid()}")
     # a hand-edited metrics.jsonl: a record without its time, or not an object
     for line, said in (('{"env_steps": 100, "eval_return_mean": NaN}', "lacks wall_time_s, "
@@ -1085,17 +1085,18 @@ def test_resume_with_a_changed_structural_flag_exits_2(finished_run, case, capsy
 
 
 def test_the_resume_help_and_readme_name_every_setting_a_resume_may_change(capsys):
-    """`train --help`'s --resume entry and the README's run-directory bullet list exactly the
-    settings that a resume lets change (--matmuls was missing from both)."""
+    """`train --help`'s --resume entry and the run-directory page's paragraph on resuming
+    (docs/concepts/run-directory.md) list exactly the settings that a resume lets change
+    (--matmuls was missing from both)."""
     from td3_jax.config.schema import WANDB_SETTINGS, flag
     from td3_jax.runner.rundir import SAFE_ON_RESUME
 
     help_text = main(["train", "--help"], capsys)[1]
     entry, *after = re.split(r"\n[│ ]*--preset ", help_text.split("--resume, --no-resume")[1])
     assert after, "no --preset entry after --resume's: the entry would be the rest of the help"
-    readme = (Path(__file__).parents[2] / "README.md").read_text()
-    bullet, *after = readme.split("**A resume keeps the run's identity.**")[1].split("\n* **")
-    assert after, "the bullet would be the rest of the README"
+    page = (Path(__file__).parents[2] / "docs" / "concepts" / "run-directory.md").read_text()
+    bullet, *after = page.split("**What may change on resume.**")[1].split("\n\n")
+    assert after, "the paragraph would be the rest of the page"
     for text in (entry, bullet):
         text = " ".join(re.sub("[│`]", " ", text).split())
         assert "--wandb* flags may" in text, text
@@ -1224,7 +1225,9 @@ def test_checkpoint_of_another_configuration_exits_2(finished_run, tmp_path, cap
     config = json.loads((run_dir / "config.json").read_text())
     (run_dir / "config.json").write_text(json.dumps({**config, "hidden_sizes": [32, 32]}))
     code, _, err = main(["eval", "--run", str(run_dir)], capsys)
-    assert_one_line_error(code, err, "does not match")
+    # (named as the setting edited, as the checkpoints record it, not as arrays of other shapes)
+    assert_one_line_error(code, err, "hidden_sizes is [32, 32] but the run's checkpoints were "
+                          "written with [16, 16]")  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------

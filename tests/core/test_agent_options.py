@@ -1,4 +1,5 @@
-"""The agent options of issue 14, each shown to change exactly what it should.
+"""The agent options beyond plain TD3 (FastTD3's and FlashSAC's), each shown to change exactly
+what it should.
 
 AdamW, gradient clipping and the cosine schedule against optax's own ``adamw``,
 ``clip_by_global_norm`` and ``cosine_decay_schedule`` on the same gradients; LayerNorm against

@@ -224,7 +224,7 @@ def test_an_impossible_swept_value_names_its_sweep_flag():
 
 @pytest.mark.runs
 def test_a_diverging_member_is_marked_and_the_others_go_on(tmp_path, capsys):
-    """Issue 10.4: one exploding setting no longer stops the sweep (nor every resume)."""
+    """One exploding setting does not stop the sweep (nor every resume)."""
     out = tmp_path / "s"
     args = [
         "sweep", "--sweep-critic-lr", "1e30", "1e-3", "--out", str(out),

@@ -292,7 +292,7 @@ def test_vmap_one_buffer_per_seed(sizes):
 
 
 def test_add_of_rows_shaped_unlike_the_buffer_names_the_field():
-    """Issue 10.11: shape errors at the API boundary, not raw JAX scatter errors."""
+    """Shape errors at the API boundary, not raw JAX scatter errors."""
     buf = replay.init(8, tj.Transition(np.zeros(3), np.zeros(2), 0.0, np.zeros(3), 0.0))
     good = tj.Transition(np.zeros((4, 3)), np.zeros((4, 2)), np.zeros(4), np.zeros((4, 3)),
                          np.zeros(4))  # fmt: skip

@@ -887,7 +887,7 @@ def test_bandit_actor_learns_optimal_action():
     ],
 )  # fmt: skip
 def test_impossible_sizes_and_hyperparameters_are_refused(build_bad, message):
-    """Issue 10.11: ``td3(cfg, 3.5, ...)`` and ``tau=2`` used to be accepted."""
+    """``td3(cfg, 3.5, ...)`` and ``tau=2`` are refused."""
     with pytest.raises(ValueError, match=message):
         build_bad()
 

@@ -32,7 +32,7 @@ from td3_jax.core.population import Member
 from td3_jax.runner import finished, rundir
 from td3_jax.runner import run as run_module
 
-# tests/test_cli.py's tiny run (its ring holds the extended run too).
+# tests/cli/test_cli.py's tiny run (its ring holds the extended run too).
 TINY_FLAGS = [*TINY_FLAGS, "--quiet"]
 VOLATILE = {"wall_time_s", "env_steps_per_s", "chunk_s", "eval_s"}
 SMALL = TrainConfig(
@@ -105,7 +105,7 @@ def test_a_second_run_on_a_directory_in_use_exits_2_and_writes_nothing(tmp_path)
     assert first.returncode == 0, stderr
     assert "done: 128 env steps" in stdout
     assert [(r["env_steps"], r["seed"]) for r in read_records(out)] == [(64, 7), (128, 7)]
-    assert not lock_is_held(out)  # released at the end of the run
+    assert not lock_is_held(out)  # unlocked at the end of the run
 
 
 def lock_holding_process(call: str) -> subprocess.Popen:
@@ -128,12 +128,12 @@ def test_the_lock_dies_with_its_process(tmp_path):
         holder.wait()
     lock = rundir.acquire_lock(tmp_path)  # the kernel dropped the dead process's lock
     assert json.loads((tmp_path / ".lock").read_text())["pid"] == os.getpid()
-    lock.release()
+    lock.unlock()
 
 
 def test_a_run_killed_while_starting_leaves_a_lock_file_that_stops_nothing(tmp_path):
     """A run SIGKILLed under its lock before it wrote anything (while compiling) leaves .lock
-    naming its dead pid: the kernel released the lock, so eval says the run stopped before it
+    naming its dead pid: the kernel dropped the lock, so eval says the run stopped before it
     trained (not that it is being started), and a fresh start takes the directory."""
     out = tmp_path / "run"
     holder = lock_holding_process(f"rundir.open_run_dir({str(out)!r}, resume=False)")
@@ -153,7 +153,7 @@ def test_a_run_killed_while_starting_leaves_a_lock_file_that_stops_nothing(tmp_p
     rundir.check_fresh(out)
     lock = rundir.open_run_dir(out, resume=False)
     assert json.loads((out / ".lock").read_text())["pid"] == os.getpid()
-    lock.release()
+    lock.unlock()
 
 
 @pytest.mark.subprocess
@@ -185,16 +185,16 @@ def test_a_run_killed_after_a_checkpoint_resumes_despite_its_lock_file(tmp_path,
     assert not list((out / "checkpoints").glob("*orbax-checkpoint-tmp*"))
 
 
-def test_in_one_process_the_lock_is_exclusive_until_released(tmp_path):
+def test_in_one_process_the_lock_is_exclusive_until_unlocked(tmp_path):
     lock = rundir.acquire_lock(tmp_path)
     with pytest.raises(ConfigError, match="in use"):
         rundir.acquire_lock(tmp_path)
     with pytest.raises(ConfigError, match="in use"):
         rundir.check_fresh(tmp_path)
-    lock.release()
-    lock.release()  # (idempotent)
+    lock.unlock()
+    lock.unlock()  # (idempotent)
     rundir.check_fresh(tmp_path)  # a left-over .lock file alone is no previous run
-    rundir.acquire_lock(tmp_path).release()
+    rundir.acquire_lock(tmp_path).unlock()
 
 
 def test_reading_a_run_that_is_still_starting_says_so(tmp_path):
@@ -205,10 +205,10 @@ def test_reading_a_run_that_is_still_starting_says_so(tmp_path):
         with pytest.raises(ConfigError, match=r"is being started by a td3-jax run \(pid "):
             rundir.load_config(tmp_path)
     finally:
-        lock.release()
+        lock.unlock()
     with pytest.raises(ConfigError, match=r"holds no config\.json or checkpoint: its run stopped "
                        r"before it trained"):  # fmt: skip
-        rundir.load_config(tmp_path)  # (its lock file stays behind, released)
+        rundir.load_config(tmp_path)  # (its lock file stays behind, unlocked)
     (tmp_path / "metrics.jsonl").write_text("{}\n")  # a run's output, config.json lost: not that
     with pytest.raises(ConfigError, match=r"holds no config\.json: not a td3-jax run directory"):
         rundir.load_config(tmp_path)
@@ -228,7 +228,7 @@ def test_reading_a_run_without_a_checkpoint_says_why(tmp_path):
                            rf"\d+ on .+\) {written}"):  # fmt: skip
             finished.restore_on_one_device(program, tmp_path)
     finally:
-        lock.release()
+        lock.unlock()
     with pytest.raises(ConfigError, match=r"holds no checkpoint \(its run stopped before its "
                        r"first evaluation\), so there is no policy to read: run its td3-jax "
                        r"train command again to start it over$"):  # fmt: skip
@@ -281,7 +281,7 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
     """What such a run leaves (its lock file, no longer held, an empty checkpoints folder;
     config.json and an empty metrics.jsonl where it ended before its first record): --resume
     refuses, saying to start without it, and a fresh start is accepted."""
-    rundir.acquire_lock(tmp_path).release()
+    rundir.acquire_lock(tmp_path).unlock()
     (tmp_path / "checkpoints").mkdir()
     for name, text in (("", ""), ("config.json", "{}"), ("metrics.jsonl", "")):
         if name:
