@@ -492,23 +492,6 @@ def test_cli_member_flag(tiny_run, tmp_path, capsys):
     assert code == 2 and "metrics.jsonl is not a JSON record" in err, err
 
 
-def test_the_export_extra_installs_what_the_readme_snippet_imports():
-    """The README's ONNX snippet runs after `pip install 'td3-jax[export]'`: every module it
-    imports is a requirement of the export extra."""
-    import re
-    import tomllib
-
-    root = Path(__file__).resolve().parents[2]
-    extra = tomllib.loads((root / "pyproject.toml").read_text())["project"][
-        "optional-dependencies"]["export"]  # fmt: skip
-    installed = {re.split(r"[<>=\[ ]", requirement)[0] for requirement in extra}
-    readme = (root / "README.md").read_text()
-    snippets = re.findall(r"```python\n(.*?)```", readme, re.S)
-    onnx_snippet = next(s for s in snippets if ".onnx" in s)
-    imported = set(re.findall(r"^import (\w+)", onnx_snippet, re.M))
-    assert imported == {"onnxruntime"} and imported <= installed, (imported, installed)
-
-
 def test_cli_errors_exit_2(tiny_run, tmp_path, capsys):
     no_checkpoint = tmp_path / "no_checkpoint"
     no_checkpoint.mkdir()
