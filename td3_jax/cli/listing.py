@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from td3_jax.cli.commands import EnvsCommand, PresetsCommand
 from td3_jax.cli.parsing import parse
-from td3_jax.config.presets import PRESETS, preset
+from td3_jax.config.presets import NAMES, PRESETS, preset
 from td3_jax.config.schema import ConfigError, as_flag
 
 __all__ = ["envs_main", "envs_table", "presets_main"]
@@ -28,7 +28,7 @@ def envs_main(args: list[str]) -> None:
     engine = f"MJX's JAX implementation; {missing}" if missing else "MuJoCo Warp"
     print(f"\nPlayground physics here by default: {engine}. --impl jax|warp chooses.")
     print(f"Your own environment: --env module.path:function, a function returning "
-          f"{KINDS} (README: Your own environment).")  # fmt: skip
+          f"{KINDS} (docs/guides/own-environment.md).")  # fmt: skip
 
 
 def envs_table(rows: list[tuple[str, str, str]]) -> list[str]:
@@ -45,7 +45,7 @@ def envs_table(rows: list[tuple[str, str, str]]) -> list[str]:
 def presets_main(args: list[str]) -> None:
     """One line per preset (the named ones, else all): its name and the flags it sets; an
     unknown name is :func:`~td3_jax.config.presets.preset`'s ConfigError (the closest names)."""
-    names = parse(PresetsCommand, args, "td3-jax presets").names or tuple(PRESETS)
+    names = parse(PresetsCommand, args, "td3-jax presets").names or NAMES  # (no old names)
     for name in names:
         preset(name)  # (refuses an unknown name before anything is printed)
     for name in names:

@@ -25,7 +25,7 @@ class TrainConfig:
     env: str = "gymnax/Pendulum-v1"
     """Environment as SOURCE/NAME (brax/ant, playground/CheetahRun, gymnax/Pendulum-v1, ...;
     `td3-jax envs` lists them), or your own as module.path:function (a function returning the
-    environment; see the README's "Your own environment")."""
+    environment; see docs/guides/own-environment.md)."""
     algo: Literal["td3", "ddpg"] = "td3"
     """Algorithm."""
     seed: int = 0

@@ -1,7 +1,7 @@
 """Environments of your own: an object td3-jax does not know by name, or a factory
 ``module.path:function`` that makes one.
 
-What td3-jax needs from an environment (the README's "Your own environment" says it at length):
+What td3-jax needs from an environment (docs/guides/own-environment.md says it at length):
 
 * a ``reset`` of a key and a ``step`` of a state and an action that JAX can trace (they are
   jitted and vmapped inside the training program): ``jax.numpy``/``jax.lax``, no Python

@@ -38,7 +38,7 @@ from td3_jax.cli import app, argv, commands, interrupts, notes, parsing, tables
 from td3_jax.cli import settings as cli_settings
 from td3_jax.cli import train as cli_train
 from td3_jax.config import schema as config
-from td3_jax.config.presets import NAMES, PRESETS, device_defaults, preset
+from td3_jax.config.presets import NAMES, PRESETS, RENAMED, device_defaults, preset
 from td3_jax.config.schema import TrainConfig
 from td3_jax.envs import physics
 from td3_jax.runner import run as run_module
@@ -964,11 +964,12 @@ def test_envs_and_presets_listings(capsys):
     assert code == 0
     names = stdout.split()
     assert "gymnax/Pendulum-v1" in names and "brax/inverted_pendulum" in names
-    code, stdout, _ = main(["presets"], capsys)
+    code, stdout, stderr = main(["presets"], capsys)
     assert code == 0
-    for name in PRESETS:
-        assert re.search(rf"^{re.escape(name)}: ", stdout, re.M), name
-    assert "--batch-size 128" in stdout
+    for name in PRESETS:  # every current name listed; a former name neither listed nor warned of
+        listed = re.search(rf"^{re.escape(name)}: ", stdout, re.M)
+        assert bool(listed) == (name not in RENAMED), name
+    assert "--batch-size 128" in stdout and "renamed" not in stderr
 
 
 def test_presets_shows_the_named_ones_and_refuses_unknown_names_and_flags(capsys):
