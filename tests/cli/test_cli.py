@@ -1486,7 +1486,7 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert "4096 environments, 4096000 steps" in warning
     assert warning.endswith(
         "try --num-envs 16 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
-        "--eval-every 4000 --eval-envs 16 (or no --preset)"
+        "--eval-every 4000 --eval-envs 16 --precision float32 (or no --preset)"
     )
     # part of the advice followed (the t1 run): the rest is still asked for, since
     # the in-chunk evaluation still makes a chunk of 4,096,000 steps
@@ -1494,7 +1494,8 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
                                warmup_steps=1000)  # fmt: skip
     assert part.run_steps == 4_096_000
     assert notes.cpu_size_warning(part, "cpu").endswith(
-        "try --no-eval-in-chunk --eval-every 4000 --eval-envs 16 (or no --preset)"
+        "try --no-eval-in-chunk --eval-every 4000 --eval-envs 16 --precision float32 (or no "
+        "--preset)"
     )
     # a resume keeps the run's sizes: no flag to change them is offered
     resumed = notes.cpu_size_warning(ant, "cpu", "resume")
@@ -1503,7 +1504,7 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     long_g1 = notes.cpu_size_warning(dataclasses.replace(preset("g1"), num_envs=16), "cpu")
     assert (
         "try --total-steps 20000 --batch-size 256 --warmup-steps 1000 --no-eval-in-chunk "
-        "--eval-every 4000 --eval-envs 16 (" in long_g1
+        "--eval-every 4000 --eval-envs 16 --precision float32 (" in long_g1
     )
 
 
