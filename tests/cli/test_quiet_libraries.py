@@ -4,6 +4,9 @@ render checks ``MUJOCO_GL`` before MuJoCo's import refuses it in its own words."
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 from support import TINY_FLAGS, assert_one_line_error, main, python
 
@@ -57,6 +60,27 @@ def test_a_process_ending_at_once_inside_the_block_loses_nothing_it_wrote():
     proc = python(code)
     assert proc.returncode == 130
     assert proc.stderr == "td3-jax: interrupted again: stopping now\n"
+
+
+def test_a_signal_to_the_whole_process_group_leaves_the_filter_running():
+    """Ctrl-C in a terminal, or ``timeout``, signals a whole process group, at once: what the
+    process says as it stops still arrives (the filter, killed with it, lost that line)."""
+    code = ("import os, signal, sys, time\n"
+            "from td3_jax.common.library_noise import filtered_stderr\n"
+            "say = lambda text: print(text, file=sys.stderr, flush=True)\n"
+            "signal.signal(signal.SIGTERM, lambda *_: say('td3-jax: terminated (SIGTERM)'))\n"
+            "with filtered_stderr():\n"
+            "    os.killpg(os.getpgid(0), signal.SIGTERM)\n"
+            "    time.sleep(0.2)\n"
+            "    try:\n"
+            "        os.killpg(os.getpgid(0), signal.SIGINT)\n"
+            "        time.sleep(5)\n"
+            "    except KeyboardInterrupt:\n"
+            "        say('td3-jax: interrupted')\n")  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, start_new_session=True)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == "td3-jax: terminated (SIGTERM)\ntd3-jax: interrupted\n"
 
 
 def _exit_code(args: list[str]) -> int:
