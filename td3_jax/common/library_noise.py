@@ -62,25 +62,43 @@ for line in sys.stdin.buffer:
 @contextlib.contextmanager
 def filtered_stderr() -> Iterator[None]:
     """Passes file descriptor 2 through the filter process for the block (see the module's
-    docstring); where the filter cannot start, the block runs unfiltered."""
-    sys.stderr.flush()
-    saved = os.dup(2)
+    docstring); where there is no fd 2 or the filter cannot start, the block runs as it is."""
+    started = _start_filter()
+    if started is None:
+        yield
+        return
+    saved, child = started
+    os.dup2(child.stdin.fileno(), 2)
+    try:
+        yield
+    finally:
+        _flush_stderr()
+        os.dup2(saved, 2)
+        os.close(saved)
+        child.stdin.close()  # its last line written, the filter ends
+        with contextlib.suppress(subprocess.TimeoutExpired):  # (a child process of the
+            child.wait(timeout=5)  # block may still hold the pipe: the filter outlives it)
+
+
+def _start_filter() -> tuple[int, subprocess.Popen] | None:
+    """``(a copy of fd 2, the filter process writing to it)``, or ``None`` where either
+    cannot be had."""
+    _flush_stderr()
+    try:
+        saved = os.dup(2)
+    except OSError:  # (no fd 2: a daemon's)
+        return None
     try:
         child = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, STILL_COMPILING,
                                   ALARM, *DROPPED], stdin=subprocess.PIPE, stdout=saved,
                                  stderr=saved, start_new_session=True)  # fmt: skip
     except OSError:
         os.close(saved)
-        yield
-        return
-    os.dup2(child.stdin.fileno(), 2)
-    try:
-        yield
-    finally:
-        with contextlib.suppress(Exception):  # (a closed sys.stderr: nothing left to flush)
-            sys.stderr.flush()
-        os.dup2(saved, 2)
-        os.close(saved)
-        child.stdin.close()  # its last line written, the filter ends
-        with contextlib.suppress(subprocess.TimeoutExpired):  # (a child process of the
-            child.wait(timeout=5)  # block may still hold the pipe: the filter outlives it)
+        return None
+    return saved, child
+
+
+def _flush_stderr() -> None:
+    """Writes out what Python holds for stderr (none where it is closed or missing)."""
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
