@@ -9,9 +9,10 @@ for the span of a block (``python -I -S``, stdlib only): every other line goes t
 was written, in order, Python's own writes included; the alarm becomes one line of td3-jax's
 (:data:`STILL_COMPILING`, once per block), MLIR's lines are dropped. The filter is a process,
 not a thread, so that a process ending at once (a second Ctrl-C's ``os._exit``, an abort)
-loses nothing it wrote: the filter drains the pipe until its last writer is gone. It runs apart from
-the process group (``start_new_session``), out of reach of Ctrl-C and of the SIGTERM that ``timeout`` sends to a
-whole process group, so that the lines the process says as it stops still get through.
+loses nothing it wrote: the filter drains the pipe until its last writer is gone. It runs
+apart from the process group (``start_new_session``), out of reach of Ctrl-C and of the SIGTERM
+that ``timeout`` sends to a whole process group, so that the lines the process says as it stops
+still get through.
 """
 
 from __future__ import annotations
