@@ -1,6 +1,6 @@
 """A GPU preset on a CPU: the warning's advice, followed, is a run that finishes in minutes
-(issue 56: ``--preset t1 --total-steps 8192`` ran 4,096,000 steps, and the advice it printed
-still did, without its warning)."""
+(``--preset t1 --total-steps 8192`` used to run 4,096,000 steps, and so did the advice it
+printed, without its warning)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def test_the_advice_for_t1_on_a_cpu_runs_in_minutes(tmp_path):
     """T1's preset with a short --total-steps, then every flag the warning names: the run
     starts without the warning and ends at --total-steps within minutes (15 measured on a
     2-core CPU shared with other work, most of them compiling T1's physics; the limit is 45).
-    The issue's 8,192 steps with the same flags took 36 minutes there, 19 of them CPU time."""
+    8,192 steps with the same flags took 36 minutes there, 19 of them CPU time."""
     from td3_jax.envs import menagerie
 
     folder, package = menagerie.robot("T1JoystickFlatTerrain")

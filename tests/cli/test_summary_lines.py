@@ -44,7 +44,7 @@ def test_the_done_line_says_what_its_spread_is_over(members, diverged, sweeping,
 
 @pytest.mark.runs
 def test_a_sweep_with_a_diverged_member_counts_it(tmp_path, capsys):
-    """The issue's sweep: critic_lr 1e30 diverges at once; the done line's ± is over the one
+    """A sweep whose critic_lr 1e30 diverges at once: the done line's ± is over the one
     member left, and says so."""
     out = tmp_path / "sweep"
     code, stdout, err = main(["sweep", *TINY_FLAGS, "--sweep-critic-lr", "1e-3", "1e30",
