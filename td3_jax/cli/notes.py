@@ -120,7 +120,8 @@ def cpu_tips(cfg: TrainConfig) -> list[str]:
     bfloat16 ones, which a CPU computes at about half their speed (measured: a 1024-512-256
     critic's gradient, batch 256). Together they make a valid run of the steps it keeps (a
     batch and a warm-up within them) that ends at --total-steps."""
-    steps = 20_000 if cfg.run_steps >= 5_000_000 else cfg.total_steps  # (after the tips)
+    long = cfg.run_steps >= 5_000_000
+    steps = CPU_SIZES["total_steps"] if long else cfg.total_steps  # (the run's, after the tips)
     batch = min(CPU_SIZES["batch_size"], steps)
     warmup = min(CPU_SIZES["warmup_steps"], steps // 2)
     tips = (
