@@ -31,8 +31,8 @@ ALARM = "Very slow compile?"
 #: alarm's log line and MLIR's deserialisation errors.
 DROPPED = (
     "slow_operation_alarm.cc",
-    "invalid Type index",
-    "failed to deserialize portable artifact",
+    'loc("-":0:0): error: ',  # (MLIR's errors in a serialised artifact: "invalid Type index",
+    "failed to deserialize portable artifact",  # "invalid Attribute index", ...)
 )
 #: The line that stands for XLA's slow-compile alarm.
 STILL_COMPILING = (
