@@ -10,7 +10,7 @@ was written, in order, Python's own writes included; the alarm becomes one line 
 (:data:`STILL_COMPILING`, once per block), MLIR's lines are dropped. The filter is a process,
 not a thread, so that a process ending at once (a second Ctrl-C's ``os._exit``, an abort)
 loses nothing it wrote: the filter drains the pipe until its last writer is gone. It runs
-apart from the process group (``start_new_session``), out of reach of Ctrl-C and of the SIGTERM
+in a process group of its own, out of reach of Ctrl-C and of the SIGTERM
 that ``timeout`` sends to a whole process group, so that the lines the process says as it stops
 still get through.
 """
@@ -92,7 +92,7 @@ def _start_filter() -> tuple[int, subprocess.Popen] | None:
     try:
         child = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, STILL_COMPILING,
                                   ALARM, *DROPPED], stdin=subprocess.PIPE, stdout=saved,
-                                 stderr=saved, start_new_session=True)  # fmt: skip
+                                 stderr=saved, process_group=0)  # fmt: skip
     except OSError:
         os.close(saved)
         return None

@@ -79,7 +79,7 @@ def test_a_signal_to_the_whole_process_group_leaves_the_filter_running():
             "    except KeyboardInterrupt:\n"
             "        say('td3-jax: interrupted')\n")  # fmt: skip
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=120, start_new_session=True)  # fmt: skip
+                          timeout=120, process_group=0)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == "td3-jax: terminated (SIGTERM)\ntd3-jax: interrupted\n"
 
