@@ -94,7 +94,7 @@ def scale_to_device(cfg: TrainConfig, args: list[str]) -> TrainConfig:
 def choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig, int | None]:
     """A Playground task's physics (``--impl``; default: MuJoCo Warp where it can run) and the
     device count, said in one line; ``--impl warp`` where Warp cannot run is a ConfigError
-    naming what is missing. Warp runs on one device: by default a run then takes one GPU."""
+    naming what is missing. On Warp a run takes one GPU unless ``--devices`` asks for more."""
     if not cfg.env.startswith("playground/"):
         return cfg, devices
     import jax  # lazy: JAX, only for a run
@@ -108,7 +108,7 @@ def choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig, 
         raise ConfigError(str(err)) from None
     note = ""
     if impl == "warp" and devices is None and jax.device_count() > 1:
-        devices, note = 1, f" on one GPU (--impl jax spreads a run over all {jax.device_count()})"
+        devices, note = 1, f" on one GPU (--devices {jax.device_count()} splits it over all)"
     elif impl == "jax" and asked is None:
         note = f": {physics.warp_missing()}"  # (why not Warp, the default where it runs)
     if jax.process_index() == 0:

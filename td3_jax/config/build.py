@@ -206,6 +206,7 @@ def make_spec(
     axis_name: str | None = None,
     env_groups: int = 1,
     members: int = 1,
+    mesh: Any = None,
 ) -> training.TrainSpec:
     """The static spec of ``cfg`` (the environment is made for ``members`` members if not
     given; ``env`` may also be an object of your own or a factory string: :func:`make_env`).
@@ -213,8 +214,13 @@ def make_spec(
     ``env_groups``: environments are reset within groups of this many contiguous environments
     (with the batch split over D devices, D keeps every reset on its device); with replay
     slices that the groups divide, the slices are the groups. Results do not depend on it.
+    ``mesh``: the device mesh (axis ``"data"``) the batch is split over, for physics that
+    XLA cannot split itself (MuJoCo Warp: :func:`td3_jax.envs.over_devices`); ``None``: one
+    device, or physics XLA splits.
     """
     env = make_env(cfg, members, env)
+    if mesh is not None:
+        env = envs.over_devices(env, mesh)
     shards = cfg.replay_shards
     groups = shards if shards % env_groups == 0 else env_groups
     if cfg.eval_in_chunk:
@@ -440,6 +446,7 @@ def make_population(
     population: list[pop.Member],
     devices: int = 1,
     env: envs.Environment | None = None,
+    mesh: Any = None,
 ) -> pop.Population:
     """The batched training functions of ``population`` (all sharing ``cfg``'s shapes):
     :func:`td3_jax.core.population.make_population` of ``cfg``'s spec and the members' stacked
@@ -447,7 +454,8 @@ def make_population(
 
     ``devices``: how many devices the environments will be split over; resets then gather and
     scatter within each device's environments (the numbers do not depend on it). ``env``:
-    ``cfg``'s environment when already made (made here otherwise).
+    ``cfg``'s environment when already made (made here otherwise). ``mesh``: those devices
+    (:func:`make_spec`).
     """
-    spec = make_spec(cfg, env, env_groups=devices, members=len(population))
+    spec = make_spec(cfg, env, env_groups=devices, members=len(population), mesh=mesh)
     return pop.make_population(spec, member_hyperparams(cfg, population), population)

@@ -585,11 +585,11 @@ def _check_environment(cfg: TrainConfig) -> None:
 
 
 def _check_devices(cfg: TrainConfig, devices: int) -> None:
-    """Global sizes split evenly over ``devices``; MuJoCo Warp physics on one device."""
-    if cfg.impl == "warp" and devices > 1:
-        raise ConfigError(f"--impl warp runs on one device, not {devices}: use --devices 1, "
-                          "or --impl jax to spread the run over several")  # fmt: skip
+    """Global sizes split evenly over ``devices`` (MuJoCo Warp's evaluation environments too:
+    each device steps its own)."""
     checks = [("--num-envs", cfg.num_envs)]
+    if cfg.impl == "warp":
+        checks.append(("--eval-envs", cfg.eval_envs))
     if cfg.replay_shards % devices:
         slice_rows = cfg.replay_capacity // cfg.replay_shards
         checks.append(("each replay slice (capacity / --replay-shards)", slice_rows))

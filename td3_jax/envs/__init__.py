@@ -42,6 +42,7 @@ from td3_jax.envs.custom import (
     object_label,
 )
 from td3_jax.envs.menagerie import MissingAssetsError, candidates, first_holding, robot
+from td3_jax.envs.over_devices import over_devices
 from td3_jax.envs.physics import without_warp_import_notes
 
 #: Each source module has ``names() -> list[str]`` and
@@ -226,6 +227,7 @@ __all__ = [
     "load_factory",
     "make",
     "object_label",
+    "over_devices",
     "reset",
     "reset_ended",
     "step",

@@ -68,6 +68,12 @@ class Environment:
       overflow_fn: ``overflow_fn(inner) -> bool``: the physics ran out of a fixed buffer in
         the step that produced ``inner`` (MuJoCo Warp's contacts or constraints: dropped, so
         the physics is wrong), or ``None`` (it cannot).
+      per_device: its batched physics cannot be split over devices by XLA (MuJoCo Warp's
+        calls): a batch spread over several devices is stepped on each device apart
+        (:func:`td3_jax.envs.over_devices.over_devices`).
+      batch_map: ``batch_map(batched, size) -> batched``: how every batched physics call
+        (``jax.vmap`` of ``reset_fn`` or ``step_fn`` over ``size`` environments) runs;
+        ``None``: as it is (:func:`td3_jax.envs.over_devices.over_devices` sets it).
     """
 
     name: str
@@ -83,6 +89,9 @@ class Environment:
     mj_model: Any = dataclasses.field(default=None, repr=False)
     qpos_fn: Callable[[Any], jax.Array] | None = dataclasses.field(default=None, repr=False)
     overflow_fn: Callable[[Any], jax.Array] | None = dataclasses.field(default=None, repr=False)
+    per_device: bool = False
+    batch_map: Callable[[Callable, int], Callable] | None = dataclasses.field(default=None,
+                                                                              repr=False)
 
     @property
     def row_size(self) -> int:
@@ -161,12 +170,14 @@ def from_mjx_style(
     mj_model: Any = None,
     qpos_fn: Callable[[Any], jax.Array] | None = None,
     overflow_fn: Callable[[Any], jax.Array] | None = None,
+    per_device: bool = False,
 ) -> Environment:
     """Wraps an environment with Brax's API (``reset(key)``/``step(state, action)`` returning a
     state with ``obs``, ``reward`` and ``done``; actions in ``[-1, 1]``), as Brax and MuJoCo
     Playground environments have. Without their episode wrappers, ``done`` is a termination.
     ``mj_model`` and ``qpos_fn`` (of the source's state) are kept for rendering only;
-    ``overflow_fn`` (of the source's state) is :attr:`Environment.overflow_fn`.
+    ``overflow_fn`` (of the source's state) is :attr:`Environment.overflow_fn`;
+    ``per_device``: :attr:`Environment.per_device` (MuJoCo Warp's physics).
     """
 
     def reset_fn(key):
@@ -196,6 +207,7 @@ def from_mjx_style(
         mj_model=mj_model,
         qpos_fn=qpos_fn,
         overflow_fn=overflow_fn,
+        per_device=per_device,
     )
 
 
@@ -259,8 +271,15 @@ def _strong(tree: Any) -> Any:
     return jax.tree.map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), tree)
 
 
+def batched_physics(env: Environment, fn: Callable, size: int) -> Callable:
+    """``fn`` (``env.reset_fn`` or ``env.step_fn``) over a batch of ``size`` environments:
+    ``jax.vmap``, run as :attr:`Environment.batch_map` says (e.g. on each device apart)."""
+    batched = jax.vmap(fn)
+    return batched if env.batch_map is None else env.batch_map(batched, size)
+
+
 def _reset_batch(env: Environment, keys: jax.Array) -> tuple[Any, jax.Array]:
-    inner, obs = jax.vmap(env.reset_fn)(keys)
+    inner, obs = batched_physics(env, env.reset_fn, keys.shape[0])(keys)
     return _strong(inner), obs.astype(jnp.float32)
 
 
@@ -401,9 +420,8 @@ def step(
     """
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(state.key)
     next_key, step_key, reset_key = keys[:, 0], keys[:, 1], keys[:, 2]
-    inner, obs, reward, terminated = jax.vmap(env.step_fn)(
-        state.inner, env.to_env_action(action), step_key
-    )
+    physics = batched_physics(env, env.step_fn, step_key.shape[0])
+    inner, obs, reward, terminated = physics(state.inner, env.to_env_action(action), step_key)
     inner, obs = _strong(inner), obs.astype(jnp.float32)
     reward, terminated = reward.astype(jnp.float32), terminated.astype(bool)
     steps = state.steps + 1
@@ -432,6 +450,7 @@ __all__ = [
     "action_bound",
     "actor_observation",
     "batched",
+    "batched_physics",
     "by_group",
     "critic_observation",
     "default_reset_slots",

@@ -416,7 +416,8 @@ def from_task(
     """An already-made Playground task ``env`` (a ``MjxEnv``) as the environment ``name``: its
     observation (flat, or a dict whose ``options`` keys the actor and the critics see) stored
     as rows (:func:`layout`), its model drawn by ``rand`` at every reset (``None``: fixed),
-    MuJoCo Warp's buffer overflows reported when ``warp``."""
+    MuJoCo Warp's buffer overflows reported and its batches stepped on each device apart
+    (:attr:`~td3_jax.envs.base.Environment.per_device`) when ``warp``."""
     lay = layout(env, options)
     return Environment(
         name=name,
@@ -434,4 +435,5 @@ def from_task(
         mj_model=env.mj_model,
         qpos_fn=functools.partial(_qpos, rand),
         overflow_fn=functools.partial(_overflow, rand) if warp else None,
+        per_device=warp,
     )

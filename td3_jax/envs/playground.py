@@ -68,7 +68,8 @@ def make(
     length = int(episode_length or config.episode_length)
     overflow = locomotion.warp_overflow if impl == "warp" else None
     return from_mjx_style(f"playground/{name}", env, length, mj_model=env.mj_model,
-                          qpos_fn=data_qpos, overflow_fn=overflow)  # fmt: skip
+                          qpos_fn=data_qpos, overflow_fn=overflow,
+                          per_device=impl == "warp")  # fmt: skip
 
 
 def from_env(

@@ -14,10 +14,12 @@ own glue is one: its module is made at MJX's first call).
 :func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
 call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compile` (a
 training run's environment is made there), on a machine of 8 cores or more, it runs on a
-thread of its own while the caller goes on to trace and compile its XLA programs, and
-:func:`wait_ready` waits for it before the first physics step: Warp's compile then costs the
-run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). The
-start-up it saves is measured in docs/benchmarks.md (the T1 flat table's start-up column).
+thread of its own, which begins once the caller has traced its programs
+(:func:`programs_traced`: Warp's code generation would slow the tracing, which needs the same
+interpreter) and runs while XLA compiles them; :func:`wait_ready` waits for it before the first
+physics step. Warp's compile then costs the run only what XLA's does not cover
+(``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). The start-up it saves is measured in
+docs/benchmarks.md ("Where a T1 iteration's time goes").
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ __all__ = [
     "listed_modules",
     "precompile",
     "precompile_task",
+    "programs_traced",
     "static_options",
     "wait_ready",
 ]
@@ -61,7 +64,8 @@ __all__ = [
 #: a time), as it does on its own.
 PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
 #: At most this many modules compile at once (each compile holds its own compiler's memory).
-MAX_WORKERS = 8
+#: On a 16-core H200 host T1's cold precompile took 75 s on 8 threads and 24-55 s on 16.
+MAX_WORKERS = 16
 #: Set to 0 (or false, off, no), a training run's precompile runs first, then its XLA
 #: compile; otherwise (the default) on its own thread beside the XLA compile
 #: (:func:`beside_compile`).
@@ -318,6 +322,12 @@ class _Pending(NamedTuple):
 _BESIDE = threading.local()
 #: The precompiles started beside a compile and not yet waited for (wait_ready).
 _PENDING: list[_Pending] = []
+#: Set once the caller has traced its programs (:func:`programs_traced`): a precompile started
+#: beside a compile waits for it before its Python work (listing the modules, Warp's code
+#: generation), which holds the interpreter and slowed the tracing of T1's chunk from 3 s to
+#: 7-20 s; XLA's compile, which follows, leaves the interpreter free.
+_TRACED = threading.Event()
+_TRACED.set()
 
 
 @contextlib.contextmanager
@@ -329,6 +339,7 @@ def beside_compile() -> Iterator[None]:
     An exception leaving it drops the precompiles started inside (:func:`drop_pending`)."""
     before = getattr(_BESIDE, "on", False)
     _BESIDE.on = True
+    _TRACED.clear()
     try:
         yield
     except BaseException:  # (the caller will not wait for them)
@@ -345,6 +356,7 @@ def wait_ready(stop: Any = None) -> list[Precompiled]:
     :class:`~td3_jax.common.runtime.StopToken`): once set, the precompiles are dropped
     (:func:`drop_pending`) and it raises as the token does."""
     done = []
+    _TRACED.set()
     try:
         while _PENDING:
             pending, start = _PENDING[0], time.perf_counter()
@@ -369,6 +381,14 @@ def drop_pending() -> None:
     it (a run that ends before its first physics step: nothing is said of them)."""
     while _PENDING:
         _PENDING.pop().cancel.set()
+    _TRACED.set()
+
+
+def programs_traced() -> None:
+    """Lets the precompiles started beside a compile (:func:`beside_compile`) begin: the
+    caller's programs are traced and XLA compiles them now. (:func:`wait_ready` and
+    :func:`drop_pending` also let them.)"""
+    _TRACED.set()
 
 
 def _warn_failed(err: BaseException) -> None:
@@ -402,11 +422,17 @@ def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
         cancel = threading.Event()
         work = functools.partial(precompile, mj_model, options=options, njmax=njmax,
                                  naconmax=naconmax, cancel=cancel)  # fmt: skip
-        future = runtime.in_background(work, name="td3-jax warp precompile")
+        future = runtime.in_background(_once_traced, work, name="td3-jax warp precompile")
     except Exception as err:  # (an optimisation: the run goes on without it)
         _warn_failed(err)
         return
     _PENDING.append(_Pending(future, cancel))
+
+
+def _once_traced(work: Callable[[], Precompiled]) -> Precompiled:
+    """``work()`` once the caller's programs are traced (:data:`_TRACED`)."""
+    _TRACED.wait()
+    return work()
 
 
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:

@@ -29,7 +29,7 @@ from td3_jax.config.build import make_population, member_hyperparams
 from td3_jax.config.schema import TrainConfig
 from td3_jax.core.population import Member, Population, member_keys
 from td3_jax.core.training import Hyperparams, TrainState
-from td3_jax.envs import Environment, is_custom
+from td3_jax.envs import Environment, is_custom, warp_kernels
 from td3_jax.runner import program_cache
 from td3_jax.runner.program_cache import FlatProgram
 from td3_jax.runner.sharding import check_program_memory, replicate, state_shardings
@@ -118,7 +118,8 @@ def find(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path
         source.directory = Path(directory)
         source.stored, source.trees = program_cache.load(source.directory, source.key, names)
     if source.stored is None:
-        source.program = make_population(cfg, population, devices=mesh.size, env=env)
+        source.program = make_population(cfg, population, devices=mesh.size, env=env,
+                                         mesh=mesh)
     return source
 
 
@@ -173,7 +174,8 @@ def _give_up_stored(source: Source, err: BaseException) -> None:
     instead (its environment included), so the run traces as if nothing had been stored."""
     program_cache.discard(source.directory / source.key, err)
     source.stored = source.trees = None
-    source.program = make_population(source.cfg, source.population, devices=source.mesh.size)
+    source.program = make_population(source.cfg, source.population, devices=source.mesh.size,
+                                     mesh=source.mesh)
 
 
 class _ExportFailed(RuntimeError):
@@ -297,6 +299,7 @@ def _export_each(source: Source, stop: StopToken) -> tuple[dict, dict, dict]:
         if name in source.names:  # a resume needs no init, but the entry keeps it
             executables[name] = in_background(program_cache.compile_flat, flat[name], mesh,
                                               compile_options(source))  # fmt: skip
+    warp_kernels.programs_traced()
     return executables, flat, trees
 
 
@@ -385,4 +388,5 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
     for name, lower in lowerings.items():
         futures[name] = in_background(functools.partial(lower().compile, compiler_options=options))
         stop.raise_if_set()
+    warp_kernels.programs_traced()  # (Warp's kernels compile beside XLA's from here)
     return programs._replace(**{name: result(f, stop) for name, f in futures.items()})

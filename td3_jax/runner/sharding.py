@@ -176,7 +176,9 @@ def replay_layout_warning(replay_shards: int, num_devices: int) -> str | None:
 
 
 def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -> Any:
-    """NamedShardings for a train state: split env/buffer leaves, replicate the rest.
+    """NamedShardings for a train state: split env/buffer leaves, replicate the rest (and the
+    environment leaves without the batch axis: MuJoCo Warp's buffers shared by a device's
+    environments, each device's own, :mod:`td3_jax.envs.over_devices`).
 
     Args:
       abstract_state: the state or its ``jax.eval_shape``.
@@ -185,9 +187,13 @@ def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -
     """
     axis = 1 if member_axis else 0
     size = mesh.shape[AXIS]
+    worlds = _env_batch(abstract_state, axis)
 
     def spec(path, leaf) -> NamedSharding:
         name = jax.tree_util.keystr(path)
+        unbatched = worlds is not None and len(leaf.shape) > axis and leaf.shape[axis] != worlds
+        if ".env_state" in name and unbatched:
+            return NamedSharding(mesh, PartitionSpec())  # (MuJoCo Warp's shared buffers)
         if ".buffer.data" in name:
             # [members, shards, capacity / shards, ...]: whole slices per device when the shard
             # count allows (device-local inserts and samples), else split every slice.
@@ -205,6 +211,15 @@ def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -
         return NamedSharding(mesh, PartitionSpec())
 
     return jax.tree_util.tree_map_with_path(spec, abstract_state)
+
+
+def _env_batch(abstract_state: Any, axis: int) -> int | None:
+    """The environment batch of a train state (its ``env_state.steps``' length along
+    ``axis``); ``None`` where it has none."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(abstract_state):
+        if jax.tree_util.keystr(path).endswith(".env_state.steps") and len(leaf.shape) > axis:
+            return leaf.shape[axis]
+    return None
 
 
 def replicate(value: Any, mesh: Mesh) -> jax.Array:

@@ -489,3 +489,16 @@ def test_a_seed_whose_members_pass_the_largest_is_said_with_the_last_seed():
     )
     with pytest.raises(ConfigError, match=r"^--seed 4294967290 and the 7 seeds after it \(to "):
         config.check_seed(4294967290, members=8)
+
+
+def test_warp_physics_splits_over_devices_when_both_batches_divide():
+    """MuJoCo Warp on two devices: each steps its own training and evaluation environments,
+    so --eval-envs must divide too (JAX physics needs only --num-envs to)."""
+    warp = dataclasses.replace(preset("t1"), impl="warp")
+    assert warp.num_envs % 2 == 0 and warp.eval_envs % 2 == 0
+    assert validate(warp, devices=2) == warp
+    odd = dataclasses.replace(warp, eval_envs=129)
+    with pytest.raises(ConfigError, match=r"^--eval-envs \(129\) must be divisible by the "
+                                          r"number of devices \(2\)$"):  # fmt: skip
+        validate(odd, devices=2)
+    assert validate(dataclasses.replace(odd, impl="jax"), devices=2).eval_envs == 129

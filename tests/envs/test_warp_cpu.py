@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 from support import main
@@ -149,93 +152,6 @@ def test_the_precompile_lists_every_module_a_robot_step_launches(warp_on_cpu, mo
     assert warp.get_suggested_block_size is cuda_like_query  # (put back after the listing)
 
 
-def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkeypatch, capsys):
-    from td3_jax.envs import warp_kernels
-
-    class NotATask:
-        mj_model = None
-
-    monkeypatch.setenv(warp_kernels.PRECOMPILE, "0")
-    assert warp_kernels.precompile_task(NotATask(), njmax=8, naconmax=8) is None
-    assert capsys.readouterr().err == ""
-    monkeypatch.delenv(warp_kernels.PRECOMPILE)
-    assert warp_kernels.precompile_task(NotATask(), njmax=8, naconmax=8) is None
-    err = capsys.readouterr().err
-    assert err.startswith("td3-jax: warning: MuJoCo Warp's kernels were not compiled ahead (")
-    assert err.rstrip().endswith("each compiles at its first use instead")
-
-
-def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
-    monkeypatch, capsys
-):
-    """Inside ``beside_compile``, on 8 cores (TD3_JAX_WARP_BESIDE unset), the task's precompile
-    starts on another thread and the caller goes on at once; ``wait_ready`` waits for it and
-    says so; a failure there is the usual warning; an error leaving the block drops it.
-    Outside, with the variable 0, or on 2 cores, it runs on the caller's thread."""
-    import threading
-
-    from td3_jax.common import runtime
-    from td3_jax.envs import warp_kernels
-
-    unblock, ran_on = threading.Event(), []
-
-    def slow(task, njmax, naconmax):
-        ran_on.append(threading.get_ident())
-        assert task == "quick" or unblock.wait(10)
-        if task == "broken":
-            raise RuntimeError("no such kernel")
-        return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
-
-    def precompile(mj_model, options, njmax, naconmax, cancel=None):
-        return slow(mj_model, njmax, naconmax)
-
-    monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
-    monkeypatch.setattr(warp_kernels, "precompile", precompile)
-    monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
-    for off in ("0", "Off"):
-        monkeypatch.setenv(warp_kernels.BESIDE, off)
-        with warp_kernels.beside_compile():  # (turned off: run first, as outside)
-            assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
-    monkeypatch.delenv(warp_kernels.BESIDE)
-    monkeypatch.setattr(warp_kernels, "cores", lambda: 2)  # (too few cores: the same)
-    with warp_kernels.beside_compile():
-        assert warp_kernels.precompile_task("quick", njmax=3, naconmax=4) == (3, 2.0)
-    assert ran_on == [threading.get_ident()] * 3 and not warp_kernels._PENDING
-    monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
-    with warp_kernels.beside_compile():
-        assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
-    assert warp_kernels._PENDING and not warp_kernels._PENDING[0].future.done()  # (running)
-    assert runtime.background_work_running()  # (a stopped run exits without waiting for it)
-    unblock.set()
-    assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
-    assert ran_on[3] != threading.get_ident()
-    out = capsys.readouterr().out
-    assert "MuJoCo Warp: 37 kernel modules ready in 2 s" in out and "waited" in out
-    assert warp_kernels.wait_ready() == [] and capsys.readouterr().out == ""  # (nothing left)
-
-    with warp_kernels.beside_compile():
-        warp_kernels.precompile_task("broken", njmax=1, naconmax=1)
-    assert warp_kernels.wait_ready() == []
-    assert "not compiled ahead (no such kernel)" in capsys.readouterr().err
-
-    def no_model(task):
-        raise RuntimeError("no model here")
-
-    with monkeypatch.context() as patched, warp_kernels.beside_compile():
-        patched.setattr(warp_kernels, "_task_model", no_model)  # (failing to start: a warning)
-        assert warp_kernels.precompile_task("t1", njmax=1, naconmax=1) is None
-    assert not warp_kernels._PENDING and "(no model here)" in capsys.readouterr().err
-
-    # an error leaving beside_compile (the run will not wait) drops what it started
-    with pytest.raises(RuntimeError, match="busy"), warp_kernels.beside_compile():
-        warp_kernels.precompile_task("t1", njmax=9, naconmax=1)
-        raise RuntimeError("busy run directory")
-    assert not warp_kernels._PENDING
-
-    assert warp_kernels.precompile_task("t1", njmax=5, naconmax=1) == (5, 2.0)
-    assert ran_on[-1] == threading.get_ident() and not warp_kernels._PENDING
-
-
 def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops_them(
     monkeypatch,
 ):
@@ -269,45 +185,28 @@ def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops
     assert loaded == []
 
 
-def test_the_cores_counted_are_at_most_the_cgroups_cpu_quota(tmp_path):
-    """cgroup v2's cpu.max: "200000 100000" is 2 CPUs, "150000 100000" rounds up to 2, "max"
-    is no limit; a missing or odd file is no limit either. v1's cfs quota over its period
-    counts too (-1: none), as does a quota at the process's own cgroup path
-    (/proc/self/cgroup), the smallest one found winning."""
-    import os
+def _cli(args: list[str], devices: int) -> subprocess.CompletedProcess:
+    """``td3-jax ARGS`` in a fresh process with ``devices`` CPU devices, Warp on the CPU."""
+    env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}",
+           "JAX_PLATFORMS": "cpu", physics.WARP_ON_CPU: "1"}  # fmt: skip
+    return subprocess.run([sys.executable, "-m", "td3_jax", *args], env=env, capture_output=True,
+                          text=True, timeout=1200)  # fmt: skip
 
-    from td3_jax.envs import warp_kernels
 
-    here = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    root, own = tmp_path / "cgroup", tmp_path / "self-cgroup"
-    root.mkdir()
-    assert warp_kernels.cores(root, own) == here  # (nothing to read: no limit)
-    for text, limit in [("200000 100000\n", 2), ("150000 100000\n", 2), ("50000 100000", 1),
-                        ("max 100000\n", here), ("nonsense", here)]:  # fmt: skip
-        (root / "cpu.max").write_text(text)
-        assert warp_kernels.cores(root, own) == min(here, limit), text
-    (root / "cpu.max").write_text("max 100000\n")
-    v1 = root / "cpu,cpuacct"
-    v1.mkdir()
-    (v1 / "cpu.cfs_period_us").write_text("100000\n")
-    for quota, limit in [("-1\n", here), ("250000\n", 3)]:
-        (v1 / "cpu.cfs_quota_us").write_text(quota)
-        assert warp_kernels.cores(root, own) == min(here, limit), quota
-        assert warp_kernels.cpu_quota(root, own) == (2.5 if quota == "250000\n" else None)
-    (v1 / "cpu.cfs_quota_us").write_text("-1\n")
-    job = root / "user.slice" / "job-7"
-    job.mkdir(parents=True)
-    (job / "cpu.max").write_text("100000 100000\n")  # (a v2 limit on this process's own group)
-    own.write_text("0::/user.slice/job-7\n")
-    assert warp_kernels.cores(root, own) == 1
-    (job / "cpu.max").write_text("max 100000\n")
-    (root / "user.slice" / "cpu.max").write_text("200000 100000\n")  # (on a group above it)
-    assert warp_kernels.cores(root, own) == min(here, 2)
-    v1_job = root / "cpuacct,cpu" / "docker" / "abc"
-    v1_job.mkdir(parents=True)
-    (v1_job / "cpu.cfs_quota_us").write_text("100000\n")
-    (v1_job / "cpu.cfs_period_us").write_text("100000\n")
-    own.write_text("5:cpuacct,cpu:/docker/abc\n")  # (v1, the controllers in the other order)
-    assert warp_kernels.cores(root, own) == 1
-    own.write_text("0::/\n4:memory:/user.slice/job-7\n")  # (a root path; no cpu controller)
-    assert warp_kernels.cores(root, own) == here
+def test_a_robot_run_split_over_two_devices_gives_the_one_device_numbers(tmp_path):
+    """``--devices 2``: each CPU device steps its own 2 robots and 1 evaluation robot on
+    Warp's CPU kernels (:mod:`td3_jax.envs.over_devices`); the records equal the one-device
+    run's, and the two-device run's checkpoint evaluates on one device."""
+    runs = {}
+    for devices in (1, 2):
+        out = tmp_path / f"devices{devices}"
+        proc = _cli([*TINY_T1, "--devices", str(devices), "--out", str(out)], devices)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        runs[devices] = [json.loads(line) for line in (out / "metrics.jsonl").open()]
+    compared = ("env_steps", "critic_loss", "actor_loss", "q_mean", "eval_return_mean")
+    for one, two in zip(runs[1], runs[2], strict=True):
+        for name in compared:
+            assert two[name] == pytest.approx(one[name], rel=1e-5), name
+    evaluated = _cli(["eval", "--run", str(tmp_path / "devices2"), "--episodes", "2"], 1)
+    assert evaluated.returncode == 0, evaluated.stderr[-3000:]
+    assert "seed=0" in evaluated.stdout

@@ -1,0 +1,87 @@
+"""A batch split over devices, each device running its own block (:mod:`td3_jax.envs.over_devices`),
+on two forced CPU devices (a fresh process: JAX fixes its device count at import).
+
+MuJoCo Warp's own check (a T1 run on two devices gives the one-device numbers) is in
+tests/envs/test_warp_cpu.py; here a batched function stands in for its physics call."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+_CODE = """
+import json
+import jax, jax.numpy as jnp, numpy as np
+from jax.sharding import Mesh
+from td3_jax.common.errors import ConfigError
+from td3_jax.envs.over_devices import split_call
+from td3_jax.runner.sharding import state_shardings
+
+mesh = Mesh(np.array(jax.devices()), ("data",))
+
+def physics(x, shared):
+    # x [n] batched; shared [3] one buffer for the batch: this call's own sum of x, and n
+    return x * 2.0 + 1.0, shared.at[0].set(jnp.sum(x)).at[1].set(x.shape[0])
+
+x = jnp.arange(6.0)
+y, shared = jax.jit(split_call(physics, 6, mesh=mesh))(x, jnp.zeros(3))
+per_device = [np.asarray(s.data).tolist() for s in shared.addressable_shards]
+try:
+    split_call(physics, 5, mesh=mesh)
+    refused = None
+except ConfigError as err:
+    refused = str(err)
+
+from typing import NamedTuple
+class Env(NamedTuple):
+    steps: jax.Array
+    contacts: jax.Array
+    qpos: jax.Array
+class State(NamedTuple):
+    env_state: Env
+state = State(Env(jnp.zeros((1, 6), jnp.int32), jnp.zeros((1, 4)), jnp.zeros((1, 6, 2))))
+specs = {name: list(s.spec) for name, s in
+         zip(Env._fields, state_shardings(state, mesh).env_state)}
+print(json.dumps({"y": np.asarray(y).tolist(), "shape": list(shared.shape),
+                  "per_device": per_device, "refused": refused, "specs": specs}))
+"""
+
+
+@pytest.fixture(scope="module")
+def two_devices() -> dict:
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+           "JAX_PLATFORMS": "cpu"}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(_CODE)], env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_batched_leaves_give_the_one_device_values(two_devices):
+    assert two_devices["y"] == [2.0 * v + 1.0 for v in range(6)]
+
+
+def test_each_device_runs_its_own_block_and_keeps_its_own_shared_buffer(two_devices):
+    """Device 0 saw x = 0, 1, 2 (sum 3), device 1 saw 3, 4, 5 (sum 12), each a batch of 3; the
+    buffer keeps its one-device shape."""
+    assert two_devices["shape"] == [3]
+    assert two_devices["per_device"] == [[3.0, 3.0, 0.0], [12.0, 3.0, 0.0]]
+
+
+def test_a_batch_that_does_not_divide_is_refused_in_one_line(two_devices):
+    assert two_devices["refused"] == (
+        "5 environments cannot be split evenly over 2 devices: use a number of environments "
+        "divisible by 2"
+    )
+
+
+def test_environment_leaves_without_the_batch_axis_are_replicated(two_devices):
+    """The train state's shardings: ``[members, worlds, ...]`` leaves split along the worlds,
+    a shared buffer (its second axis is not the batch) whole on every device."""
+    assert two_devices["specs"] == {"steps": [None, "data"], "qpos": [None, "data"],
+                                    "contacts": []}
