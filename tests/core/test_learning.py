@@ -86,9 +86,8 @@ class Run:
 @pytest.fixture(scope="module")
 def runs(request, tmp_path_factory):
     """The learning runs of the selected tests, all started together."""
-    selected = {
-        item.originalname for item in request.session.items if item.module.__name__ == __name__
-    }
+    collected = request.node.listchain()[0].items  # (the run's selected tests)
+    selected = {item.originalname for item in collected if item.module.__name__ == __name__}
     base = tmp_path_factory.mktemp("learning")
     started = {
         TEST_RUN[t]: Run(TEST_RUN[t], base / TEST_RUN[t]) for t in sorted(selected) if t in TEST_RUN
