@@ -35,6 +35,7 @@ __all__ = [
     "MJX_IO",
     "MJX_RESOLVER",
     "MJX_WARP_BATCH_DIM",
+    "MJX_WARP_SHARED_DATA",
     "MJX_WARP_TYPES",
     "PLAYGROUND_LOCOMOTION",
     "PLAYGROUND_MENAGERIE",
@@ -66,6 +67,7 @@ __all__ = [
     "tyro_help_unwrapped_by",
     "warp_overflow_flags",
     "warp_per_world_model_fields",
+    "warp_shared_data_fields",
 ]
 
 
@@ -310,6 +312,21 @@ def warp_per_world_model_fields() -> frozenset[str]:
     table = _require(_private_module(MJX_WARP_TYPES), MJX_WARP_BATCH_DIM,
                      f"{MJX_WARP_TYPES}.{MJX_WARP_BATCH_DIM}")  # fmt: skip
     return frozenset(name for name, per_world in table["Model"].items() if per_world is True)
+
+
+#: ``mujoco.mjx.warp.types.DATA_NON_VMAP``: the ``Data._impl`` fields MuJoCo Warp keeps once for
+#: all the worlds stepped together, without a batch axis (its contact buffer, its counters;
+#: checked: MuJoCo 4.0.0).
+MJX_WARP_SHARED_DATA = "DATA_NON_VMAP"
+
+
+def warp_shared_data_fields() -> frozenset[str]:
+    """The fields of an MJX ``Data`` stepped by Warp (``data._impl.NAME``) that have no batch
+    axis: one buffer for all the environments of a batched call
+    (``mujoco.mjx.warp.types.DATA_NON_VMAP``)."""
+    names = _require(_private_module(MJX_WARP_TYPES), MJX_WARP_SHARED_DATA,
+                     f"{MJX_WARP_TYPES}.{MJX_WARP_SHARED_DATA}")  # fmt: skip
+    return frozenset(names)
 
 
 def warp_overflow_flags(data: Any) -> Any:

@@ -215,8 +215,8 @@ def make_spec(
     (with the batch split over D devices, D keeps every reset on its device); with replay
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     ``mesh``: the device mesh (axis ``"data"``) the batch is split over, for physics that
-    XLA cannot split itself (MuJoCo Warp: :func:`td3_jax.envs.over_devices`); ``None``: one
-    device, or physics XLA splits.
+    XLA cannot split itself (MuJoCo Warp: :func:`td3_jax.envs.per_device.over_devices`);
+    ``None``: one device, or physics XLA splits.
     """
     env = make_env(cfg, members, env)
     if mesh is not None:

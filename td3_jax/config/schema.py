@@ -585,11 +585,11 @@ def _check_environment(cfg: TrainConfig) -> None:
 
 
 def _check_devices(cfg: TrainConfig, devices: int) -> None:
-    """Global sizes split evenly over ``devices`` (MuJoCo Warp's evaluation environments too:
-    each device steps its own)."""
+    """Global sizes split evenly over ``devices`` (the evaluation environments too where the
+    physics may be MuJoCo Warp's: each device steps its own)."""
     checks = [("--num-envs", cfg.num_envs)]
-    if cfg.impl == "warp":
-        checks.append(("--eval-envs", cfg.eval_envs))
+    if cfg.impl == "warp" or (cfg.impl is None and cfg.env.startswith("playground/")):
+        checks.append(("--eval-envs", cfg.eval_envs))  # (Warp, the default where it runs)
     if cfg.replay_shards % devices:
         slice_rows = cfg.replay_capacity // cfg.replay_shards
         checks.append(("each replay slice (capacity / --replay-shards)", slice_rows))

@@ -42,7 +42,7 @@ from td3_jax.envs.custom import (
     object_label,
 )
 from td3_jax.envs.menagerie import MissingAssetsError, candidates, first_holding, robot
-from td3_jax.envs.over_devices import over_devices
+from td3_jax.envs.per_device import over_devices
 from td3_jax.envs.physics import without_warp_import_notes
 
 #: Each source module has ``names() -> list[str]`` and

@@ -70,10 +70,10 @@ class Environment:
         the physics is wrong), or ``None`` (it cannot).
       per_device: its batched physics cannot be split over devices by XLA (MuJoCo Warp's
         calls): a batch spread over several devices is stepped on each device apart
-        (:func:`td3_jax.envs.over_devices.over_devices`).
+        (:func:`td3_jax.envs.per_device.over_devices`).
       batch_map: ``batch_map(batched, size) -> batched``: how every batched physics call
         (``jax.vmap`` of ``reset_fn`` or ``step_fn`` over ``size`` environments) runs;
-        ``None``: as it is (:func:`td3_jax.envs.over_devices.over_devices` sets it).
+        ``None``: as it is (:func:`td3_jax.envs.per_device.over_devices` sets it).
     """
 
     name: str

@@ -334,8 +334,10 @@ _TRACED.set()
 def beside_compile() -> Iterator[None]:
     """Inside, unless :data:`BESIDE` is off (0, false, off, no), on :data:`BESIDE_MIN_CORES` cores,
     :func:`precompile_task` (called by this thread) starts the precompile on a thread of its
-    own and returns at once; :func:`wait_ready` waits for it. A training run makes its
-    environment inside, then traces and compiles its programs while Warp's kernels compile.
+    own and returns at once; its work begins once :func:`programs_traced`, :func:`wait_ready`
+    or :func:`drop_pending` is called, and :func:`wait_ready` waits for it. A training run makes
+    its environment inside, then traces its programs and compiles them while Warp's kernels
+    compile.
     An exception leaving it drops the precompiles started inside (:func:`drop_pending`)."""
     before = getattr(_BESIDE, "on", False)
     _BESIDE.on = True
@@ -422,17 +424,19 @@ def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
         cancel = threading.Event()
         work = functools.partial(precompile, mj_model, options=options, njmax=njmax,
                                  naconmax=naconmax, cancel=cancel)  # fmt: skip
-        future = runtime.in_background(_once_traced, work, name="td3-jax warp precompile")
+        future = runtime.in_background(_once_traced, work, cancel,
+                                       name="td3-jax warp precompile")  # fmt: skip
     except Exception as err:  # (an optimisation: the run goes on without it)
         _warn_failed(err)
         return
     _PENDING.append(_Pending(future, cancel))
 
 
-def _once_traced(work: Callable[[], Precompiled]) -> Precompiled:
-    """``work()`` once the caller's programs are traced (:data:`_TRACED`)."""
+def _once_traced(work: Callable[[], Precompiled], cancel: threading.Event) -> Precompiled:
+    """``work()`` once the caller's programs are traced (:data:`_TRACED`); nothing (0 modules)
+    where it was dropped (``cancel``) meanwhile."""
     _TRACED.wait()
-    return work()
+    return Precompiled(0, 0.0) if cancel.is_set() else work()
 
 
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:

@@ -178,7 +178,7 @@ def replay_layout_warning(replay_shards: int, num_devices: int) -> str | None:
 def state_shardings(abstract_state: Any, mesh: Mesh, member_axis: bool = True) -> Any:
     """NamedShardings for a train state: split env/buffer leaves, replicate the rest (and the
     environment leaves without the batch axis: MuJoCo Warp's buffers shared by a device's
-    environments, each device's own, :mod:`td3_jax.envs.over_devices`).
+    environments, each device's own, :mod:`td3_jax.envs.per_device`).
 
     Args:
       abstract_state: the state or its ``jax.eval_shape``.

@@ -195,7 +195,7 @@ def _cli(args: list[str], devices: int) -> subprocess.CompletedProcess:
 
 def test_a_robot_run_split_over_two_devices_gives_the_one_device_numbers(tmp_path):
     """``--devices 2``: each CPU device steps its own 2 robots and 1 evaluation robot on
-    Warp's CPU kernels (:mod:`td3_jax.envs.over_devices`); the records equal the one-device
+    Warp's CPU kernels (:mod:`td3_jax.envs.per_device`); the records equal the one-device
     run's, and the two-device run's checkpoint evaluates on one device."""
     runs = {}
     for devices in (1, 2):

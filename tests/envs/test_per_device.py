@@ -1,4 +1,4 @@
-"""A batch split over devices, each device running its own block (:mod:`td3_jax.envs.over_devices`),
+"""A batch split over devices, each device running its own block (:mod:`td3_jax.envs.per_device`),
 on two forced CPU devices (a fresh process: JAX fixes its device count at import).
 
 MuJoCo Warp's own check (a T1 run on two devices gives the one-device numbers) is in
@@ -14,12 +14,14 @@ import textwrap
 
 import pytest
 
+pytestmark = pytest.mark.processes
+
 _CODE = """
 import json
 import jax, jax.numpy as jnp, numpy as np
 from jax.sharding import Mesh
 from td3_jax.common.errors import ConfigError
-from td3_jax.envs.over_devices import split_call
+from td3_jax.envs.per_device import split_call
 from td3_jax.runner.sharding import state_shardings
 
 mesh = Mesh(np.array(jax.devices()), ("data",))
@@ -29,10 +31,11 @@ def physics(x, shared):
     return x * 2.0 + 1.0, shared.at[0].set(jnp.sum(x)).at[1].set(x.shape[0])
 
 x = jnp.arange(6.0)
-y, shared = jax.jit(split_call(physics, 6, mesh=mesh))(x, jnp.zeros(3))
+shared_arg = lambda path: path[0].idx == 1  # (the second argument, and its result)
+y, shared = jax.jit(split_call(physics, 6, mesh=mesh, shared=shared_arg))(x, jnp.zeros(3))
 per_device = [np.asarray(s.data).tolist() for s in shared.addressable_shards]
 try:
-    split_call(physics, 5, mesh=mesh)
+    split_call(physics, 5, mesh=mesh, shared=shared_arg)
     refused = None
 except ConfigError as err:
     refused = str(err)
@@ -47,8 +50,18 @@ class State(NamedTuple):
 state = State(Env(jnp.zeros((1, 6), jnp.int32), jnp.zeros((1, 4)), jnp.zeros((1, 6, 2))))
 specs = {name: list(s.spec) for name, s in
          zip(Env._fields, state_shardings(state, mesh).env_state)}
+
+import dataclasses
+from td3_jax.config.build import make_env, members
+from td3_jax.config.schema import TrainConfig
+from td3_jax.runner.programs import find
+cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=8, eval_envs=4, total_steps=512,
+                  batch_size=32, warmup_steps=64, eval_every=256)
+needs_it = dataclasses.replace(make_env(cfg), per_device=True)
+maps = [find(cfg, members(cfg), mesh, None, env=env).program.spec.env.batch_map is not None
+        for env in (needs_it, make_env(cfg))]
 print(json.dumps({"y": np.asarray(y).tolist(), "shape": list(shared.shape),
-                  "per_device": per_device, "refused": refused, "specs": specs}))
+                  "per_device": per_device, "refused": refused, "specs": specs, "maps": maps}))
 """
 
 
@@ -68,7 +81,7 @@ def test_batched_leaves_give_the_one_device_values(two_devices):
 
 def test_each_device_runs_its_own_block_and_keeps_its_own_shared_buffer(two_devices):
     """Device 0 saw x = 0, 1, 2 (sum 3), device 1 saw 3, 4, 5 (sum 12), each a batch of 3; the
-    buffer keeps its one-device shape."""
+    buffer keeps its one-device shape, though its length is that of a device's batch."""
     assert two_devices["shape"] == [3]
     assert two_devices["per_device"] == [[3.0, 3.0, 0.0], [12.0, 3.0, 0.0]]
 
@@ -85,3 +98,10 @@ def test_environment_leaves_without_the_batch_axis_are_replicated(two_devices):
     a shared buffer (its second axis is not the batch) whole on every device."""
     assert two_devices["specs"] == {"steps": [None, "data"], "qpos": [None, "data"],
                                     "contacts": []}
+
+
+def test_a_runs_programs_step_a_per_device_environment_on_each_device(two_devices):
+    """The run's programs (``runner.programs.find`` on a two-device mesh) give an environment
+    that needs it (``per_device``) the split physics, and one whose physics XLA splits
+    (gymnax's) none."""
+    assert two_devices["maps"] == [True, False]
