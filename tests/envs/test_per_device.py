@@ -2,7 +2,8 @@
 on two forced CPU devices (a fresh process: JAX fixes its device count at import).
 
 MuJoCo Warp's own check (a T1 run on two devices gives the one-device numbers) is in
-tests/envs/test_warp_cpu.py; here a batched function stands in for its physics call."""
+tests/envs/test_warp_cpu.py; here a batched function stands in for its physics call. Not marked
+``processes``: one child process of about 30 s, so the suite CI runs keeps it."""
 
 from __future__ import annotations
 
@@ -13,8 +14,6 @@ import sys
 import textwrap
 
 import pytest
-
-pytestmark = pytest.mark.processes
 
 _CODE = """
 import json
