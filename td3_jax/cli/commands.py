@@ -68,7 +68,8 @@ class TrainCommand(TrainConfig):
     """Stop after the first chunk that ends past this wall-clock budget (compile included):
     checkpointed, exit status 0, and a last line naming the --resume that continues it."""
     devices: int | None = None
-    """Data-parallel over this many devices (default: all); num_envs and batch stay global."""
+    """Data-parallel over this many devices (default: all; one GPU for MuJoCo Warp physics);
+    num_envs and batch stay global."""
     coordinator_address: str | None = None
     """Several hosts: the coordinator's host:port (or env JAX_COORDINATOR_ADDRESS)."""
     num_processes: int | None = None
