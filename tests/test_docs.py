@@ -256,7 +256,8 @@ def test_the_readme_is_short_and_starts_with_its_two_commands():
     assert len(text.splitlines()) <= 200
     setup = "python3 -m venv .venv && .venv/bin/pip install -q -e"
     main_job = f"{setup} . && .venv/bin/td3-jax train --out runs/pendulum"
-    tests = f"{setup} '.[dev]' && .venv/bin/python -m pytest -q -n auto --dist loadfile"
+    tests = f"{setup} '.[dev]' && .venv/bin/python -m pytest -q -n auto --dist loadfile " + \
+        '-m "not heavy"'  # fmt: skip
     blocks = [code.strip() for _, _, code in fenced_blocks(README, "bash")]
     assert blocks[:2] == [main_job, tests]
     assert tests.split(" && ")[-1] in (ROOT / ".ci" / "run").read_text()  # CI runs it
