@@ -94,7 +94,8 @@ def scale_to_device(cfg: TrainConfig, args: list[str]) -> TrainConfig:
 def choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig, int | None]:
     """A Playground task's physics (``--impl``; default: MuJoCo Warp where it can run) and the
     device count, said in one line; ``--impl warp`` where Warp cannot run is a ConfigError
-    naming what is missing. On Warp a run takes one GPU unless ``--devices`` asks for more."""
+    naming what is missing. On Warp a run of one process takes one GPU unless ``--devices``
+    asks for more (a run of several processes takes every device, as on JAX physics)."""
     if not cfg.env.startswith("playground/"):
         return cfg, devices
     import jax  # lazy: JAX, only for a run
@@ -107,7 +108,8 @@ def choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig, 
     except ValueError as err:
         raise ConfigError(str(err)) from None
     note = ""
-    if impl == "warp" and devices is None and jax.device_count() > 1:
+    one_host = jax.process_count() == 1  # (several processes: the mesh spans them all)
+    if impl == "warp" and devices is None and one_host and jax.device_count() > 1:
         devices, note = 1, f" on one GPU (--devices {jax.device_count()} splits it over all)"
     elif impl == "jax" and asked is None:
         note = f": {physics.warp_missing()}"  # (why not Warp, the default where it runs)

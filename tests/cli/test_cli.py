@@ -1812,6 +1812,26 @@ def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(
     assert said.count("MuJoCo Warp") == 1  # (the reason says it once)
 
 
+def test_warp_takes_one_gpu_of_several_unless_asked_or_run_over_several_processes(
+    capsys, monkeypatch
+):
+    """Warp where it runs, on a host of 4 devices: a run of one process takes one GPU and
+    says how to take them all; --devices 2 is kept; a run of several processes keeps the
+    default (every device of the mesh)."""
+    import jax
+
+    monkeypatch.setattr(physics, "resolve", lambda asked: "warp")
+    monkeypatch.setattr(jax, "device_count", lambda: 4)
+    cfg = TrainConfig(env="playground/T1JoystickFlatTerrain")
+    assert cli_settings.choose_physics(cfg, None) == (dataclasses.replace(cfg, impl="warp"), 1)
+    assert capsys.readouterr().out == (
+        "physics: MuJoCo Warp (--impl warp) on one GPU (--devices 4 splits it over all)\n"
+    )
+    assert cli_settings.choose_physics(cfg, 2)[1] == 2
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    assert cli_settings.choose_physics(cfg, None)[1] is None
+
+
 def test_a_sweep_of_an_option_its_own_flag_turns_on_is_accepted(tmp_path, capsys, monkeypatch):
     """--return-bound 5 --sweep-return-bound 1 5: the flag turns reward scaling on, the sweep
     gives each member its bound (the refusal of a swept setting also typed as a flag must not
