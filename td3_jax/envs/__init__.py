@@ -71,12 +71,12 @@ def _unknown_message(name: str, source: str) -> str:
     # other has under a close name (brax/humanoid, playground/HumanoidRun): both are searched.
     own = [f"gymnax/{n}" for n in _gymnax.names()] if source == "gymnax" else []
     guesses = closest_names(name, own) or closest_names(name, known_names())
-    hint = ""
-    if source == "playground" and not _playground.names():
-        hint = " (playground tasks need: pip install 'td3-jax[playground]')"
     every = "`td3-jax envs` lists all of them"
+    if source == "playground" and not _playground.names():  # (the name cannot be told here)
+        return (f"environment {name!r} needs MuJoCo Playground, which is not installed: "
+                f"pip install 'td3-jax[playground]' ({every})")  # fmt: skip
     if guesses:
-        return f"unknown environment {name!r}{hint}; did you mean {' or '.join(guesses)}? ({every})"
+        return f"unknown environment {name!r}; did you mean {' or '.join(guesses)}? ({every})"
     if "/" not in name and "." in name:  # a module path without its function
         module, _, function = name.rpartition(".")
         if module in _SOURCES:  # (brax.ant: a known one's slash typed as a dot)
@@ -92,7 +92,7 @@ def _unknown_message(name: str, source: str) -> str:
         return (f"unknown environment {name!r}; {source} has "
                 f"{', '.join(_SOURCES[source].names())} ({every})")  # fmt: skip
     if source in _SOURCES:
-        return f"unknown environment {name!r}{hint}; {every}"
+        return f"unknown environment {name!r}; {every}"
     return (f"unknown environment {name!r}; names are SOURCE/NAME, SOURCE one of "
             f"{', '.join(_SOURCES)} ({every}), or module.path:function for your own")  # fmt: skip
 

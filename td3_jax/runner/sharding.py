@@ -45,7 +45,10 @@ def make_mesh(num_devices: int | None = None) -> Mesh:
     if num_devices is not None:
         check_devices(num_devices)
         if num_devices > len(devices):
-            raise ConfigError(f"--devices {num_devices} asked, {len(devices)} available")
+            hint = ("; JAX counts a CPU as one device (XLA_FLAGS="
+                    "--xla_force_host_platform_device_count=N emulates N)"
+                    if all(d.platform == "cpu" for d in devices) else "")  # fmt: skip
+            raise ConfigError(f"--devices {num_devices} asked, {len(devices)} available{hint}")
         devices = devices[:num_devices]
     return Mesh(np.array(devices), (AXIS,))
 

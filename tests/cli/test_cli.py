@@ -1812,6 +1812,15 @@ def test_impl_warp_where_it_cannot_run_is_one_line_naming_what_is_missing(
     assert said.count("MuJoCo Warp") == 1  # (the reason says it once)
 
 
+def test_more_devices_than_a_cpu_has_is_one_line_saying_how_to_emulate_them(tmp_path, capsys):
+    out = tmp_path / "run"
+    code, _, err = main(["train", "--devices", "3", "--out", str(out)], capsys)
+    assert_one_line_error(code, err, "--devices 3 asked, 1 available",
+                          "JAX counts a CPU as one device",
+                          "XLA_FLAGS=--xla_force_host_platform_device_count=N")  # fmt: skip
+    assert not out.exists()
+
+
 def test_warp_takes_one_gpu_of_several_unless_asked_or_run_over_several_processes(
     capsys, monkeypatch
 ):

@@ -706,3 +706,19 @@ def test_the_physics_choice_and_its_errors(monkeypatch):
     # The overflow flags that mean wrong physics: all but the iteration limits (bits 9, 10).
     assert physics.WRONG_PHYSICS & (1 << 0) and physics.WRONG_PHYSICS & (1 << 3)
     assert not physics.WRONG_PHYSICS & ((1 << 9) | (1 << 10))
+
+
+def test_a_playground_task_without_playground_installed_names_the_extra_not_an_unknown_name(
+    monkeypatch,
+):
+    """Without MuJoCo Playground no playground name can be checked: the message says what
+    to install instead of calling a right name unknown."""
+    from td3_jax.envs import playground
+
+    monkeypatch.setattr(playground, "names", lambda: [])
+    with pytest.raises(UnknownEnvironmentError) as err:
+        envs.check_name("playground/CheetahRun")
+    assert str(err.value) == (
+        "environment 'playground/CheetahRun' needs MuJoCo Playground, which is not installed: "
+        "pip install 'td3-jax[playground]' (`td3-jax envs` lists all of them)"
+    )
