@@ -59,8 +59,16 @@ cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=8, eval_envs=4, total_steps
 needs_it = dataclasses.replace(make_env(cfg), per_device=True)
 maps = [find(cfg, members(cfg), mesh, None, env=env).program.spec.env.batch_map is not None
         for env in (needs_it, make_env(cfg))]
+seeds = dataclasses.replace(cfg, seeds=2)
+try:
+    find(seeds, members(seeds), mesh, None, env=needs_it)
+    population = None
+except ConfigError as err:
+    population = str(err)
+find(seeds, members(seeds), mesh, None, env=make_env(seeds))  # (JAX physics: split by XLA)
 print(json.dumps({"y": np.asarray(y).tolist(), "shape": list(shared.shape),
-                  "per_device": per_device, "refused": refused, "specs": specs, "maps": maps}))
+                  "per_device": per_device, "refused": refused, "specs": specs, "maps": maps,
+                  "population": population}))
 """
 
 
@@ -104,3 +112,14 @@ def test_a_runs_programs_step_a_per_device_environment_on_each_device(two_device
     that needs it (``per_device``) the split physics, and one whose physics XLA splits
     (gymnax's) none."""
     assert two_devices["maps"] == [True, False]
+
+
+def test_several_members_of_a_per_device_environment_over_devices_are_refused_in_one_line(
+    two_devices,
+):
+    """Seeds (or a sweep) of MuJoCo Warp over two devices are not supported yet: one line
+    naming what to do; gymnax's seeds over two devices are made as before."""
+    assert two_devices["population"] == (
+        "2 seeds or sweep members on MuJoCo Warp run on one device, not 2: use --devices 1, or "
+        "one seed per run on several devices"
+    )
