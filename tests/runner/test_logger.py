@@ -104,11 +104,10 @@ def _tensorboard_points(run_dir) -> dict[str, list[tuple[int, float]]]:
     """Each tag's points as TensorBoard shows them: a restart marker at step ``s`` (a writer's
     ``purge_step``) drops every point read before it at a step ``>= s``, in every tag
     (``EventAccumulator._CheckForRestartAndMaybePurge``)."""
-    from tensorboardX.proto import event_pb2
-
     points: dict[str, list[tuple[int, float]]] = {}
     for event in tensorboard_events(run_dir):
-        if event.session_log.status == event_pb2.SessionLog.START:
+        if any(getattr(value, "status", None) == 1 for _, value in event.ListFields()):
+            # (TensorBoard's log record with status START, 1: a writer's restart marker)
             points = {tag: [p for p in kept if p[0] < event.step] for tag, kept in points.items()}
         for value in event.summary.value:
             points.setdefault(value.tag, []).append((event.step, value.simple_value))
