@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from td3_jax.config.presets import PRESETS
+from td3_jax.config.presets import NAMES, PRESETS
 from td3_jax.config.schema import TrainConfig
 
 __all__ = [
@@ -29,6 +29,11 @@ __all__ = [
 ]
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+#: A preset flag: every name, former ones included (they still run); the help lists current ones.
+PresetFlag = Annotated[
+    PresetName | None,  # type: ignore[valid-type]
+    tyro.conf.arg(metavar="{" + ",".join(NAMES) + "}"),
+]
 #: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
 Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]
 
@@ -58,7 +63,7 @@ class TrainCommand(TrainConfig):
     the --wandb* flags may differ from the run's config.json; other flags must match. The
     command's own flags (--quiet, --time-budget-s, --compile-cache, --devices and the
     several-hosts flags) apply to this process. A run logged to W&B continues its W&B run."""
-    preset: PresetName | None = None  # type: ignore[valid-type]
+    preset: PresetFlag = None
     """Named settings to start from (see `td3-jax presets`); other flags override them.
     Default: the --env's own preset where one exists (said in one line), else settings for the
     device (a GPU gets thousands of environments)."""

@@ -55,11 +55,11 @@ class TrainConfig:
     warmup_steps: int = 2_000
     """Environment steps with uniform random actions and no updates at the start."""
     eval_every: int = 4_000
-    """Environment steps between evaluations (one compiled chunk); also the checkpoint period.
-    Runs as whole iterations (those below it; a fresh run from the command line takes those
-    above it where that makes fewer chunks of the run). A fresh run from the command
-    line lowers it to --total-steps where it is longer (not with --eval-in-chunk, whose chunk
-    holds a whole episode)."""
+    """Environment steps between evaluations: the length of one compiled chunk, after which
+    a checkpoint is written (see --checkpoint-every). It is rounded to whole iterations of
+    --num-envs steps: down, or up where that gives a fresh run started from the command line
+    fewer chunks. Such a run also lowers it to --total-steps where it is longer (not with
+    --eval-in-chunk, whose chunk must hold a whole episode)."""
     eval_envs: int = 16
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False

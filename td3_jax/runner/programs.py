@@ -343,7 +343,8 @@ def jitted(program: Population, mesh: Mesh) -> Programs:
     )
 
 
-def _with_sharding(abstract: Any, shardings: Any) -> Any:
+def with_sharding(abstract: Any, shardings: Any) -> Any:
+    """``abstract``'s leaves as ``ShapeDtypeStruct`` placed by ``shardings`` (same tree)."""
     return jax.tree.map(
         lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s, weak_type=a.weak_type),
         abstract,
@@ -357,9 +358,9 @@ def chunk_argument_specs(program: Population, shardings: Any) -> tuple[Any, Any,
     mesh = jax.tree.leaves(shardings)[0].mesh
     replicated = NamedSharding(mesh, PartitionSpec())
     hp = jax.eval_shape(lambda: program.hyperparams)
-    hp_spec = _with_sharding(hp, jax.tree.map(lambda _: replicated, hp))
+    hp_spec = with_sharding(hp, jax.tree.map(lambda _: replicated, hp))
     iterations = jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
-    return hp_spec, _with_sharding(program.abstract_state, shardings), iterations
+    return hp_spec, with_sharding(program.abstract_state, shardings), iterations
 
 
 def compile_ahead(programs: Programs, program: Population, with_init: bool = True,

@@ -29,7 +29,7 @@ from td3_jax.common.errors import (
     PhysicsOverflowError,
 )
 from td3_jax.common.library_noise import filtered_stderr
-from td3_jax.common.runtime import StopToken, awaiting_device
+from td3_jax.common.runtime import StopToken, awaiting_device, in_background, result
 from td3_jax.config.build import bind_environment, members
 from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.core.population import Member
@@ -272,9 +272,35 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
             print(f"using the traced programs stored in {source.directory / source.key}")
         print(f"compiling the training program{cached}...", flush=True)
     with filtered_stderr():
-        compiled = programs.compiled(source, run.stop, check=partial(_check_room, run, source.mesh))
+        check = partial(_state_shapes_known, run, source.mesh)
+        compiled = programs.compiled(source, run.stop, check=check)
+    _wait_for_save_warmup(run)  # (before anything runs on the device)
     warp_kernels.wait_ready(run.stop)  # (before the first physics step)
     return compiled, compiled.init() if state is None else state
+
+
+def _state_shapes_known(run: _Run, mesh: Any, state: Any) -> None:
+    """Once the state's shapes are known, before the programs compile: the room checks
+    (:func:`_check_room`), then the first checkpoint's checksum program compiled on a thread
+    beside them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
+    _check_room(run, mesh, state)
+    specs = programs.with_sharding(state, state_shardings(state, mesh))
+    run.save_warmup = in_background(run.checkpointer.prepare, specs, name="td3-jax checksums")
+
+
+def _wait_for_save_warmup(run: _Run) -> None:
+    """Waits for :func:`_state_shapes_known`'s compile; one that failed is said in one line (the
+    first checkpoint then compiles it itself, and reports what stops it)."""
+    if run.save_warmup is None:
+        return
+    try:
+        result(run.save_warmup, run.stop)
+    except Exception as err:  # e.g. no memory to compile in: the save itself will say
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(f"td3-jax: warning: the first checkpoint could not be prepared ahead ({first}); "
+              "it does that work when it is written", file=sys.stderr, flush=True)
+    finally:
+        run.save_warmup = None
 
 
 def _check_room(run: _Run, mesh: Any, state: Any) -> None:
@@ -363,6 +389,7 @@ class _Run:
     clock_start: float = dataclasses.field(default_factory=time.perf_counter)
     wall_offset: float = 0.0
     failed_write: Exception | None = None  # the write the disk refused, which stopped the run
+    save_warmup: Any = None  # the future of Checkpointer.prepare, until waited for
 
     def close(self) -> None:
         """Closes the outputs, each on its own: the progress display, a checkpoint still being

@@ -1,0 +1,88 @@
+"""Tests of the checksum program compiled before a run's first checkpoint
+(:meth:`td3_jax.runner.checkpoint.Checkpointer.prepare`): the saves use it and record the
+checksums the program compiled at the save records, and a compile that fails costs one line."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from td3_jax.runner import checkpoint, run
+from td3_jax.runner.checkpoint import Checkpointer
+from tests.configs import tiny_config
+
+
+def _specs(state):
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding,
+                                                       weak_type=x.weak_type), state)  # fmt: skip
+
+
+class _CountingChecksums:
+    """Stands in for checkpoint._device_checksums: lowers as it does, counts its calls."""
+
+    def __init__(self, real):
+        self.real, self.calls = real, 0
+
+    def lower(self, *args):
+        return self.real.lower(*args)
+
+    def __call__(self, leaves):
+        self.calls += 1
+        return self.real(leaves)
+
+
+def _saved_checksums(directory, state, prepare: bool) -> list[str]:
+    saver = Checkpointer(directory, keep=1)
+    if prepare:
+        saver.prepare(_specs(state))
+    saver.save(1, state, {"env_steps": 0})
+    saver.close()
+    return json.loads((directory / "1" / "meta" / "metadata").read_text())["checksums"]
+
+
+def test_a_prepared_save_uses_the_compiled_checksums_and_records_the_same_ones(
+    tmp_path, monkeypatch
+):
+    state = {"w": jnp.arange(12.0).reshape(3, 4), "n": jnp.int32(5), "b": jnp.ones(7, jnp.bfloat16)}
+    plain = _saved_checksums(tmp_path / "plain", state, prepare=False)
+    counting = _CountingChecksums(checkpoint._device_checksums)
+    monkeypatch.setattr(checkpoint, "_device_checksums", counting)
+    assert _saved_checksums(tmp_path / "prepared", state, prepare=True) == plain
+    assert counting.calls == 0  # (the program prepare compiled ran instead)
+    other = {"w": jnp.zeros((2, 2))}  # another layout: compiled when it comes
+    _saved_checksums(tmp_path / "other", other, prepare=False)
+    assert counting.calls == 1
+
+
+@pytest.mark.runs
+def test_a_runs_checkpoints_use_the_checksums_compiled_while_its_programs_compile(
+    tmp_path, monkeypatch
+):
+    """A tiny run's two checkpoints (one per chunk) compute their checksums with the program
+    its warm-up compiled: the run's state has the layout the warm-up was given."""
+    counting = _CountingChecksums(checkpoint._device_checksums)
+    monkeypatch.setattr(checkpoint, "_device_checksums", counting)
+    records = run.train(tiny_config(), tmp_path / "run", progress=False)
+    assert [r["env_steps"] for r in records] == [64, 128]
+    assert sorted(int(p.name) for p in (tmp_path / "run" / "checkpoints").iterdir()) == [1, 2]
+    assert counting.calls == 0
+
+
+@pytest.mark.runs
+def test_a_warm_up_that_fails_is_said_in_one_line_and_the_run_goes_on(
+    tmp_path, monkeypatch, capsys
+):
+    def no_memory(self, specs):  # (as a compile that runs out of memory)
+        raise RuntimeError("RESOURCE_EXHAUSTED: out of memory compiling\nmore detail")
+
+    monkeypatch.setattr(Checkpointer, "prepare", no_memory)
+    records = run.train(tiny_config(), tmp_path / "run", progress=False)
+    assert [r["env_steps"] for r in records] == [64, 128]
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "prepared" in line]
+    assert warnings == [
+        "td3-jax: warning: the first checkpoint could not be prepared ahead (RESOURCE_EXHAUSTED: "
+        "out of memory compiling); it does that work when it is written"
+    ]
