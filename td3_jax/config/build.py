@@ -220,7 +220,6 @@ def make_spec(
     """
     env = make_env(cfg, members, env)
     if mesh is not None:
-        _check_split_population(env, mesh, members)
         env = envs.over_devices(env, mesh)
     shards = cfg.replay_shards
     groups = shards if shards % env_groups == 0 else env_groups
@@ -233,16 +232,6 @@ def make_spec(
         axis_name=axis_name,
         **_as_given(cfg, _SPEC_SETTINGS),
     )
-
-
-def _check_split_population(env: envs.Environment, mesh: Any, members: int) -> None:
-    """Raises :class:`ConfigError` for several members (seeds, a sweep) of an environment
-    stepped on each device apart (MuJoCo Warp) over several devices: not supported yet (the
-    members' ``vmap`` around the split physics compiles a program that cannot be called)."""
-    if env.per_device and mesh.size > 1 and members > 1:
-        raise ConfigError(f"{members} seeds or sweep members on MuJoCo Warp run on one device, "
-                          f"not {mesh.size}: use --devices 1, or one seed per run on several "
-                          "devices")  # fmt: skip
 
 
 def _check_eval_in_chunk(cfg: TrainConfig, length: int, reset_groups: int) -> None:

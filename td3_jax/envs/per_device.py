@@ -29,7 +29,7 @@ from td3_jax.common import upstream
 from td3_jax.common.errors import ConfigError
 from td3_jax.envs.base import Environment
 
-__all__ = ["over_devices", "split_call", "warp_shared_leaf"]
+__all__ = ["members_map", "over_devices", "split_call", "warp_shared_leaf"]
 
 
 def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environment:
@@ -57,36 +57,108 @@ def warp_shared_leaf() -> Callable[[Any], bool]:
 
 
 def split_call(batched_fn: Callable, size: int, *, mesh: Mesh, axis: str = "data",
-               shared: Callable[[Any], bool] = lambda path: False) -> Callable:  # fmt: skip
+               shared: Callable[[Any], bool] = lambda path: False, lead: int = 0
+               ) -> Callable:  # fmt: skip
     """``batched_fn`` (a function over a batch of ``size`` environments: every argument and
-    result leaf ``[size, ...]``, except those ``shared(path)`` names, which have no batch axis)
-    run under ``jax.shard_map``: batched leaves split over ``axis``, one block per device,
-    shared ones given whole to every device; each device's results are its block of the batch
-    and its own copy of the shared leaves (see the module's docstring)."""
+    result leaf ``[*L, size, ...]``, except those ``shared(path)`` names, ``[*L, ...]`` without
+    a batch axis; ``L`` the ``lead`` leading axes) run under ``jax.shard_map``: batched leaves
+    split along their batch axis over ``axis``, one block per device, shared ones given whole
+    to every device; each device's results are its block of the batch and its own copy of the
+    shared leaves (see the module's docstring).
+
+    Under ``jax.vmap`` (several seeds or sweep members) the call is not vmapped around the
+    ``shard_map``, which MuJoCo Warp's calls do not survive (their lowered program keeps
+    values of another trace); the vmap moves inside it instead: :func:`split_call` of
+    :func:`members_map` of ``batched_fn``, one more leading axis on every leaf but the shared
+    ones, which stay one buffer for every member as MuJoCo Warp keeps them.
+    """
     devices = mesh.shape[axis]
     if size % devices:
         raise ConfigError(f"{size} environments cannot be split evenly over {devices} devices: "
                           f"use a number of environments divisible by {devices}")  # fmt: skip
 
+    @jax.custom_batching.custom_vmap
     def call(*args: Any) -> Any:
-        in_specs = _specs(args, axis, shared)
-        local = jax.tree.map(lambda x, spec: _local(x, spec, devices), args, in_specs)
-        out_specs = _specs(jax.eval_shape(batched_fn, *local), axis, shared)
+        in_specs = _specs(args, axis, shared, lead)
+        local = jax.tree.map(lambda x, spec: _local(x, spec, devices, lead), args, in_specs)
+        out_specs = _specs(jax.eval_shape(batched_fn, *local), axis, shared, lead)
         run = jax.shard_map(batched_fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs,
                             check_vma=False)  # (Warp's calls have no replication rule)
         return run(*args)
 
+    @call.def_vmap
+    def vmapped(axis_size: int, in_batched: Any, *args: Any) -> tuple[Any, Any]:
+        batched = jax.tree.leaves(tuple(in_batched))
+        _, kept = _parted(args, shared)
+        if any(b and k for b, k in zip(batched, kept, strict=True)):
+            raise ValueError("a buffer kept once for all environments differs between members")
+        own_batched = [b or k for b, k in zip(batched, kept, strict=True)]
+        args = jax.tree.unflatten(jax.tree.structure(args), [  # (shared leaves stay as they are)
+            x if b else _repeated(x, axis_size)
+            for x, b in zip(jax.tree.leaves(args), own_batched, strict=True)])
+        inner = split_call(members_map(batched_fn, shared), size, mesh=mesh, axis=axis,
+                           shared=shared, lead=lead + 1)  # fmt: skip
+        out = inner(*args)
+        return out, jax.tree_util.tree_map_with_path(lambda path, _: not shared(path), out)
+
     return call
 
 
-def _specs(tree: Any, axis: str, shared: Callable[[Any], bool]) -> Any:
+def members_map(fn: Callable, shared: Callable[[Any], bool]) -> Callable:
+    """``jax.vmap(fn)`` over a leading members axis of every leaf except those ``shared(path)``
+    names, which every member uses as they are, in its arguments and in its results (as
+    MuJoCo Warp keeps them: one buffer for all the worlds it steps together)."""
+
+    def mapped(*args: Any) -> Any:
+        (own, common), kept = _parted(args, shared)
+        tree = jax.tree.structure(args)
+        out_tree: list = []
+
+        def one(own: list, common: list) -> tuple[list, list]:
+            out = fn(*tree.unflatten(_joined(kept, own, common)))
+            parts, out_kept = _parted(out, shared)
+            out_tree[:] = [jax.tree.structure(out), out_kept]
+            return parts
+
+        out_own, out_common = jax.vmap(one, in_axes=(0, None), out_axes=(0, None))(own, common)
+        structure, out_kept = out_tree
+        return structure.unflatten(_joined(out_kept, out_own, out_common))
+
+    return mapped
+
+
+def _parted(tree: Any, shared: Callable[[Any], bool]) -> tuple[tuple[list, list], list[bool]]:
+    """``((own, common), kept)``: ``tree``'s leaves that ``shared`` does not name and those it
+    names, in order, and which of its leaves it names."""
+    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+    kept = [shared(path) for path, _ in leaves]
+    own = [x for (_, x), k in zip(leaves, kept, strict=True) if not k]
+    common = [x for (_, x), k in zip(leaves, kept, strict=True) if k]
+    return (own, common), kept
+
+
+def _joined(kept: list[bool], own: list, common: list) -> list:
+    """The leaves :func:`_parted` separated, back in their order."""
+    own_it, common_it = iter(own), iter(common)
+    return [next(common_it) if k else next(own_it) for k in kept]
+
+
+def _repeated(x: Any, count: int) -> jax.Array:
+    """``x`` repeated ``count`` times along a new leading axis."""
+    return jax.numpy.broadcast_to(x, (count, *jax.numpy.shape(x)))
+
+
+def _specs(tree: Any, axis: str, shared: Callable[[Any], bool], lead: int = 0) -> Any:
     """A PartitionSpec per leaf of ``tree``: whole where ``shared`` names it, else split
-    along ``axis``."""
+    along ``axis`` on its batch axis (after ``lead`` leading axes)."""
+    split = PartitionSpec(*([None] * lead), axis)
     return jax.tree_util.tree_map_with_path(
-        lambda path, x: PartitionSpec() if shared(path) else PartitionSpec(axis), tree)
+        lambda path, x: PartitionSpec() if shared(path) else split, tree)
 
 
-def _local(x: Any, spec: PartitionSpec, devices: int) -> jax.ShapeDtypeStruct:
-    """The shape and dtype one device sees of ``x`` under ``spec``."""
-    shape = tuple(x.shape) if spec == PartitionSpec() else (x.shape[0] // devices, *x.shape[1:])
-    return jax.ShapeDtypeStruct(shape, x.dtype)
+def _local(x: Any, spec: PartitionSpec, devices: int, lead: int = 0) -> jax.ShapeDtypeStruct:
+    """The shape and dtype one device sees of ``x`` under ``spec`` (batch axis ``lead``)."""
+    shape = list(x.shape)
+    if spec != PartitionSpec():
+        shape[lead] //= devices
+    return jax.ShapeDtypeStruct(tuple(shape), x.dtype)

@@ -60,12 +60,24 @@ needs_it = dataclasses.replace(make_env(cfg), per_device=True)
 maps = [find(cfg, members(cfg), mesh, None, env=env).program.spec.env.batch_map is not None
         for env in (needs_it, make_env(cfg))]
 seeds = dataclasses.replace(cfg, seeds=2)
-try:
-    find(seeds, members(seeds), mesh, None, env=needs_it)
-    population = None
-except ConfigError as err:
-    population = str(err)
+find(seeds, members(seeds), mesh, None, env=needs_it)  # (builds: members split as above)
 find(seeds, members(seeds), mesh, None, env=make_env(seeds))  # (JAX physics: split by XLA)
+# two members (a vmap around the split call): member 0 steps x = 0..5, member 1 x = 6..11;
+# the shared buffer, one for every world a device steps, counts them
+def counting(x, shared):
+    return x * 2.0 + 1.0, shared.at[1].add(x.shape[0])
+
+split = split_call(counting, 6, mesh=mesh, shared=shared_arg)
+my, mshared = jax.jit(jax.vmap(split, in_axes=(0, None)))(jnp.arange(12.0).reshape(2, 6),
+                                                          jnp.zeros(3))
+try:
+    jax.vmap(split)(jnp.zeros((2, 6)), jnp.zeros((2, 3)))
+    per_member = None
+except ValueError as err:
+    per_member = str(err)
+population = {"y": np.asarray(my).tolist(), "shape": list(mshared.shape),
+              "per_device": [np.asarray(s.data).tolist() for s in mshared.addressable_shards],
+              "per_member": per_member}
 print(json.dumps({"y": np.asarray(y).tolist(), "shape": list(shared.shape),
                   "per_device": per_device, "refused": refused, "specs": specs, "maps": maps,
                   "population": population}))
@@ -114,12 +126,19 @@ def test_a_runs_programs_step_a_per_device_environment_on_each_device(two_device
     assert two_devices["maps"] == [True, False]
 
 
-def test_several_members_of_a_per_device_environment_over_devices_are_refused_in_one_line(
-    two_devices,
-):
-    """Seeds (or a sweep) of MuJoCo Warp over two devices are not supported yet: one line
-    naming what to do; gymnax's seeds over two devices are made as before."""
-    assert two_devices["population"] == (
-        "2 seeds or sweep members on MuJoCo Warp run on one device, not 2: use --devices 1, or "
-        "one seed per run on several devices"
+def test_members_of_a_split_call_each_run_their_own_blocks_on_each_device(two_devices):
+    """Seeds (or a sweep) vmapped around the split call: each member's values are its own
+    (2x + 1); the shared buffer stays one for every world a device steps, members included,
+    as MuJoCo Warp keeps it: each device counted its own 3 environments once (the outer
+    ``vmap`` stacks that one buffer for its two members)."""
+    population = two_devices["population"]
+    assert population["y"] == [[2.0 * v + 1.0 for v in range(6)],
+                               [2.0 * v + 1.0 for v in range(6, 12)]]  # fmt: skip
+    assert population["shape"] == [2, 3]
+    assert population["per_device"] == [[[0.0, 3.0, 0.0], [0.0, 3.0, 0.0]]] * 2
+
+
+def test_a_shared_buffer_that_differs_between_members_is_refused(two_devices):
+    assert two_devices["population"]["per_member"] == (
+        "a buffer kept once for all environments differs between members"
     )

@@ -210,3 +210,24 @@ def test_a_robot_run_split_over_two_devices_gives_the_one_device_numbers(tmp_pat
     evaluated = _cli(["eval", "--run", str(tmp_path / "devices2"), "--episodes", "2"], 1)
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
     assert "seed=0" in evaluated.stdout
+
+
+def test_two_seeds_split_over_two_devices_give_the_one_device_numbers(tmp_path):
+    """``--seeds 2 --devices 2``: the members' vmap runs inside the split physics
+    (:func:`td3_jax.envs.per_device.members_map`), each device stepping its 2 robots of each
+    seed; every seed's record equals the one-device run's."""
+    runs = {}
+    for devices in (1, 2):
+        out = tmp_path / f"devices{devices}"
+        proc = _cli([*TINY_T1, "--seeds", "2", "--devices", str(devices), "--out", str(out)],
+                    devices)  # fmt: skip
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        runs[devices] = [json.loads(line) for line in (out / "metrics.jsonl").open()]
+    compared = {"critic_loss": 1e-3, "actor_loss": 1e-3, "eval_return_mean": 1e-4,
+                "eval_return_max": 1e-4}  # fmt: skip
+    for one, two in zip(runs[1], runs[2], strict=True):
+        assert two["env_steps"] == one["env_steps"]
+        for seed_one, seed_two in zip(one["per_member"], two["per_member"], strict=True):
+            assert seed_two["seed"] == seed_one["seed"]
+            for name, rel in compared.items():
+                assert seed_two[name] == pytest.approx(seed_one[name], rel=rel), name
