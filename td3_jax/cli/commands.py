@@ -18,6 +18,7 @@ __all__ = [
     "EvalCommand",
     "ExportCommand",
     "PlotCommand",
+    "PresetFlag",
     "PresetName",
     "PresetsCommand",
     "RenderCommand",

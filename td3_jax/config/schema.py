@@ -55,11 +55,12 @@ class TrainConfig:
     warmup_steps: int = 2_000
     """Environment steps with uniform random actions and no updates at the start."""
     eval_every: int = 4_000
-    """Environment steps between evaluations: the length of one compiled chunk, after which
-    a checkpoint is written (see --checkpoint-every). It is rounded to whole iterations of
-    --num-envs steps: down, or up where that gives a fresh run started from the command line
-    fewer chunks. Such a run also lowers it to --total-steps where it is longer (not with
-    --eval-in-chunk, whose chunk must hold a whole episode)."""
+    """Environment steps between evaluations: the length of one compiled chunk (a checkpoint
+    follows every --checkpoint-every chunks). It runs as whole iterations of --num-envs x
+    --steps-per-iter env steps: rounded down, or, in a fresh run started from the command line,
+    up where whole chunks of that length run fewer steps past --total-steps. Such a run also
+    lowers it to --total-steps where it is longer (not with --eval-in-chunk, whose chunk must
+    hold a whole episode)."""
     eval_envs: int = 16
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False

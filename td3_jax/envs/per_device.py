@@ -60,17 +60,15 @@ def split_call(batched_fn: Callable, size: int, *, mesh: Mesh, axis: str = "data
                shared: Callable[[Any], bool] = lambda path: False, lead: int = 0
                ) -> Callable:  # fmt: skip
     """``batched_fn`` (a function over a batch of ``size`` environments: every argument and
-    result leaf ``[*L, size, ...]``, except those ``shared(path)`` names, ``[*L, ...]`` without
-    a batch axis; ``L`` the ``lead`` leading axes) run under ``jax.shard_map``: batched leaves
+    result leaf ``[*L, size, ...]``, ``L`` the ``lead`` leading axes, except those
+    ``shared(path)`` names, which have neither) run under ``jax.shard_map``: batched leaves
     split along their batch axis over ``axis``, one block per device, shared ones given whole
     to every device; each device's results are its block of the batch and its own copy of the
     shared leaves (see the module's docstring).
 
     Under ``jax.vmap`` (several seeds or sweep members) the call is not vmapped around the
     ``shard_map``, which MuJoCo Warp's calls do not survive (their lowered program keeps
-    values of another trace); the vmap moves inside it instead: :func:`split_call` of
-    :func:`members_map` of ``batched_fn``, one more leading axis on every leaf but the shared
-    ones, which stay one buffer for every member as MuJoCo Warp keeps them.
+    values of another trace); the vmap moves inside it instead (:func:`_members_rule`).
     """
     devices = mesh.shape[axis]
     if size % devices:
@@ -86,22 +84,30 @@ def split_call(batched_fn: Callable, size: int, *, mesh: Mesh, axis: str = "data
                             check_vma=False)  # (Warp's calls have no replication rule)
         return run(*args)
 
-    @call.def_vmap
-    def vmapped(axis_size: int, in_batched: Any, *args: Any) -> tuple[Any, Any]:
-        batched = jax.tree.leaves(tuple(in_batched))
-        _, kept = _parted(args, shared)
-        if any(b and k for b, k in zip(batched, kept, strict=True)):
-            raise ValueError("a buffer kept once for all environments differs between members")
-        own_batched = [b or k for b, k in zip(batched, kept, strict=True)]
-        args = jax.tree.unflatten(jax.tree.structure(args), [  # (shared leaves stay as they are)
-            x if b else _repeated(x, axis_size)
-            for x, b in zip(jax.tree.leaves(args), own_batched, strict=True)])
-        inner = split_call(members_map(batched_fn, shared), size, mesh=mesh, axis=axis,
-                           shared=shared, lead=lead + 1)  # fmt: skip
-        out = inner(*args)
-        return out, jax.tree_util.tree_map_with_path(lambda path, _: not shared(path), out)
-
+    call.def_vmap(functools.partial(_members_rule, batched_fn, size, mesh, axis, shared, lead))
     return call
+
+
+def _members_rule(batched_fn: Callable, size: int, mesh: Mesh, axis: str,
+                  shared: Callable[[Any], bool], lead: int, axis_size: int, in_batched: Any,
+                  *args: Any) -> tuple[Any, Any]:  # fmt: skip
+    """:func:`split_call`'s ``vmap`` rule: :func:`split_call` of :func:`members_map` of
+    ``batched_fn``, one more leading axis on every leaf but the shared ones (a leaf the vmap
+    leaves unbatched is repeated for each member), which stay one buffer for every member, as
+    MuJoCo Warp keeps them. A shared leaf that differs between members raises ValueError."""
+    leaves, tree = jax.tree_util.tree_flatten_with_path(args)
+    batched = jax.tree.leaves(tuple(in_batched))
+    for (path, _), is_batched in zip(leaves, batched, strict=True):
+        if is_batched and shared(path):
+            raise ValueError(f"{jax.tree_util.keystr(path)} is kept once for all environments "
+                             "but differs between members")  # fmt: skip
+    args = tree.unflatten([
+        x if is_batched or shared(path) else _repeated(x, axis_size)
+        for (path, x), is_batched in zip(leaves, batched, strict=True)])  # fmt: skip
+    inner = split_call(members_map(batched_fn, shared), size, mesh=mesh, axis=axis,
+                       shared=shared, lead=lead + 1)  # fmt: skip
+    out = inner(*args)
+    return out, jax.tree_util.tree_map_with_path(lambda path, _: not shared(path), out)
 
 
 def members_map(fn: Callable, shared: Callable[[Any], bool]) -> Callable:

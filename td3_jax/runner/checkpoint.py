@@ -31,6 +31,7 @@ import shutil
 import sys
 import time
 from collections.abc import Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from td3_jax.common.runtime import root_logging_kept
+from td3_jax.common.runtime import in_background, root_logging_kept
 
 __all__ = ["FORMAT", "Checkpointer", "size_text", "state_bytes"]
 
@@ -82,7 +83,7 @@ class Checkpointer:
         self._keep = keep
         self._manager: ocp.CheckpointManager | None = None
         self._pending: int | None = None  # the step of a background write not yet waited for
-        self._checksum_programs: dict[tuple, Any] = {}  # layout -> compiled (:meth:`prepare`)
+        self._checksum_programs: dict[tuple, Future] = {}  # layout -> compile (:meth:`prepare`)
         if create:
             self._manager = self._new_manager()
 
@@ -145,16 +146,19 @@ class Checkpointer:
         if not background:
             self.wait()
 
-    def prepare(self, state_specs: Any) -> None:
-        """Compiles the checksum program a :meth:`save` of the layout of ``state_specs`` (the
-        state's ``ShapeDtypeStruct`` leaves, with their ``sharding``) needs, so that the first
-        save does not compile it between two chunks (e.g. on a thread while the run's programs
-        compile: 2-6 s for a robot's state). Saves of other layouts compile theirs when they
-        come.
+    def prepare(self, state_specs: Any) -> Future:
+        """Lowers the checksum program a :meth:`save` of the layout of ``state_specs`` (the
+        state's ``ShapeDtypeStruct`` leaves, with their ``sharding``) needs, on this thread,
+        and compiles it on a thread of its own (:func:`~td3_jax.common.runtime.in_background`),
+        so that the first save does not compile it between two chunks (2-6 s for a robot's
+        state). Returns the compile's future; saves of this layout wait for it and use its
+        program (the jitted one if it failed), saves of other layouts compile theirs.
         """
         leaves = jax.tree.leaves(state_specs)
-        program = _device_checksums.lower(leaves).compile()
-        self._checksum_programs[_layout(leaves)] = program
+        lowered = _device_checksums.lower(leaves)
+        future = in_background(lowered.compile, name="td3-jax checksums")
+        self._checksum_programs[_layout(leaves)] = future
+        return future
 
     def wait(self) -> None:
         """Waits until a background write is complete on disk (nothing to do without one); a
@@ -461,18 +465,30 @@ def _device_checksums(leaves: list[jax.Array]) -> list[jax.Array]:
 
 def _layout(leaves: list[Any]) -> tuple:
     """What a compiled checksum program needs its arguments to match: each leaf's shape, dtype,
-    weak type and placement."""
-    return tuple((x.shape, x.dtype, x.weak_type, x.sharding) for x in leaves)
+    weak type (typed PRNG keys have none: not weak) and placement."""
+    return tuple((x.shape, x.dtype, getattr(x, "weak_type", False), x.sharding) for x in leaves)
 
 
-def _checksums(leaves: list[Any], compiled: dict[tuple, Any] | None = None) -> list[str]:
+def _checksums(leaves: list[Any], compiled: dict[tuple, Future] | None = None) -> list[str]:
     """``"mix32:<a>:<b>"`` per array (computed where the arrays live, also when they are split
     over several processes), by the program ``compiled`` holds for their layout
-    (:meth:`Checkpointer.prepare`), else one compiled now."""
+    (:meth:`Checkpointer.prepare`; waited for), else one compiled now."""
     arrays = [jnp.asarray(x) if not isinstance(x, jax.Array) else x for x in leaves]
-    sums = (compiled or {}).get(_layout(arrays), _device_checksums)(arrays)
+    program = _prepared((compiled or {}).get(_layout(arrays)))
+    sums = program(arrays)
     values = [np.asarray(s.addressable_data(0)) for s in sums]
     return [f"{_HASH}:{int(v[0])}:{int(v[1])}" for v in values]
+
+
+def _prepared(future: Future | None) -> Any:
+    """The program ``future`` compiled, or the jitted one (no future, or its compile failed:
+    the run said so once, :func:`td3_jax.runner.run._wait_for_save_warmup`)."""
+    if future is None:
+        return _device_checksums
+    try:
+        return future.result()
+    except Exception:  # (compiled at its first use instead, as without prepare)
+        return _device_checksums
 
 
 def _verify(state: Any, checksums: Any, path: Path) -> None:

@@ -46,6 +46,7 @@ __all__ = [
     "jitted",
     "options_on",
     "run_compiled",
+    "with_sharding",
 ]
 
 

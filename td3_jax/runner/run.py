@@ -14,6 +14,7 @@ import re
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ from td3_jax.common.errors import (
     PhysicsOverflowError,
 )
 from td3_jax.common.library_noise import filtered_stderr
-from td3_jax.common.runtime import StopToken, awaiting_device, in_background, result
+from td3_jax.common.runtime import StopToken, awaiting_device, result
 from td3_jax.config.build import bind_environment, members
 from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.core.population import Member
@@ -260,6 +261,8 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
                         ) -> tuple[Programs, Any]:  # fmt: skip
     """The run's compiled programs, the state's room checked as soon as its shapes are known
     (:func:`td3_jax.runner.programs.compiled`), and its state: ``state`` restored, else initialised.
+    The checksum program of its checkpoints compiles beside them (:func:`_state_shapes_known`)
+    and is waited for before anything runs on the devices (no compile runs beside a chunk).
     ``say``: print that it compiles first (a log then shows where the time goes), and from
     which stored programs (:func:`td3_jax.runner.programs.find`). XLA's slow-compile alarm and
     MLIR's lines about a damaged stored program are left out of stderr meanwhile (the first
@@ -281,11 +284,11 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
 
 def _state_shapes_known(run: _Run, mesh: Any, state: Any) -> None:
     """Once the state's shapes are known, before the programs compile: the room checks
-    (:func:`_check_room`), then the first checkpoint's checksum program compiled on a thread
-    beside them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
+    (:func:`_check_room`), then the first checkpoint's checksum program lowered here and
+    compiled on a thread beside them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
     _check_room(run, mesh, state)
     specs = programs.with_sharding(state, state_shardings(state, mesh))
-    run.save_warmup = in_background(run.checkpointer.prepare, specs, name="td3-jax checksums")
+    run.save_warmup = run.checkpointer.prepare(specs)
 
 
 def _wait_for_save_warmup(run: _Run) -> None:
@@ -297,8 +300,10 @@ def _wait_for_save_warmup(run: _Run) -> None:
         result(run.save_warmup, run.stop)
     except Exception as err:  # e.g. no memory to compile in: the save itself will say
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        print(f"td3-jax: warning: the first checkpoint could not be prepared ahead ({first}); "
-              "it does that work when it is written", file=sys.stderr, flush=True)
+        if run.writer:
+            print(f"td3-jax: warning: the first checkpoint could not be prepared ahead "
+                  f"({first}); it does that work when it is written", file=sys.stderr,
+                  flush=True)  # fmt: skip
     finally:
         run.save_warmup = None
 
@@ -389,7 +394,7 @@ class _Run:
     clock_start: float = dataclasses.field(default_factory=time.perf_counter)
     wall_offset: float = 0.0
     failed_write: Exception | None = None  # the write the disk refused, which stopped the run
-    save_warmup: Any = None  # the future of Checkpointer.prepare, until waited for
+    save_warmup: Future | None = None  # Checkpointer.prepare's compile, until waited for
 
     def close(self) -> None:
         """Closes the outputs, each on its own: the progress display, a checkpoint still being

@@ -67,9 +67,14 @@ find(seeds, members(seeds), mesh, None, env=make_env(seeds))  # (JAX physics: sp
 def counting(x, shared):
     return x * 2.0 + 1.0, shared.at[1].add(x.shape[0])
 
+from td3_jax.envs import per_device as module
+inside = []  # the functions the members' vmap mapped inside the split
+real_members_map = module.members_map
+module.members_map = lambda fn, shared: inside.append(fn) or real_members_map(fn, shared)
 split = split_call(counting, 6, mesh=mesh, shared=shared_arg)
-my, mshared = jax.jit(jax.vmap(split, in_axes=(0, None)))(jnp.arange(12.0).reshape(2, 6),
-                                                          jnp.zeros(3))
+my, mshared = jax.jit(jax.vmap(split, in_axes=(0, None), out_axes=(0, None)))(
+    jnp.arange(12.0).reshape(2, 6), jnp.zeros(3))
+module.members_map = real_members_map
 try:
     jax.vmap(split)(jnp.zeros((2, 6)), jnp.zeros((2, 3)))
     per_member = None
@@ -77,7 +82,7 @@ except ValueError as err:
     per_member = str(err)
 population = {"y": np.asarray(my).tolist(), "shape": list(mshared.shape),
               "per_device": [np.asarray(s.data).tolist() for s in mshared.addressable_shards],
-              "per_member": per_member}
+              "per_member": per_member, "mapped_inside": len(inside)}
 print(json.dumps({"y": np.asarray(y).tolist(), "shape": list(shared.shape),
                   "per_device": per_device, "refused": refused, "specs": specs, "maps": maps,
                   "population": population}))
@@ -128,17 +133,18 @@ def test_a_runs_programs_step_a_per_device_environment_on_each_device(two_device
 
 def test_members_of_a_split_call_each_run_their_own_blocks_on_each_device(two_devices):
     """Seeds (or a sweep) vmapped around the split call: each member's values are its own
-    (2x + 1); the shared buffer stays one for every world a device steps, members included,
-    as MuJoCo Warp keeps it: each device counted its own 3 environments once (the outer
-    ``vmap`` stacks that one buffer for its two members)."""
+    (2x + 1); the shared buffer is not batched by the members' vmap (the vmap runs inside the
+    ``shard_map``), one buffer for every member, as MuJoCo Warp keeps it: each device's copy
+    counted its own 3 environments, once."""
     population = two_devices["population"]
     assert population["y"] == [[2.0 * v + 1.0 for v in range(6)],
                                [2.0 * v + 1.0 for v in range(6, 12)]]  # fmt: skip
-    assert population["shape"] == [2, 3]
-    assert population["per_device"] == [[[0.0, 3.0, 0.0], [0.0, 3.0, 0.0]]] * 2
+    assert population["mapped_inside"] == 1  # (one vmap: the physics traced once inside)
+    assert population["shape"] == [3]
+    assert population["per_device"] == [[0.0, 3.0, 0.0], [0.0, 3.0, 0.0]]
 
 
 def test_a_shared_buffer_that_differs_between_members_is_refused(two_devices):
     assert two_devices["population"]["per_member"] == (
-        "a buffer kept once for all environments differs between members"
+        "[1] is kept once for all environments but differs between members"
     )

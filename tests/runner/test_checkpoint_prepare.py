@@ -5,19 +5,26 @@ checksums the program compiled at the save records, and a compile that fails cos
 from __future__ import annotations
 
 import json
+from concurrent.futures import Future
 
 import jax
 import jax.numpy as jnp
 import pytest
 
-from td3_jax.runner import checkpoint, run
+from td3_jax.config.build import members
+from td3_jax.runner import checkpoint, programs, run
 from td3_jax.runner.checkpoint import Checkpointer
+from td3_jax.runner.sharding import make_mesh, state_shardings
 from tests.configs import tiny_config
 
 
+def _spec(x):
+    weak = getattr(x, "weak_type", False)  # (a typed key has none)
+    return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding, weak_type=weak)
+
+
 def _specs(state):
-    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding,
-                                                       weak_type=x.weak_type), state)  # fmt: skip
+    return jax.tree.map(_spec, state)
 
 
 class _CountingChecksums:
@@ -46,7 +53,8 @@ def _saved_checksums(directory, state, prepare: bool) -> list[str]:
 def test_a_prepared_save_uses_the_compiled_checksums_and_records_the_same_ones(
     tmp_path, monkeypatch
 ):
-    state = {"w": jnp.arange(12.0).reshape(3, 4), "n": jnp.int32(5), "b": jnp.ones(7, jnp.bfloat16)}
+    state = {"w": jnp.arange(12.0).reshape(3, 4), "n": jnp.int32(5), "b": jnp.ones(7, jnp.bfloat16),
+             "key": jax.random.split(jax.random.key(3), 4)}  # (a typed key has no weak type)
     plain = _saved_checksums(tmp_path / "plain", state, prepare=False)
     counting = _CountingChecksums(checkpoint._device_checksums)
     monkeypatch.setattr(checkpoint, "_device_checksums", counting)
@@ -55,6 +63,18 @@ def test_a_prepared_save_uses_the_compiled_checksums_and_records_the_same_ones(
     other = {"w": jnp.zeros((2, 2))}  # another layout: compiled when it comes
     _saved_checksums(tmp_path / "other", other, prepare=False)
     assert counting.calls == 1
+
+
+def test_the_layout_prepared_from_a_runs_shapes_is_that_of_its_state():
+    """What the run prepares (its state's shapes placed as its programs place them) has the
+    layout of the state its init program returns, so its saves find the compiled program."""
+    cfg = tiny_config()
+    mesh = make_mesh(1)
+    program = programs.find(cfg, members(cfg), mesh, None).program
+    shapes = program.abstract_state
+    prepared = jax.tree.leaves(programs.with_sharding(shapes, state_shardings(shapes, mesh)))
+    state = jax.tree.leaves(programs.jitted(program, mesh).init())
+    assert checkpoint._layout(prepared) == checkpoint._layout(state)
 
 
 @pytest.mark.runs
@@ -75,8 +95,10 @@ def test_a_runs_checkpoints_use_the_checksums_compiled_while_its_programs_compil
 def test_a_warm_up_that_fails_is_said_in_one_line_and_the_run_goes_on(
     tmp_path, monkeypatch, capsys
 ):
-    def no_memory(self, specs):  # (as a compile that runs out of memory)
-        raise RuntimeError("RESOURCE_EXHAUSTED: out of memory compiling\nmore detail")
+    def no_memory(self, specs):  # (as a compile that runs out of memory on its thread)
+        failed = Future()
+        failed.set_exception(RuntimeError("RESOURCE_EXHAUSTED: out of memory compiling\nmore"))
+        return failed
 
     monkeypatch.setattr(Checkpointer, "prepare", no_memory)
     records = run.train(tiny_config(), tmp_path / "run", progress=False)
