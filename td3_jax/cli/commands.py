@@ -33,7 +33,7 @@ PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 #: A preset flag: every name, former ones included (they still run); the help lists current ones.
 PresetFlag = Annotated[
     PresetName | None,  # type: ignore[valid-type]
-    tyro.conf.arg(metavar="{" + ",".join(NAMES) + "}"),
+    tyro.conf.arg(metavar="{" + ",".join(NAMES) + "}", help_behavior_hint=""),
 ]
 #: Hidden widths as the command line takes them (no ``None``: the default is shown instead).
 Widths = Annotated[tuple[int, ...] | None, tyro.conf.arg(metavar="INT [INT ...]")]
@@ -65,9 +65,10 @@ class TrainCommand(TrainConfig):
     command's own flags (--quiet, --time-budget-s, --compile-cache, --devices and the
     several-hosts flags) apply to this process. A run logged to W&B continues its W&B run."""
     preset: PresetFlag = None
-    """Named settings to start from (see `td3-jax presets`); other flags override them.
-    Default: the --env's own preset where one exists (said in one line), else settings for the
-    device (a GPU gets thousands of environments)."""
+    """Named settings to start from (see `td3-jax presets`); flags given override them, --env
+    included (a preset such as ant sets its --env: brax/ant). Default: the --env's own preset
+    where one exists (said in one line), else settings for the device (a GPU gets thousands of
+    environments)."""
     quiet: bool = False
     """No progress display (a live bar on a terminal, else one line per evaluation)."""
     time_budget_s: float | None = None

@@ -74,7 +74,8 @@ def _unknown_message(name: str, source: str) -> str:
     every = "`td3-jax envs` lists all of them"
     if source == "playground" and not _playground.names():  # (the name cannot be told here)
         return (f"environment {name!r} needs MuJoCo Playground, which is not installed: "
-                f"pip install 'td3-jax[playground]' ({every})")  # fmt: skip
+                "pip install 'td3-jax[playground]', or 'td3-jax[locomotion]' for its robots "
+                f"(T1, G1, Go1 and the other locomotion tasks) ({every})")  # fmt: skip
     if guesses:
         return f"unknown environment {name!r}; did you mean {' or '.join(guesses)}? ({every})"
     if "/" not in name and "." in name:  # a module path without its function

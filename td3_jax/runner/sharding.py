@@ -258,10 +258,12 @@ def initialize_distributed(
                 "(or JAX_COORDINATOR_ADDRESS)"
             )
         return False
-    if num_processes is None and "JAX_NUM_PROCESSES" in os.environ:
-        num_processes = int(os.environ["JAX_NUM_PROCESSES"])
-    if process_id is None and "JAX_PROCESS_ID" in os.environ:
-        process_id = int(os.environ["JAX_PROCESS_ID"])
+    num_processes = _whole_or_env(num_processes, "JAX_NUM_PROCESSES")
+    process_id = _whole_or_env(process_id, "JAX_PROCESS_ID")
+    check_processes(coordinator_address, num_processes, process_id)
+    if num_processes is not None and num_processes > 1:
+        print(f"td3-jax: waiting for {num_processes} processes at {coordinator_address} (this "
+              f"is process {process_id}; each runs the same command)...", flush=True)  # fmt: skip
     try:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
     except Exception:  # pragma: no cover - option absent in some jax versions
@@ -277,9 +279,37 @@ def initialize_distributed(
     return True
 
 
+def _whole_or_env(value: int | None, variable: str) -> int | None:
+    """``value``, else the whole number in environment variable ``variable`` (if set)."""
+    if value is not None or variable not in os.environ:
+        return value
+    text = os.environ[variable]
+    try:
+        return int(text)
+    except ValueError:
+        raise ConfigError(f"{variable}={text!r} is not a whole number") from None
+
+
+def check_processes(address: str, num_processes: int | None, process_id: int | None) -> None:
+    """Raises :class:`ConfigError` for a coordinator address that is not ``HOST:PORT``, fewer
+    than one process, or a process id outside ``0 .. num_processes - 1``."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"--coordinator-address {address!r} must be HOST:PORT (e.g. "
+                          "10.0.0.1:12345): the first process's host and a free port")  # fmt: skip
+    if num_processes is not None and num_processes < 1:
+        raise ConfigError(f"--num-processes must be at least 1, got {num_processes}")
+    beyond = num_processes is not None and process_id is not None and process_id >= num_processes
+    if process_id is not None and (process_id < 0 or beyond):
+        top = f"{num_processes - 1}" if num_processes is not None else "--num-processes - 1"
+        raise ConfigError(f"--process-id must be from 0 to {top} (one per process), got "
+                          f"{process_id}")  # fmt: skip
+
+
 __all__ = [
     "AXIS",
     "check_memory",
+    "check_processes",
     "host_value",
     "initialize_distributed",
     "make_mesh",

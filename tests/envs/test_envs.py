@@ -720,5 +720,6 @@ def test_a_playground_task_without_playground_installed_names_the_extra_not_an_u
         envs.check_name("playground/CheetahRun")
     assert str(err.value) == (
         "environment 'playground/CheetahRun' needs MuJoCo Playground, which is not installed: "
-        "pip install 'td3-jax[playground]' (`td3-jax envs` lists all of them)"
+        "pip install 'td3-jax[playground]', or 'td3-jax[locomotion]' for its robots (T1, G1, "
+        "Go1 and the other locomotion tasks) (`td3-jax envs` lists all of them)"
     )

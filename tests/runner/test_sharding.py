@@ -229,3 +229,4 @@ def test_replay_slices_off_whole_devices_are_warned_about():
     assert "--replay-shards 1 is not a multiple of the 4 devices" in message
     assert "--replay-shards 4" in message
     assert replay_layout_warning(2, 4) is not None
+
