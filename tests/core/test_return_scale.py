@@ -112,17 +112,22 @@ def test_the_update_learns_from_rewards_divided_by_the_scale(scaled_run):
     trainer, state, _ = scaled_run
     spec, hp = trainer.spec, trainer.hyperparams
     key = jax.random.PRNGKey(5)
-    scale = jnp.float32(7.5)
-    got, _ = training.gradient_step(spec, hp, state.buffer, state.obs_stats, scale,
-                                    state.agent, key)  # fmt: skip
-    sample_key, update_key = jax.random.split(key)
-    sampled = training.sample_batch(spec, hp, state.buffer, sample_key)
-    batch = training.agent_batch(spec, state.obs_stats, sampled)
-    batch = batch._replace(reward=batch.reward / 7.5)
-    want, _ = ac.update(spec.agent, hp.agent, state.agent, batch, update_key)
+    # (compiled: op by op, an update of these networks takes about a minute on a CPU)
+    step = jax.jit(lambda scale: training.gradient_step(spec, hp, state.buffer, state.obs_stats,
+                                                        scale, state.agent, key))  # fmt: skip
+    got, _ = step(jnp.float32(7.5))
+
+    @jax.jit
+    def by_hand():  # the same sample, its rewards divided by the scale, the agent's update
+        sample_key, update_key = jax.random.split(key)
+        sampled = training.sample_batch(spec, hp, state.buffer, sample_key)
+        batch = training.agent_batch(spec, state.obs_stats, sampled)
+        batch = batch._replace(reward=batch.reward / 7.5)
+        return ac.update(spec.agent, hp.agent, state.agent, batch, update_key)
+
+    want, _ = by_hand()
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), got, want)
-    unscaled, _ = training.gradient_step(spec, hp, state.buffer, state.obs_stats,
-                                         jnp.float32(1.0), state.agent, key)  # fmt: skip
+    unscaled, _ = step(jnp.float32(1.0))
     differs = jax.tree.map(lambda a, b: not np.allclose(a, b), unscaled.critic_params,
                            got.critic_params)  # fmt: skip
     assert any(jax.tree.leaves(differs))  # the scale reaches the critics' targets
