@@ -23,6 +23,7 @@ from td3_jax.config.schema import (
 
 __all__ = [
     "CPU_SIZES",
+    "chunk_count_warning",
     "cpu_size_warning",
     "cpu_tips",
     "critic_network_note",
@@ -185,6 +186,25 @@ def eval_size_warning(cfg: TrainConfig) -> str | None:
     )
 
 
+#: More chunks than this in one run draws :func:`chunk_count_warning`.
+MANY_CHUNKS = 1000
+
+
+def chunk_count_warning(cfg: TrainConfig) -> str | None:
+    """A warning when ``--eval-every`` cuts the run into more than :data:`MANY_CHUNKS` chunks:
+    each ends in an evaluation and, every ``--checkpoint-every`` chunks, a checkpoint of the
+    whole train state, which then take most of the run's time."""
+    if cfg.num_chunks <= MANY_CHUNKS:
+        return None
+    hundredth = -(-cfg.total_steps // 100)
+    return (
+        f"--eval-every {cfg.steps_per_chunk} cuts the run into {cfg.num_chunks} chunks, each "
+        f"ending in an evaluation (and a checkpoint every --checkpoint-every "
+        f"{cfg.checkpoint_every}), which take most of its time; --eval-every {hundredth} "
+        "gives about 100"
+    )
+
+
 def _announce(cfg: TrainConfig, preset_name: str | None, source: str,
               asked_eval_every: int | None = None, rounding: bool = True) -> None:  # fmt: skip
     """Prints which settings the run got, before it starts (``rounding``: also how
@@ -220,7 +240,8 @@ def when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
     warnings = (unnamed_env_warning(cfg, preset_name, source, given),
                 cpu_size_warning(cfg, jax.default_backend(), source),
                 critic_network_note(cfg, preset_name, set(given)), eval_size_warning(cfg),
-                no_learning_warning(cfg), *idle_flags(cfg, set(given)))  # fmt: skip
+                chunk_count_warning(cfg), no_learning_warning(cfg),
+                *idle_flags(cfg, set(given)))  # fmt: skip
     for warning in warnings:
         if warning:
             warn(warning)

@@ -1967,3 +1967,17 @@ def test_a_list_flag_given_twice_is_warned_about_once(capsys):
         "td3-jax: warning: --run given more than once: only the last list of each counts (the "
         "lists are not added together)"
     )
+
+
+def test_a_run_cut_into_over_a_thousand_chunks_is_warned_about():
+    """--eval-every 16 with the default 20,000 steps of 16 environments: 1250 chunks (20000 /
+    16), each ending in an evaluation and a checkpoint; a hundredth of the run is 200 steps.
+    No preset draws it."""
+    tiny_chunks = TrainConfig(eval_every=16)
+    assert notes.chunk_count_warning(tiny_chunks) == (
+        "--eval-every 16 cuts the run into 1250 chunks, each ending in an evaluation (and a "
+        "checkpoint every --checkpoint-every 1), which take most of its time; --eval-every 200 "
+        "gives about 100"
+    )
+    assert notes.chunk_count_warning(TrainConfig(eval_every=32)) is None  # 625 chunks
+    assert [name for name in NAMES if notes.chunk_count_warning(preset(name))] == []
