@@ -70,6 +70,9 @@ def test_a_signal_to_the_whole_process_group_leaves_the_filter_running():
             "from td3_jax.common.library_noise import filtered_stderr\n"
             "say = lambda text: print(text, file=sys.stderr, flush=True)\n"
             "signal.signal(signal.SIGTERM, lambda *_: say('td3-jax: terminated (SIGTERM)'))\n"
+            # (Python's own Ctrl-C: a process started with SIGINT ignored, as a test runner's
+            # worker may leave it for its children, would never raise KeyboardInterrupt)
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
             "with filtered_stderr():\n"
             "    os.killpg(os.getpgid(0), signal.SIGTERM)\n"
             "    time.sleep(0.2)\n"
