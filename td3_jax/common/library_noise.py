@@ -2,7 +2,8 @@
 it better itself: XLA's slow-compile alarm (a banner of asterisks asking for a bug report, while
 a robot's physics compiles on a CPU, which takes minutes) and MLIR's lines about a stored
 program it cannot deserialise (the program store warns of the entry itself and traces the
-programs again).
+programs again), and XLA's notice that GSPMD is to be deprecated (td3-jax chooses GSPMD for
+MuJoCo Warp split over several devices, which Shardy cannot compile: ``envs.per_device``).
 
 :func:`filtered_stderr` passes the process's file descriptor 2 through a small filter process
 for the span of a block (``python -I -S``, stdlib only): every other line goes through as it
@@ -28,11 +29,12 @@ __all__ = ["ALARM", "DROPPED", "STILL_COMPILING", "filtered_stderr"]
 #: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
 ALARM = "Very slow compile?"
 #: Text of the lines dropped (besides lines of asterisks alone, the alarm's banner): the
-#: alarm's log line and MLIR's deserialisation errors.
+#: alarm's log line, MLIR's deserialisation errors and XLA's GSPMD notice.
 DROPPED = (
     "slow_operation_alarm.cc",
     'loc("-":0:0): error: ',  # (MLIR's errors in a serialised artifact: "invalid Type index",
     "failed to deserialize portable artifact",  # "invalid Attribute index", ...)
+    "GSPMD sharding propagation is going to be deprecated",
 )
 #: The line that stands for XLA's slow-compile alarm.
 STILL_COMPILING = (

@@ -13,6 +13,10 @@ device keeps its own copy, sized as on one device; they are scratch space that e
 before it reads them, so the state keeps one shape whatever the device count (a checkpoint
 written on two devices restores on one), and what a device's copy holds between steps is never
 read.
+
+XLA's Shardy partitioner crashed the process (a segmentation fault) compiling Warp's calls under
+``shard_map`` on two H200 GPUs (jax 0.11.2), where GSPMD compiles them: an environment split by
+:func:`over_devices` turns Shardy off for the process (:func:`use_gspmd`).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from td3_jax.common import upstream
 from td3_jax.common.errors import ConfigError
 from td3_jax.envs.base import Environment
 
-__all__ = ["members_map", "over_devices", "split_call", "warp_shared_leaf"]
+__all__ = ["members_map", "over_devices", "split_call", "use_gspmd", "warp_shared_leaf"]
 
 
 def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environment:
@@ -39,8 +43,17 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
     over the devices (:class:`~td3_jax.common.errors.ConfigError` at trace time otherwise)."""
     if not env.per_device or mesh.shape[axis] == 1:
         return env
+    use_gspmd()
     split = functools.partial(split_call, mesh=mesh, axis=axis, shared=warp_shared_leaf())
     return dataclasses.replace(env, batch_map=split)
+
+
+def use_gspmd() -> None:
+    """Turns JAX's Shardy partitioner off for the whole process (``jax_use_shardy_partitioner``;
+    read by every later lowering and compile, on every thread), so that programs holding
+    :func:`split_call` compile with GSPMD (see the module's docstring)."""
+    if jax.config.jax_use_shardy_partitioner:
+        jax.config.update("jax_use_shardy_partitioner", False)
 
 
 def warp_shared_leaf() -> Callable[[Any], bool]:

@@ -1,5 +1,6 @@
 """td3-jax speaks, not its libraries: XLA's slow-compile alarm becomes one line of td3-jax's,
-MLIR's lines about a damaged stored program are dropped where td3-jax warns of it itself, and
+MLIR's lines about a damaged stored program are dropped where td3-jax warns of it itself (and
+XLA's GSPMD notice where td3-jax chose GSPMD), and
 render checks ``MUJOCO_GL`` before MuJoCo's import refuses it in its own words."""
 
 from __future__ import annotations
@@ -28,6 +29,12 @@ MLIR = (
     'loc("-":0:0): error: invalid Attribute index: 15641\n'
     "error: failed to deserialize portable artifact using StableHLO_v1.17.0\n"
 )
+#: What XLA writes compiling with GSPMD (MuJoCo Warp split over two GPUs, jax 0.11.2).
+GSPMD = (
+    "W1129 13:40:46.478723   10123 sharding_propagation.cc:3197] GSPMD sharding propagation is "
+    "going to be deprecated and not supported in the future. Please consider migrating to "
+    "Shardy (https://openxla.org/shardy/getting_started_jax#migrating_to_shardy).\n"
+)
 
 FILTERED = f"""
 import os, sys
@@ -36,7 +43,7 @@ print("before", file=sys.stderr, flush=True)
 with filtered_stderr():
     os.write(2, {ALARM.encode()!r})
     print("ours, in order", file=sys.stderr, flush=True)
-    os.write(2, {MLIR.encode()!r} + b"a line of its own\\n\\n")
+    os.write(2, {MLIR.encode()!r} + b"a line of its own\\n\\n" + {GSPMD.encode()!r})
     os.write(2, {ALARM.encode()!r})  # (said once)
     sys.stderr.write("unfinished")
 print(" line", file=sys.stderr)

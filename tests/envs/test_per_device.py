@@ -57,6 +57,12 @@ from td3_jax.runner.programs import find
 cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=8, eval_envs=4, total_steps=512,
                   batch_size=32, warmup_steps=64, eval_every=256)
 needs_it = dataclasses.replace(make_env(cfg), per_device=True)
+from td3_jax.envs.per_device import over_devices
+one_device = Mesh(np.array(jax.devices()[:1]), ("data",))
+shardy = [jax.config.jax_use_shardy_partitioner]
+over_devices(make_env(cfg), mesh)  # (JAX physics: XLA splits it, Shardy or not)
+over_devices(needs_it, one_device)  # (nothing to split)
+shardy.append(jax.config.jax_use_shardy_partitioner)
 maps = [find(cfg, members(cfg), mesh, None, env=env).program.spec.env.batch_map is not None
         for env in (needs_it, make_env(cfg))]
 seeds = dataclasses.replace(cfg, seeds=2)
@@ -85,6 +91,7 @@ population = {"y": np.asarray(my).tolist(), "shape": list(mshared.shape),
               "per_member": per_member, "mapped_inside": len(inside)}
 print(json.dumps({"y": np.asarray(y).tolist(), "shape": list(shared.shape),
                   "per_device": per_device, "refused": refused, "specs": specs, "maps": maps,
+                  "shardy": shardy + [jax.config.jax_use_shardy_partitioner],
                   "population": population}))
 """
 
@@ -129,6 +136,13 @@ def test_a_runs_programs_step_a_per_device_environment_on_each_device(two_device
     that needs it (``per_device``) the split physics, and one whose physics XLA splits
     (gymnax's) none."""
     assert two_devices["maps"] == [True, False]
+
+
+def test_an_environment_split_over_devices_compiles_with_gspmd(two_devices):
+    """Shardy is JAX's default partitioner; it stays on for physics XLA splits and for one
+    device, and is off once a run splits a per-device environment over two (Shardy's compile
+    of MuJoCo Warp's calls under ``shard_map`` crashed on two GPUs; GSPMD's does not)."""
+    assert two_devices["shardy"] == [True, True, False]
 
 
 def test_members_of_a_split_call_each_run_their_own_blocks_on_each_device(two_devices):
