@@ -93,6 +93,12 @@ def fasttd3_curve(task_id: str, path: Path = PUBLISHED_CURVES) -> list[tuple[flo
     return [p for p in points if (p[0], p[2]) != (0.0, 0.0)]
 
 
+def _shown_robot_runs(preset: str) -> tuple[str, ...]:
+    """A robot's td3-jax runs in its main table besides the preset's: pushes on, two GPUs, and
+    the run timed beside Playground's PPO on the other GPU of one command."""
+    return (f"{preset} --pushes on", f"{preset} --devices 2", f"{preset}, 330-s budget")
+
+
 def _robot(name: str, title: str, env: str) -> Task:
     """A Playground humanoid: 53.2M env steps (13 evaluations of 4.096M), returns at 12.3M,
     24.6M and 53.2M, the times to FastTD3's and FlashSAC's finals, Playground's PPO."""
@@ -103,7 +109,7 @@ def _robot(name: str, title: str, env: str) -> Task:
                 points=(12_288_000, 24_576_000, 53_248_000),
                 references=(Reference(f"FastTD3's final {fast:.1f}", fast),
                             Reference(f"FlashSAC's final {flash:.1f}", flash)),
-                baselines=("ppo",), shown=(f"{name} --pushes on",))  # fmt: skip
+                baselines=("ppo",), shown=_shown_robot_runs(name))  # fmt: skip
 
 
 def _brax(name: str, title: str, env: str, ppo_run: str = "Brax's recipe") -> Task:
