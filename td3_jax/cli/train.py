@@ -42,6 +42,10 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     typed = given_fields(args)
     given = typed | set(sweep or {})  # (a swept setting is every member's own)
     with notes.preset_noted(cfg, preset_name, given):
+        if command.resume:  # (a run already past --total-steps, before cfg's own checks)
+            from td3_jax.runner.rundir import check_total_steps_reach  # lazy: imports JAX
+
+            check_total_steps_reach(command.out, cfg)
         validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(notes.when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(typed), command.resume)  # fmt: skip

@@ -50,6 +50,7 @@ from td3_jax.runner.rundir import (
     check_environment_unchanged,
     check_fresh,
     check_resume,
+    check_total_steps_reach,
     check_unedited,
     checkpoint_steps,
     environment_record,
@@ -351,6 +352,8 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     naming the environment ``env`` when one is given
     (:func:`~td3_jax.config.build.bind_environment`). Nothing is written."""
     cfg, env = bind_environment(cfg, env)
+    if resume:  # (a run already past --total-steps: said before what cfg alone would say)
+        check_total_steps_reach(out_dir, cfg)
     validate(cfg, devices=mesh.size)
     if writer:  # (before anything is traced or compiled)
         tracking.check_ready(cfg)

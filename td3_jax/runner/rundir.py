@@ -55,6 +55,7 @@ __all__ = [
     "check_environment_unchanged",
     "check_fresh",
     "check_resume",
+    "check_total_steps_reach",
     "checkpoint_steps",
     "config_changes",
     "ended_before_recording",
@@ -322,14 +323,25 @@ def check_resume(
             f"{out_dir} ({sweep_flags(swept_values(population)) or 'no swept setting'}, "
             f"{MEMBERS_FILE}); leave them out to resume"
         )
-    # (whole chunks, or the run's end where its last chunk was shortened)
-    done = min(steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter, saved.run_steps)
-    if cfg.num_chunks < steps[-1]:
-        raise ConfigError(
-            f"--total-steps {cfg.total_steps} is less than the {done} env steps the run in "
-            f"{out_dir} has already taken (give more to extend it)"
-        )
+    check_total_steps_reach(out_dir, cfg)
     return population, changes
+
+
+def check_total_steps_reach(out_dir: Path, cfg: TrainConfig) -> None:
+    """A one-line ConfigError where the resume of ``out_dir`` with ``cfg`` asks for fewer env
+    steps (``--total-steps``) than the run has already taken (its newest checkpoint); nothing
+    where it has no checkpoint yet. Checked before ``cfg`` itself, whose advice for a short run
+    (a smaller ``--warmup-steps``) a resume could not follow."""
+    steps = checkpoint_steps(out_dir)
+    if not steps or cfg.num_chunks >= steps[-1]:
+        return
+    # (whole chunks, or the run's end where its last chunk was shortened)
+    done = min(steps[-1] * cfg.iters_per_chunk * cfg.env_steps_per_iter,
+               load_config(out_dir).run_steps)  # fmt: skip
+    raise ConfigError(
+        f"--total-steps {cfg.total_steps} is less than the {done} env steps the run in "
+        f"{out_dir} has already taken (give more to extend it)"
+    )
 
 
 def _check_can_create(out_dir: Path) -> None:

@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 from support import TINY_FLAGS, main, read_records
 
+import td3_jax
 from td3_jax.config.build import make_population, members
 from td3_jax.config.schema import ConfigError, TrainConfig
 from td3_jax.core.population import Member
@@ -372,6 +373,24 @@ def test_a_damaged_or_edited_members_json_is_refused_in_one_line(tmp_path):
         rundir.load_members(one, SMALL)
     (one / "members.json").unlink()
     assert rundir.load_members(one, SMALL) == [Member(seed=0)]
+
+
+def test_a_resume_shorter_than_its_run_is_told_so_before_the_warm_up_check(tmp_path, capsys):
+    """--resume --total-steps 16 of a run 128 steps in (its warm-up 32 steps): the one line
+    says the run has taken 128 steps; the warm-up check's advice (a smaller --warmup-steps)
+    is not what a resume can follow. The same from ``td3_jax.train``."""
+    cfg = dataclasses.replace(SMALL, env="gymnax/Pendulum-v1")
+    rundir.save_config(cfg, [Member(seed=0)], tmp_path)
+    (tmp_path / "checkpoints" / "2").mkdir(parents=True)  # 2 chunks of 64 steps done
+    code, _, err = main(["train", "--out", str(tmp_path), "--resume", "--total-steps", "16"],
+                        capsys)  # fmt: skip
+    assert code == 2 and err.strip() == (
+        f"td3-jax: error: --total-steps 16 is less than the 128 env steps the run in {tmp_path} "
+        "has already taken (give more to extend it)"
+    )
+    shorter = dataclasses.replace(cfg, total_steps=16)
+    with pytest.raises(ConfigError, match="--total-steps 16 is less than the 128 env steps"):
+        td3_jax.train(shorter, out_dir=tmp_path, resume=True, progress=False)
 
 
 def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
