@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from support import main
@@ -231,3 +232,26 @@ def test_two_seeds_split_over_two_devices_give_the_one_device_numbers(tmp_path):
             assert seed_two["seed"] == seed_one["seed"]
             for name, rel in compared.items():
                 assert seed_two[name] == pytest.approx(seed_one[name], rel=rel), name
+
+
+@pytest.mark.processes
+def test_a_robot_run_in_two_processes_gives_the_two_device_numbers(tmp_path):
+    """Two processes of one CPU device each through ``jax.distributed`` (gloo) against one
+    process of two devices (``benchmarks.multiprocess``): each process steps its own block of
+    robots on Warp's CPU kernels under the ``shard_map`` over the global mesh, and every record
+    agrees (up to the order of the all-reduce's float sums)."""
+    flags = [flag for flag in TINY_T1[1:] if flag != "--quiet"] + ["--compile-cache", "off"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]),
+           physics.WARP_ON_CPU: "1"}  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "benchmarks.multiprocess", "--platform", "cpu", "--processes",
+         "2", "--devices-per-process", "1", "--timeout-s", "1200", "--out", str(tmp_path),
+         "--", *flags],
+        env=env, capture_output=True, text=True, timeout=2600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:] + proc.stdout[-3000:]
+    result = json.loads((tmp_path / "comparison.json").read_text())
+    assert result["records"] == [2, 2] and result["counts_equal"]
+    assert result["equal"], result["quantities"]
+    multi = [json.loads(x) for x in (tmp_path / "multi" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["devices"] for r in multi] == [2, 2]
