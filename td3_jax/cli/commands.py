@@ -54,9 +54,10 @@ class TrainCommand(TrainConfig):
     """Train TD3 or DDPG. Flags not given take the preset's value, else the default shown.
 
     Most runs need only --preset NAME (or --env SOURCE/NAME) and --out DIR, with --total-steps N
-    to change the run's length. --resume continues the run in --out, --seeds K trains K seeds in one program, --devices D
-    splits the run over D GPUs. The training settings come first below; the command's own
-    flags (--out, --resume, --preset, --quiet, --time-budget-s, --devices, ...) come last.
+    to change the run's length. --resume continues the run in --out, --seeds K trains K seeds
+    in one program, --devices D splits the run over D GPUs. The training settings come first
+    below; the command's own flags (--out, --resume, --preset, --quiet, --time-budget-s,
+    --devices, ...) come last.
     """
 
     hidden_sizes: Widths = (256, 256)  # (None, for a library caller: the algorithm's own)
