@@ -261,22 +261,34 @@ def initialize_distributed(
     num_processes = _whole_or_env(num_processes, "JAX_NUM_PROCESSES")
     process_id = _whole_or_env(process_id, "JAX_PROCESS_ID")
     check_processes(coordinator_address, num_processes, process_id)
-    if num_processes is not None and num_processes > 1:
+    if num_processes is not None and num_processes > 1 and process_id is not None:
         print(f"td3-jax: waiting for {num_processes} processes at {coordinator_address} (this "
               f"is process {process_id}; each runs the same command)...", flush=True)  # fmt: skip
     try:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
     except Exception:  # pragma: no cover - option absent in some jax versions
         pass
-    jax.distributed.initialize(
-        coordinator_address=coordinator_address,
-        num_processes=num_processes,
-        process_id=process_id,
-    )
+    _start_runtime(coordinator_address, num_processes, process_id)
     from td3_jax.envs.mjx_devices import place_on_local_devices
 
     place_on_local_devices()  # MJX would put every process's models on process 0's device
     return True
+
+
+def _start_runtime(address: str, num_processes: int | None, process_id: int | None) -> None:
+    """``jax.distributed.initialize``; where JAX finds no process count or id (none given, and
+    no cluster manager such as SLURM or Open MPI to read them from), its refusal as one line."""
+    try:
+        jax.distributed.initialize(coordinator_address=address, num_processes=num_processes,
+                                   process_id=process_id)  # fmt: skip
+    except ValueError as err:
+        if "must be defined" not in str(err):
+            raise
+        raise ConfigError(
+            "--coordinator-address needs --num-processes and --process-id (or JAX_NUM_PROCESSES "
+            "and JAX_PROCESS_ID) where no cluster manager (SLURM, Open MPI, ...) sets them; "
+            f"JAX: {err}"
+        ) from None
 
 
 def _whole_or_env(value: int | None, variable: str) -> int | None:

@@ -40,3 +40,20 @@ def test_a_process_count_in_the_environment_must_be_a_whole_number(monkeypatch):
     monkeypatch.setenv("JAX_NUM_PROCESSES", "two")
     with pytest.raises(ConfigError, match=r"^JAX_NUM_PROCESSES='two' is not a whole number$"):
         initialize_distributed("host:1234", None, 0)
+
+
+@pytest.mark.parametrize(("processes", "process"), [(None, None), (2, None)])
+def test_a_coordinator_without_the_counts_jax_needs_is_refused_in_one_line(monkeypatch, processes,
+                                                                           process):  # fmt: skip
+    """--coordinator-address alone (or without --process-id), with no cluster manager to read
+    the counts from: JAX's ValueError becomes one line naming the flags (it was a traceback)."""
+    for name in ("JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "SLURM_JOB_ID", "OMPI_MCA_orte_hnp_uri",
+                 "OMPI_COMM_WORLD_SIZE", "PMI_RANK"):  # fmt: skip
+        monkeypatch.delenv(name, raising=False)
+    with pytest.raises(ConfigError) as err:
+        initialize_distributed("127.0.0.1:1", processes, process)
+    assert str(err.value).startswith(
+        "--coordinator-address needs --num-processes and --process-id (or JAX_NUM_PROCESSES and "
+        "JAX_PROCESS_ID) where no cluster manager (SLURM, Open MPI, ...) sets them; JAX: "
+    )
+    assert "must be defined" in str(err.value)
