@@ -153,7 +153,8 @@ class EvalCommand:
     episodes: int = 32
     """Episodes (one per vectorised environment)."""
     seed: int = 12345
-    """Seed of the evaluation environments."""
+    """Seed of the evaluation environments: new episodes, not those of the run's own
+    evaluations, so the mean may differ from its last record."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -42,7 +42,8 @@ def eval_main(args: list[str]) -> None:
         cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
     title = (
         f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
-        f"{command.episodes} episodes each"
+        f"{command.episodes} episodes each, evaluation seed {command.seed} (not the episodes of "
+        "the run's own evaluations)"
     )
     diverged = set(meta.get("diverged_members", []))
     rows = [((m.label() or f"seed={m.seed}") + (" (diverged)" if i in diverged else ""),

@@ -680,6 +680,8 @@ def test_eval_prints_mean_and_std(finished_run, capsys):
     # (rich wraps a title to the table's width)
     assert re.search(r"128\s+env\s+steps", stdout)
     assert re.search(r"\b4\s+episodes", stdout) or "episodes" in cells
+    assert re.search(r"evaluation\s+seed\s+12345\s+\(not\s+the\s+episodes\s+of\s+the\s+run's",
+                     stdout)  # (new episodes: the mean may differ from the run's last record)
     row = next(line for line in stdout.splitlines() if re.search(r"-\d+\.\d", line))
     values = [c.strip() for c in re.split(r"[│┃|]", row) if c.strip()]
     mean, std, low, high = (float(v) for v in values[-4:])
