@@ -216,7 +216,8 @@ def make_spec(
     slices that the groups divide, the slices are the groups. Results do not depend on it.
     ``mesh``: the device mesh (axis ``"data"``) the batch is split over, for physics that
     XLA cannot split itself (MuJoCo Warp: :func:`td3_jax.envs.per_device.over_devices`);
-    ``None``: one device, or physics XLA splits.
+    ``None``: one device, or physics XLA splits. Such a split turns JAX's Shardy partitioner
+    off for the process (:func:`td3_jax.envs.per_device.over_devices`).
     """
     env = make_env(cfg, members, env)
     if mesh is not None:

@@ -40,7 +40,12 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
     """``env`` with its batched physics run on each device of ``mesh`` (axis ``axis``) apart,
     where it needs it (:attr:`~td3_jax.envs.base.Environment.per_device`: MuJoCo Warp's) and
     the mesh has more than one device; otherwise ``env`` itself. Batches must divide evenly
-    over the devices (:class:`~td3_jax.common.errors.ConfigError` at trace time otherwise)."""
+    over the devices (:class:`~td3_jax.common.errors.ConfigError` at trace time otherwise).
+
+    A split turns JAX's Shardy partitioner off for the rest of the process
+    (``jax_use_shardy_partitioner``, whatever it was set to; :func:`use_gspmd`): every program
+    compiled afterwards, yours included, uses GSPMD, and a function exported with Shardy on
+    cannot be called in that process."""
     if not env.per_device or mesh.shape[axis] == 1:
         return env
     use_gspmd()

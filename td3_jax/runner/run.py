@@ -265,10 +265,10 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
     The checksum program of its checkpoints compiles beside them (:func:`_state_shapes_known`)
     and is waited for before anything runs on the devices (no compile runs beside a chunk).
     ``say``: print that it compiles first (a log then shows where the time goes), and from
-    which stored programs (:func:`td3_jax.runner.programs.find`). XLA's slow-compile alarm and
-    MLIR's lines about a damaged stored program are left out of stderr meanwhile (the first
-    becomes one line, the second is warned of by the program store:
-    :func:`~td3_jax.common.library_noise.filtered_stderr`)."""
+    which stored programs (:func:`td3_jax.runner.programs.find`). XLA's slow-compile alarm,
+    MLIR's lines about a damaged stored program and XLA's GSPMD notice are left out of stderr
+    meanwhile (the first becomes one line, the second is warned of by the program store, the
+    third is td3-jax's choice: :func:`~td3_jax.common.library_noise.filtered_stderr`)."""
     if say:
         # (a stored program ran before: XLA's persistent cache likely holds it compiled)
         cached = " (or loading it from the cache)" if source.stored is not None else ""

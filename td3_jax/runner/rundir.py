@@ -332,6 +332,8 @@ def check_total_steps_reach(out_dir: Path, cfg: TrainConfig) -> None:
     steps (``--total-steps``) than the run has already taken (its newest checkpoint); nothing
     where it has no checkpoint yet. Checked before ``cfg`` itself, whose advice for a short run
     (a smaller ``--warmup-steps``) a resume could not follow."""
+    if cfg.env_steps_per_iter <= 0 or cfg.eval_every <= 0:  # (validate says what is wrong)
+        return
     steps = checkpoint_steps(out_dir)
     if not steps or cfg.num_chunks >= steps[-1]:
         return

@@ -391,6 +391,10 @@ def test_a_resume_shorter_than_its_run_is_told_so_before_the_warm_up_check(tmp_p
     shorter = dataclasses.replace(cfg, total_steps=16)
     with pytest.raises(ConfigError, match="--total-steps 16 is less than the 128 env steps"):
         td3_jax.train(shorter, out_dir=tmp_path, resume=True, progress=False)
+    # a setting the check cannot count with is left to the config's own line
+    with pytest.raises(ConfigError, match=r"^--num-envs must be positive, got 0$"):
+        td3_jax.train(dataclasses.replace(cfg, num_envs=0), out_dir=tmp_path, resume=True,
+                      progress=False)  # fmt: skip
 
 
 def test_resume_checks_sweep_values_and_the_steps_already_taken(tmp_path):
