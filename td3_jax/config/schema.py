@@ -194,11 +194,9 @@ class TrainConfig:
     width -> 4 x width -> width with LayerNorm and ReLU after each layer), then RMSNorm and the
     output layer; LayerNorm stands where FlashSAC's blocks have BatchNorm, and the input is not
     batch-normalised as FlashSAC's is). A block has about 8 x width^2 weights: 256 256 is about
-    1M per critic, 15x the plain 256 256 (on a CPU try 64 64). The actor is unchanged. On
-    G1 flat at 50M steps (weight decay 0.1), 256 256 ended 3 seeds at 38.2, 37.3 and 38.1
-    (plain 1024 512 256 critics: 36.2-36.5) with the loop about 0.73x as fast; on G1 rough 3
-    seeds at 34.1, 33.2 and 33.1 (plain: 29.0-30.9); so the g1 and g1-rough presets use it
-    (with weight decay 0, which lifted both further)."""
+    1M per critic, 15x the plain 256 256 (on a CPU try 64 64). The actor is unchanged. The
+    g1 and g1-rough presets use it: higher returns on G1 at about 0.73x the loop's speed
+    (docs/benchmarks.md, G1 presets)."""
     actor_network: Literal["mlp", "residual"] = "mlp"
     """The actor's network: mlp (ReLU layers of --actor-hidden-sizes, with --layer-norm if given)
     or residual (the layout of --critic-network residual, a block per entry of
