@@ -23,13 +23,15 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
+import sys
 from collections.abc import Callable
 from typing import Any
 
 import jax
 from jax.sharding import Mesh, PartitionSpec
 
-from td3_jax.common import upstream
+from td3_jax.common import runtime, upstream
 from td3_jax.common.errors import ConfigError
 from td3_jax.envs.base import Environment
 
@@ -43,9 +45,9 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
     over the devices (:class:`~td3_jax.common.errors.ConfigError` at trace time otherwise).
 
     A split turns JAX's Shardy partitioner off for the rest of the process
-    (``jax_use_shardy_partitioner``, whatever it was set to; :func:`use_gspmd`): every program
-    compiled afterwards, yours included, uses GSPMD, and a function exported with Shardy on
-    cannot be called in that process."""
+    (``jax_use_shardy_partitioner``; :func:`use_gspmd`), unless ``JAX_USE_SHARDY_PARTITIONER``
+    asks for it: every program compiled afterwards, yours included, uses GSPMD, and a function
+    exported with Shardy on cannot be called in that process."""
     if not env.per_device or mesh.shape[axis] == 1:
         return env
     use_gspmd()
@@ -53,12 +55,29 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
     return dataclasses.replace(env, batch_map=split)
 
 
+#: JAX's environment variable for its partitioner: where it asks for Shardy, it is kept.
+SHARDY_VARIABLE = "JAX_USE_SHARDY_PARTITIONER"
+
+
 def use_gspmd() -> None:
     """Turns JAX's Shardy partitioner off for the whole process (``jax_use_shardy_partitioner``;
     read by every later lowering and compile, on every thread), so that programs holding
-    :func:`split_call` compile with GSPMD (see the module's docstring)."""
-    if jax.config.jax_use_shardy_partitioner:
-        jax.config.update("jax_use_shardy_partitioner", False)
+    :func:`split_call` compile with GSPMD (see the module's docstring); where
+    :data:`SHARDY_VARIABLE` asks for Shardy, keeps it and warns once on stderr."""
+    if not jax.config.jax_use_shardy_partitioner:
+        return
+    if runtime.env_switch(SHARDY_VARIABLE):
+        if not _WARNED:
+            _WARNED.append(True)
+            print(f"td3-jax: warning: {SHARDY_VARIABLE}={os.environ[SHARDY_VARIABLE]} keeps "
+                  "Shardy for MuJoCo Warp split over several devices, whose compile crashed "
+                  "the process on two GPUs (jax 0.11.2); unset it to compile with GSPMD",
+                  file=sys.stderr)  # fmt: skip
+        return
+    jax.config.update("jax_use_shardy_partitioner", False)
+
+
+_WARNED: list[bool] = []  # (the warning of use_gspmd, said once a process)
 
 
 def warp_shared_leaf() -> Callable[[Any], bool]:

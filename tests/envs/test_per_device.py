@@ -168,3 +168,36 @@ def test_a_shared_buffer_that_differs_between_members_is_refused(two_devices):
     assert two_devices["population"]["per_member"] == (
         "[1] is kept once for all environments but differs between members"
     )
+
+
+_SHARDY_ASKED = """
+import dataclasses
+import jax, numpy as np
+from jax.sharding import Mesh
+from td3_jax.config.build import make_env
+from td3_jax.config.schema import TrainConfig
+from td3_jax.envs.per_device import over_devices
+mesh = Mesh(np.array(jax.devices()), ("data",))
+env = dataclasses.replace(make_env(TrainConfig(env="gymnax/Pendulum-v1", num_envs=8)),
+                          per_device=True)
+over_devices(env, mesh)
+over_devices(env, mesh)
+print(jax.config.jax_use_shardy_partitioner)
+"""
+
+
+def test_shardy_asked_for_in_the_environment_is_kept_with_one_warning():
+    """``JAX_USE_SHARDY_PARTITIONER=true``: the user's choice stands (two splits), and stderr
+    says once what it risks."""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+           "JAX_PLATFORMS": "cpu", "JAX_USE_SHARDY_PARTITIONER": "true"}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", _SHARDY_ASKED], env=env, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "True"
+    warnings = [line for line in proc.stderr.splitlines() if line.startswith("td3-jax: warning")]
+    assert warnings == [
+        "td3-jax: warning: JAX_USE_SHARDY_PARTITIONER=true keeps Shardy for MuJoCo Warp split "
+        "over several devices, whose compile crashed the process on two GPUs (jax 0.11.2); "
+        "unset it to compile with GSPMD"
+    ]
