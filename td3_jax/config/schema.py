@@ -195,8 +195,8 @@ class TrainConfig:
     output layer; LayerNorm stands where FlashSAC's blocks have BatchNorm, and the input is not
     batch-normalised as FlashSAC's is). A block has about 8 x width^2 weights: 256 256 is about
     1M per critic, 15x the plain 256 256 (on a CPU try 64 64). The actor is unchanged. The
-    g1 and g1-rough presets use it: higher returns on G1 at about 0.73x the loop's speed
-    (docs/benchmarks.md, G1 presets)."""
+    g1 and g1-rough presets use it: higher returns on G1, with the loop about 0.7x as fast on
+    G1 flat (72-75K env steps/s against 102-108K; docs/benchmarks.md, G1 flat and G1 presets)."""
     actor_network: Literal["mlp", "residual"] = "mlp"
     """The actor's network: mlp (ReLU layers of --actor-hidden-sizes, with --layer-norm if given)
     or residual (the layout of --critic-network residual, a block per entry of

@@ -16,7 +16,8 @@ read.
 
 XLA's Shardy partitioner crashed the process (a segmentation fault) compiling Warp's calls under
 ``shard_map`` on two H200 GPUs (jax 0.11.2), where GSPMD compiles them: an environment split by
-:func:`over_devices` turns Shardy off for the process (:func:`use_gspmd`).
+:func:`over_devices` turns Shardy off for the process (:func:`use_gspmd`), unless
+``JAX_USE_SHARDY_PARTITIONER`` asks for it.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from typing import Any
 import jax
 from jax.sharding import Mesh, PartitionSpec
 
-from td3_jax.common import runtime, upstream
+from td3_jax.common import upstream
 from td3_jax.common.errors import ConfigError
 from td3_jax.envs.base import Environment
 
@@ -45,9 +46,9 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
     over the devices (:class:`~td3_jax.common.errors.ConfigError` at trace time otherwise).
 
     A split turns JAX's Shardy partitioner off for the rest of the process
-    (``jax_use_shardy_partitioner``; :func:`use_gspmd`), unless ``JAX_USE_SHARDY_PARTITIONER``
-    asks for it: every program compiled afterwards, yours included, uses GSPMD, and a function
-    exported with Shardy on cannot be called in that process."""
+    (``jax_use_shardy_partitioner``; :func:`use_gspmd`): every program compiled afterwards,
+    yours included, uses GSPMD, and a function exported with Shardy on cannot be called in that
+    process. ``JAX_USE_SHARDY_PARTITIONER=true`` in the environment keeps Shardy (a warning)."""
     if not env.per_device or mesh.shape[axis] == 1:
         return env
     use_gspmd()
@@ -57,27 +58,30 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
 
 #: JAX's environment variable for its partitioner: where it asks for Shardy, it is kept.
 SHARDY_VARIABLE = "JAX_USE_SHARDY_PARTITIONER"
+#: The values JAX reads as true (any case) in a boolean environment variable.
+_JAX_TRUE = ("y", "yes", "t", "true", "on", "1")
 
 
 def use_gspmd() -> None:
     """Turns JAX's Shardy partitioner off for the whole process (``jax_use_shardy_partitioner``;
     read by every later lowering and compile, on every thread), so that programs holding
     :func:`split_call` compile with GSPMD (see the module's docstring); where
-    :data:`SHARDY_VARIABLE` asks for Shardy, keeps it and warns once on stderr."""
+    :data:`SHARDY_VARIABLE` asks for Shardy, keeps it and warns once (the first process)."""
     if not jax.config.jax_use_shardy_partitioner:
         return
-    if runtime.env_switch(SHARDY_VARIABLE):
-        if not _WARNED:
-            _WARNED.append(True)
-            print(f"td3-jax: warning: {SHARDY_VARIABLE}={os.environ[SHARDY_VARIABLE]} keeps "
-                  "Shardy for MuJoCo Warp split over several devices, whose compile crashed "
-                  "the process on two GPUs (jax 0.11.2); unset it to compile with GSPMD",
-                  file=sys.stderr)  # fmt: skip
+    if os.environ.get(SHARDY_VARIABLE, "").strip().lower() in _JAX_TRUE:
+        _warn_shardy_kept()
         return
     jax.config.update("jax_use_shardy_partitioner", False)
 
 
-_WARNED: list[bool] = []  # (the warning of use_gspmd, said once a process)
+@functools.cache
+def _warn_shardy_kept() -> None:
+    """The warning of :func:`use_gspmd`, said once a process, by the first process only."""
+    if jax.process_index() == 0:
+        print(f"td3-jax: warning: {SHARDY_VARIABLE}={os.environ[SHARDY_VARIABLE]} keeps Shardy "
+              "for MuJoCo Warp split over several devices, whose compile crashed the process on "
+              "two GPUs (jax 0.11.2); unset it to compile with GSPMD", file=sys.stderr)  # fmt: skip
 
 
 def warp_shared_leaf() -> Callable[[Any], bool]:

@@ -186,18 +186,19 @@ print(jax.config.jax_use_shardy_partitioner)
 """
 
 
-def test_shardy_asked_for_in_the_environment_is_kept_with_one_warning():
-    """``JAX_USE_SHARDY_PARTITIONER=true``: the user's choice stands (two splits), and stderr
-    says once what it risks."""
+@pytest.mark.parametrize("asked", ["true", "1", "t"])
+def test_shardy_asked_for_in_the_environment_is_kept_with_one_warning(asked):
+    """``JAX_USE_SHARDY_PARTITIONER`` set to a value JAX reads as true: the user's choice
+    stands (two splits), and stderr says once what it risks."""
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
-           "JAX_PLATFORMS": "cpu", "JAX_USE_SHARDY_PARTITIONER": "true"}  # fmt: skip
+           "JAX_PLATFORMS": "cpu", "JAX_USE_SHARDY_PARTITIONER": asked}  # fmt: skip
     proc = subprocess.run([sys.executable, "-c", _SHARDY_ASKED], env=env, capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.strip() == "True"
     warnings = [line for line in proc.stderr.splitlines() if line.startswith("td3-jax: warning")]
     assert warnings == [
-        "td3-jax: warning: JAX_USE_SHARDY_PARTITIONER=true keeps Shardy for MuJoCo Warp split "
-        "over several devices, whose compile crashed the process on two GPUs (jax 0.11.2); "
-        "unset it to compile with GSPMD"
+        f"td3-jax: warning: JAX_USE_SHARDY_PARTITIONER={asked} keeps Shardy for MuJoCo Warp "
+        "split over several devices, whose compile crashed the process on two GPUs (jax "
+        "0.11.2); unset it to compile with GSPMD"
     ]
