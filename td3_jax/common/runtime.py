@@ -116,11 +116,12 @@ class StopToken:
 
 
 def env_switch(variable: str) -> bool | None:
-    """The on/off environment variable ``variable``: ``True`` for 1, true, on or yes, ``False``
-    for 0, false, off or no (any case), ``None`` where unset or anything else."""
+    """The on/off environment variable ``variable``, read with the words JAX reads in its own:
+    ``True`` for 1, t, true, on, y or yes, ``False`` for 0, f, false, off, n or no (any case),
+    ``None`` where unset or anything else."""
     value = os.environ.get(variable, "").strip().lower()
-    return True if value in ("1", "true", "on", "yes") else False if value in (
-        "0", "false", "off", "no") else None  # fmt: skip
+    return True if value in ("1", "t", "true", "on", "y", "yes") else False if value in (
+        "0", "f", "false", "off", "n", "no") else None  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from typing import Any
 import jax
 from jax.sharding import Mesh, PartitionSpec
 
-from td3_jax.common import upstream
+from td3_jax.common import runtime, upstream
 from td3_jax.common.errors import ConfigError
 from td3_jax.envs.base import Environment
 
@@ -58,8 +58,6 @@ def over_devices(env: Environment, mesh: Mesh, axis: str = "data") -> Environmen
 
 #: JAX's environment variable for its partitioner: where it asks for Shardy, it is kept.
 SHARDY_VARIABLE = "JAX_USE_SHARDY_PARTITIONER"
-#: The values JAX reads as true (any case) in a boolean environment variable.
-_JAX_TRUE = ("y", "yes", "t", "true", "on", "1")
 
 
 def use_gspmd() -> None:
@@ -69,7 +67,7 @@ def use_gspmd() -> None:
     :data:`SHARDY_VARIABLE` asks for Shardy, keeps it and warns once (the first process)."""
     if not jax.config.jax_use_shardy_partitioner:
         return
-    if os.environ.get(SHARDY_VARIABLE, "").strip().lower() in _JAX_TRUE:
+    if runtime.env_switch(SHARDY_VARIABLE):
         _warn_shardy_kept()
         return
     jax.config.update("jax_use_shardy_partitioner", False)

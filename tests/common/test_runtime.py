@@ -356,6 +356,7 @@ def test_an_on_off_variable_reads_the_usual_words_and_nothing_else(monkeypatch):
     assert runtime.env_switch("TD3_JAX_TEST_SWITCH") is None
     for value, meaning in [("1", True), (" Yes", True), ("ON", True), ("true", True),
                            ("0", False), ("no", False), ("Off ", False), ("FALSE", False),
+                           ("t", True), ("Y", True), ("f", False), ("N", False),
                            ("", None), ("2", None), ("maybe", None)]:  # fmt: skip
         monkeypatch.setenv("TD3_JAX_TEST_SWITCH", value)
         assert runtime.env_switch("TD3_JAX_TEST_SWITCH") is meaning, value
