@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import textwrap
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -23,6 +24,9 @@ from benchmarks import tasks as tasks_module
 from benchmarks.curves import TD3_JAX, Point, read
 from benchmarks.tasks import FINALS_AT_50M, Reference, Task, fasttd3_curve
 from td3_jax.core.stats import iqm
+
+#: a legend label's longest line, in characters (three columns fit the figure's width)
+LEGEND_WIDTH = 48
 
 Runs = dict[tuple[str, str], dict[int, list[Point]]]
 
@@ -224,6 +228,14 @@ def settings_table(task: Task, points: Iterable[Point]) -> str:
     return _markdown(header, rows, left=3)
 
 
+def _legend_lines(labels: Sequence[str], columns: int) -> int:
+    """The text lines of a legend of ``columns`` columns, filled column by column: each row is
+    as tall as its tallest label."""
+    rows = -(-len(labels) // columns)
+    heights = [label.count("\n") + 1 for label in labels]
+    return sum(max(heights[r::rows]) for r in range(rows))
+
+
 def plot(task: Task, points: Iterable[Point], path: Path) -> None:
     """Return against minutes from launch and against env steps: each seed of the runs of
     :func:`task_table`, FastTD3's published curve (A100) and FlashSAC's final at 50M."""
@@ -255,10 +267,13 @@ def plot(task: Task, points: Iterable[Point], path: Path) -> None:
     for ax in (by_wall, by_steps):
         ax.grid(alpha=0.3)
     handles, labels = by_steps.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=max(1, min(3, len(labels))), fontsize=8)
+    labels = [textwrap.fill(label, LEGEND_WIDTH) for label in labels]
+    columns = max(1, min(3, len(labels)))
+    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize=8)
     fig.suptitle(f"{task.title} ({task.env})")
-    rows = -(-len(labels) // 3)
-    fig.tight_layout(rect=(0, 0.04 + 0.045 * rows, 1, 1))
+    legend_in = 0.15 * _legend_lines(labels, columns) + 0.3
+    fig.set_figheight(4.2 + legend_in)
+    fig.tight_layout(rect=(0, legend_in / (4.2 + legend_in), 1, 1))
     fig.savefig(path, dpi=100, metadata={"Software": None})
     plt.close(fig)
 

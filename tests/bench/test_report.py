@@ -137,3 +137,34 @@ def test_records_become_points_timed_from_launch(tmp_path):
     assert offset == 12.5
     (point,) = curves.from_records(found, run="t1", gpu="H200", launch_offset_s=offset)
     assert point == Point("td3-jax", "t1", 3, "H200", 17.5, 10, 1.5, 0.5, 99.0)
+
+
+def test_a_legend_row_is_as_tall_as_its_tallest_label():
+    # 5 labels in 3 columns fill 2 rows column by column: rows hold labels (0, 2, 4) and (1, 3)
+    labels = ["a", "b\nb\nb", "c", "d\nd", "e"]
+    assert report._legend_lines(labels, 3) == 1 + 3
+    assert report._legend_lines(labels, 1) == 1 + 3 + 1 + 2 + 1
+    assert report._legend_lines(["a"], 1) == 1
+
+
+def test_the_figure_keeps_every_legend_label_inside_it(tmp_path, monkeypatch):
+    long = "toy " + " ".join(f"--flag-{i} {i}" for i in range(12))  # wraps to 3 lines
+    points = [*PRESET, *_curve(long, 0, [(10.0, 50, 0.0), (20.0, 100, 1.0)]), *PPO]
+    task = Task("toy", "Toy", "brax/toy", preset="toy", total_steps=None, points=(100,),
+                references=(), shown=(long,))  # fmt: skip
+    from matplotlib.figure import Figure
+
+    boxes = []
+    real_savefig = Figure.savefig
+
+    def savefig(fig, path, **kwargs):
+        fig.canvas.draw()
+        boxes.extend([fig.legends[0].get_window_extent(), fig.bbox])
+        return real_savefig(fig, path, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", savefig)
+    report.plot(task, points, tmp_path / "toy.png")
+    legend, figure = boxes
+    assert (tmp_path / "toy.png").stat().st_size > 0
+    assert figure.x0 <= legend.x0 and legend.x1 <= figure.x1
+    assert figure.y0 <= legend.y0
