@@ -247,7 +247,8 @@ def _check_eval_in_chunk(cfg: TrainConfig, length: int, reset_groups: int) -> No
             f"--eval-in-chunk needs chunks of at least one episode ({length} steps per "
             f"environment), but --eval-every {steps * num_envs} is {steps} steps per "
             f"environment ({num_envs} environments): use --eval-every {enough} or more, "
-            "or leave out --eval-in-chunk"
+            "or --no-eval-in-chunk (an evaluation after each chunk, which takes an episode's "
+            "steps of its own)"
         )
     for groups, what in ((cfg.replay_shards, "--replay-shards"),
                          (reset_groups, "the replay slices or devices")):  # fmt: skip

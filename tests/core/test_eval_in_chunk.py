@@ -143,6 +143,8 @@ def test_a_chunk_shorter_than_an_episode_is_refused():
     short = dataclasses.replace(IN_CHUNK, eval_every=4 * (LIMIT - 1))
     with pytest.raises(ConfigError, match="--eval-in-chunk needs chunks of at least one episode"):
         build.make_spec(short, env=_drift_env())
+    with pytest.raises(ConfigError, match=f"use --eval-every {4 * LIMIT} or more, or --no-eval-in"):
+        build.make_spec(short, env=_drift_env())
     split = dataclasses.replace(IN_CHUNK, eval_envs=3, replay_shards=2)
     with pytest.raises(ConfigError, match=r"--eval-envs \(3\) must be divisible by 2"):
         build.make_spec(split, env=_drift_env())
