@@ -30,6 +30,7 @@ __all__ = [
     "done_line",
     "eval_size_warning",
     "gpu_sized",
+    "large_for_cpu",
     "members_note",
     "no_learning_warning",
     "nothing_to_do",
@@ -107,11 +108,15 @@ CPU_SIZES = {"num_envs": 16, "total_steps": 20_000, "batch_size": 256, "warmup_s
 
 
 def gpu_sized(cfg: TrainConfig) -> bool:
-    """Whether ``cfg`` is sized for an accelerator: thousands of environments, millions of
-    steps, batches of thousands or evaluation rounds inside whole chunks (whose chunk holds an
-    episode of every environment)."""
-    return (cfg.num_envs >= 1024 or cfg.run_steps >= 5_000_000 or cfg.batch_size > 4096
-            or cfg.eval_in_chunk)  # fmt: skip
+    """Whether ``cfg`` is sized for an accelerator: :func:`large_for_cpu`, or evaluation rounds
+    inside whole chunks (whose chunk holds an episode of every environment)."""
+    return large_for_cpu(cfg) or cfg.eval_in_chunk
+
+
+def large_for_cpu(cfg: TrainConfig) -> bool:
+    """Whether ``cfg`` has thousands of environments, millions of steps or batches of
+    thousands."""
+    return cfg.num_envs >= 1024 or cfg.run_steps >= 5_000_000 or cfg.batch_size > 4096
 
 
 def cpu_tips(cfg: TrainConfig) -> list[str]:
@@ -152,6 +157,10 @@ def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> 
                 "a resume keeps its sizes, so resume it where a GPU is")  # fmt: skip
     tips = cpu_tips(cfg)
     alternative = " (or no --preset)" if source == "preset" else ""
+    if not large_for_cpu(cfg):  # (only the in-chunk evaluation of a GPU preset)
+        return (f"this run evaluates inside each chunk, as GPU presets do, and JAX found only a "
+                f"CPU, where that program compiles slowly. For a CPU try {' '.join(tips)}"
+                f"{alternative}")  # fmt: skip
     return (
         f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
         f"batch {cfg.batch_size}) and JAX found only a CPU: it will compile for minutes and "

@@ -1499,6 +1499,16 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
         "try --no-eval-in-chunk --eval-every 4000 --eval-envs 16 --precision float32 (or no "
         "--preset)"
     )
+    # small in every size, only evaluating inside its chunks (of 2 iterations of 4 robots,
+    # each chunk a whole 8-step episode): not "train for hours"
+    tiny = dataclasses.replace(preset("t1"), num_envs=4, total_steps=64, eval_every=32,
+                               warmup_steps=16, batch_size=16, eval_envs=2,
+                               precision="float32")  # fmt: skip
+    assert not notes.large_for_cpu(tiny) and notes.gpu_sized(tiny)
+    assert notes.cpu_size_warning(tiny, "cpu", "env") == (
+        "this run evaluates inside each chunk, as GPU presets do, and JAX found only a CPU, "
+        "where that program compiles slowly. For a CPU try --no-eval-in-chunk"
+    )
     # a resume keeps the run's sizes: no flag to change them is offered
     resumed = notes.cpu_size_warning(ant, "cpu", "resume")
     assert "sized for a GPU" in resumed and "try" not in resumed
