@@ -14,11 +14,13 @@ setting measured on the task; :func:`plot` draws return against wall-clock and e
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 import textwrap
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 from benchmarks import tasks as tasks_module
 from benchmarks.curves import TD3_JAX, Point, read
@@ -27,6 +29,8 @@ from td3_jax.core.stats import iqm
 
 #: a legend label's longest line, in characters (three columns fit the figure's width)
 LEGEND_WIDTH = 48
+#: a space that a legend label is not wrapped at
+NO_BREAK = "\u00a0"
 
 Runs = dict[tuple[str, str], dict[int, list[Point]]]
 
@@ -229,11 +233,25 @@ def settings_table(task: Task, points: Iterable[Point]) -> str:
 
 
 def _legend_lines(labels: Sequence[str], columns: int) -> int:
-    """The text lines of a legend of ``columns`` columns, filled column by column: each row is
-    as tall as its tallest label."""
-    rows = -(-len(labels) // columns)
+    """The text lines of the tallest column of a legend of ``columns`` columns: matplotlib
+    splits the labels in order as ``numpy.array_split`` does (the first ``len % columns``
+    columns one longer) and stacks each column on its own."""
     heights = [label.count("\n") + 1 for label in labels]
-    return sum(max(heights[r::rows]) for r in range(rows))
+    size, longer = divmod(len(heights), columns)
+    starts = [i * size + min(i, longer) for i in range(columns + 1)]
+    return max(sum(heights[a:b]) for a, b in itertools.pairwise(starts))
+
+
+def _legend_below(fig: Any, handles: list, labels: list[str]) -> None:
+    """The legend under the plots, its labels wrapped at :data:`LEGEND_WIDTH` (whole words
+    and flags), in up to three columns; the figure grows to hold it."""
+    labels = [textwrap.fill(label, LEGEND_WIDTH, break_on_hyphens=False,
+                            break_long_words=False) for label in labels]  # fmt: skip
+    columns = max(1, min(3, len(labels)))
+    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize=8)
+    legend_in = 0.15 * _legend_lines(labels, columns) + 0.3
+    fig.set_figheight(4.2 + legend_in)
+    fig.tight_layout(rect=(0, legend_in / (4.2 + legend_in), 1, 1))
 
 
 def plot(task: Task, points: Iterable[Point], path: Path) -> None:
@@ -248,7 +266,8 @@ def plot(task: Task, points: Iterable[Point], path: Path) -> None:
     fig, (by_wall, by_steps) = plt.subplots(1, 2, figsize=(11, 4.8), sharey=True)
     colors = iter(plt.rcParams["axes.prop_cycle"].by_key()["color"] * 3)
     for key in _ordered(task, runs):
-        color, label = next(colors), f"{key[0]} ({key[1]}), {gpus(runs[key])}"
+        gpu = gpus(runs[key]).replace(" ", NO_BREAK)  # ("H200 x2" kept on one line)
+        color, label = next(colors), f"{key[0]} ({key[1]}), {gpu}"
         for i, curve in enumerate(runs[key].values()):
             shown = dict(color=color, linewidth=1.2, alpha=0.85, label=None if i else label)
             by_wall.plot([p.wall_s / 60 for p in curve], [p.value for p in curve], **shown)
@@ -266,14 +285,8 @@ def plot(task: Task, points: Iterable[Point], path: Path) -> None:
     by_wall.set_ylabel("evaluation return")
     for ax in (by_wall, by_steps):
         ax.grid(alpha=0.3)
-    handles, labels = by_steps.get_legend_handles_labels()
-    labels = [textwrap.fill(label, LEGEND_WIDTH) for label in labels]
-    columns = max(1, min(3, len(labels)))
-    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize=8)
     fig.suptitle(f"{task.title} ({task.env})")
-    legend_in = 0.15 * _legend_lines(labels, columns) + 0.3
-    fig.set_figheight(4.2 + legend_in)
-    fig.tight_layout(rect=(0, legend_in / (4.2 + legend_in), 1, 1))
+    _legend_below(fig, *by_steps.get_legend_handles_labels())
     fig.savefig(path, dpi=100, metadata={"Software": None})
     plt.close(fig)
 

@@ -150,17 +150,20 @@ def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> 
     can be left out."""
     if backend != "cpu" or not gpu_sized(cfg):
         return None
-    steps = cfg.run_steps  # (what runs: whole chunks with an in-chunk evaluation)
-    if source == "resume":  # (its sizes cannot change)
+    steps, large = cfg.run_steps, large_for_cpu(cfg)  # (steps: whole chunks of an in-chunk eval)
+    if source == "resume" and not large:  # (its sizes cannot change: a small one just runs)
+        return None
+    if source == "resume":
         return (f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
                 f"batch {cfg.batch_size}) and JAX found only a CPU: it will train for hours; "
                 "a resume keeps its sizes, so resume it where a GPU is")  # fmt: skip
     tips = cpu_tips(cfg)
     alternative = " (or no --preset)" if source == "preset" else ""
-    if not large_for_cpu(cfg):  # (only the in-chunk evaluation of a GPU preset)
-        return (f"this run evaluates inside each chunk, as GPU presets do, and JAX found only a "
-                f"CPU, where that program compiles slowly. For a CPU try {' '.join(tips)}"
-                f"{alternative}")  # fmt: skip
+    if not large:  # (a small run with a GPU preset's in-chunk evaluation)
+        return (f"this run evaluates inside each chunk, as the GPU presets do: its "
+                f"{cfg.eval_envs} evaluation environments step beside its {cfg.num_envs} "
+                f"training ones at every iteration, and JAX found only a CPU. For a CPU try "
+                f"{' '.join(tips)}{alternative}")  # fmt: skip
     return (
         f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
         f"batch {cfg.batch_size}) and JAX found only a CPU: it will compile for minutes and "

@@ -139,32 +139,41 @@ def test_records_become_points_timed_from_launch(tmp_path):
     assert point == Point("td3-jax", "t1", 3, "H200", 17.5, 10, 1.5, 0.5, 99.0)
 
 
-def test_a_legend_row_is_as_tall_as_its_tallest_label():
-    # 5 labels in 3 columns fill 2 rows column by column: rows hold labels (0, 2, 4) and (1, 3)
-    labels = ["a", "b\nb\nb", "c", "d\nd", "e"]
-    assert report._legend_lines(labels, 3) == 1 + 3
-    assert report._legend_lines(labels, 1) == 1 + 3 + 1 + 2 + 1
+def test_a_legend_is_as_tall_as_its_tallest_column():
+    # matplotlib's columns, as numpy.array_split makes them: 5 labels in 3 columns are
+    # (0, 1), (2, 3), (4); 4 labels are (0, 1), (2), (3)
+    assert report._legend_lines(["a", "b\nb\nb", "c", "d\nd", "e"], 3) == 1 + 3
+    assert report._legend_lines(["a\na", "b\nb", "c\nc\nc\nc\nc", "d"], 3) == 5
+    assert report._legend_lines(["a", "b\nb\nb", "c", "d\nd", "e"], 1) == 1 + 3 + 1 + 2 + 1
     assert report._legend_lines(["a"], 1) == 1
 
 
-def test_the_figure_keeps_every_legend_label_inside_it(tmp_path, monkeypatch):
-    long = "toy " + " ".join(f"--flag-{i} {i}" for i in range(12))  # wraps to 3 lines
+def test_the_legend_stays_inside_the_figure_and_below_the_plots(tmp_path, monkeypatch):
+    long = ("toy --devices 2 --replay-shards 2 --num-envs 8192 --updates-per-iter 16 "
+            "--buffer-size 16777216 --no-eval-in-chunk")  # (wrapped at hyphens: "--buffer-")
     points = [*PRESET, *_curve(long, 0, [(10.0, 50, 0.0), (20.0, 100, 1.0)]), *PPO]
     task = Task("toy", "Toy", "brax/toy", preset="toy", total_steps=None, points=(100,),
                 references=(), shown=(long,))  # fmt: skip
     from matplotlib.figure import Figure
 
-    boxes = []
+    seen = {}
     real_savefig = Figure.savefig
 
     def savefig(fig, path, **kwargs):
+        renderer = fig.canvas.get_renderer()
         fig.canvas.draw()
-        boxes.extend([fig.legends[0].get_window_extent(), fig.bbox])
+        seen["legend"] = fig.legends[0].get_window_extent(renderer)
+        seen["figure"] = fig.bbox
+        seen["plots"] = min(ax.get_tightbbox(renderer).y0 for ax in fig.axes)
+        seen["labels"] = [t.get_text() for t in fig.legends[0].get_texts()]
         return real_savefig(fig, path, **kwargs)
 
     monkeypatch.setattr(Figure, "savefig", savefig)
     report.plot(task, points, tmp_path / "toy.png")
-    legend, figure = boxes
+    legend, figure = seen["legend"], seen["figure"]
     assert (tmp_path / "toy.png").stat().st_size > 0
     assert figure.x0 <= legend.x0 and legend.x1 <= figure.x1
-    assert figure.y0 <= legend.y0
+    assert figure.y0 <= legend.y0 and legend.y1 <= seen["plots"]
+    wrapped = next(label for label in seen["labels"] if "--buffer-size" in label)
+    assert wrapped.count("\n") >= 1
+    assert not any(line.endswith("-") for line in wrapped.splitlines())  # flags kept whole

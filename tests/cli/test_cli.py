@@ -1467,6 +1467,21 @@ def test_a_run_without_updates_is_warned_that_it_never_learns():
     assert notes.no_learning_warning(TrainConfig(updates_per_iter=1)) is None
 
 
+def test_a_small_cpu_run_that_evaluates_inside_its_chunks_is_told_only_that():
+    # t1's in-chunk evaluation with CPU sizes: chunks of 1000 steps of 16 robots (one episode)
+    small = dataclasses.replace(preset("t1"), num_envs=16, eval_every=16_000, total_steps=32_000,
+                                batch_size=256, warmup_steps=1000, eval_envs=16,
+                                precision="float32")  # fmt: skip
+    assert not notes.large_for_cpu(small) and notes.gpu_sized(small)
+    assert notes.cpu_size_warning(small, "cpu", "env") == (
+        "this run evaluates inside each chunk, as the GPU presets do: its 16 evaluation "
+        "environments step beside its 16 training ones at every iteration, and JAX found only "
+        "a CPU. For a CPU try --no-eval-in-chunk"
+    )
+    assert notes.cpu_size_warning(small, "cpu", "resume") is None  # nothing a resume can change
+    assert notes.cpu_size_warning(small, "gpu") is None
+
+
 def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     ant = preset("ant")
     assert "sized for a GPU" in notes.cpu_size_warning(ant, "cpu")
@@ -1498,16 +1513,6 @@ def test_a_gpu_sized_run_on_a_cpu_is_warned_about():
     assert notes.cpu_size_warning(part, "cpu").endswith(
         "try --no-eval-in-chunk --eval-every 4000 --eval-envs 16 --precision float32 (or no "
         "--preset)"
-    )
-    # small in every size, only evaluating inside its chunks (of 2 iterations of 4 robots,
-    # each chunk a whole 8-step episode): not "train for hours"
-    tiny = dataclasses.replace(preset("t1"), num_envs=4, total_steps=64, eval_every=32,
-                               warmup_steps=16, batch_size=16, eval_envs=2,
-                               precision="float32")  # fmt: skip
-    assert not notes.large_for_cpu(tiny) and notes.gpu_sized(tiny)
-    assert notes.cpu_size_warning(tiny, "cpu", "env") == (
-        "this run evaluates inside each chunk, as GPU presets do, and JAX found only a CPU, "
-        "where that program compiles slowly. For a CPU try --no-eval-in-chunk"
     )
     # a resume keeps the run's sizes: no flag to change them is offered
     resumed = notes.cpu_size_warning(ant, "cpu", "resume")
