@@ -38,6 +38,7 @@ def print_sweep_ranking(record: dict) -> None:
         cells = ["-", "-", "-"]
         if summary is not None:
             interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
+            interval = interval if n - diverged > 1 else "- (1 seed)"  # (no interval from one)
             cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
         table.add_row(str(rank), label, str(n), str(diverged), *cells)
     output_console().print(table)

@@ -1998,3 +1998,22 @@ def test_a_run_cut_into_over_a_thousand_chunks_is_warned_about():
     )
     assert notes.chunk_count_warning(TrainConfig(eval_every=32)) is None  # 625 chunks
     assert [name for name in NAMES if notes.chunk_count_warning(preset(name))] == []
+
+
+def test_the_sweep_table_gives_no_interval_for_one_seed(capsys):
+    """A setting with one finite return (one seed, or the others diverged) has no 95% CI; two
+    seeds get their bootstrap interval, which spans their returns."""
+    members = [{"settings": {"tau": 0.005}, "eval_return_mean": -10.0},
+               {"settings": {"tau": 0.01}, "eval_return_mean": -20.0},
+               {"settings": {"tau": 0.01}, "eval_return_mean": None},
+               {"settings": {"tau": 0.02}, "eval_return_mean": -30.0},
+               {"settings": {"tau": 0.02}, "eval_return_mean": -40.0}]  # fmt: skip
+    capsys.readouterr()
+    tables.print_sweep_ranking({"env_steps": 64, "per_member": members})
+    out = capsys.readouterr().out
+    row = {tau: next(line for line in out.splitlines() if f"tau={tau} " in line)
+           for tau in ("0.005", "0.01", "0.02")}  # fmt: skip
+    assert "- (1 seed)" in row["0.005"] and "- (1 seed)" in row["0.01"]  # (one diverged)
+    assert "(1 seed)" not in row["0.02"]
+    low, high = map(float, re.search(r"\[(-?[\d.]+), (-?[\d.]+)\]", row["0.02"]).groups())
+    assert -40.0 <= low <= -35.0 <= high <= -30.0
