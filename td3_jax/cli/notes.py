@@ -160,7 +160,7 @@ def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> 
     tips = cpu_tips(cfg)
     alternative = " (or no --preset)" if source == "preset" else ""
     if not large:  # (a small run with a GPU preset's in-chunk evaluation)
-        return (f"this run evaluates inside each chunk, as the GPU presets do: its "
+        return (f"this run evaluates inside each chunk, as the humanoid presets do: its "
                 f"{cfg.eval_envs} evaluation environments step beside its {cfg.num_envs} "
                 f"training ones at every iteration, and JAX found only a CPU. For a CPU try "
                 f"{' '.join(tips)}{alternative}")  # fmt: skip

@@ -18,7 +18,8 @@ def output_console() -> Any:
 
 
 def print_sweep_ranking(record: dict) -> None:
-    """Final returns per swept setting (mean over its seeds), best first, with 95% CIs.
+    """Final returns per swept setting (mean over its seeds), best first, with 95% CIs (none
+    from one finite return).
 
     ``record`` holds ``env_steps`` and ``per_member``: each member's ``settings`` (its swept
     values) and ``eval_return_mean``. Diverged members (null returns) are left out of their

@@ -150,8 +150,9 @@ def test_a_legend_is_as_tall_as_its_tallest_column():
 
 def test_the_legend_stays_inside_the_figure_and_below_the_plots(tmp_path, monkeypatch):
     long = ("toy --devices 2 --replay-shards 2 --num-envs 8192 --updates-per-iter 16 "
-            "--buffer-size 16777216 --no-eval-in-chunk")  # (wrapped at hyphens: "--buffer-")
-    points = [*PRESET, *_curve(long, 0, [(10.0, 50, 0.0), (20.0, 100, 1.0)]), *PPO]
+            "--buffer-size 16777216 --no-eval-in-chunk")  # (hyphen breaks: "--buffer-")
+    points = [*PRESET, *_curve(long, 0, [(10.0, 50, 0.0), (20.0, 100, 1.0)], gpu="H200 x2"),
+              *PPO]  # fmt: skip
     task = Task("toy", "Toy", "brax/toy", preset="toy", total_steps=None, points=(100,),
                 references=(), shown=(long,))  # fmt: skip
     from matplotlib.figure import Figure
@@ -177,3 +178,4 @@ def test_the_legend_stays_inside_the_figure_and_below_the_plots(tmp_path, monkey
     wrapped = next(label for label in seen["labels"] if "--buffer-size" in label)
     assert wrapped.count("\n") >= 1
     assert not any(line.endswith("-") for line in wrapped.splitlines())  # flags kept whole
+    assert wrapped.endswith(f"H200{report.NO_BREAK}x2")  # the GPUs on one line

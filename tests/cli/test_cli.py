@@ -1474,7 +1474,7 @@ def test_a_small_cpu_run_that_evaluates_inside_its_chunks_is_told_only_that():
                                 precision="float32")  # fmt: skip
     assert not notes.large_for_cpu(small) and notes.gpu_sized(small)
     assert notes.cpu_size_warning(small, "cpu", "env") == (
-        "this run evaluates inside each chunk, as the GPU presets do: its 16 evaluation "
+        "this run evaluates inside each chunk, as the humanoid presets do: its 16 evaluation "
         "environments step beside its 16 training ones at every iteration, and JAX found only "
         "a CPU. For a CPU try --no-eval-in-chunk"
     )
