@@ -705,6 +705,17 @@ def _least_ring(cfg: TrainConfig) -> int:
     return -(-least // cfg.replay_shards) * cfg.replay_shards
 
 
+def _least_ring_reason(cfg: TrainConfig, least: int) -> str:
+    """Why the ring needs ``least`` rows (:func:`_least_ring`) where more than one iteration's
+    transitions set it: a batch, or the rows an n-step target reads past its sample."""
+    window = (cfg.n_step - 1) * cfg.num_envs + 1
+    if least > cfg.env_steps_per_iter and window >= max(cfg.batch_size, cfg.env_steps_per_iter):
+        return f", as {cfg.n_step}-step targets read {window - 1} stored rows past a sample"
+    if least > cfg.env_steps_per_iter:
+        return f", to hold a batch of {cfg.batch_size}"
+    return ""
+
+
 def _check_replay(cfg: TrainConfig) -> None:
     capacity = cfg.replay_capacity
     if cfg.env_steps_per_iter > capacity:
@@ -715,7 +726,7 @@ def _check_replay(cfg: TrainConfig) -> None:
                   "varied batches)" if suggested > least else "")  # fmt: skip
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
                           f"replay buffer holds only {capacity}: give --buffer-size {least} at "
-                          f"least{varied}")  # fmt: skip
+                          f"least{_least_ring_reason(cfg, least)}{varied}")  # fmt: skip
     if cfg.updates_per_iter and cfg.batch_size > cfg.run_steps:  # (no updates: never sampled)
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "

@@ -193,13 +193,15 @@ def test_a_ring_smaller_than_one_iteration_is_refused_with_sizes_that_work():
         validate(cfg)
     message = str(refused.value)
     assert message.startswith("one iteration adds 16 transitions but the replay buffer holds "
-                              "only 10: give --buffer-size 256 at least")  # fmt: skip
+                              "only 10: give --buffer-size 256 at least, to hold a batch of "
+                              "256 (a ring")  # fmt: skip
     assert "e.g. --buffer-size 16000," in message
     for size in (256, 16000):
         assert validate(dataclasses.replace(cfg, buffer_size=size))
     # 3-step targets over 128 environments read 256 stored rows past a sample: 257 at least
     cfg = TrainConfig(num_envs=128, batch_size=64, n_step=3, buffer_size=100, total_steps=10**5)
-    with pytest.raises(ConfigError, match="give --buffer-size 257 at least"):
+    with pytest.raises(ConfigError, match="give --buffer-size 257 at least, as 3-step targets "
+                                          "read 256 stored rows past a sample"):
         validate(cfg)
     assert validate(dataclasses.replace(cfg, buffer_size=257))
     # A run of one iteration (10^6 environments, 20k steps) has no larger ring to suggest.
