@@ -14,7 +14,6 @@ setting measured on the task; :func:`plot` draws return against wall-clock and e
 from __future__ import annotations
 
 import argparse
-import itertools
 import statistics
 import textwrap
 from collections import Counter, defaultdict
@@ -236,10 +235,10 @@ def _legend_lines(labels: Sequence[str], columns: int) -> int:
     """The text lines of the tallest column of a legend of ``columns`` columns: matplotlib
     splits the labels in order as ``numpy.array_split`` does (the first ``len % columns``
     columns one longer) and stacks each column on its own."""
+    import numpy as np  # lazy, as matplotlib
+
     heights = [label.count("\n") + 1 for label in labels]
-    size, longer = divmod(len(heights), columns)
-    starts = [i * size + min(i, longer) for i in range(columns + 1)]
-    return max(sum(heights[a:b]) for a, b in itertools.pairwise(starts))
+    return max(int(column.sum()) for column in np.array_split(heights, columns))
 
 
 def _legend_below(fig: Any, handles: list, labels: list[str]) -> None:

@@ -38,8 +38,8 @@ def print_sweep_ranking(record: dict) -> None:
     for rank, (label, (_, n, diverged, summary)) in enumerate(zip(labels, rows, strict=True), 1):
         cells = ["-", "-", "-"]
         if summary is not None:
-            interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
-            interval = interval if n - diverged > 1 else "- (1 seed)"  # (no interval from one)
+            interval = (f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
+                        if n - diverged > 1 else "- (1 seed)")  # (no interval from one return)
             cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
         table.add_row(str(rank), label, str(n), str(diverged), *cells)
     output_console().print(table)

@@ -698,35 +698,30 @@ def _batch_advice(cfg: TrainConfig, longer_run: str) -> str:
     return f"try --batch-size {fitting}" + (f", or {bigger}" if bigger else "")
 
 
-def _least_ring(cfg: TrainConfig) -> int:
-    """The smallest --buffer-size the checks below take: one iteration's transitions, a batch,
-    the n-step window's, as a multiple of --replay-shards."""
-    least = max(cfg.env_steps_per_iter, cfg.batch_size, (cfg.n_step - 1) * cfg.num_envs + 1)
-    return -(-least // cfg.replay_shards) * cfg.replay_shards
-
-
-def _least_ring_reason(cfg: TrainConfig, least: int) -> str:
-    """Why the ring needs ``least`` rows (:func:`_least_ring`) where more than one iteration's
-    transitions set it: a batch, or the rows an n-step target reads past its sample."""
+def _ring_needs(cfg: TrainConfig) -> tuple[int, str]:
+    """``(rows, why)``: the fewest rows the ring must hold, as a multiple of --replay-shards,
+    and why where more than one iteration's transitions set it (a batch, or the rows an n-step
+    target reads past its sample; ``""`` otherwise)."""
     window = (cfg.n_step - 1) * cfg.num_envs + 1
-    if least > cfg.env_steps_per_iter and window >= max(cfg.batch_size, cfg.env_steps_per_iter):
-        return f", as {cfg.n_step}-step targets read {window - 1} stored rows past a sample"
-    if least > cfg.env_steps_per_iter:
-        return f", to hold a batch of {cfg.batch_size}"
-    return ""
+    needs = ((cfg.env_steps_per_iter, ""),  # (first among equals: no reason to give)
+             (window, f", as {cfg.n_step}-step targets read {window - 1} stored rows past a "
+                      "sample"),
+             (cfg.batch_size, f", to hold a batch of {cfg.batch_size}"))  # fmt: skip
+    least, why = max(needs, key=lambda need: need[0])
+    return -(-least // cfg.replay_shards) * cfg.replay_shards, why
 
 
 def _check_replay(cfg: TrainConfig) -> None:
     capacity = cfg.replay_capacity
     if cfg.env_steps_per_iter > capacity:
-        least = _least_ring(cfg)
+        least, why = _ring_needs(cfg)
         many = min(cfg.run_steps, 1000 * cfg.env_steps_per_iter) // cfg.replay_shards
         suggested = many * cfg.replay_shards
         varied = (f" (a ring of many iterations, e.g. --buffer-size {suggested}, samples more "
                   "varied batches)" if suggested > least else "")  # fmt: skip
         raise ConfigError(f"one iteration adds {cfg.env_steps_per_iter} transitions but the "
                           f"replay buffer holds only {capacity}: give --buffer-size {least} at "
-                          f"least{_least_ring_reason(cfg, least)}{varied}")  # fmt: skip
+                          f"least{why}{varied}")  # fmt: skip
     if cfg.updates_per_iter and cfg.batch_size > cfg.run_steps:  # (no updates: never sampled)
         raise ConfigError(
             f"--batch-size {cfg.batch_size} is larger than the {cfg.run_steps} transitions the "
