@@ -358,7 +358,7 @@ def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     seconds, clock = {}, time.perf_counter()
     mesh = make_mesh(devices)
     validate(cfg, devices=mesh.size)
-    program = make_population(cfg, members(cfg), devices=mesh.size)
+    program = make_population(cfg, members(cfg), devices=mesh.size, mesh=mesh)
     compiled = jitted(program, mesh)
     seconds["make_s"], clock = time.perf_counter() - clock, time.perf_counter()
     state, iterations = abstract_inputs(compiled, program)

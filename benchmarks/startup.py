@@ -113,7 +113,7 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
     if sequential:
         env = build.make_env(cfg)
         clock.lap("make_env")
-        program = make_population(cfg, population, devices=mesh.size, env=env)
+        program = make_population(cfg, population, devices=mesh.size, env=env, mesh=mesh)
         options = upstream.compile_options(mesh.devices.flat[0].platform, cfg.matmuls)
         compiled = _compile_in_turn(programs.jitted(program, mesh), program, clock, options)
         stored = False
