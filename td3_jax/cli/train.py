@@ -39,6 +39,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     envs.check_name(cfg.env)  # before anything about the environment is said
     program_dir = _start_process(command, args)
     cfg, devices, asked_eval_every = _completed(cfg, command, source, args)
+    _check_processes_agree(cfg, command, devices, sweep)
     typed = given_fields(args)
     given = typed | set(sweep or {})  # (a swept setting is every member's own)
     with notes.preset_noted(cfg, preset_name, given):
@@ -148,6 +149,18 @@ def _start_process(command: Any, args: list[str]) -> Path | None:
 
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     return program_dir
+
+
+def _check_processes_agree(cfg: TrainConfig, command: Any, devices: int | None,
+                           sweep: dict[str, list[float]] | None) -> None:  # fmt: skip
+    """Several processes: each was given the run's settings as the others were (else one
+    line in every process, naming a setting that differs), so none waits for the others at
+    a step they will not take."""
+    from td3_jax.runner.sharding import check_same_settings  # lazy: imports JAX
+
+    swept = {f"sweep_{name}": values for name, values in (sweep or {}).items()}
+    check_same_settings({**dataclasses.asdict(cfg), "resume": command.resume,
+                         "devices": devices, **swept})  # fmt: skip
 
 
 def _completed(cfg: TrainConfig, command: Any, source: str,

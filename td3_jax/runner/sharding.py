@@ -18,6 +18,7 @@ mesh then spans every process's devices and each process drives its local ones.
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Any
 
@@ -25,7 +26,9 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from td3_jax.common import upstream
 from td3_jax.common.errors import ConfigError
+from td3_jax.config.schema import flag
 from td3_jax.runner.memory import (
     WORKING_ADVICE,
     available_memory,
@@ -239,6 +242,13 @@ def host_value(x: jax.Array) -> np.ndarray:
     return np.asarray(x.addressable_data(0))
 
 
+#: Key prefix of each process's settings in the distributed key-value store.
+SETTINGS_KEY = "td3_jax/settings"
+#: Seconds a process waits for all the others to join (``jax.distributed.initialize``'s
+#: ``initialization_timeout``); past it JAX aborts the process (exit status 134).
+JOIN_TIMEOUT_S = 300
+
+
 def initialize_distributed(
     coordinator_address: str | None = None,
     num_processes: int | None = None,
@@ -263,7 +273,9 @@ def initialize_distributed(
     check_processes(coordinator_address, num_processes, process_id)
     if num_processes is not None and num_processes > 1 and process_id is not None:
         print(f"td3-jax: waiting for {num_processes} processes at {coordinator_address} (this "
-              f"is process {process_id}; each runs the same command)...", flush=True)  # fmt: skip
+              f"is process {process_id}; each runs the same command with its own --process-id, "
+              f"0 to {num_processes - 1}; JAX gives up after {JOIN_TIMEOUT_S} s)...",
+              flush=True)  # fmt: skip
     try:
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
     except Exception:  # pragma: no cover - option absent in some jax versions
@@ -275,12 +287,42 @@ def initialize_distributed(
     return True
 
 
+def check_same_settings(settings: dict[str, Any]) -> None:
+    """Raises :class:`ConfigError` unless every process of this ``jax.distributed`` run was
+    given the same ``settings`` (a run's resolved flags, ``{field: value}``; nothing to do in
+    one process). Every process finds the difference and says it, so none is left waiting
+    for the others at a collective.
+
+    Each process publishes its settings in the runtime's key-value store and reads the
+    others' (waiting up to :data:`JOIN_TIMEOUT_S` for each)."""
+    if jax.process_count() == 1:
+        return
+    store, here = upstream.distributed_store(), jax.process_index()
+    store.key_value_set(f"{SETTINGS_KEY}/{here}", json.dumps(settings, sort_keys=True, default=str))
+    for other in range(jax.process_count()):
+        if other == here:
+            continue
+        theirs = json.loads(store.blocking_key_value_get(f"{SETTINGS_KEY}/{other}",
+                                                         JOIN_TIMEOUT_S * 1000))  # fmt: skip
+        mine = json.loads(json.dumps(settings, sort_keys=True, default=str))
+        differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+        if differ:
+            name = differ[0]
+            raise ConfigError(
+                f"process {other} was given other settings than this process ({here}): "
+                f"{flag(name)} {theirs.get(name)} there, {mine.get(name)} here"
+                f"{f' (and {len(differ) - 1} more)' if len(differ) > 1 else ''}; start every "
+                "process with the same flags, only --process-id differing"
+            )
+
+
 def _start_runtime(address: str, num_processes: int | None, process_id: int | None) -> None:
     """``jax.distributed.initialize``; where JAX finds no process count or id (none given, and
     no cluster manager such as SLURM or Open MPI to read them from), its refusal as one line."""
     try:
         jax.distributed.initialize(coordinator_address=address, num_processes=num_processes,
-                                   process_id=process_id)  # fmt: skip
+                                   process_id=process_id,
+                                   initialization_timeout=JOIN_TIMEOUT_S)  # fmt: skip
     except ValueError as err:
         if "must be defined" not in str(err):
             raise
@@ -320,8 +362,11 @@ def check_processes(address: str, num_processes: int | None, process_id: int | N
 
 __all__ = [
     "AXIS",
+    "JOIN_TIMEOUT_S",
+    "SETTINGS_KEY",
     "check_memory",
     "check_processes",
+    "check_same_settings",
     "host_value",
     "initialize_distributed",
     "make_mesh",

@@ -481,3 +481,21 @@ def test_a_model_found_only_through_a_wrapper_is_not_swapped():
     wrapper = Wrapper(SimpleNamespace(_mjx_model="the task's"))
     with pytest.raises(upstream.UpstreamChanged, match="Wrapper holds no attribute"):
         upstream.set_task_mjx_model(wrapper, "randomised")
+
+
+def test_jax_keeps_its_distributed_client_with_the_key_value_calls_td3_jax_uses():
+    """The distributed runtime's client (``None`` before ``jax.distributed.initialize``) and
+    the two calls of its class that the settings check uses."""
+    from jax._src.lib import _jax
+
+    assert upstream.distributed_store() is None  # (this process started no runtime)
+    for name in ("key_value_set", "blocking_key_value_get"):
+        assert callable(getattr(_jax.DistributedRuntimeClient, name))
+
+
+def test_a_jax_without_the_distributed_client_raises_naming_it(monkeypatch):
+    from jax._src import distributed
+
+    monkeypatch.delattr(distributed, "global_state")
+    with pytest.raises(upstream.UpstreamChanged, match=r"jax\._src\.distributed\.global_state"):
+        upstream.distributed_store()

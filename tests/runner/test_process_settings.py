@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -77,3 +78,108 @@ def test_a_coordinator_without_the_counts_jax_needs_is_refused_in_one_line(proce
     ), said
     assert said.endswith("must be defined."), said
     assert "waiting for" not in said  # (no process id: nothing said of waiting)
+
+
+def test_a_waiting_process_says_which_ids_to_start_and_how_long_jax_waits(monkeypatch, capsys):
+    """The waiting line names the ids the other processes need and the join timeout, which is
+    the one given to JAX (past it JAX aborts the process with a C++ check failure)."""
+    import jax
+
+    from td3_jax.envs import mjx_devices
+    from td3_jax.runner import sharding
+
+    given = {}
+    monkeypatch.setattr(jax.distributed, "initialize", lambda **kw: given.update(kw))
+    monkeypatch.setattr(jax.config, "update", lambda *args: None)
+    monkeypatch.setattr(mjx_devices, "place_on_local_devices", lambda: None)
+    assert initialize_distributed("127.0.0.1:5", 3, 1)
+    said = capsys.readouterr().out
+    assert said.startswith("td3-jax: waiting for 3 processes at 127.0.0.1:5 (this is process 1;")
+    assert "its own --process-id, 0 to 2" in said
+    assert f"gives up after {sharding.JOIN_TIMEOUT_S} s" in said
+    assert given == {"coordinator_address": "127.0.0.1:5", "num_processes": 3, "process_id": 1,
+                     "initialization_timeout": sharding.JOIN_TIMEOUT_S}  # fmt: skip
+
+
+class _Store:
+    """A stand-in for the runtime's key-value store: what each process published."""
+
+    def __init__(self, published: dict[str, str]):
+        self.published = published
+
+    def key_value_set(self, key: str, value: str) -> None:
+        self.published[key] = value
+
+    def blocking_key_value_get(self, key: str, timeout_ms: int) -> str:
+        return self.published[key]
+
+
+def _as_process(monkeypatch, index: int, count: int, store: _Store) -> None:
+    import jax
+
+    from td3_jax.common import upstream
+
+    monkeypatch.setattr(jax, "process_count", lambda: count)
+    monkeypatch.setattr(jax, "process_index", lambda: index)
+    monkeypatch.setattr(upstream, "distributed_store", lambda: store)
+
+
+def test_processes_given_other_settings_are_told_which_one_differs(monkeypatch):
+    """Process 0 of 2 finds process 1's --total-steps different and says so in one line (the
+    first setting that differs, and how many more); its own settings are published for the
+    others to check."""
+    from td3_jax.runner.sharding import SETTINGS_KEY, check_same_settings
+
+    theirs = {"total_steps": 1024, "num_envs": 16, "seed": 0}
+    store = _Store({f"{SETTINGS_KEY}/1": json.dumps(theirs)})
+    _as_process(monkeypatch, 0, 2, store)
+    with pytest.raises(ConfigError) as err:
+        check_same_settings({"total_steps": 512, "num_envs": 8, "seed": 0})
+    assert str(err.value) == (
+        "process 1 was given other settings than this process (0): --num-envs 16 there, 8 "
+        "here (and 1 more); start every process with the same flags, only --process-id "
+        "differing")  # fmt: skip
+    assert json.loads(store.published[f"{SETTINGS_KEY}/0"])["total_steps"] == 512
+
+
+def test_processes_given_the_same_settings_go_on(monkeypatch):
+    """Equal settings pass (tuples and paths compare as the JSON the others published); one
+    process checks nothing."""
+    from pathlib import Path
+
+    from td3_jax.runner.sharding import SETTINGS_KEY, check_same_settings
+
+    settings = {"hidden_sizes": (32, 32), "menagerie": Path("/m"), "resume": False}
+    published = json.dumps(settings, sort_keys=True, default=str)
+    _as_process(monkeypatch, 1, 3, _Store({f"{SETTINGS_KEY}/0": published,
+                                           f"{SETTINGS_KEY}/2": published}))  # fmt: skip
+    check_same_settings(settings)
+    _as_process(monkeypatch, 0, 1, None)  # (a store would be asked for: None has no methods)
+    check_same_settings(settings)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.processes
+def test_two_processes_given_different_flags_both_stop_in_one_line(tmp_path):
+    """Two CPU processes of one run, the second given another --total-steps: each says which
+    setting differs and exits 2 before anything is written (they waited for each other at
+    the end until JAX aborted both, exit status 134)."""
+    from benchmarks.multiprocess import free_port
+
+    flags = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--eval-every", "256",
+             "--batch-size", "64", "--hidden-sizes", "8", "--eval-envs", "4", "--buffer-size",
+             "512", "--replay-shards", "2", "--compile-cache", "off", "--out",
+             str(tmp_path / "run"), "--coordinator-address", f"localhost:{free_port()}",
+             "--num-processes", "2"]  # fmt: skip
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    procs = [subprocess.Popen([sys.executable, "-m", "td3_jax", "train", *flags, "--total-steps",
+                               steps, "--process-id", str(i)], env=env, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for i, steps in enumerate(("512", "1024"))]  # fmt: skip
+    outs = [p.communicate(timeout=240) for p in procs]
+    for i, (p, (_, err)) in enumerate(zip(procs, outs, strict=True)):
+        assert p.returncode == 2, err[-2000:]
+        there, here = ("1024", "512") if i == 0 else ("512", "1024")
+        assert (f"td3-jax: error: process {1 - i} was given other settings than this process "
+                f"({i}): --total-steps {there} there, {here} here;") in err  # fmt: skip
+    assert not (tmp_path / "run").exists()
