@@ -155,12 +155,13 @@ def _check_processes_agree(cfg: TrainConfig, command: Any, devices: int | None,
                            sweep: dict[str, list[float]] | None) -> None:  # fmt: skip
     """Several processes: each was given the run's settings as the others were (else one
     line in every process, naming a setting that differs), so none waits for the others at
-    a step they will not take."""
+    a step they will not take. ``--menagerie`` may differ: each host finds its robots' files
+    in a folder of its own."""
     from td3_jax.runner.sharding import check_same_settings  # lazy: imports JAX
 
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "menagerie"}
     swept = {f"sweep_{name}": values for name, values in (sweep or {}).items()}
-    check_same_settings({**dataclasses.asdict(cfg), "resume": command.resume,
-                         "devices": devices, **swept})  # fmt: skip
+    check_same_settings({**settings, "resume": command.resume, "devices": devices, **swept})
 
 
 def _completed(cfg: TrainConfig, command: Any, source: str,
