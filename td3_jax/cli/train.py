@@ -38,8 +38,8 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
 
     envs.check_name(cfg.env)  # before anything about the environment is said
     program_dir = _start_process(command, args)
+    _check_processes_agree(cfg, command, sweep, sweeping)
     cfg, devices, asked_eval_every = _completed(cfg, command, source, args)
-    _check_processes_agree(cfg, command, devices, sweep)
     typed = given_fields(args)
     given = typed | set(sweep or {})  # (a swept setting is every member's own)
     with notes.preset_noted(cfg, preset_name, given):
@@ -151,17 +151,21 @@ def _start_process(command: Any, args: list[str]) -> Path | None:
     return program_dir
 
 
-def _check_processes_agree(cfg: TrainConfig, command: Any, devices: int | None,
-                           sweep: dict[str, list[float]] | None) -> None:  # fmt: skip
-    """Several processes: each was given the run's settings as the others were (else one
-    line in every process, naming a setting that differs), so none waits for the others at
-    a step they will not take. ``--menagerie`` may differ: each host finds its robots' files
-    in a folder of its own."""
+def _check_processes_agree(
+    cfg: TrainConfig, command: Any, sweep: dict[str, list[float]] | None, sweeping: bool
+) -> None:
+    """Several processes: each was given the run's flags as the others were (else one line in
+    every process, naming one that differs), so none waits for the others at a step they
+    will not take. Compared as parsed, before anything is worked out on each host; a host's
+    own ``--menagerie`` (the folder of its robots' files) may differ."""
     from td3_jax.runner.sharding import check_same_settings  # lazy: imports JAX
 
     settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "menagerie"}
+    process = {"command": "sweep" if sweeping else "train", "resume": command.resume,
+               "devices": command.devices, "out": str(command.out),
+               "time_budget_s": command.time_budget_s}  # fmt: skip
     swept = {f"sweep_{name}": values for name, values in (sweep or {}).items()}
-    check_same_settings({**settings, "resume": command.resume, "devices": devices, **swept})
+    check_same_settings({**settings, **process, **swept})
 
 
 def _completed(cfg: TrainConfig, command: Any, source: str,

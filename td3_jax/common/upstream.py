@@ -285,7 +285,7 @@ MJX_RESOLVER = "_resolve_impl_and_device"
 
 #: JAX's distributed runtime state, whose ``client`` holds the key-value store every process
 #: of a ``jax.distributed`` run shares (``key_value_set(key, value)``,
-#: ``blocking_key_value_get(key, timeout_ms)``; checked: JAX 0.10.2 CPU; tested by
+#: ``blocking_key_value_get(key, timeout_in_ms)``; checked: JAX 0.10.2 CPU; tested by
 #: tests/common/test_upstream.py).
 JAX_DISTRIBUTED = "jax._src.distributed"
 

@@ -289,31 +289,52 @@ def initialize_distributed(
 
 def check_same_settings(settings: dict[str, Any]) -> None:
     """Raises :class:`ConfigError` unless every process of this ``jax.distributed`` run was
-    given the same ``settings`` (a run's resolved flags, ``{field: value}``; nothing to do in
-    one process). Every process finds the difference and says it, so none is left waiting
-    for the others at a collective.
+    given the same ``settings`` (``{flag's field: value}``, as each process parsed them;
+    nothing to do without ``jax.distributed``). Every process that gets here finds the
+    difference and says it, so none is left waiting for the others at a collective.
 
     Each process publishes its settings in the runtime's key-value store and reads the
-    others' (waiting up to :data:`JOIN_TIMEOUT_S` for each)."""
-    if jax.process_count() == 1:
+    others' (waiting up to :data:`JOIN_TIMEOUT_S` for each: a process that stopped before
+    publishing is named, it says why itself)."""
+    store = upstream.distributed_store()
+    if store is None:  # (one process: JAX's backend is not started for nothing)
         return
-    store, here = upstream.distributed_store(), jax.process_index()
-    store.key_value_set(f"{SETTINGS_KEY}/{here}", json.dumps(settings, sort_keys=True, default=str))
+    here, texts = jax.process_index(), _as_texts(settings)
+    store.key_value_set(f"{SETTINGS_KEY}/{here}", json.dumps(texts))
     for other in range(jax.process_count()):
-        if other == here:
-            continue
-        theirs = json.loads(store.blocking_key_value_get(f"{SETTINGS_KEY}/{other}",
-                                                         JOIN_TIMEOUT_S * 1000))  # fmt: skip
-        mine = json.loads(json.dumps(settings, sort_keys=True, default=str))
-        differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
-        if differ:
-            name = differ[0]
-            raise ConfigError(
-                f"process {other} was given other settings than this process ({here}): "
-                f"{flag(name)} {theirs.get(name)} there, {mine.get(name)} here"
-                f"{f' (and {len(differ) - 1} more)' if len(differ) > 1 else ''}; start every "
-                "process with the same flags, only --process-id differing"
-            )
+        if other != here:
+            theirs = _published(store, other)
+            differ = sorted(k for k in texts | theirs if texts.get(k) != theirs.get(k))
+            if differ:
+                raise ConfigError(_differ_message(differ, theirs, texts, other, here))
+
+
+def _as_texts(settings: dict[str, Any]) -> dict[str, str]:
+    """Each setting's value as JSON text (tuples as lists, paths as text; NaN equals NaN)."""
+    return {k: json.dumps(v, sort_keys=True, default=str) for k, v in settings.items()}
+
+
+def _published(store: Any, other: int) -> dict[str, str]:
+    """Process ``other``'s settings from the key-value store; ConfigError when it published
+    none within :data:`JOIN_TIMEOUT_S` (it stopped before, or hangs)."""
+    try:
+        return json.loads(store.blocking_key_value_get(f"{SETTINGS_KEY}/{other}",
+                                                       JOIN_TIMEOUT_S * 1000))  # fmt: skip
+    except jax.errors.JaxRuntimeError:
+        raise ConfigError(
+            f"process {other} did not give its settings within {JOIN_TIMEOUT_S} s: it stopped "
+            "before (its own output says why) or is stuck"
+        ) from None
+
+
+def _differ_message(differ: list[str], theirs: dict, mine: dict, other: int, here: int) -> str:
+    """One line naming the first setting of ``differ`` and how many more differ."""
+    name, missing = differ[0], "(not given)"
+    more = f" (and {len(differ) - 1} more)" if len(differ) > 1 else ""
+    return (f"process {other} was given other settings than this process ({here}): {flag(name)} "
+            f"{theirs.get(name, missing)} there, {mine.get(name, missing)} here{more}; start "
+            "every process with the same flags (only --process-id, --menagerie, --quiet and "
+            "--compile-cache may differ)")
 
 
 def _start_runtime(address: str, num_processes: int | None, process_id: int | None) -> None:

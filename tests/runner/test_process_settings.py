@@ -1,6 +1,8 @@
 """The several-process settings (``--coordinator-address``, ``--num-processes``,
 ``--process-id`` and their environment variables) are checked before JAX's runtime starts
-(:func:`td3_jax.runner.sharding.check_processes`): one line each, never a traceback."""
+(:func:`td3_jax.runner.sharding.check_processes`), and the processes' flags against each other
+once it has (:func:`td3_jax.runner.sharding.check_same_settings`): one line each, never a
+traceback or a process left waiting."""
 
 from __future__ import annotations
 
@@ -8,11 +10,19 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
+import jax
 import pytest
 
 from td3_jax.common.errors import ConfigError
-from td3_jax.runner.sharding import check_processes, initialize_distributed
+from td3_jax.runner.sharding import (
+    JOIN_TIMEOUT_S,
+    SETTINGS_KEY,
+    check_processes,
+    check_same_settings,
+    initialize_distributed,
+)
 
 
 @pytest.mark.parametrize(
@@ -102,21 +112,23 @@ def test_a_waiting_process_says_which_ids_to_start_and_how_long_jax_waits(monkey
 
 
 class _Store:
-    """A stand-in for the runtime's key-value store: what each process published."""
+    """A stand-in for the runtime's key-value store (its two calls, arguments as JAX's): what
+    each process published; a key never published times out as JAX's does."""
 
     def __init__(self, published: dict[str, str]):
         self.published = published
 
     def key_value_set(self, key: str, value: str) -> None:
+        assert key not in self.published  # (JAX refuses to set a key twice: ALREADY_EXISTS)
         self.published[key] = value
 
-    def blocking_key_value_get(self, key: str, timeout_ms: int) -> str:
+    def blocking_key_value_get(self, key: str, timeout_in_ms: int) -> str:
+        if key not in self.published:
+            raise jax.errors.JaxRuntimeError(f"DEADLINE_EXCEEDED: GetKeyValue() timed out: {key}")
         return self.published[key]
 
 
-def _as_process(monkeypatch, index: int, count: int, store: _Store) -> None:
-    import jax
-
+def _as_process(monkeypatch, index: int, count: int, store: _Store | None) -> None:
     from td3_jax.common import upstream
 
     monkeypatch.setattr(jax, "process_count", lambda: count)
@@ -124,38 +136,73 @@ def _as_process(monkeypatch, index: int, count: int, store: _Store) -> None:
     monkeypatch.setattr(upstream, "distributed_store", lambda: store)
 
 
-def test_processes_given_other_settings_are_told_which_one_differs(monkeypatch):
-    """Process 0 of 2 finds process 1's --total-steps different and says so in one line (the
-    first setting that differs, and how many more); its own settings are published for the
-    others to check."""
-    from td3_jax.runner.sharding import SETTINGS_KEY, check_same_settings
+def _publication(settings: dict) -> str:
+    """What a process publishes: each setting's JSON text, as one JSON object."""
+    return json.dumps({k: json.dumps(v, sort_keys=True, default=str) for k, v in settings.items()})
 
-    theirs = {"total_steps": 1024, "num_envs": 16, "seed": 0}
-    store = _Store({f"{SETTINGS_KEY}/1": json.dumps(theirs)})
+
+def test_processes_given_other_settings_are_told_which_one_differs(monkeypatch):
+    """Process 0 of 2 finds process 1's settings different and says so in one line (the first
+    setting that differs by name, and how many more); its own are published for the others."""
+    store = _Store({f"{SETTINGS_KEY}/1": _publication({"total_steps": 1024, "num_envs": 16,
+                                                        "seed": 0})})  # fmt: skip
     _as_process(monkeypatch, 0, 2, store)
     with pytest.raises(ConfigError) as err:
         check_same_settings({"total_steps": 512, "num_envs": 8, "seed": 0})
     assert str(err.value) == (
-        "process 1 was given other settings than this process (0): --num-envs 16 there, 8 "
-        "here (and 1 more); start every process with the same flags, only --process-id "
-        "differing")  # fmt: skip
-    assert json.loads(store.published[f"{SETTINGS_KEY}/0"])["total_steps"] == 512
+        "process 1 was given other settings than this process (0): --num-envs 16 there, 8 here "
+        "(and 1 more); start every process with the same flags (only --process-id, "
+        "--menagerie, --quiet and --compile-cache may differ)")  # fmt: skip
+    assert json.loads(json.loads(store.published[f"{SETTINGS_KEY}/0"])["total_steps"]) == 512
+
+
+def test_a_setting_only_one_process_has_is_named_as_not_given(monkeypatch):
+    _as_process(monkeypatch, 1, 2, _Store({f"{SETTINGS_KEY}/0": _publication({"seed": 0})}))
+    with pytest.raises(ConfigError, match=r"--resume \(not given\) there, true here;"):
+        check_same_settings({"seed": 0, "resume": True})
 
 
 def test_processes_given_the_same_settings_go_on(monkeypatch):
-    """Equal settings pass (tuples and paths compare as the JSON the others published); one
-    process checks nothing."""
-    from pathlib import Path
-
-    from td3_jax.runner.sharding import SETTINGS_KEY, check_same_settings
-
-    settings = {"hidden_sizes": (32, 32), "menagerie": Path("/m"), "resume": False}
-    published = json.dumps(settings, sort_keys=True, default=str)
-    _as_process(monkeypatch, 1, 3, _Store({f"{SETTINGS_KEY}/0": published,
-                                           f"{SETTINGS_KEY}/2": published}))  # fmt: skip
+    """Equal settings pass (tuples, paths and NaN compare as the JSON the others published);
+    without jax.distributed nothing is checked (no store asked for, no backend started)."""
+    settings = {"hidden_sizes": (32, 32), "out": Path("/m"), "v_min": float("nan")}
+    published = {f"{SETTINGS_KEY}/{i}": _publication(settings) for i in (0, 2)}
+    _as_process(monkeypatch, 1, 3, _Store(published))
     check_same_settings(settings)
-    _as_process(monkeypatch, 0, 1, None)  # (a store would be asked for: None has no methods)
-    check_same_settings(settings)
+    _as_process(monkeypatch, 0, 1, None)
+    check_same_settings({"seed": 1})
+
+
+def test_a_process_that_gives_no_settings_is_named_not_waited_for_forever(monkeypatch):
+    """A process that stopped before publishing (its own output says why): the others stop
+    with one line once JAX's wait times out, not with JAX's traceback."""
+    _as_process(monkeypatch, 0, 2, _Store({}))
+    with pytest.raises(ConfigError) as err:
+        check_same_settings({"seed": 0})
+    assert str(err.value) == (
+        f"process 1 did not give its settings within {JOIN_TIMEOUT_S} s: it stopped before "
+        "(its own output says why) or is stuck")  # fmt: skip
+
+
+def test_train_compares_the_flags_as_parsed_with_the_process_flags_that_must_agree(monkeypatch):
+    """What td3-jax train hands the check: every training setting but --menagerie (each host's
+    own robots folder), the subcommand, --resume, --devices, --out, --time-budget-s and the
+    swept values."""
+    from td3_jax.cli import train
+    from td3_jax.runner import sharding
+
+    handed = {}
+    monkeypatch.setattr(sharding, "check_same_settings", handed.update)
+    args = ["--env", "gymnax/Pendulum-v1", "--menagerie", "/r", "--out", "runs/x",
+            "--time-budget-s", "60"]  # fmt: skip
+    command, cfg, _, _ = train.parse_train(args, False)
+    train._check_processes_agree(cfg, command, {"tau": [0.1, 0.2]}, sweeping=True)
+    assert "menagerie" not in handed
+    assert handed["env"] == "gymnax/Pendulum-v1" and handed["total_steps"] == cfg.total_steps
+    assert {k: handed[k] for k in ("command", "resume", "devices", "out", "time_budget_s",
+                                   "sweep_tau")} == {
+        "command": "sweep", "resume": False, "devices": None, "out": "runs/x",
+        "time_budget_s": 60.0, "sweep_tau": [0.1, 0.2]}  # fmt: skip
 
 
 @pytest.mark.timeout(300)
@@ -176,7 +223,11 @@ def test_two_processes_given_different_flags_both_stop_in_one_line(tmp_path):
                                steps, "--process-id", str(i)], env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
              for i, steps in enumerate(("512", "1024"))]  # fmt: skip
-    outs = [p.communicate(timeout=240) for p in procs]
+    try:
+        outs = [p.communicate(timeout=240) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
     for i, (p, (_, err)) in enumerate(zip(procs, outs, strict=True)):
         assert p.returncode == 2, err[-2000:]
         there, here = ("1024", "512") if i == 0 else ("512", "1024")
