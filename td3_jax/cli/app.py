@@ -32,7 +32,7 @@ usage: td3-jax {train,sweep,eval,export,render,plot,envs,presets} [FLAGS]
 Train TD3/DDPG on thousands of vectorised environments inside one compiled JAX program.
 
 subcommands:
-  train     train an agent:  td3-jax train --env brax/ant --out runs/ant
+  train     train an agent:  td3-jax train --env brax/ant --preset ant --out runs/ant
   sweep     train every combination of float settings x seeds in one program:
               td3-jax sweep --sweep-actor-lr 1e-3 3e-4 --sweep-tau 0.005 0.01 --seeds 4
   eval      evaluate a run's newest checkpoint:  td3-jax eval --run runs/ant
