@@ -151,12 +151,11 @@ def cpu_size_warning(cfg: TrainConfig, backend: str, source: str = "preset") -> 
     if backend != "cpu" or not gpu_sized(cfg):
         return None
     steps, large = cfg.run_steps, large_for_cpu(cfg)  # (steps: whole chunks of an in-chunk eval)
-    if source == "resume" and not large:  # (its sizes cannot change: a small one just runs)
-        return None
-    if source == "resume":
-        return (f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, "
-                f"batch {cfg.batch_size}) and JAX found only a CPU: it will train for hours; "
-                "a resume keeps its sizes, so resume it where a GPU is")  # fmt: skip
+    if source == "resume":  # (its sizes cannot change: a small one just runs)
+        return None if not large else (
+            f"this run is sized for a GPU ({cfg.num_envs} environments, {steps} steps, batch "
+            f"{cfg.batch_size}) and JAX found only a CPU: it will train for hours; a resume "
+            "keeps its sizes, so resume it where a GPU is")  # fmt: skip
     tips = cpu_tips(cfg)
     alternative = " (or no --preset)" if source == "preset" else ""
     if not large:  # (a small run with a GPU preset's in-chunk evaluation)
