@@ -436,7 +436,8 @@ def _code_meaning(code: int) -> str:
         1: "an upstream library changed under td3-jax (a private name it relies on is gone)",
         2: "bad input: a setting, a name, a file, a checkpoint, a full disk; said before "
         "anything compiles where it can be",
-        3: "a run stopped by what it computed (non-finite numbers, physics out of its buffers); "
+        3: "a run stopped by what it computed (non-finite numbers, physics out of its buffers) "
+           "or by another of its processes stopping; "
         "the last good checkpoint is kept",
     }.get(code, "")
 

@@ -29,8 +29,9 @@ def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> lis
     """``run.train`` of ``cfg`` into ``command.out`` (a train command: its resume, quiet and
     time-budget flags) under handlers that turn SIGINT and SIGTERM into a stop at the next
     chunk (a second signal stops at once); a stop leaves the last checkpoint and says, in one
-    line, what it left (``Interrupted``, exit 130, or 143 for SIGTERM). Returns the run's
-    records, one per chunk."""
+    line, what it left (``Interrupted``, exit 130, or 143 for SIGTERM; 130 too for a process
+    of a several-process run stopped because another was). Returns the run's records, one per
+    chunk."""
     import jax  # lazy: JAX, only for a run
 
     from td3_jax.runner.run import train  # lazy: imports JAX
@@ -49,6 +50,9 @@ def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> lis
     except KeyboardInterrupt:
         if signal.SIGTERM in received:
             raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
+        if not received and jax.process_count() > 1:  # (another process was stopped)
+            raise Interrupted(ended("stopped with another process of the run, which was "
+                                    "interrupted")) from None  # fmt: skip
         raise Interrupted(ended()) from None
 
 

@@ -88,7 +88,8 @@ class WandbError(Td3JaxError, RuntimeError):
 
 
 class TrainingStopped(Td3JaxError, RuntimeError):
-    """A run stopped because what it computed went wrong; its last good checkpoint is kept."""
+    """A run stopped because what it computed went wrong, or because another process of a
+    several-process run did; its last good checkpoint is kept."""
 
     exit_code = 3
 
@@ -99,6 +100,11 @@ class NonFiniteError(TrainingStopped):
 
 class PhysicsOverflowError(TrainingStopped):
     """MuJoCo Warp ran out of contact or constraint buffer (its physics was wrong)."""
+
+
+class ProcessLostError(TrainingStopped):
+    """Another process of a several-process run never reached the chunk boundary this one
+    waited at (it stopped, or hangs)."""
 
 
 class UpstreamChanged(Td3JaxError, RuntimeError):
@@ -131,6 +137,7 @@ __all__ = [
     "NotRenderableError",
     "OutputWriteError",
     "PhysicsOverflowError",
+    "ProcessLostError",
     "RenderError",
     "Td3JaxError",
     "TrainingStopped",

@@ -28,6 +28,7 @@ from td3_jax.common.errors import (
     NonFiniteError,
     OutputWriteError,
     PhysicsOverflowError,
+    ProcessLostError,
 )
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
@@ -67,6 +68,7 @@ from td3_jax.runner.sharding import (
     make_mesh,
     replay_layout_warning,
     state_shardings,
+    stop_agreed,
 )
 
 __all__ = ["train"]
@@ -519,7 +521,7 @@ def _loop(run: _Run, compiled: Programs, state: Any) -> None:
     chunks, stopped = 0, False
     run.stop.mark_training()  # (a stop from here on waits for the chunk's checkpoint)
     for index, calls in chunk_calls(cfg, run.start_steps // cfg.env_steps_per_iter):
-        if _stopping(run, chunks):
+        if _stopping(run, chunks, index, end=False):
             stopped = True
             break
         for iterations in calls:
@@ -531,7 +533,7 @@ def _loop(run: _Run, compiled: Programs, state: Any) -> None:
             _warn_of_critic_growth(run)
             run.checkpointer.check()  # a background write that failed stops the run now
         chunks += 1
-        last = index + 1 == cfg.num_chunks or _stopping(run, chunks)
+        last = index + 1 == cfg.num_chunks or _stopping(run, chunks, index, end=True)
         # The rest of the chunk a restored checkpoint stopped inside would be saved under that
         # checkpoint's own number, deleting it first: kept unless the run ends there.
         rewrites_restored = index + 1 == run.start_chunk and not last
@@ -556,15 +558,30 @@ def _warn_of_critic_growth(run: _Run) -> None:
         print(f"td3-jax: warning: {warning}", file=sys.stderr, flush=True)
 
 
-def _stopping(run: _Run, chunks_done: int) -> bool:
-    """Whether this call stops before its next chunk (chunk limit, wall-clock budget or its
-    stop token)."""
+def _stopping(run: _Run, chunks_done: int, chunk: int, end: bool) -> bool:
+    """Whether this call stops at the start (or ``end``) of chunk ``chunk``: its chunk limit,
+    wall-clock budget or stop token, agreed with the other processes of a several-process
+    run (:func:`~td3_jax.runner.sharding.stop_agreed`; another's stop token sets this one's)."""
+    try:
+        agreed = stop_agreed(_own_stop_reason(run, chunks_done), chunk, end)
+    except ProcessLostError as err:
+        raise ProcessLostError(f"{err}; {_kept_checkpoint(run, run.checkpointer.latest_step())}"
+                               ) from None
+    if agreed == "token":
+        run.stop.set()
+    return bool(agreed)
+
+
+def _own_stop_reason(run: _Run, chunks_done: int) -> str:
+    """This process's reason to stop before its next chunk: ``"token"`` (its stop token),
+    ``"limit"`` (its chunk limit or wall-clock budget) or ``""`` (none)."""
     if run.stop.is_set():
-        return True
+        return "token"
     if run.stop_after_chunks is not None and chunks_done >= run.stop_after_chunks:
-        return True
+        return "limit"
     budget = run.time_budget_s
-    return bool(run.records) and budget is not None and run.records[-1]["wall_time_s"] >= budget
+    over = bool(run.records) and budget is not None and run.records[-1]["wall_time_s"] >= budget
+    return "limit" if over else ""
 
 
 def _chunk_and_record(

@@ -27,7 +27,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from td3_jax.common import upstream
-from td3_jax.common.errors import ConfigError
+from td3_jax.common.errors import ConfigError, ProcessLostError
 from td3_jax.config.schema import flag
 from td3_jax.runner.memory import (
     WORKING_ADVICE,
@@ -244,6 +244,11 @@ def host_value(x: jax.Array) -> np.ndarray:
 
 #: Key prefix of each process's settings in the distributed key-value store.
 SETTINGS_KEY = "td3_jax/settings"
+#: Key prefix of each process's word on stopping at a chunk boundary.
+STOP_KEY = "td3_jax/stop"
+#: Seconds a process waits at a chunk boundary for the others' word on stopping (they may still
+#: be compiling, evaluating or writing a checkpoint).
+STOP_WAIT_S = 3600
 #: Seconds a process waits for all the others to join (``jax.distributed.initialize``'s
 #: ``initialization_timeout``); past it JAX aborts the process (exit status 134).
 JOIN_TIMEOUT_S = 300
@@ -307,6 +312,37 @@ def check_same_settings(settings: dict[str, Any]) -> None:
             differ = sorted(k for k in texts | theirs if texts.get(k) != theirs.get(k))
             if differ:
                 raise ConfigError(_differ_message(differ, theirs, texts, other, here))
+
+
+def stop_agreed(reason: str, chunk: int, end: bool) -> str:
+    """Whether the processes of this ``jax.distributed`` run stop at the start (or ``end``) of
+    chunk ``chunk``, agreed so that none goes on into a chunk whose collectives the others
+    will never join. ``reason`` is this process's own: ``""`` (go on), ``"limit"`` (its chunk
+    limit, or ``--time-budget-s`` read from its own clock) or ``"token"`` (a Ctrl-C or SIGTERM
+    of its own). Returns the agreed one: ``"token"`` if any process has one, else ``"limit"``
+    if any, else ``""``. One process: ``reason`` itself.
+
+    Each process publishes its reason in the runtime's key-value store and reads the others'
+    (up to :data:`STOP_WAIT_S` each; :class:`ProcessLostError` names a process that never
+    gives one)."""
+    store = upstream.distributed_store()
+    if store is None or jax.process_count() == 1:
+        return reason
+    here, boundary = jax.process_index(), f"{chunk}/{'end' if end else 'start'}"
+    store.key_value_set(f"{STOP_KEY}/{boundary}/{here}", reason)
+    reasons = {reason}
+    for other in range(jax.process_count()):
+        if other != here:
+            key = f"{STOP_KEY}/{boundary}/{other}"
+            try:
+                reasons.add(store.blocking_key_value_get(key, STOP_WAIT_S * 1000))
+            except jax.errors.JaxRuntimeError:
+                raise ProcessLostError(
+                    f"process {other} did not reach the {'end' if end else 'start'} of chunk "
+                    f"{chunk} within {STOP_WAIT_S} s of this process (its own output says why it "
+                    "stopped, if it did); this process stops too"
+                ) from None
+    return "token" if "token" in reasons else "limit" if "limit" in reasons else ""
 
 
 def _as_texts(settings: dict[str, Any]) -> dict[str, str]:
@@ -385,6 +421,8 @@ __all__ = [
     "AXIS",
     "JOIN_TIMEOUT_S",
     "SETTINGS_KEY",
+    "STOP_KEY",
+    "STOP_WAIT_S",
     "check_memory",
     "check_processes",
     "check_same_settings",
@@ -394,4 +432,5 @@ __all__ = [
     "memory_of",
     "replicate",
     "state_shardings",
+    "stop_agreed",
 ]

@@ -234,3 +234,139 @@ def test_two_processes_given_different_flags_both_stop_in_one_line(tmp_path):
         assert (f"td3-jax: error: process {1 - i} was given other settings than this process "
                 f"({i}): --total-steps {there} there, {here} here;") in err  # fmt: skip
     assert not (tmp_path / "run").exists()
+
+
+# --- stopping together ----------------------------------------------------------------------
+
+
+def _stop_run(stop_set: bool = False, budget: float | None = None, wall: float = 0.0,
+              after_chunks: int | None = None):  # fmt: skip
+    """The fields of a run that its stop decision reads."""
+    from types import SimpleNamespace
+
+    from td3_jax.common.runtime import StopToken
+
+    stop = StopToken()
+    if stop_set:
+        stop.set()
+    checkpointer = SimpleNamespace(latest_step=lambda: 3)
+    return SimpleNamespace(stop=stop, stop_after_chunks=after_chunks, time_budget_s=budget,
+                           records=[{"wall_time_s": wall}], checkpointer=checkpointer,
+                           start_chunk=0, start_steps=0,
+                           cfg=SimpleNamespace(steps_per_chunk=32, run_steps=1000))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("mine", "theirs", "agreed"),
+    [("", ["", ""], ""), ("", ["limit", ""], "limit"), ("limit", ["", ""], "limit"),
+     ("", ["", "token"], "token"), ("limit", ["token", ""], "token"),
+     ("token", ["", ""], "token")],
+)  # fmt: skip
+def test_the_processes_stop_together_for_the_strongest_reason_any_has(monkeypatch, mine, theirs,
+                                                                      agreed):  # fmt: skip
+    """Process 1 of 3: its own reason published under the boundary's key, the others' read;
+    any process's stop token wins over any limit, which wins over going on."""
+    from td3_jax.runner.sharding import STOP_KEY, stop_agreed
+
+    published = {f"{STOP_KEY}/4/end/{i}": r for i, r in zip((0, 2), theirs, strict=True)}
+    store = _Store(published)
+    _as_process(monkeypatch, 1, 3, store)
+    assert stop_agreed(mine, 4, end=True) == agreed
+    assert store.published[f"{STOP_KEY}/4/end/1"] == mine
+
+
+def test_one_process_decides_alone(monkeypatch):
+    from td3_jax.runner.sharding import stop_agreed
+
+    _as_process(monkeypatch, 0, 1, None)
+    assert [stop_agreed(r, 0, end=False) for r in ("", "limit", "token")] == ["", "limit", "token"]
+
+
+def test_a_budget_one_process_reached_first_stops_the_other_at_the_same_boundary(monkeypatch):
+    """--time-budget-s is read from each process's own clock: process 0 is past it, process 1
+    (its clock a little behind) not yet; both stop at the end of chunk 2, process 1 without a
+    stop token of its own (a budget stop ends as done, not interrupted)."""
+    from td3_jax.runner import run as run_module
+    from td3_jax.runner.sharding import STOP_KEY
+
+    run = _stop_run(budget=60.0, wall=59.5)
+    assert run_module._own_stop_reason(run, 3) == ""
+    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/2/end/0": "limit"}))
+    assert run_module._stopping(run, 3, 2, end=True)
+    assert not run.stop.is_set()
+
+
+def test_another_process_stopped_by_a_signal_stops_this_one_as_interrupted(monkeypatch):
+    """A Ctrl-C or SIGTERM that reached process 0 alone: process 1 stops at the same boundary
+    with its own stop token set, so it ends as interrupted too (after the chunk's
+    checkpoint)."""
+    from td3_jax.runner import run as run_module
+    from td3_jax.runner.sharding import STOP_KEY
+
+    run = _stop_run()
+    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/5/start/0": "token"}))
+    assert run_module._stopping(run, 0, 5, end=False)
+    assert run.stop.is_set()
+
+
+def test_a_process_that_never_reaches_the_boundary_stops_this_one_keeping_its_checkpoint(
+    monkeypatch,
+):
+    """Process 0 stopped (or hangs) before the end of chunk 2: once JAX's wait times out,
+    process 1 stops with one line naming it and the checkpoint it keeps (exit status 3),
+    rather than going on into a chunk whose collectives would never complete."""
+    from td3_jax.common.errors import ProcessLostError
+    from td3_jax.runner import run as run_module
+    from td3_jax.runner.sharding import STOP_WAIT_S
+
+    run = _stop_run()
+    _as_process(monkeypatch, 1, 2, _Store({}))
+    with pytest.raises(ProcessLostError) as err:
+        run_module._stopping(run, 3, 2, end=True)
+    assert str(err.value).startswith(
+        f"process 0 did not reach the end of chunk 2 within {STOP_WAIT_S} s of this process")
+    assert "the last good checkpoint (after 96 env steps) is kept" in str(err.value)
+    assert ProcessLostError.exit_code == 3
+
+
+@pytest.mark.timeout(400)
+@pytest.mark.processes
+def test_a_sigterm_that_reaches_one_process_stops_both_at_one_chunk_checkpointed(tmp_path):
+    """Two CPU processes; SIGTERM to process 1 alone once training runs. Each process decided
+    alone before, so process 0 went on into a chunk process 1 never joined and waited there
+    until JAX aborted it. Now both stop after the same chunk, its checkpoint written: process 1
+    as terminated (143), process 0 saying it stopped with the other (130), and the run
+    resumes."""
+    import signal
+    import time
+
+    from benchmarks.multiprocess import free_port
+
+    out = tmp_path / "run"
+    flags = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--eval-every", "256",
+             "--total-steps", "51200", "--batch-size", "64", "--hidden-sizes", "8",
+             "--eval-envs", "4", "--buffer-size", "512", "--replay-shards", "2",
+             "--compile-cache", "off", "--quiet", "--out", str(out), "--coordinator-address",
+             f"localhost:{free_port()}", "--num-processes", "2"]  # fmt: skip
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    procs = [subprocess.Popen([sys.executable, "-m", "td3_jax", "train", *flags, "--process-id",
+                               str(i)], env=env, text=True, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE) for i in (0, 1)]  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "metrics.jsonl").exists() or not (out / "metrics.jsonl").read_text():
+            assert time.monotonic() < deadline and all(p.poll() is None for p in procs)
+            time.sleep(0.2)
+        procs[1].send_signal(signal.SIGTERM)
+        outs = [p.communicate(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    codes = [p.returncode for p in procs]
+    assert codes == [130, 143], [o[1][-2000:] for o in outs]
+    assert "stopped with another process of the run, which was interrupted; the newest " \
+           "checkpoint is" in outs[0][1]  # fmt: skip
+    assert "terminated (SIGTERM); the newest checkpoint is" in outs[1][1]
+    records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    saved = sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit())
+    assert saved and records[-1]["env_steps"] == saved[-1] * 256 < 51200
