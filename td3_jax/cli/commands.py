@@ -84,6 +84,10 @@ class TrainCommand(TrainConfig):
     devices: int | None = None
     """Data-parallel over this many devices (default: all; one GPU for MuJoCo Warp physics);
     num_envs and batch stay global."""
+    local_processes: int | None = None
+    """Run as N processes of this host, one per GPU, joined through jax.distributed on a free
+    local port (instead of --devices N in one process: faster for MuJoCo Warp, whose host-side
+    calls a process's GPUs make in turn); num_envs and batch stay global."""
     coordinator_address: str | None = None
     """Several hosts: the coordinator's host:port (or env JAX_COORDINATOR_ADDRESS)."""
     num_processes: int | None = None

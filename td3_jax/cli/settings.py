@@ -110,7 +110,9 @@ def choose_physics(cfg: TrainConfig, devices: int | None) -> tuple[TrainConfig, 
     note = ""
     one_host = jax.process_count() == 1  # (several processes: the mesh spans them all)
     if impl == "warp" and devices is None and one_host and jax.device_count() > 1:
-        devices, note = 1, f" on one GPU (--devices {jax.device_count()} splits it over all)"
+        n = jax.device_count()
+        devices, note = 1, f" on one GPU (--local-processes {n} --replay-shards {n} runs it on " \
+                           f"all {n}, a process each)"  # fmt: skip
     elif impl == "jax" and asked is None:
         note = f": {physics.warp_missing()}"  # (why not Warp, the default where it runs)
     if jax.process_index() == 0:

@@ -37,6 +37,12 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax import envs  # lazy: imports JAX
 
     envs.check_name(cfg.env)  # before anything about the environment is said
+    if command.local_processes is not None:  # (checked here once, then in each process)
+        from td3_jax.cli.local_processes import run_local_processes
+
+        status = run_local_processes("sweep" if sweeping else "train", args,
+                                     command.local_processes)  # fmt: skip
+        raise SystemExit(status)
     program_dir = _start_process(command, args)
     _check_processes_agree(cfg, command, sweep, sweeping)
     cfg, devices, asked_eval_every = _completed(cfg, command, source, args)

@@ -1851,7 +1851,8 @@ def test_warp_takes_one_gpu_of_several_unless_asked_or_run_over_several_processe
     cfg = TrainConfig(env="playground/T1JoystickFlatTerrain")
     assert cli_settings.choose_physics(cfg, None) == (dataclasses.replace(cfg, impl="warp"), 1)
     assert capsys.readouterr().out == (
-        "physics: MuJoCo Warp (--impl warp) on one GPU (--devices 4 splits it over all)\n"
+        "physics: MuJoCo Warp (--impl warp) on one GPU (--local-processes 4 --replay-shards 4 runs "
+        "it on all 4, a process each)\n"
     )
     assert cli_settings.choose_physics(cfg, 2)[1] == 2
     monkeypatch.setattr(jax, "process_count", lambda: 2)

@@ -1,0 +1,214 @@
+"""``--local-processes N``: one ``td3-jax train`` (or ``sweep``) run as N processes of this
+host, one per GPU, joined through ``jax.distributed``.
+
+This process starts no JAX backend: it picks a free local port, starts the N processes with
+``--coordinator-address/--num-processes/--process-id`` (each seeing only its own GPU through
+``CUDA_VISIBLE_DEVICES``; on a host without GPUs, each JAX's CPU device), passes its Ctrl-C and
+SIGTERM on to them, and ends with their exit status. One process per GPU is faster than one
+process of several GPUs for MuJoCo Warp: a process's GPUs take turns at Warp's host-side calls.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+from td3_jax.common.errors import ConfigError
+
+__all__ = [
+    "FLAG",
+    "GRACE_S",
+    "check_local_processes",
+    "child_args",
+    "local_gpus",
+    "process_env",
+    "run_local_processes",
+]
+
+FLAG = "--local-processes"
+#: Seconds the other processes get to end by themselves after one fails, before they are
+#: stopped (they may be waiting for it at a collective).
+GRACE_S = 30.0
+#: Flags that the launcher sets in each process, so not given with --local-processes.
+_SET_HERE = ("--coordinator-address", "--num-processes", "--process-id", "--devices")
+
+
+def check_local_processes(count: int, args: list[str]) -> list[str]:
+    """The GPUs for ``count`` processes (empty: a host without GPUs); ConfigError for a count
+    below 2, more processes than GPUs, or a flag the launcher sets itself."""
+    if count < 2:
+        raise ConfigError(f"{FLAG} must be at least 2 (one process per GPU), got {count}; "
+                          "leave it out to train in this process")  # fmt: skip
+    given = [name for name in _SET_HERE if any(a.split("=", 1)[0] == name for a in args)]
+    if given:
+        raise ConfigError(f"{given[0]} does not go with {FLAG}: each process gets one GPU and "
+                          "its own id from it")  # fmt: skip
+    gpus = local_gpus()
+    if gpus and count > len(gpus):
+        raise ConfigError(f"{FLAG} {count} needs {count} GPUs; this host shows {len(gpus)} "
+                          f"({', '.join(gpus)})")  # fmt: skip
+    return gpus[:count]
+
+
+def local_gpus() -> list[str]:
+    """The ids of this host's GPUs as ``CUDA_VISIBLE_DEVICES`` names them (else as
+    ``nvidia-smi`` lists them; none without it)."""
+    given = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if given is not None:
+        return [s.strip() for s in given.split(",") if s.strip() and s.strip() != "-1"]
+    smi = shutil.which("nvidia-smi")
+    if smi is None:
+        return []
+    try:
+        listed = subprocess.run([smi, "--query-gpu=index", "--format=csv,noheader"],
+                                capture_output=True, text=True, timeout=60)  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [line.strip() for line in listed.stdout.splitlines() if line.strip().isdigit()]
+
+
+def child_args(args: list[str], index: int, count: int, port: int) -> list[str]:
+    """Process ``index``'s flags: ``args`` without ``--local-processes N``, with the join flags
+    (processes after the first also ``--quiet``: the first shows the progress)."""
+    kept, skip = [], False
+    for arg in args:
+        if skip:
+            skip = False
+        elif arg == FLAG:
+            skip = True
+        elif not arg.startswith(f"{FLAG}="):
+            kept.append(arg)
+    join = ["--coordinator-address", f"127.0.0.1:{port}", "--num-processes", str(count),
+            "--process-id", str(index)]  # fmt: skip
+    return [*kept, *join, *(["--quiet"] if index else [])]
+
+
+def process_env(gpu: str | None) -> dict[str, str]:
+    """A process's environment: this one's, seeing only ``gpu`` (None: as it is)."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")}
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu
+    return env
+
+
+def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
+    """Runs ``td3-jax SUBCOMMAND ARGS`` as ``count`` processes of this host and returns the exit
+    status: 0 when all end with 0, else the first failure's (the others stopped, if they do
+    not end by themselves within :data:`GRACE_S`). The first process's output is this one's;
+    another's is shown only where it ended otherwise than the first (its own failure)."""
+    gpus = check_local_processes(count, args)
+    port = _free_port()
+    where = f"one per GPU ({', '.join(gpus)})" if gpus else "on this host's CPU (no GPU found)"
+    print(f"td3-jax: starting {count} processes {where}, joined at 127.0.0.1:{port}", flush=True)
+    procs, outputs = [], []
+    for i in range(count):
+        held = None if i == 0 else {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT}
+        procs.append(subprocess.Popen(
+            [sys.executable, "-m", "td3_jax", subcommand, *child_args(args, i, count, port)],
+            env=process_env(gpus[i] if gpus else None), text=True,
+            start_new_session=True, **(held or {})))  # (signals reach them through here only)
+        outputs.append(_Held(procs[-1]) if held else None)
+    with _passing_signals(procs):
+        status = _wait(procs)
+    for i, output in enumerate(outputs):
+        if output is not None and procs[i].returncode not in (0, procs[0].returncode):
+            output.show(i)
+    return status
+
+
+class _Held:
+    """A process's output, read as it comes (so its pipe never fills) and kept."""
+
+    def __init__(self, proc: subprocess.Popen):
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=self._read, args=(proc.stdout,), daemon=True)
+        self.reader.start()
+
+    def _read(self, stream: Any) -> None:
+        for line in stream:
+            self.lines.append(line.rstrip("\n"))
+
+    def show(self, index: int) -> None:
+        """Prints the output of process ``index`` on stderr, each line marked with it (not its
+        line saying it waits for the others)."""
+        self.reader.join(timeout=5)
+        for line in self.lines:
+            if not line.startswith("td3-jax: waiting for"):
+                print(f"[process {index}] {line}", file=sys.stderr, flush=True)
+
+
+class _passing_signals:
+    """Within: each SIGINT or SIGTERM this process gets goes to every process still running
+    (once: they are in their own session, so a terminal's Ctrl-C reaches them only this way)."""
+
+    def __init__(self, procs: list[subprocess.Popen]):
+        self.procs, self.saved = procs, {}
+
+    def _pass(self, signum: int, frame: Any) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.send_signal(signum)
+
+    def __enter__(self) -> None:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self.saved[signum] = signal.signal(signum, self._pass)
+
+    def __exit__(self, *exc: Any) -> None:
+        for signum, handler in self.saved.items():
+            signal.signal(signum, handler)
+        for proc in self.procs:  # (only after an error of this process's own)
+            if proc.poll() is None:
+                proc.kill()
+
+
+def _wait(procs: list[subprocess.Popen]) -> int:
+    """Waits for every process; once one fails, the others get :data:`GRACE_S` to end, then
+    are stopped. The first failure's exit status (0: none)."""
+    failed: tuple[int, int] | None = None
+    deadline = None
+    while any([p.poll() is None for p in procs]):  # (a list: every process polled)
+        if failed is None:
+            failed = next(((i, p.returncode) for i, p in enumerate(procs)
+                           if p.returncode not in (None, 0)), None)  # fmt: skip
+            deadline = time.monotonic() + GRACE_S if failed else None
+        if deadline is not None and time.monotonic() > deadline:
+            _stop_rest(procs, failed)
+            break
+        time.sleep(0.2)
+    codes = [p.wait() for p in procs]
+    if failed is None:
+        failed = next(((i, c) for i, c in enumerate(codes) if c != 0), None)
+    return 0 if failed is None else _exit_status(failed[1])
+
+
+def _stop_rest(procs: list[subprocess.Popen], failed: tuple[int, int]) -> None:
+    """Stops the processes still running after process ``failed[0]`` ended with ``failed[1]``:
+    SIGKILL (they wait for it at a collective, where a SIGTERM is not acted on); the run's
+    newest checkpoint is kept."""
+    running = [i for i, p in enumerate(procs) if p.poll() is None]
+    print(f"td3-jax: process {failed[0]} ended with exit status {_exit_status(failed[1])}; "
+          f"stopping process{'es' if len(running) > 1 else ''} "
+          f"{', '.join(map(str, running))}, which did not end within {GRACE_S:g} s (the run's "
+          "newest checkpoint is kept)", file=sys.stderr, flush=True)  # fmt: skip
+    for i in running:
+        procs[i].kill()
+
+
+def _exit_status(code: int) -> int:
+    """A process's exit status as a shell gives it (killed by signal S: 128 + S)."""
+    return 128 - code if code < 0 else code
+
+
+def _free_port() -> int:
+    """A TCP port of this host that is free now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -1,0 +1,163 @@
+"""``--local-processes N``: one run as N processes of this host (one per GPU), started, watched
+and stopped by the command itself (:mod:`td3_jax.cli.local_processes`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from td3_jax.cli import local_processes as lp
+from td3_jax.common.errors import ConfigError
+
+TINY = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--eval-every", "256",
+        "--warmup-steps", "64", "--batch-size", "64", "--updates-per-iter", "2",
+        "--hidden-sizes", "32", "32", "--eval-envs", "4", "--buffer-size", "512",
+        "--replay-shards", "2", "--compile-cache", "off"]  # fmt: skip
+
+
+@pytest.mark.parametrize("given", [["--local-processes", "2"], ["--local-processes=2"]])
+def test_each_process_gets_the_flags_without_the_launcher_and_its_own_join_flags(given):
+    args = ["--preset", "t1", *given, "--out", "runs/x"]
+    assert lp.child_args(args, 0, 2, 4321) == [
+        "--preset", "t1", "--out", "runs/x", "--coordinator-address", "127.0.0.1:4321",
+        "--num-processes", "2", "--process-id", "0"]  # fmt: skip
+    assert lp.child_args(args, 1, 2, 4321)[-3:] == ["--process-id", "1", "--quiet"]
+
+
+def test_each_process_sees_its_own_gpu_and_no_join_variables(monkeypatch):
+    monkeypatch.setenv("JAX_PROCESS_ID", "7")
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
+    env = lp.process_env("3")
+    assert env["CUDA_VISIBLE_DEVICES"] == "3" and "JAX_PROCESS_ID" not in env
+    assert lp.process_env(None)["CUDA_VISIBLE_DEVICES"] == "2,3"
+
+
+@pytest.mark.parametrize(
+    ("visible", "gpus"), [("0,1", ["0", "1"]), ("2, 5", ["2", "5"]), ("", []), ("-1", [])]
+)
+def test_the_gpus_are_those_cuda_visible_devices_names(monkeypatch, visible, gpus):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+    assert lp.local_gpus() == gpus
+
+
+def test_without_nvidia_smi_a_host_has_no_gpus(monkeypatch):
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.setattr(lp.shutil, "which", lambda name: None)
+    assert lp.local_gpus() == []
+
+
+@pytest.mark.parametrize(
+    ("count", "args", "visible", "message"),
+    [(1, [], "0,1", "--local-processes must be at least 2 (one process per GPU), got 1; leave it "
+      "out to train in this process"),
+     (2, ["--devices", "2"], "0,1", "--devices does not go with --local-processes: each process "
+      "gets one GPU and its own id from it"),
+     (2, ["--process-id=0"], "0,1", "--process-id does not go with --local-processes"),
+     (3, [], "0,1", "--local-processes 3 needs 3 GPUs; this host shows 2 (0, 1)")],
+)  # fmt: skip
+def test_what_cannot_run_as_local_processes_is_refused_in_one_line(monkeypatch, count, args,
+                                                                   visible, message):  # fmt: skip
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+    with pytest.raises(ConfigError) as err:
+        lp.check_local_processes(count, args)
+    assert str(err.value).startswith(message)
+
+
+def test_a_host_without_gpus_runs_cpu_processes():
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
+    code = "from td3_jax.cli import local_processes as lp; print(lp.check_local_processes(2, []))"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=60)  # fmt: skip
+    assert out.stdout.strip() == "[]", out.stderr
+
+
+def _sleeper(seconds: float, code: int) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c",
+                             f"import sys, time; time.sleep({seconds}); sys.exit({code})"])
+
+
+def test_all_ending_well_is_exit_status_0():
+    assert lp._wait([_sleeper(0.2, 0), _sleeper(0.5, 0)]) == 0
+
+
+def test_one_failing_stops_the_others_after_the_grace_and_gives_its_status(monkeypatch, capsys):
+    """Process 1 fails (exit 3) while process 0 would wait for it forever (at a collective):
+    process 0 is killed once the grace has passed, and the run's status is process 1's."""
+    monkeypatch.setattr(lp, "GRACE_S", 0.5)
+    procs = [_sleeper(600, 0), _sleeper(0.1, 3)]
+    started = time.monotonic()
+    assert lp._wait(procs) == 3
+    assert time.monotonic() - started < 30
+    assert procs[0].returncode == -signal.SIGKILL
+    assert ("td3-jax: process 1 ended with exit status 3; stopping process 0, which did not end "
+            "within 0.5 s") in capsys.readouterr().err  # fmt: skip
+
+
+def test_processes_that_fail_alike_are_not_stopped_and_give_the_first_failure():
+    assert lp._wait([_sleeper(0.3, 2), _sleeper(0.1, 2)]) == 2
+
+
+def test_a_killed_process_gives_the_shells_status():
+    assert lp._exit_status(-signal.SIGKILL) == 137 and lp._exit_status(3) == 3
+
+
+def _train(args: list[str], env: dict, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "td3_jax", "train", *args], env=env,
+                            text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+
+
+def _records(run_dir) -> list[dict]:
+    return [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.processes
+def test_local_processes_give_the_numbers_of_one_process_over_as_many_devices(tmp_path):
+    """Two CPU processes started by --local-processes 2 train what one process of two devices
+    trains (the records agree to float rounding: the collectives differ); only the first
+    process shows its progress and the run's last line."""
+    from benchmarks.multiprocess import compare
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "CUDA_VISIBLE_DEVICES": ""}
+    flags = [*TINY, "--total-steps", "512"]
+    two = _train([*flags, "--local-processes", "2", "--out", str(tmp_path / "two")], env)
+    forced = {**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    one = _train([*flags, "--devices", "2", "--quiet", "--out", str(tmp_path / "one")], forced)
+    (out, err), (_, one_err) = two.communicate(timeout=500), one.communicate(timeout=500)
+    assert two.returncode == 0 and one.returncode == 0, err[-2000:] + one_err[-2000:]
+    assert out.startswith("td3-jax: starting 2 processes on this host's CPU (no GPU found), "
+                          "joined at 127.0.0.1:")  # fmt: skip
+    assert out.count("done: 512 env steps") == 1 and "[process 1]" not in out + err
+    result = compare(_records(tmp_path / "two"), _records(tmp_path / "one"), 1e-4, 1e-5)
+    assert result["equal"], result
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.processes
+def test_a_ctrl_c_stops_every_process_once_after_a_checkpointed_chunk(tmp_path):
+    """SIGINT to the command (a terminal's Ctrl-C) reaches each process once, through it: all
+    stop after the same chunk, checkpointed, exit status 130, and the line saying what the run
+    directory holds is shown once (the second process's, the same, is not)."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "CUDA_VISIBLE_DEVICES": ""}
+    run = tmp_path / "run"
+    proc = _train([*TINY, "--total-steps", "51200", "--local-processes", "2", "--quiet",
+                   "--out", str(run)], env)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300
+        while not (run / "metrics.jsonl").exists() or not (run / "metrics.jsonl").read_text():
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=200)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err[-3000:]
+    assert err.count("interrupted; the newest checkpoint is") == 1, err[-3000:]
+    saved = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
+    assert saved and _records(run)[-1]["env_steps"] == saved[-1] * 256 < 51200
