@@ -92,7 +92,30 @@ def _dispatch(argv: list[str]) -> None:
         print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n(subcommands: {names}; "
               "td3-jax --help says what each does)", file=sys.stderr)  # fmt: skip
         sys.exit(2)
+    if _launched(argv[0], argv[1:]):
+        _launch(argv[0], argv[1:])
+        return
     run_reporting_errors(subcommand(argv[0]), argv[1:])
+
+
+def _launched(name: str, args: list[str]) -> bool:
+    """Whether ``td3-jax NAME ARGS`` is a train or sweep of ``--local-processes`` (not its
+    ``--help``)."""
+    return name in ("train", "sweep") and not {"-h", "--help"} & set(args) and any(
+        arg.partition("=")[0] == "--local-processes" for arg in args)  # fmt: skip
+
+
+def _launch(name: str, args: list[str]) -> None:
+    """Starts the processes of ``--local-processes`` before anything heavy is imported here
+    (JAX, the environments: seconds each process would wait); they check and say the rest
+    (warnings included) themselves. Its own refusal is one line and exit status 2."""
+    from td3_jax.cli import local_processes
+
+    try:
+        local_processes.main(name, args)
+    except Td3JaxError as err:
+        error(str(err))
+        sys.exit(err.exit_code)
 
 
 def subcommand(name: str) -> Callable[[list[str]], None]:

@@ -25,9 +25,11 @@ from td3_jax.common.errors import ConfigError
 __all__ = [
     "FLAG",
     "GRACE_S",
+    "asked_count",
     "check_local_processes",
     "child_args",
     "local_gpus",
+    "main",
     "process_env",
     "run_local_processes",
 ]
@@ -38,6 +40,29 @@ FLAG = "--local-processes"
 GRACE_S = 30.0
 #: Flags that the launcher sets in each process, so not given with --local-processes.
 _SET_HERE = ("--coordinator-address", "--num-processes", "--process-id", "--devices")
+
+
+def asked_count(args: list[str]) -> int | None:
+    """The N of ``--local-processes N`` (or ``=N``) in ``args``; None without it.
+    ConfigError when it is not a whole number."""
+    for i, arg in enumerate(args):
+        name, equals, value = arg.partition("=")
+        if name == FLAG:
+            text = value if equals else (args[i + 1] if i + 1 < len(args) else "")
+            if not text.isdigit():
+                raise ConfigError(f"{FLAG} takes a number of processes, e.g. {FLAG} 2"
+                                  + (f"; got {text!r}" if text else ""))  # fmt: skip
+            return int(text)
+    return None
+
+
+def main(subcommand: str, args: list[str]) -> None:
+    """``td3-jax train|sweep ... --local-processes N``, started before anything heavy is
+    imported here (JAX, the environments): the processes check the flags themselves, and
+    one's message is shown once. Exits with the processes' status."""
+    count = asked_count(args)
+    assert count is not None, f"{FLAG} not in {args}"
+    raise SystemExit(run_local_processes(subcommand, args, count))
 
 
 def check_local_processes(count: int, args: list[str]) -> list[str]:

@@ -161,3 +161,61 @@ def test_a_ctrl_c_stops_every_process_once_after_a_checkpointed_chunk(tmp_path):
     assert err.count("interrupted; the newest checkpoint is") == 1, err[-3000:]
     saved = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
     assert saved and _records(run)[-1]["env_steps"] == saved[-1] * 256 < 51200
+
+
+@pytest.mark.parametrize(
+    ("args", "count"),
+    [(["--local-processes", "2"], 2), (["--seed", "1", "--local-processes=4"], 4), ([], None)],
+)
+def test_the_count_is_read_from_the_flag_in_either_form(args, count):
+    assert lp.asked_count(args) == count
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [(["--local-processes", "two"], "--local-processes takes a number of processes, e.g. "
+      "--local-processes 2; got 'two'"),
+     (["--local-processes"], "--local-processes takes a number of processes, e.g. "
+      "--local-processes 2")],
+)  # fmt: skip
+def test_a_count_that_is_not_a_number_is_refused_in_one_line(args, message):
+    with pytest.raises(ConfigError) as err:
+        lp.asked_count(args)
+    assert str(err.value) == message
+
+
+_LAUNCH_ALONE = """
+import sys
+from td3_jax.cli import app, local_processes
+local_processes.run_local_processes = lambda *a: print("launched", *a) or 0
+try:
+    app.main(sys.argv[1:])
+except SystemExit as end:
+    print("exit", end.code)
+print("jax imported:", "jax" in sys.modules)
+"""
+
+
+def test_the_command_starts_its_processes_before_importing_jax():
+    """The launching process imports neither JAX nor any environment (seconds that each
+    process would wait for it); the processes check the flags themselves."""
+    out = subprocess.run([sys.executable, "-c", _LAUNCH_ALONE, "sweep", "--preset", "t1",
+                          "--local-processes", "2"], capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert out.stdout.splitlines() == [
+        "launched sweep ['--preset', 't1', '--local-processes', '2'] 2", "exit 0",
+        "jax imported: False"], out.stderr  # fmt: skip
+
+
+def test_its_help_is_the_subcommands_and_a_bad_count_one_line(capsys):
+    from td3_jax.cli import app
+
+    with pytest.raises(SystemExit) as end:
+        app.main(["train", "--local-processes", "x"])
+    assert end.value.code == 2
+    assert capsys.readouterr().err.strip() == (
+        "td3-jax: error: --local-processes takes a number of processes, e.g. --local-processes "
+        "2; got 'x'")  # fmt: skip
+    with pytest.raises(SystemExit) as end:
+        app.main(["train", "--local-processes", "2", "--help"])
+    assert end.value.code == 0 and "--local-processes" in capsys.readouterr().out
