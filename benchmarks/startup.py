@@ -46,6 +46,7 @@ from td3_jax.common.runtime import enable_compile_cache  # noqa: E402
 from td3_jax.config import build  # noqa: E402
 from td3_jax.config.build import make_population, members  # noqa: E402
 from td3_jax.config.presets import preset  # noqa: E402
+from td3_jax.envs import physics  # noqa: E402
 from td3_jax.runner import program_cache, programs  # noqa: E402
 from td3_jax.runner.sharding import make_mesh  # noqa: E402
 
@@ -75,7 +76,19 @@ def parse() -> argparse.Namespace:
     parser.add_argument(
         "--loop-chunks", type=int, default=0, help="then time this many chunks, one more evaluation"
     )
+    parser.add_argument("--devices", type=int, default=None,
+                        help="devices to split the run over (default: as td3-jax train, one GPU "
+                        "for MuJoCo Warp physics, else every device)")  # fmt: skip
     return parser.parse_args()
+
+
+def run_devices(cfg, devices: int | None) -> int | None:
+    """The device count ``td3-jax train`` would take for ``cfg`` given ``--devices devices``:
+    one GPU for MuJoCo Warp physics on a host of several, else ``devices`` (None: all)."""
+    if devices is not None or not cfg.env.startswith("playground/"):
+        return devices
+    asked = cfg.impl or ("warp" if cfg.env_backend == "warp" else None)  # (as train resolves it)
+    return 1 if physics.resolve(asked) == "warp" else None
 
 
 def floor(cfg, clock: Clock) -> dict[str, float]:
@@ -105,11 +118,12 @@ def floor(cfg, clock: Clock) -> dict[str, float]:
     return {"raw_env_steps_per_s": round(cfg.num_envs * FLOOR_STEPS / seconds)}
 
 
-def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int = 0) -> dict:
-    """The command's start-up: environment (or stored programs), programs, init, first chunk,
-    first evaluation."""
+def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int = 0,
+              devices: int | None = None) -> dict:  # fmt: skip
+    """The command's start-up over ``devices`` (None: all): environment (or stored programs),
+    programs, init, first chunk, first evaluation."""
     population = members(cfg)
-    mesh = make_mesh(None)
+    mesh = make_mesh(devices)
     if sequential:
         env = build.make_env(cfg)
         clock.lap("make_env")
@@ -191,7 +205,8 @@ def main() -> None:
     extra = (
         floor(cfg, clock)
         if args.floor
-        else run_start(cfg, clock, args.sequential, program_dir, args.loop_chunks)
+        else run_start(cfg, clock, args.sequential, program_dir, args.loop_chunks,
+                       run_devices(cfg, args.devices))
     )
     total = round(time.time() - float(os.environ.get("TD3_LAUNCH", _SCRIPT_START)), 2)
     mode = "floor" if args.floor else ("sequential" if args.sequential else "ahead")
