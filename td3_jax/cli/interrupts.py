@@ -41,8 +41,9 @@ def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> lis
     stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
     ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
     try:
+        several = jax.process_count() > 1  # (a first Ctrl-C too stops at an agreed boundary)
         signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
-                                       aftermath=ended)  # fmt: skip
+                                       aftermath=ended, several=several)  # fmt: skip
         with signals:
             return train(cfg, command.out, resume=command.resume, stop=stop,
                          progress=not command.quiet, time_budget_s=command.time_budget_s,
@@ -52,7 +53,7 @@ def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> lis
             raise Interrupted(ended("terminated (SIGTERM)"), 128 + signal.SIGTERM) from None
         if not received and jax.process_count() > 1:  # (another process was stopped)
             raise Interrupted(ended("stopped with another process of the run, which was "
-                                    "interrupted")) from None  # fmt: skip
+                                    "stopped (Ctrl-C or SIGTERM)")) from None  # fmt: skip
         raise Interrupted(ended()) from None
 
 

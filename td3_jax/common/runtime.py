@@ -252,6 +252,7 @@ def stop_signals(
     received: list[int],
     say: bool = True,
     aftermath: Callable[[str], str] | None = None,
+    several: bool = False,
 ) -> Iterator[None]:
     """While training: the first Ctrl-C says it is stopping, raises KeyboardInterrupt and sets
     ``stop`` (so the run stops at its next chunk boundary even where Python discards that
@@ -262,7 +263,10 @@ def stop_signals(
     process group, so one request arrives twice. The signals received are appended to
     ``received``; ``say``: whether this process prints (several processes: one speaks).
     ``aftermath(cause)``: the line said when a second signal ends the process (what it leaves
-    behind: the newest checkpoint, how to resume); default: ``cause`` alone.
+    behind: the newest checkpoint, how to resume); default: ``cause`` alone. ``several``: a
+    process of a several-process run, where a first Ctrl-C sets ``stop`` alone too, so that
+    the processes stop together at a chunk boundary (one that left at once would leave the
+    others waiting for it at a collective).
 
     The handlers, and an unraisable-exception hook for a Ctrl-C Python discarded (raised
     inside a finalizer, as during a garbage collection), are installed only on the main thread,
@@ -275,7 +279,7 @@ def stop_signals(
         yield
         return
     rearm = _Rearm()
-    on_signal = _signal_handler(stop, received, say, aftermath, rearm)
+    on_signal = _signal_handler(stop, received, say, aftermath, rearm, several)
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     previous_hook = sys.unraisablehook
 
@@ -340,9 +344,11 @@ def _signal_handler(
     say: bool,
     aftermath: Callable[[str], str] | None = None,
     rearm: _Rearm | None = None,
+    several: bool = False,
 ) -> Callable[..., None]:
     """The SIGINT/SIGTERM handler of :func:`stop_signals`; ``rearm``: a discarded Ctrl-C that
-    its next SIGINT raises again (:class:`_Rearm`)."""
+    its next SIGINT raises again (:class:`_Rearm`); ``several``: a first Ctrl-C only sets
+    ``stop``, as a SIGTERM does."""
     first_sigterm: list[float] = []
     rearm = _Rearm() if rearm is None else rearm
 
@@ -367,8 +373,9 @@ def _signal_handler(
                       "again to stop at once)", file=sys.stderr, flush=True)  # fmt: skip
             return
         if say:
-            print("td3-jax: stopping (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
-        if not stop.is_shielded():  # (a checkpoint being written is finished first)
+            what = f"interrupted: {_what_stopping_does(stop)}" if several else "stopping"
+            print(f"td3-jax: {what} (Ctrl-C again to stop at once)", file=sys.stderr, flush=True)
+        if not stop.is_shielded() and not several:  # (a checkpoint being written is finished)
             raise KeyboardInterrupt
 
     return on_signal

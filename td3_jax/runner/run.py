@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import itertools
 import json
 import math
 import re
@@ -69,9 +70,14 @@ from td3_jax.runner.sharding import (
     replay_layout_warning,
     state_shardings,
     stop_agreed,
+    stop_failed,
 )
 
 __all__ = ["train"]
+
+#: Counts this process's training calls: the processes of a ``jax.distributed`` run make the
+#: same calls, so the count names a call's stop decisions apart from an earlier call's.
+_TRAIN_CALLS = itertools.count()
 
 
 def train(
@@ -396,6 +402,8 @@ class _Run:
     start_steps: int = 0  # the env steps it holds (a run's shortened last chunk: not whole)
     trained_total_steps: int | None = None  # the total_steps it was written under, if recorded
     warned_of_growth: bool = False  # (growth_warning: said once per run)
+    call: int = dataclasses.field(default_factory=lambda: next(_TRAIN_CALLS))  # (stop keys)
+    last_chunk: int | None = None  # the index of the chunk begun last
     clock_start: float = dataclasses.field(default_factory=time.perf_counter)
     wall_offset: float = 0.0
     failed_write: Exception | None = None  # the write the disk refused, which stopped the run
@@ -517,10 +525,21 @@ def _loop(run: _Run, compiled: Programs, state: Any) -> None:
     waited for). Stopped by ``run.stop``, it raises KeyboardInterrupt once that chunk is
     checkpointed.
     """
+    index = run.start_steps // run.cfg.steps_per_chunk
+    try:
+        _chunks_until_done(run, compiled, state)
+    except BaseException:  # (several processes: the others stop instead of waiting for this one)
+        stop_failed(run.last_chunk if run.last_chunk is not None else index, call=run.call)
+        raise
+
+
+def _chunks_until_done(run: _Run, compiled: Programs, state: Any) -> None:
+    """:func:`_loop`'s chunks (``run.last_chunk``: the index of the one begun last)."""
     cfg = run.cfg
     chunks, stopped = 0, False
     run.stop.mark_training()  # (a stop from here on waits for the chunk's checkpoint)
     for index, calls in chunk_calls(cfg, run.start_steps // cfg.env_steps_per_iter):
+        run.last_chunk = index
         if _stopping(run, chunks, index, end=False):
             stopped = True
             break
@@ -563,7 +582,7 @@ def _stopping(run: _Run, chunks_done: int, chunk: int, end: bool) -> bool:
     wall-clock budget or stop token, agreed with the other processes of a several-process
     run (:func:`~td3_jax.runner.sharding.stop_agreed`; another's stop token sets this one's)."""
     try:
-        agreed = stop_agreed(_own_stop_reason(run, chunks_done), chunk, end)
+        agreed = stop_agreed(_own_stop_reason(run, chunks_done), chunk, end, call=run.call)
     except ProcessLostError as err:
         raise ProcessLostError(f"{err}; {_kept_checkpoint(run, run.checkpointer.latest_step())}"
                                ) from None

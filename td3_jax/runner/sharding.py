@@ -314,23 +314,25 @@ def check_same_settings(settings: dict[str, Any]) -> None:
                 raise ConfigError(_differ_message(differ, theirs, texts, other, here))
 
 
-def stop_agreed(reason: str, chunk: int, end: bool) -> str:
+def stop_agreed(reason: str, chunk: int, end: bool, call: int = 0) -> str:
     """Whether the processes of this ``jax.distributed`` run stop at the start (or ``end``) of
-    chunk ``chunk``, agreed so that none goes on into a chunk whose collectives the others
-    will never join. ``reason`` is this process's own: ``""`` (go on), ``"limit"`` (its chunk
-    limit, or ``--time-budget-s`` read from its own clock) or ``"token"`` (a Ctrl-C or SIGTERM
-    of its own). Returns the agreed one: ``"token"`` if any process has one, else ``"limit"``
-    if any, else ``""``. One process: ``reason`` itself.
+    chunk ``chunk`` (0-based) of their training call ``call`` (counted in each process),
+    agreed so that none goes on into a chunk whose collectives the others will never join.
+    ``reason`` is this process's own: ``""`` (go on), ``"limit"`` (its chunk limit, or
+    ``--time-budget-s`` read from its own clock) or ``"token"`` (a Ctrl-C or SIGTERM of its
+    own). Returns the agreed one: ``"token"`` if any process has one, else ``"limit"`` if any,
+    else ``""``. One process: ``reason`` itself.
 
     Each process publishes its reason in the runtime's key-value store and reads the others'
-    (up to :data:`STOP_WAIT_S` each; :class:`ProcessLostError` names a process that never
-    gives one)."""
+    (up to :data:`STOP_WAIT_S` each). :class:`ProcessLostError` names a process that stopped
+    with an error (:func:`stop_failed`) or never gives its reason."""
     store = upstream.distributed_store()
     if store is None or jax.process_count() == 1:
         return reason
-    here, boundary = jax.process_index(), f"{chunk}/{'end' if end else 'start'}"
+    here, boundary = jax.process_index(), _boundary(call, chunk, end)
     store.key_value_set(f"{STOP_KEY}/{boundary}/{here}", reason)
     reasons = {reason}
+    where = f"the {'end' if end else 'start'} of chunk {chunk + 1}"
     for other in range(jax.process_count()):
         if other != here:
             key = f"{STOP_KEY}/{boundary}/{other}"
@@ -338,11 +340,34 @@ def stop_agreed(reason: str, chunk: int, end: bool) -> str:
                 reasons.add(store.blocking_key_value_get(key, STOP_WAIT_S * 1000))
             except jax.errors.JaxRuntimeError:
                 raise ProcessLostError(
-                    f"process {other} did not reach the {'end' if end else 'start'} of chunk "
-                    f"{chunk} within {STOP_WAIT_S} s of this process (its own output says why it "
-                    "stopped, if it did); this process stops too"
+                    f"process {other} did not reach {where} within {STOP_WAIT_S} s of this "
+                    "process (its own output says why it stopped, if it did); this process "
+                    "stops too"
                 ) from None
+            if "error" in reasons:
+                raise ProcessLostError(f"process {other} stopped with an error before {where} "
+                                       "(its own output says which); this process stops too")
     return "token" if "token" in reasons else "limit" if "limit" in reasons else ""
+
+
+def stop_failed(chunk: int, call: int = 0) -> None:
+    """Tells the other processes of this ``jax.distributed`` run that this one stops with an
+    error in chunk ``chunk`` of training call ``call``: they stop at that chunk's boundaries
+    (:func:`stop_agreed`) instead of waiting for it. Nothing to do in one process."""
+    store = upstream.distributed_store()
+    if store is None or jax.process_count() == 1:
+        return
+    for boundary in (_boundary(call, chunk, False), _boundary(call, chunk, True),
+                     _boundary(call, chunk + 1, False)):  # fmt: skip
+        try:  # (a boundary this process already gave its reason at keeps it)
+            store.key_value_set(f"{STOP_KEY}/{boundary}/{jax.process_index()}", "error")
+        except jax.errors.JaxRuntimeError:
+            pass
+
+
+def _boundary(call: int, chunk: int, end: bool) -> str:
+    """The key of a chunk boundary in the store (under :data:`STOP_KEY`)."""
+    return f"{call}/{chunk}/{'end' if end else 'start'}"
 
 
 def _as_texts(settings: dict[str, Any]) -> dict[str, str]:
@@ -433,4 +458,5 @@ __all__ = [
     "replicate",
     "state_shardings",
     "stop_agreed",
+    "stop_failed",
 ]

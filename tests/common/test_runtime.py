@@ -193,6 +193,24 @@ def test_stop_signals_set_the_token_and_are_put_back(monkeypatch, capsys):
     assert {s: signal.getsignal(s) for s in handlers} == handlers
 
 
+def test_in_several_processes_a_first_ctrl_c_sets_the_token_alone(monkeypatch, capsys):
+    """A process of a several-process run does not raise on a first Ctrl-C (it would leave at
+    once, and the others wait for it at a collective): the token stops it at the chunk
+    boundary the processes agree on; a second Ctrl-C still ends it at once."""
+    exits = []
+    monkeypatch.setattr(runtime.os, "_exit", exits.append)
+    stop, received = runtime.StopToken(), []
+    stop.mark_training()
+    with runtime.stop_signals(stop, received, say=True, several=True):
+        signal.raise_signal(signal.SIGINT)
+        assert stop.is_set() and received == [signal.SIGINT] and exits == []
+        signal.raise_signal(signal.SIGINT)
+        assert exits == [128 + signal.SIGINT]
+    assert capsys.readouterr().err.startswith(
+        "td3-jax: interrupted: stopping once the chunk in flight is checkpointed (Ctrl-C again to "
+        "stop at once)\n")  # fmt: skip
+
+
 def test_a_second_signal_says_what_the_stop_leaves(monkeypatch, capsys):
     """The line a second signal ends the process with is ``aftermath`` of its cause (the run's
     newest checkpoint and how to resume, in the CLI), or the cause alone if that fails."""

@@ -119,7 +119,8 @@ class _Store:
         self.published = published
 
     def key_value_set(self, key: str, value: str) -> None:
-        assert key not in self.published  # (JAX refuses to set a key twice: ALREADY_EXISTS)
+        if key in self.published:  # (as JAX refuses to set a key twice)
+            raise jax.errors.JaxRuntimeError(f"ALREADY_EXISTS: Config key {key} already exists.")
         self.published[key] = value
 
     def blocking_key_value_get(self, key: str, timeout_in_ms: int) -> str:
@@ -252,7 +253,7 @@ def _stop_run(stop_set: bool = False, budget: float | None = None, wall: float =
     checkpointer = SimpleNamespace(latest_step=lambda: 3)
     return SimpleNamespace(stop=stop, stop_after_chunks=after_chunks, time_budget_s=budget,
                            records=[{"wall_time_s": wall}], checkpointer=checkpointer,
-                           start_chunk=0, start_steps=0,
+                           start_chunk=0, start_steps=0, call=0,
                            cfg=SimpleNamespace(steps_per_chunk=32, run_steps=1000))  # fmt: skip
 
 
@@ -268,11 +269,11 @@ def test_the_processes_stop_together_for_the_strongest_reason_any_has(monkeypatc
     any process's stop token wins over any limit, which wins over going on."""
     from td3_jax.runner.sharding import STOP_KEY, stop_agreed
 
-    published = {f"{STOP_KEY}/4/end/{i}": r for i, r in zip((0, 2), theirs, strict=True)}
+    published = {f"{STOP_KEY}/0/4/end/{i}": r for i, r in zip((0, 2), theirs, strict=True)}
     store = _Store(published)
     _as_process(monkeypatch, 1, 3, store)
     assert stop_agreed(mine, 4, end=True) == agreed
-    assert store.published[f"{STOP_KEY}/4/end/1"] == mine
+    assert store.published[f"{STOP_KEY}/0/4/end/1"] == mine
 
 
 def test_one_process_decides_alone(monkeypatch):
@@ -291,7 +292,7 @@ def test_a_budget_one_process_reached_first_stops_the_other_at_the_same_boundary
 
     run = _stop_run(budget=60.0, wall=59.5)
     assert run_module._own_stop_reason(run, 3) == ""
-    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/2/end/0": "limit"}))
+    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/0/2/end/0": "limit"}))
     assert run_module._stopping(run, 3, 2, end=True)
     assert not run.stop.is_set()
 
@@ -304,7 +305,7 @@ def test_another_process_stopped_by_a_signal_stops_this_one_as_interrupted(monke
     from td3_jax.runner.sharding import STOP_KEY
 
     run = _stop_run()
-    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/5/start/0": "token"}))
+    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/0/5/start/0": "token"}))
     assert run_module._stopping(run, 0, 5, end=False)
     assert run.stop.is_set()
 
@@ -312,7 +313,7 @@ def test_another_process_stopped_by_a_signal_stops_this_one_as_interrupted(monke
 def test_a_process_that_never_reaches_the_boundary_stops_this_one_keeping_its_checkpoint(
     monkeypatch,
 ):
-    """Process 0 stopped (or hangs) before the end of chunk 2: once JAX's wait times out,
+    """Process 0 stopped (or hangs) before the end of chunk 3: once JAX's wait times out,
     process 1 stops with one line naming it and the checkpoint it keeps (exit status 3),
     rather than going on into a chunk whose collectives would never complete."""
     from td3_jax.common.errors import ProcessLostError
@@ -324,19 +325,46 @@ def test_a_process_that_never_reaches_the_boundary_stops_this_one_keeping_its_ch
     with pytest.raises(ProcessLostError) as err:
         run_module._stopping(run, 3, 2, end=True)
     assert str(err.value).startswith(
-        f"process 0 did not reach the end of chunk 2 within {STOP_WAIT_S} s of this process")
+        f"process 0 did not reach the end of chunk 3 within {STOP_WAIT_S} s of this process")
     assert "the last good checkpoint (after 96 env steps) is kept" in str(err.value)
     assert ProcessLostError.exit_code == 3
 
 
+def test_a_process_that_stops_with_an_error_stops_the_others_at_once(monkeypatch):
+    """Process 0 failed in chunk 4 (its disk full, say) and said so at that chunk's boundaries
+    (keeping the reason it gave at the chunk's start); process 1, at the chunk's end, stops
+    with one line naming it instead of waiting for it; its earlier training call's keys
+    (call 0) do not count for this one (call 1)."""
+    from td3_jax.common.errors import ProcessLostError
+    from td3_jax.runner.sharding import STOP_KEY, stop_agreed, stop_failed
+
+    store = _Store({f"{STOP_KEY}/1/4/start/0": "", f"{STOP_KEY}/0/4/end/0": ""})
+    _as_process(monkeypatch, 0, 2, store)
+    stop_failed(4, call=1)
+    assert {k: v for k, v in store.published.items() if k.startswith(f"{STOP_KEY}/1/")} == {
+        f"{STOP_KEY}/1/4/start/0": "", f"{STOP_KEY}/1/4/end/0": "error",
+        f"{STOP_KEY}/1/5/start/0": "error"}  # fmt: skip
+    _as_process(monkeypatch, 1, 2, store)
+    with pytest.raises(ProcessLostError) as err:
+        stop_agreed("", 4, end=True, call=1)
+    assert str(err.value) == ("process 0 stopped with an error before the end of chunk 5 (its "
+                              "own output says which); this process stops too")  # fmt: skip
+    assert stop_agreed("", 4, end=True, call=0) == ""  # (call 0: process 0 went on there)
+
+
 @pytest.mark.timeout(400)
 @pytest.mark.processes
-def test_a_sigterm_that_reaches_one_process_stops_both_at_one_chunk_checkpointed(tmp_path):
-    """Two CPU processes; SIGTERM to process 1 alone once training runs. Each process decided
-    alone before, so process 0 went on into a chunk process 1 never joined and waited there
-    until JAX aborted it. Now both stop after the same chunk, its checkpoint written: process 1
-    as terminated (143), process 0 saying it stopped with the other (130), and the run
-    resumes."""
+@pytest.mark.parametrize(("signum", "code", "said"), [
+    ("SIGTERM", 143, "terminated (SIGTERM); the newest checkpoint is"),
+    ("SIGINT", 130, "interrupted; the newest checkpoint is")])  # fmt: skip
+def test_a_signal_that_reaches_one_process_stops_both_at_one_chunk_checkpointed(
+    tmp_path, signum, code, said
+):
+    """Two CPU processes; SIGTERM (or a Ctrl-C's SIGINT) to process 1 alone once training
+    runs. Each process decided alone before (and a Ctrl-C left at once), so process 0 went on
+    into a chunk process 1 never joined and waited there until JAX aborted it. Now both stop
+    after the same chunk, its checkpoint written: process 1 as its signal says, process 0
+    saying it stopped with the other (130)."""
     import signal
     import time
 
@@ -357,16 +385,16 @@ def test_a_sigterm_that_reaches_one_process_stops_both_at_one_chunk_checkpointed
         while not (out / "metrics.jsonl").exists() or not (out / "metrics.jsonl").read_text():
             assert time.monotonic() < deadline and all(p.poll() is None for p in procs)
             time.sleep(0.2)
-        procs[1].send_signal(signal.SIGTERM)
+        procs[1].send_signal(getattr(signal, signum))
         outs = [p.communicate(timeout=120) for p in procs]
     finally:
         for p in procs:
             p.kill()
     codes = [p.returncode for p in procs]
-    assert codes == [130, 143], [o[1][-2000:] for o in outs]
-    assert "stopped with another process of the run, which was interrupted; the newest " \
-           "checkpoint is" in outs[0][1]  # fmt: skip
-    assert "terminated (SIGTERM); the newest checkpoint is" in outs[1][1]
+    assert codes == [130, code], [o[1][-2000:] for o in outs]
+    assert "stopped with another process of the run, which was stopped (Ctrl-C or SIGTERM); " \
+           "the newest checkpoint is" in outs[0][1]  # fmt: skip
+    assert said in outs[1][1]
     records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     saved = sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit())
     assert saved and records[-1]["env_steps"] == saved[-1] * 256 < 51200
