@@ -101,8 +101,10 @@ def _dispatch(argv: list[str]) -> None:
 def _launched(name: str, args: list[str]) -> bool:
     """Whether ``td3-jax NAME ARGS`` is a train or sweep of ``--local-processes`` (not its
     ``--help``)."""
+    from td3_jax.cli.local_processes import FLAG, flag_name  # (no JAX: quick)
+
     return name in ("train", "sweep") and not {"-h", "--help"} & set(args) and any(
-        arg.partition("=")[0] == "--local-processes" for arg in args)  # fmt: skip
+        flag_name(arg) == FLAG for arg in args)  # fmt: skip
 
 
 def _launch(name: str, args: list[str]) -> None:

@@ -10,6 +10,10 @@ process of several GPUs for MuJoCo Warp: a process's GPUs take turns at Warp's h
 
 from __future__ import annotations
 
+import collections
+import contextlib
+import ctypes
+import functools
 import os
 import shutil
 import signal
@@ -18,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from td3_jax.common.errors import ConfigError
@@ -25,9 +30,11 @@ from td3_jax.common.errors import ConfigError
 __all__ = [
     "FLAG",
     "GRACE_S",
+    "HELD_LINES",
     "asked_count",
     "check_local_processes",
     "child_args",
+    "flag_name",
     "local_gpus",
     "main",
     "process_env",
@@ -38,21 +45,32 @@ FLAG = "--local-processes"
 #: Seconds the other processes get to end by themselves after one fails, before they are
 #: stopped (they may be waiting for it at a collective).
 GRACE_S = 30.0
+#: Lines of each later process's output kept to show where it fails.
+HELD_LINES = 2000
+_PR_SET_PDEATHSIG = 1  # (linux/prctl.h)
 #: Flags that the launcher sets in each process, so not given with --local-processes.
 _SET_HERE = ("--coordinator-address", "--num-processes", "--process-id", "--devices")
+
+
+def flag_name(arg: str) -> str:
+    """The flag an argument names, as the help spells it (``--local_processes=2``:
+    ``--local-processes``; the parser takes either spelling)."""
+    name = arg.partition("=")[0]
+    return name.replace("_", "-") if name.startswith("--") else name
 
 
 def asked_count(args: list[str]) -> int | None:
     """The N of ``--local-processes N`` (or ``=N``) in ``args``; None without it.
     ConfigError when it is not a whole number."""
     for i, arg in enumerate(args):
-        name, equals, value = arg.partition("=")
-        if name == FLAG:
+        if flag_name(arg) == FLAG:
+            equals, value = arg.partition("=")[1:]
             text = value if equals else (args[i + 1] if i + 1 < len(args) else "")
-            if not text.isdigit():
+            try:
+                return int(text, 10)
+            except ValueError:
                 raise ConfigError(f"{FLAG} takes a number of processes, e.g. {FLAG} 2"
-                                  + (f"; got {text!r}" if text else ""))  # fmt: skip
-            return int(text)
+                                  + (f"; got {text!r}" if text else "")) from None  # fmt: skip
     return None
 
 
@@ -71,7 +89,7 @@ def check_local_processes(count: int, args: list[str]) -> list[str]:
     if count < 2:
         raise ConfigError(f"{FLAG} must be at least 2 (one process per GPU), got {count}; "
                           "leave it out to train in this process")  # fmt: skip
-    given = [name for name in _SET_HERE if any(a.split("=", 1)[0] == name for a in args)]
+    given = [name for name in _SET_HERE if any(flag_name(a) == name for a in args)]
     if given:
         raise ConfigError(f"{given[0]} does not go with {FLAG}: each process gets one GPU and "
                           "its own id from it")  # fmt: skip
@@ -106,9 +124,9 @@ def child_args(args: list[str], index: int, count: int, port: int) -> list[str]:
     for arg in args:
         if skip:
             skip = False
-        elif arg == FLAG:
-            skip = True
-        elif not arg.startswith(f"{FLAG}="):
+        elif flag_name(arg) == FLAG:
+            skip = "=" not in arg  # (its value is the next argument)
+        else:
             kept.append(arg)
     join = ["--coordinator-address", f"127.0.0.1:{port}", "--num-processes", str(count),
             "--process-id", str(index)]  # fmt: skip
@@ -128,20 +146,22 @@ def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
     """Runs ``td3-jax SUBCOMMAND ARGS`` as ``count`` processes of this host and returns the exit
     status: 0 when all end with 0, else the first failure's (the others stopped, if they do
     not end by themselves within :data:`GRACE_S`). The first process's output is this one's;
-    another's is shown only where it ended otherwise than the first (its own failure)."""
+    another's is shown only where it ended otherwise than the first (its own failure). The
+    processes get this one's SIGINT, SIGTERM and SIGHUP (as SIGTERM), and a SIGTERM when it
+    ends before them (Linux), so none is left running without it."""
     gpus = check_local_processes(count, args)
     port = _free_port()
     where = f"one per GPU ({', '.join(gpus)})" if gpus else "on this host's CPU (no GPU found)"
     print(f"td3-jax: starting {count} processes {where}, joined at 127.0.0.1:{port}", flush=True)
-    procs, outputs = [], []
-    for i in range(count):
-        held = None if i == 0 else {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT}
-        procs.append(subprocess.Popen(
-            [sys.executable, "-m", "td3_jax", subcommand, *child_args(args, i, count, port)],
-            env=process_env(gpus[i] if gpus else None), text=True,
-            start_new_session=True, **(held or {})))  # (signals reach them through here only)
-        outputs.append(_Held(procs[-1]) if held else None)
-    with _passing_signals(procs):
+    procs: list[subprocess.Popen] = []
+    with _passing_signals(procs):  # (before the first starts: none misses a Ctrl-C)
+        for i in range(count):
+            held = {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT} if i else {}
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "td3_jax", subcommand, *child_args(args, i, count, port)],
+                env=process_env(gpus[i] if gpus else None), text=True, errors="replace",
+                start_new_session=True, preexec_fn=_ends_with_parent(), **held))  # fmt: skip
+        outputs = [_Held(proc) if i else None for i, proc in enumerate(procs)]
         status = _wait(procs)
     for i, output in enumerate(outputs):
         if output is not None and procs[i].returncode not in (0, procs[0].returncode):
@@ -150,48 +170,62 @@ def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
 
 
 class _Held:
-    """A process's output, read as it comes (so its pipe never fills) and kept."""
+    """A process's output, read as it comes (so its pipe never fills) and its last
+    :data:`HELD_LINES` lines kept."""
 
-    def __init__(self, proc: subprocess.Popen):
-        self.lines: list[str] = []
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: collections.deque[str] = collections.deque(maxlen=HELD_LINES)
         self.reader = threading.Thread(target=self._read, args=(proc.stdout,), daemon=True)
         self.reader.start()
 
     def _read(self, stream: Any) -> None:
-        for line in stream:
-            self.lines.append(line.rstrip("\n"))
+        try:
+            for line in stream:
+                self.lines.append(line.rstrip("\n"))
+        except (OSError, ValueError):  # (the pipe closed under it: what was read is kept)
+            pass
 
     def show(self, index: int) -> None:
         """Prints the output of process ``index`` on stderr, each line marked with it (not its
         line saying it waits for the others)."""
         self.reader.join(timeout=5)
-        for line in self.lines:
+        for line in list(self.lines):
             if not line.startswith("td3-jax: waiting for"):
                 print(f"[process {index}] {line}", file=sys.stderr, flush=True)
 
 
-class _passing_signals:
-    """Within: each SIGINT or SIGTERM this process gets goes to every process still running
-    (once: they are in their own session, so a terminal's Ctrl-C reaches them only this way)."""
+@contextlib.contextmanager
+def _passing_signals(procs: list[subprocess.Popen]) -> Iterator[None]:
+    """Within: each SIGINT or SIGTERM this process gets goes to every process of ``procs``
+    still running (once: they are in their own session, so a terminal's Ctrl-C reaches them
+    only this way); a SIGHUP (the terminal closed) goes as SIGTERM. On the way out (an error
+    of this process's own), those still running are killed."""
 
-    def __init__(self, procs: list[subprocess.Popen]):
-        self.procs, self.saved = procs, {}
-
-    def _pass(self, signum: int, frame: Any) -> None:
-        for proc in self.procs:
+    def pass_on(signum: int, frame: Any) -> None:
+        sent = signal.SIGTERM if signum == signal.SIGHUP else signum
+        for proc in procs:
             if proc.poll() is None:
-                proc.send_signal(signum)
+                proc.send_signal(sent)
 
-    def __enter__(self) -> None:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self.saved[signum] = signal.signal(signum, self._pass)
-
-    def __exit__(self, *exc: Any) -> None:
-        for signum, handler in self.saved.items():
+    saved = {signum: signal.signal(signum, pass_on)
+             for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}  # fmt: skip
+    try:
+        yield
+    finally:
+        for signum, handler in saved.items():
             signal.signal(signum, handler)
-        for proc in self.procs:  # (only after an error of this process's own)
+        for proc in procs:
             if proc.poll() is None:
                 proc.kill()
+
+
+def _ends_with_parent() -> Callable[[], None] | None:
+    """What a process runs before ``td3-jax`` starts in it: asks Linux for a SIGTERM when this
+    launching process ends (``PR_SET_PDEATHSIG``); None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    libc = ctypes.CDLL(None, use_errno=True)
+    return functools.partial(libc.prctl, _PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
 
 
 def _wait(procs: list[subprocess.Popen]) -> int:

@@ -37,7 +37,7 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     from td3_jax import envs  # lazy: imports JAX
 
     envs.check_name(cfg.env)  # before anything about the environment is said
-    if command.local_processes is not None:  # (checked here once, then in each process)
+    if command.local_processes is not None:  # (td3-jax's own command starts them sooner)
         from td3_jax.cli.local_processes import run_local_processes
 
         status = run_local_processes("sweep" if sweeping else "train", args,

@@ -21,7 +21,8 @@ TINY = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--eval-every", "256",
         "--replay-shards", "2", "--compile-cache", "off"]  # fmt: skip
 
 
-@pytest.mark.parametrize("given", [["--local-processes", "2"], ["--local-processes=2"]])
+@pytest.mark.parametrize("given", [["--local-processes", "2"], ["--local-processes=2"],
+                                   ["--local_processes", "2"]])  # fmt: skip
 def test_each_process_gets_the_flags_without_the_launcher_and_its_own_join_flags(given):
     args = ["--preset", "t1", *given, "--out", "runs/x"]
     assert lp.child_args(args, 0, 2, 4321) == [
@@ -59,6 +60,7 @@ def test_without_nvidia_smi_a_host_has_no_gpus(monkeypatch):
      (2, ["--devices", "2"], "0,1", "--devices does not go with --local-processes: each process "
       "gets one GPU and its own id from it"),
      (2, ["--process-id=0"], "0,1", "--process-id does not go with --local-processes"),
+     (2, ["--num_processes", "2"], "0,1", "--num-processes does not go with --local-processes"),
      (3, [], "0,1", "--local-processes 3 needs 3 GPUs; this host shows 2 (0, 1)")],
 )  # fmt: skip
 def test_what_cannot_run_as_local_processes_is_refused_in_one_line(monkeypatch, count, args,
@@ -100,7 +102,83 @@ def test_one_failing_stops_the_others_after_the_grace_and_gives_its_status(monke
 
 
 def test_processes_that_fail_alike_are_not_stopped_and_give_the_first_failure():
-    assert lp._wait([_sleeper(0.3, 2), _sleeper(0.1, 2)]) == 2
+    """Process 1 fails first; process 0 fails the same way 2 s later, within the grace: it is
+    not killed, and the run's status is process 1's."""
+    procs = [_sleeper(2.0, 2), _sleeper(0.1, 4)]
+    assert lp._wait(procs) == 4 and procs[0].returncode == 2
+
+
+def test_a_later_process_output_is_shown_marked_only_when_asked_and_never_blocks(capsys):
+    """A later process's output is read as it comes (more than a pipe holds, and bytes that
+    are not UTF-8, block nothing) and shown marked with its index, its waiting line left out;
+    only its last HELD_LINES lines are kept."""
+    code = ("import sys; sys.stdout.write('td3-jax: waiting for 2 processes\\n');"
+            "sys.stdout.buffer.write(b'\\xff bad byte\\n'); sys.stdout.flush();"
+            f"[print('line', i) for i in range({lp.HELD_LINES + 20000})]")  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            errors="replace")  # fmt: skip
+    held = lp._Held(proc)
+    assert proc.wait(timeout=60) == 0
+    held.show(1)
+    shown = capsys.readouterr().err.splitlines()
+    assert len(shown) == lp.HELD_LINES and shown[-1] == f"[process 1] line {lp.HELD_LINES + 19999}"
+    assert not any("waiting for" in line for line in shown)
+
+
+def test_the_processes_get_the_signals_once_and_are_killed_if_the_launcher_fails():
+    """SIGINT and SIGTERM go on as they are, SIGHUP as SIGTERM; leaving on an error of the
+    launcher's own kills those still running."""
+    code = ("import signal, sys, time\n"
+            "got = []\n"
+            "for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):\n"
+            "    signal.signal(s, lambda n, f: got.append(signal.Signals(n).name))\n"
+            "print('ready', flush=True)\n"
+            "while len(got) < 3: time.sleep(0.01)\n"
+            "print(' '.join(got), flush=True)\n"
+            "time.sleep(600)\n")  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    with pytest.raises(RuntimeError), lp._passing_signals([proc]):
+        assert proc.stdout.readline() == "ready\n"
+        for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            os.kill(os.getpid(), signum)
+            time.sleep(0.2)
+        assert proc.stdout.readline() == "SIGINT SIGTERM SIGTERM\n"
+        raise RuntimeError("the launcher's own failure")
+    assert proc.wait(timeout=30) == -signal.SIGKILL
+
+
+def test_a_process_ends_when_its_launcher_is_killed(tmp_path):
+    """A launcher killed outright (SIGKILL: no handler runs) leaves no process behind: Linux
+    sends each a SIGTERM as its parent ends."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("PR_SET_PDEATHSIG is Linux's")
+    pids = tmp_path / "pid"
+    launcher = ("import subprocess, sys, time\n"
+                "from td3_jax.cli import local_processes as lp\n"
+                "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'],"
+                " start_new_session=True, preexec_fn=lp._ends_with_parent())\n"
+                f"open({str(pids)!r}, 'w').write(str(child.pid))\n"
+                "time.sleep(600)\n")  # fmt: skip
+    parent = subprocess.Popen([sys.executable, "-c", launcher])
+    deadline = time.monotonic() + 60
+    while not pids.exists() or not pids.read_text():
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    child = int(pids.read_text())
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 30
+    while _alive(child):
+        assert time.monotonic() < deadline, "the process outlived its launcher"
+        time.sleep(0.1)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return not open(f"/proc/{pid}/stat").read().split()[2] == "Z"  # (a zombie has ended)
 
 
 def test_a_killed_process_gives_the_shells_status():
@@ -165,7 +243,8 @@ def test_a_ctrl_c_stops_every_process_once_after_a_checkpointed_chunk(tmp_path):
 
 @pytest.mark.parametrize(
     ("args", "count"),
-    [(["--local-processes", "2"], 2), (["--seed", "1", "--local-processes=4"], 4), ([], None)],
+    [(["--local-processes", "2"], 2), (["--seed", "1", "--local-processes=4"], 4), ([], None),
+     (["--local_processes=3"], 3)],
 )
 def test_the_count_is_read_from_the_flag_in_either_form(args, count):
     assert lp.asked_count(args) == count
