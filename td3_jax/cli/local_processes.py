@@ -3,9 +3,10 @@ host, one per GPU, joined through ``jax.distributed``.
 
 This process starts no JAX backend: it picks a free local port, starts the N processes with
 ``--coordinator-address/--num-processes/--process-id`` (each seeing only its own GPU through
-``CUDA_VISIBLE_DEVICES``; on a host without GPUs, each JAX's CPU device), passes its Ctrl-C and
-SIGTERM on to them, and ends with their exit status. One process per GPU is faster than one
-process of several GPUs for MuJoCo Warp: a process's GPUs take turns at Warp's host-side calls.
+``CUDA_VISIBLE_DEVICES``; on a host without GPUs, each JAX's CPU device), passes its Ctrl-C,
+SIGTERM and SIGHUP on to them, and ends with their exit status. One process per GPU is faster
+than one process of several GPUs for MuJoCo Warp: a process's GPUs take turns at Warp's
+host-side calls.
 """
 
 from __future__ import annotations
