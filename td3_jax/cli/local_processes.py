@@ -61,18 +61,20 @@ def flag_name(arg: str) -> str:
 
 
 def asked_count(args: list[str]) -> int | None:
-    """The N of ``--local-processes N`` (or ``=N``) in ``args``; None without it.
-    ConfigError when it is not a whole number."""
+    """The N of ``--local-processes N`` (or ``=N``) in ``args``, the last where it is given
+    more than once (as the parser takes any flag); None without it. ConfigError when it is not
+    a whole number."""
+    count = None
     for i, arg in enumerate(args):
         if flag_name(arg) == FLAG:
             equals, value = arg.partition("=")[1:]
             text = value if equals else (args[i + 1] if i + 1 < len(args) else "")
             try:
-                return int(text, 10)
+                count = int(text, 10)
             except ValueError:
                 raise ConfigError(f"{FLAG} takes a number of processes, e.g. {FLAG} 2"
                                   + (f"; got {text!r}" if text else "")) from None  # fmt: skip
-    return None
+    return count
 
 
 def main(subcommand: str, args: list[str]) -> None:
@@ -159,7 +161,8 @@ def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
         for i in range(count):
             held = {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT} if i else {}
             procs.append(subprocess.Popen(
-                [sys.executable, "-m", "td3_jax", subcommand, *child_args(args, i, count, port)],
+                [sys.executable, "-P", "-m", "td3_jax", subcommand,  # (-P: not the cwd's modules)
+                 *child_args(args, i, count, port)],
                 env=process_env(gpus[i] if gpus else None), text=True, errors="replace",
                 start_new_session=True, preexec_fn=_ends_with_parent(), **held))  # fmt: skip
         outputs = [_Held(proc) if i else None for i, proc in enumerate(procs)]

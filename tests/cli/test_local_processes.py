@@ -181,6 +181,23 @@ def _alive(pid: int) -> bool:
     return not open(f"/proc/{pid}/stat").read().split()[2] == "Z"  # (a zombie has ended)
 
 
+def test_the_processes_do_not_import_modules_of_the_folder_they_start_in(tmp_path, monkeypatch):
+    """A ``jax.py`` (or an old td3-jax checkout) in the current folder is not what the
+    processes import: they start with ``python -P``."""
+    (tmp_path / "td3_jax").mkdir()
+    (tmp_path / "td3_jax" / "__main__.py").write_text("print('the folder s own td3_jax')\n")
+    monkeypatch.chdir(tmp_path)
+    started, real = [], subprocess.Popen
+    monkeypatch.setattr(lp.subprocess, "Popen", lambda cmd, **kw: started.append(cmd) or
+                        real([sys.executable, "-c", "pass"]))  # fmt: skip
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert lp.run_local_processes("train", ["--seed", "1"], 2) == 0
+    assert [cmd[:4] for cmd in started] == [[sys.executable, "-P", "-m", "td3_jax"]] * 2
+    out, _ = real([*started[0][:4], "--version"], stdout=subprocess.PIPE,
+                  text=True).communicate(timeout=120)  # fmt: skip
+    assert out.startswith("td3-jax ") and "folder" not in out
+
+
 def test_a_killed_process_gives_the_shells_status():
     assert lp._exit_status(-signal.SIGKILL) == 137 and lp._exit_status(3) == 3
 
@@ -244,7 +261,7 @@ def test_a_ctrl_c_stops_every_process_once_after_a_checkpointed_chunk(tmp_path):
 @pytest.mark.parametrize(
     ("args", "count"),
     [(["--local-processes", "2"], 2), (["--seed", "1", "--local-processes=4"], 4), ([], None),
-     (["--local_processes=3"], 3)],
+     (["--local_processes=3"], 3), (["--local-processes", "2", "--local-processes", "3"], 3)],
 )
 def test_the_count_is_read_from_the_flag_in_either_form(args, count):
     assert lp.asked_count(args) == count
