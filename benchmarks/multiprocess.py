@@ -27,12 +27,13 @@ import argparse
 import json
 import math
 import os
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from td3_jax.cli.local_processes import free_port
 
 TINY = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--total-steps", "512",
         "--eval-every", "256", "--warmup-steps", "64", "--batch-size", "64",
@@ -72,12 +73,6 @@ def platform(choice: str) -> str:
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     return "gpu" if proc.returncode == 0 and "gpu" in proc.stdout else "cpu"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
 
 
 def process_env(kind: str, devices: list[int], **extra: str) -> dict[str, str]:

@@ -36,6 +36,7 @@ __all__ = [
     "check_local_processes",
     "child_args",
     "flag_name",
+    "free_port",
     "local_gpus",
     "main",
     "process_env",
@@ -153,7 +154,7 @@ def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
     processes get this one's SIGINT, SIGTERM and SIGHUP (as SIGTERM), and a SIGTERM when it
     ends before them (Linux), so none is left running without it."""
     gpus = check_local_processes(count, args)
-    port = _free_port()
+    port = free_port()
     where = f"one per GPU ({', '.join(gpus)})" if gpus else "on this host's CPU (no GPU found)"
     print(f"td3-jax: starting {count} processes {where}, joined at 127.0.0.1:{port}", flush=True)
     procs: list[subprocess.Popen] = []
@@ -164,7 +165,7 @@ def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
                 [sys.executable, "-P", "-m", "td3_jax", subcommand,  # (-P: not the cwd's modules)
                  *child_args(args, i, count, port)],
                 env=process_env(gpus[i] if gpus else None), text=True, errors="replace",
-                start_new_session=True, preexec_fn=_ends_with_parent(), **held))  # fmt: skip
+                process_group=0, preexec_fn=_ends_with_parent(), **held))  # fmt: skip
         outputs = [_Held(proc) if i else None for i, proc in enumerate(procs)]
         status = _wait(procs)
     for i, output in enumerate(outputs):
@@ -201,7 +202,7 @@ class _Held:
 @contextlib.contextmanager
 def _passing_signals(procs: list[subprocess.Popen]) -> Iterator[None]:
     """Within: each SIGINT or SIGTERM this process gets goes to every process of ``procs``
-    still running (once: they are in their own session, so a terminal's Ctrl-C reaches them
+    still running (once: they are in their own process group, so a terminal's Ctrl-C reaches them
     only this way); a SIGHUP (the terminal closed) goes as SIGTERM. On the way out (an error
     of this process's own), those still running are killed."""
 
@@ -270,7 +271,7 @@ def _exit_status(code: int) -> int:
     return 128 - code if code < 0 else code
 
 
-def _free_port() -> int:
+def free_port() -> int:
     """A TCP port of this host that is free now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -326,9 +326,7 @@ def stop_agreed(reason: str, chunk: int, end: bool, call: int = 0) -> str:
     Each process publishes its reason in the runtime's key-value store and reads the others'
     (up to :data:`STOP_WAIT_S` each). :class:`ProcessLostError` names a process that stopped
     with an error (:func:`stop_failed`) or never gives its reason."""
-    if jax.process_count() == 1:  # (one process: nothing of JAX's private runtime is asked)
-        return reason
-    store = upstream.distributed_store()
+    store = _store_of_several()
     if store is None:
         return reason
     here, boundary = jax.process_index(), _boundary(call, chunk, end)
@@ -356,9 +354,7 @@ def stop_failed(chunk: int, call: int = 0) -> None:
     """Tells the other processes of this ``jax.distributed`` run that this one stops with an
     error in chunk ``chunk`` of training call ``call``: they stop at that chunk's boundaries
     (:func:`stop_agreed`) instead of waiting for it. Nothing to do in one process."""
-    if jax.process_count() == 1:
-        return
-    store = upstream.distributed_store()
+    store = _store_of_several()
     if store is None:
         return
     for boundary in (_boundary(call, chunk, False), _boundary(call, chunk, True),
@@ -367,6 +363,12 @@ def stop_failed(chunk: int, call: int = 0) -> None:
             store.key_value_set(f"{STOP_KEY}/{boundary}/{jax.process_index()}", "error")
         except jax.errors.JaxRuntimeError:
             pass
+
+
+def _store_of_several() -> Any:
+    """The key-value store of a ``jax.distributed`` run of several processes; None for one
+    process (nothing of JAX's private runtime is asked then)."""
+    return None if jax.process_count() == 1 else upstream.distributed_store()
 
 
 def _boundary(call: int, chunk: int, end: bool) -> str:

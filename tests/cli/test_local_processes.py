@@ -156,7 +156,7 @@ def test_a_process_ends_when_its_launcher_is_killed(tmp_path):
     launcher = ("import subprocess, sys, time\n"
                 "from td3_jax.cli import local_processes as lp\n"
                 "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'],"
-                " start_new_session=True, preexec_fn=lp._ends_with_parent())\n"
+                " process_group=0, preexec_fn=lp._ends_with_parent())\n"
                 f"open({str(pids)!r}, 'w').write(str(child.pid))\n"
                 "time.sleep(600)\n")  # fmt: skip
     parent = subprocess.Popen([sys.executable, "-c", launcher])

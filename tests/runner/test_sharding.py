@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import textwrap
 
 import pytest
 from support import read_records
+
+from td3_jax.cli.local_processes import free_port
 
 TINY = dict(
     num_envs=8,
@@ -167,17 +168,11 @@ def test_sizes_that_do_not_divide_are_refused():
     assert "Traceback" not in result["err"]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.processes
 def test_two_processes_through_the_distributed_runtime(tmp_path, four_device_runs):
     """2 processes x 2 CPU devices, gloo collectives: the 1-device run's numbers."""
     out, _ = four_device_runs
-    port = _free_port()
+    port = free_port()
     procs = [
         subprocess.Popen(
             [sys.executable, "-m", "td3_jax", "train", *TINY_FLAGS, "--out", str(tmp_path / "mp")],
