@@ -4,6 +4,7 @@ the shell's exit status for the signal."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import signal
@@ -13,7 +14,7 @@ from typing import Any
 from td3_jax.common import runtime
 from td3_jax.config.schema import TrainConfig
 
-__all__ = ["Interrupted", "exit_interrupted", "train_stoppably"]
+__all__ = ["Interrupted", "exit_interrupted", "signals_while_starting", "train_stoppably"]
 
 
 class Interrupted(Exception):
@@ -25,20 +26,27 @@ class Interrupted(Exception):
         self.code = code
 
 
-def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> list[dict[str, Any]]:
+def train_stoppably(
+    cfg: TrainConfig,
+    command: Any,
+    stop: runtime.StopToken | None = None,
+    received: list[int] | None = None,
+    **train_options: Any,
+) -> list[dict[str, Any]]:
     """``run.train`` of ``cfg`` into ``command.out`` (a train command: its resume, quiet and
     time-budget flags) under handlers that turn SIGINT and SIGTERM into a stop at the next
     chunk (a second signal stops at once); a stop leaves the last checkpoint and says, in one
     line, what it left (``Interrupted``, exit 130, or 143 for SIGTERM; 130 too for a process
-    of a several-process run stopped because another was). Returns the run's records, one per
-    chunk."""
+    of a several-process run stopped because another was). ``stop`` and ``received``: the
+    token and the signals of handlers already installed while the process started
+    (:func:`signals_while_starting`). Returns the run's records, one per chunk."""
     import jax  # lazy: JAX, only for a run
 
     from td3_jax.runner.run import train  # lazy: imports JAX
     from td3_jax.runner.rundir import interrupted_message  # lazy: imports JAX
 
-    received: list[int] = []
-    stop = runtime.StopToken()  # set by the signal handlers: this run's only way to be stopped
+    received = [] if received is None else received
+    stop = runtime.StopToken() if stop is None else stop  # (the run's only way to be stopped)
     ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
     try:
         several = jax.process_count() > 1  # (a first Ctrl-C too stops at an agreed boundary)
@@ -55,6 +63,21 @@ def train_stoppably(cfg: TrainConfig, command: Any, **train_options: Any) -> lis
             raise Interrupted(ended("stopped with another process of the run, which was "
                                     "stopped (Ctrl-C or SIGTERM)")) from None  # fmt: skip
         raise Interrupted(ended()) from None
+
+
+def signals_while_starting(
+    args: list[str], stop: runtime.StopToken, received: list[int]
+) -> contextlib.AbstractContextManager:
+    """For a process that joins others (:func:`~td3_jax.cli.local_processes.joins_others`),
+    from its first line: the handlers of a run of several processes, so that a Ctrl-C while
+    it imports, joins or compiles sets ``stop`` (the processes then stop together before
+    training, :func:`~td3_jax.runner.sharding.start_agreed`) instead of raising where Python
+    may discard it; a second signal stops at once. Nothing for a process of its own."""
+    from td3_jax.cli.local_processes import joins_others
+
+    if not joins_others(args):
+        return contextlib.nullcontext()
+    return runtime.stop_signals(stop, received, several=True)
 
 
 def exit_interrupted(message: str, code: int = 130) -> None:

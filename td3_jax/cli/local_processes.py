@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from td3_jax.common import runtime
 from td3_jax.common.errors import ConfigError
 
 __all__ = [
@@ -37,6 +38,7 @@ __all__ = [
     "child_args",
     "flag_name",
     "free_port",
+    "joins_others",
     "local_gpus",
     "main",
     "process_env",
@@ -137,13 +139,26 @@ def child_args(args: list[str], index: int, count: int, port: int) -> list[str]:
     return [*kept, *join, *(["--quiet"] if index else [])]
 
 
-def process_env(gpu: str | None) -> dict[str, str]:
-    """A process's environment: this one's, seeing only ``gpu`` (None: as it is)."""
+def process_env(gpu: str | None, count: int) -> dict[str, str]:
+    """The environment of one of ``count`` processes: this one's, seeing only ``gpu`` (None:
+    as it is), and saying how many were started (:data:`~td3_jax.common.runtime.
+    LOCAL_PROCESSES_ENV`: its start-up stops together with the others, its resume line names
+    the flag)."""
     env = {k: v for k, v in os.environ.items()
            if k not in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")}
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = gpu
+    env[runtime.LOCAL_PROCESSES_ENV] = str(count)
     return env
+
+
+def joins_others(args: list[str]) -> bool:
+    """Whether a train or sweep process of ``args`` joins other processes (started by
+    ``--local-processes``, or given the flags or variables of ``jax.distributed``)."""
+    given = {flag_name(arg) for arg in args}
+    variables = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
+    return (runtime.local_processes() is not None or bool(given & set(_SET_HERE[:3]))
+            or any(name in os.environ for name in variables))  # fmt: skip
 
 
 def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
@@ -164,7 +179,7 @@ def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
             procs.append(subprocess.Popen(
                 [sys.executable, "-P", "-m", "td3_jax", subcommand,  # (-P: not the cwd's modules)
                  *child_args(args, i, count, port)],
-                env=process_env(gpus[i] if gpus else None), text=True, errors="replace",
+                env=process_env(gpus[i] if gpus else None, count), text=True, errors="replace",
                 process_group=0, preexec_fn=_ends_with_parent(), **held))  # fmt: skip
         outputs = [_Held(proc) if i else None for i, proc in enumerate(procs)]
         status = _wait(procs)

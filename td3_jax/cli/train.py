@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ from typing import Any
 from td3_jax.cli import notes, settings
 from td3_jax.cli.argv import given_fields
 from td3_jax.cli.commands import SweepCommand, TrainCommand
-from td3_jax.cli.interrupts import train_stoppably
+from td3_jax.cli.interrupts import Interrupted, signals_while_starting, train_stoppably
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_sweep_ranking
 from td3_jax.common import runtime
@@ -32,6 +33,32 @@ __all__ = ["parse_train", "sweep_main", "sweep_values", "train_main"]
 def train_main(args: list[str], sweeping: bool = False) -> None:
     """``td3-jax train ARGS`` (``sweeping``: ``td3-jax sweep ARGS``): checks the settings,
     trains (or resumes) the run and prints its last line (a sweep's ranking too)."""
+    stop, received = runtime.StopToken(), []
+    try:
+        with signals_while_starting(args, stop, received):
+            _train_command(args, sweeping, stop, received)
+    except Interrupted:  # (several processes stop together: none is left mid-call)
+        _leave_processes()
+        raise
+    _leave_processes()
+
+
+def _leave_processes() -> None:
+    """A run of several processes, ended or stopped together: each leaves JAX's runtime once
+    all have come to leave it. Left at once, the first process (it holds the runtime's
+    coordination service) could end while another still called it, which then aborted
+    with a C++ stack trace."""
+    if "jax" not in sys.modules:  # (the run stopped before it imported JAX: nothing joined)
+        return
+    from td3_jax.runner.sharding import leave_distributed  # lazy: imports JAX
+
+    leave_distributed()
+
+
+def _train_command(
+    args: list[str], sweeping: bool, stop: runtime.StopToken, received: list[int]
+) -> None:
+    """:func:`train_main` with the stop token and signals of its process."""
     command, cfg, preset_name, source = parse_train(args, sweeping)
     sweep = sweep_values(command, args) if sweeping else None
     from td3_jax import envs  # lazy: imports JAX
@@ -58,8 +85,9 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
                                  frozenset(typed), command.resume)  # fmt: skip
     started, started_at = time.perf_counter(), []
     with notes.preset_noted(cfg, preset_name, given):
-        records = train_stoppably(cfg, command, devices=devices, sweep=sweep, preset=preset_name,
-                                  on_prepared=prepared, program_dir=program_dir,
+        records = train_stoppably(cfg, command, stop, received, devices=devices,
+                                  sweep=sweep, preset=preset_name, on_prepared=prepared,
+                                  program_dir=program_dir,
                                   on_started=started_at.append)  # fmt: skip
     if not records:
         print(notes.nothing_to_do(command.out, cfg))

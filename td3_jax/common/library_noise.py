@@ -3,7 +3,9 @@ it better itself: XLA's slow-compile alarm (a banner of asterisks asking for a b
 a robot's physics compiles on a CPU, which takes minutes) and MLIR's lines about a stored
 program it cannot deserialise (the program store warns of the entry itself and traces the
 programs again), and XLA's notice that GSPMD is to be deprecated (td3-jax chooses GSPMD for
-MuJoCo Warp split over several devices, which Shardy cannot compile: ``envs.per_device``).
+MuJoCo Warp split over several devices, which Shardy cannot compile: ``envs.per_device``);
+and, as the processes of a ``jax.distributed`` run leave it, its coordination service's
+warning that it stopped watching them (:data:`LEAVING`).
 
 :func:`filtered_stderr` passes the process's file descriptor 2 through a small filter process
 for the span of a block (``python -I -S``, stdlib only): every other line goes through as it
@@ -24,7 +26,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
-__all__ = ["ALARM", "DROPPED", "STILL_COMPILING", "filtered_stderr"]
+__all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "filtered_stderr"]
 
 #: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
 ALARM = "Very slow compile?"
@@ -35,6 +37,17 @@ DROPPED = (
     'loc("-":0:0): error: ',  # (MLIR's errors in a serialised artifact: "invalid Type index",
     "failed to deserialize portable artifact",  # "invalid Attribute index", ...)
     "GSPMD sharding propagation is going to be deprecated",
+)
+#: Text of the lines of JAX's coordination service as the processes of a ``jax.distributed`` run
+#: leave it (a warning that its watch of the other processes was cancelled, with its gRPC
+#: details and source trace), dropped while they leave (:func:`filtered_stderr`'s ``dropped``).
+LEAVING = (
+    "WatchTasksAsync failed",
+    "Additional GRPC error information from remote target coordination_service",
+    ":CANCELLED:CANCELLED",
+    ":UNAVAILABLE:Cancelling all calls",
+    "=== Source Location Trace: ===",
+    "distributed_runtime/rpc/grpc_util.h",
 )
 #: The line that stands for XLA's slow-compile alarm.
 STILL_COMPILING = (
@@ -63,10 +76,11 @@ for line in sys.stdin.buffer:
 
 
 @contextlib.contextmanager
-def filtered_stderr() -> Iterator[None]:
+def filtered_stderr(dropped: tuple[str, ...] = DROPPED) -> Iterator[None]:
     """Passes file descriptor 2 through the filter process for the block (see the module's
-    docstring); where there is no fd 2 or the filter cannot start, the block runs as it is."""
-    started = _start_filter()
+    docstring), dropping the lines that hold any text of ``dropped``; where there is no fd 2
+    or the filter cannot start, the block runs as it is."""
+    started = _start_filter(dropped)
     if started is None:
         yield
         return
@@ -83,9 +97,9 @@ def filtered_stderr() -> Iterator[None]:
             child.wait(timeout=5)  # block may still hold the pipe: the filter outlives it)
 
 
-def _start_filter() -> tuple[int, subprocess.Popen] | None:
-    """``(a copy of fd 2, the filter process writing to it)``, or ``None`` where either
-    cannot be had."""
+def _start_filter(dropped: tuple[str, ...]) -> tuple[int, subprocess.Popen] | None:
+    """``(a copy of fd 2, the filter process writing to it, dropping lines with any text of
+    dropped)``, or ``None`` where either cannot be had."""
     _flush_stderr()
     try:
         saved = os.dup(2)
@@ -93,7 +107,7 @@ def _start_filter() -> tuple[int, subprocess.Popen] | None:
         return None
     try:
         child = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, STILL_COMPILING,
-                                  ALARM, *DROPPED], stdin=subprocess.PIPE, stdout=saved,
+                                  ALARM, *dropped], stdin=subprocess.PIPE, stdout=saved,
                                  stderr=saved, process_group=0)  # fmt: skip
     except OSError:
         os.close(saved)

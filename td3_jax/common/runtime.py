@@ -44,11 +44,13 @@ def root_logging_kept() -> Iterator[None]:
 
 __all__ = [
     "CACHE_MAX_BYTES",
+    "LOCAL_PROCESSES_ENV",
     "PROGRAMS_FOLDER",
     "StopToken",
     "background_work_running",
     "enable_compile_cache",
     "in_background",
+    "local_processes",
     "quiet_library_logs",
     "result",
     "root_logging_kept",
@@ -59,6 +61,17 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # stopping a run
 # --------------------------------------------------------------------------------------------
+
+
+#: Set in each process that ``td3-jax train|sweep --local-processes N`` starts: N.
+LOCAL_PROCESSES_ENV = "TD3_JAX_LOCAL_PROCESSES"
+
+
+def local_processes() -> int | None:
+    """N where this process is one of the N that ``--local-processes N`` started (read from
+    :data:`LOCAL_PROCESSES_ENV`), else None."""
+    text = os.environ.get(LOCAL_PROCESSES_ENV, "")
+    return int(text) if text.isdigit() else None
 
 
 class StopToken:

@@ -68,8 +68,10 @@ from td3_jax.runner.sharding import (
     host_value,
     make_mesh,
     replay_layout_warning,
+    start_agreed,
     state_shardings,
     stop_agreed,
+    stop_before_training,
     stop_failed,
 )
 
@@ -177,18 +179,34 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
                      on_started: Callable[[int], None] | None = None) -> None:  # fmt: skip
     """The run's start (restored, else fresh), its programs compiled and its chunks trained;
     a run already complete compiles and rewrites nothing, and one stopped before its first
-    chunk writes no outputs (so the same command starts it again)."""
-    state = _start(run, source, resume)
-    if on_started is not None:
-        on_started(run.start_steps)
-    if run.start_steps >= run.cfg.run_steps:
-        return
-    _say_resuming(run)
-    run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
-    compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
-    run.stop.raise_if_set()  # (stopped while programs loaded from the cache: nothing written)
+    chunk writes no outputs (so the same command starts it again). A process of several that
+    stops before training says so to the others (:func:`~td3_jax.runner.sharding.
+    stop_before_training`), which stop where they would have started."""
+    try:
+        state = _start(run, source, resume)
+        if on_started is not None:
+            on_started(run.start_steps)
+        if run.start_steps >= run.cfg.run_steps:
+            return
+        _say_resuming(run)
+        run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
+        compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
+        if jax.process_count() == 1:  # (several agreed to start: their first chunk stops)
+            run.stop.raise_if_set()  # (stopped as the state was made: nothing written yet)
+    except BaseException:
+        stop_before_training("token" if run.stop.is_set() else "error", call=run.call)
+        raise
     _write_and_train(run, compiled, state, progress, resume=resume, preset=preset,
                      changes=changes)  # fmt: skip
+
+
+def _agree_to_start(run: _Run) -> None:
+    """Before any program of the run executes: KeyboardInterrupt where this process or (of
+    several) another was asked to stop while they started (:func:`~td3_jax.runner.sharding.
+    start_agreed`), so that all stop there, as interrupted, with nothing written."""
+    if start_agreed("token" if run.stop.is_set() else "", call=run.call) == "token":
+        run.stop.set()
+    run.stop.raise_if_set()
 
 
 def _say_resuming(run: _Run) -> None:
@@ -288,6 +306,7 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
         compiled = programs.compiled(source, run.stop, check=check)
     _wait_for_save_warmup(run)  # (before anything runs on the device)
     warp_kernels.wait_ready(run.stop)  # (before the first physics step)
+    _agree_to_start(run)  # (a stop while the programs loaded from the cache too)
     return compiled, compiled.init() if state is None else state
 
 

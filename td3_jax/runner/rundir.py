@@ -35,6 +35,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from td3_jax.common import runtime
 from td3_jax.common.errors import CheckpointError, LockUnavailableError
 from td3_jax.config.build import agent_config, members, ou_params
 from td3_jax.config.schema import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
@@ -474,9 +475,13 @@ def is_sweep_dir(out_dir: Path) -> bool:
 
 def resume_command(out_dir: Path) -> str:
     """``td3-jax sweep --out OUT --resume`` for a sweep's directory (:func:`is_sweep_dir`; it
-    then ends with the sweep's ranking), else ``td3-jax train``'s; OUT quoted for a shell."""
+    then ends with the sweep's ranking), else ``td3-jax train``'s; OUT quoted for a shell.
+    In a process that ``--local-processes N`` started, the command ends with that flag (the
+    run directory does not record how many processes ran it)."""
     command = "sweep" if is_sweep_dir(out_dir) else "train"
-    return f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume"
+    count = runtime.local_processes()
+    processes = f" --local-processes {count}" if count else ""
+    return f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume{processes}"
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:

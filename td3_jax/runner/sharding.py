@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax.common import upstream
+from td3_jax.common import library_noise, upstream
 from td3_jax.common.errors import ConfigError, ProcessLostError
 from td3_jax.config.schema import flag
 from td3_jax.runner.memory import (
@@ -326,13 +327,37 @@ def stop_agreed(reason: str, chunk: int, end: bool, call: int = 0) -> str:
     Each process publishes its reason in the runtime's key-value store and reads the others'
     (up to :data:`STOP_WAIT_S` each). :class:`ProcessLostError` names a process that stopped
     with an error (:func:`stop_failed`) or never gives its reason."""
+    where = f"the {'end' if end else 'start'} of chunk {chunk + 1}"
+    return _agreed(reason, _boundary(call, chunk, end), where)
+
+
+def start_agreed(reason: str, call: int = 0) -> str:
+    """:func:`stop_agreed` at the point where each process of training call ``call`` has
+    its programs compiled and has run none of them (nor read a checkpoint into the devices):
+    a stop asked while the processes start (``"token"``) is agreed there, so none is left
+    waiting for the others at their first collective. One process: ``reason`` itself."""
+    return _agreed(reason, _boundary(call, -1, False), "the start of training")
+
+
+def stop_before_training(reason: str, call: int = 0) -> None:
+    """Tells the other processes of this ``jax.distributed`` run that this one stops before
+    training call ``call`` trains: for ``reason`` ``"token"`` (a Ctrl-C or SIGTERM, they stop
+    as interrupted) or ``"error"`` (they stop with :class:`ProcessLostError`), where they
+    agree to start (:func:`start_agreed`). Nothing to do in one process, or where this
+    process already gave its reason there."""
+    store = _store_of_several()
+    if store is not None:
+        _announce(store, _boundary(call, -1, False), reason)
+
+
+def _agreed(reason: str, boundary: str, where: str) -> str:
+    """The reason agreed at ``boundary`` (:func:`stop_agreed`), ``where`` it is in words."""
     store = _store_of_several()
     if store is None:
         return reason
-    here, boundary = jax.process_index(), _boundary(call, chunk, end)
+    here = jax.process_index()
     store.key_value_set(f"{STOP_KEY}/{boundary}/{here}", reason)
     reasons = {reason}
-    where = f"the {'end' if end else 'start'} of chunk {chunk + 1}"
     for other in range(jax.process_count()):
         if other != here:
             key = f"{STOP_KEY}/{boundary}/{other}"
@@ -359,10 +384,15 @@ def stop_failed(chunk: int, call: int = 0) -> None:
         return
     for boundary in (_boundary(call, chunk, False), _boundary(call, chunk, True),
                      _boundary(call, chunk + 1, False)):  # fmt: skip
-        try:  # (a boundary this process already gave its reason at keeps it)
-            store.key_value_set(f"{STOP_KEY}/{boundary}/{jax.process_index()}", "error")
-        except jax.errors.JaxRuntimeError:
-            pass
+        _announce(store, boundary, "error")
+
+
+def _announce(store: Any, boundary: str, reason: str) -> None:
+    """This process's ``reason`` at ``boundary``, unless it already gave one there (kept)."""
+    try:
+        store.key_value_set(f"{STOP_KEY}/{boundary}/{jax.process_index()}", reason)
+    except jax.errors.JaxRuntimeError:
+        pass
 
 
 def _store_of_several() -> Any:
@@ -402,6 +432,21 @@ def _differ_message(differ: list[str], theirs: dict, mine: dict, other: int, her
             f"{theirs.get(name, missing)} there, {mine.get(name, missing)} here{more}; start "
             "every process with the same flags (only --process-id, --menagerie, --quiet and "
             "--compile-cache may differ)")
+
+
+#: Seconds the coordination service's lines may still come after a process left the run, on
+#: the service's own threads (filtered too).
+LEAVE_S = 0.2
+
+
+def leave_distributed() -> None:
+    """Ends this process's part of the ``jax.distributed`` run it joined (waiting for the
+    others to end theirs, so JAX's coordination service sees each leave rather than lose it);
+    nothing where it joined none."""
+    if jax.distributed.is_initialized():
+        with library_noise.filtered_stderr(library_noise.LEAVING):  # (its warning, as they go)
+            jax.distributed.shutdown()
+            time.sleep(LEAVE_S)
 
 
 def _start_runtime(address: str, num_processes: int | None, process_id: int | None) -> None:
@@ -459,10 +504,13 @@ __all__ = [
     "check_same_settings",
     "host_value",
     "initialize_distributed",
+    "leave_distributed",
     "make_mesh",
     "memory_of",
     "replicate",
+    "start_agreed",
     "state_shardings",
     "stop_agreed",
+    "stop_before_training",
     "stop_failed",
 ]

@@ -34,9 +34,41 @@ def test_each_process_gets_the_flags_without_the_launcher_and_its_own_join_flags
 def test_each_process_sees_its_own_gpu_and_no_join_variables(monkeypatch):
     monkeypatch.setenv("JAX_PROCESS_ID", "7")
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")
-    env = lp.process_env("3")
+    env = lp.process_env("3", 2)
     assert env["CUDA_VISIBLE_DEVICES"] == "3" and "JAX_PROCESS_ID" not in env
-    assert lp.process_env(None)["CUDA_VISIBLE_DEVICES"] == "2,3"
+    assert env["TD3_JAX_LOCAL_PROCESSES"] == "2"
+    assert lp.process_env(None, 4)["CUDA_VISIBLE_DEVICES"] == "2,3"
+
+
+@pytest.mark.parametrize(
+    ("args", "variables", "joins"),
+    [(["--seed", "1"], {}, False), (["--num-processes", "2"], {}, True),
+     (["--process_id=1"], {}, True), (["--coordinator-address", "h:1"], {}, True),
+     ([], {"JAX_NUM_PROCESSES": "2"}, True), ([], {"TD3_JAX_LOCAL_PROCESSES": "2"}, True),
+     (["--local-processes", "2"], {}, False)],
+)  # fmt: skip
+def test_a_process_joins_others_where_a_join_flag_variable_or_the_launcher_says_so(
+    monkeypatch, args, variables, joins
+):
+    """The launcher itself (--local-processes) joins none: it starts the processes."""
+    for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID",
+                 "TD3_JAX_LOCAL_PROCESSES"):  # fmt: skip
+        monkeypatch.delenv(name, raising=False)
+    for name, value in variables.items():
+        monkeypatch.setenv(name, value)
+    assert lp.joins_others(args) is joins
+
+
+def test_a_launched_process_resumes_with_the_flag_that_started_it(monkeypatch, tmp_path):
+    """The run directory does not record how many processes ran it: the resume line a
+    process of --local-processes 3 prints names the flag (one of its own names none)."""
+    from td3_jax.runner.rundir import resume_command
+
+    monkeypatch.delenv("TD3_JAX_LOCAL_PROCESSES", raising=False)
+    assert resume_command(tmp_path / "r") == f"td3-jax train --out {tmp_path / 'r'} --resume"
+    monkeypatch.setenv("TD3_JAX_LOCAL_PROCESSES", "3")
+    assert resume_command(tmp_path / "r") == (f"td3-jax train --out {tmp_path / 'r'} --resume "
+                                              "--local-processes 3")  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -256,6 +288,29 @@ def test_a_ctrl_c_stops_every_process_once_after_a_checkpointed_chunk(tmp_path):
     assert err.count("interrupted; the newest checkpoint is") == 1, err[-3000:]
     saved = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
     assert saved and _records(run)[-1]["env_steps"] == saved[-1] * 256 < 51200
+
+
+@pytest.mark.timeout(400)
+@pytest.mark.processes
+def test_a_ctrl_c_while_the_processes_start_stops_them_all_before_training(tmp_path):
+    """SIGINT to the command while its processes import, join and compile: it is neither lost
+    (it could be, raised inside a finalizer Python discards) nor does one process leave the
+    other waiting. Both stop before training, with nothing written, exit status 130, and the
+    line is shown once."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "CUDA_VISIBLE_DEVICES": ""}
+    run = tmp_path / "run"
+    proc = _train([*TINY, "--total-steps", "51200", "--local-processes", "2", "--quiet",
+                   "--out", str(run)], env)  # fmt: skip
+    try:
+        time.sleep(6)  # (the processes import JAX and join on 2 cores)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err[-3000:]
+    assert err.count("interrupted before the first checkpoint") == 1, err[-3000:]
+    assert "Traceback" not in err and not (run / "metrics.jsonl").exists(), err[-3000:]
 
 
 @pytest.mark.parametrize(

@@ -58,6 +58,35 @@ def test_the_alarm_becomes_one_line_and_mlirs_lines_go_while_the_rest_passes_in_
     )
 
 
+#: What JAX's coordination service writes as the processes of a jax.distributed run leave it
+#: (two H200s, jax 0.11.2, after the run's last line).
+LEAVING = (
+    "W1130 01:39:11.257417    1170 pjrt_client.cc:1605] WatchTasksAsync failed for task 0: "
+    "CANCELLED: CANCELLED\n"
+    "Additional GRPC error information from remote target coordination_service while calling "
+    "/xla.coordination.CoordinationService/WatchTasks:\n"
+    ":CANCELLED:CANCELLED [type.googleapis.com/tensorflow.DerivedStatus='']\n"
+    "=== Source Location Trace: ===\n"
+    "external/xla+/xla/tsl/distributed_runtime/rpc/grpc_util.h:89\n"
+    "\n"
+    ":UNAVAILABLE:Cancelling all calls\n"
+)
+
+
+def test_the_coordination_services_lines_go_as_the_processes_leave_and_only_then():
+    """Dropped in the block that leaves the runtime (:data:`LEAVING`), kept elsewhere: the same
+    lines while training would be news."""
+    code = ("import os, sys\n"
+            "from td3_jax.common.library_noise import LEAVING, filtered_stderr\n"
+            "with filtered_stderr(LEAVING):\n"
+            f"    os.write(2, {LEAVING.encode()!r} + b'after\\n')\n"
+            "with filtered_stderr():\n"
+            f"    os.write(2, {LEAVING.splitlines()[0].encode()!r} + b'\\n')\n")  # fmt: skip
+    proc = python(code)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == "after\n" + LEAVING.splitlines()[0] + "\n"
+
+
 def test_a_process_ending_at_once_inside_the_block_loses_nothing_it_wrote():
     """A second Ctrl-C ends the process with os._exit while the filter holds its stderr: the
     line said just before still arrives (the filter is a process that drains the pipe)."""

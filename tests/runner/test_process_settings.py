@@ -352,6 +352,72 @@ def test_a_process_that_stops_with_an_error_stops_the_others_at_once(monkeypatch
     assert stop_agreed("", 4, end=True, call=0) == ""  # (call 0: process 0 went on there)
 
 
+def test_a_stop_asked_while_the_processes_start_stops_all_before_any_program_runs(
+    monkeypatch,
+):
+    """A Ctrl-C that reached process 0 while it compiled: process 1, compiled, learns it where
+    they agree to start (before any program of the run executes), and stops as interrupted
+    instead of waiting for process 0 at its first collective."""
+    from td3_jax.runner import run as run_module
+    from td3_jax.runner.sharding import STOP_KEY
+
+    run = _stop_run()
+    store = _Store({f"{STOP_KEY}/0/-1/start/0": "token"})
+    _as_process(monkeypatch, 1, 2, store)
+    with pytest.raises(KeyboardInterrupt):
+        run_module._agree_to_start(run)
+    assert run.stop.is_set() and store.published[f"{STOP_KEY}/0/-1/start/1"] == ""
+
+
+def test_processes_that_all_start_go_on_and_one_alone_needs_no_store(monkeypatch):
+    from td3_jax.runner import run as run_module
+    from td3_jax.runner.sharding import STOP_KEY
+
+    run = _stop_run()
+    _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/0/-1/start/0": ""}))
+    run_module._agree_to_start(run)
+    assert not run.stop.is_set()
+    _as_process(monkeypatch, 0, 1, None)
+    run_module._agree_to_start(run)
+    run.stop.set()
+    with pytest.raises(KeyboardInterrupt):
+        run_module._agree_to_start(run)
+
+
+@pytest.mark.parametrize(("stopped", "raised", "reason"),
+                         [(False, RuntimeError("disk"), "error"),
+                          (True, KeyboardInterrupt(), "token")])  # fmt: skip
+def test_a_process_that_stops_while_starting_tells_the_others_why(monkeypatch, stopped, raised,
+                                                                   reason):  # fmt: skip
+    """Process 0 fails (or is stopped) before it trains: it publishes why where the processes
+    agree to start, and process 1 stops there: with ProcessLostError naming it, or as
+    interrupted."""
+    from td3_jax.common.errors import ProcessLostError
+    from td3_jax.runner import run as run_module
+
+    def start(run, source, resume):
+        if stopped:
+            run.stop.set()
+        raise raised
+
+    store = _Store({})
+    _as_process(monkeypatch, 0, 2, store)
+    monkeypatch.setattr(run_module, "_start", start)
+    with pytest.raises(type(raised)):
+        run_module._start_and_train(_stop_run(), None, False, False, preset=None, changes=None)
+    _as_process(monkeypatch, 1, 2, store)
+    other = _stop_run()
+    if reason == "error":
+        with pytest.raises(ProcessLostError) as err:
+            run_module._agree_to_start(other)
+        assert str(err.value).startswith("process 0 stopped with an error before the start of "
+                                         "training (its own output says which)")  # fmt: skip
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            run_module._agree_to_start(other)
+        assert other.stop.is_set()
+
+
 @pytest.mark.timeout(400)
 @pytest.mark.processes
 @pytest.mark.parametrize(("signum", "code", "said"), [
@@ -398,3 +464,19 @@ def test_a_signal_that_reaches_one_process_stops_both_at_one_chunk_checkpointed(
     records = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     saved = sorted(int(p.name) for p in (out / "checkpoints").iterdir() if p.name.isdigit())
     assert saved and records[-1]["env_steps"] == saved[-1] * 256 < 51200
+
+
+def test_a_process_leaves_the_distributed_runtime_only_where_it_joined_one(monkeypatch):
+    """Leaving waits for the other processes (so the first, which holds the coordination
+    service, does not end under another's call): only where this process joined a run."""
+    from td3_jax.runner import sharding
+
+    left: list[bool] = []
+    monkeypatch.setattr(sharding, "LEAVE_S", 0.0)
+    monkeypatch.setattr(jax.distributed, "shutdown", lambda: left.append(True))
+    monkeypatch.setattr(jax.distributed, "is_initialized", lambda: False)
+    sharding.leave_distributed()
+    assert left == []
+    monkeypatch.setattr(jax.distributed, "is_initialized", lambda: True)
+    sharding.leave_distributed()
+    assert left == [True]
