@@ -5,7 +5,8 @@ program it cannot deserialise (the program store warns of the entry itself and t
 programs again), and XLA's notice that GSPMD is to be deprecated (td3-jax chooses GSPMD for
 MuJoCo Warp split over several devices, which Shardy cannot compile: ``envs.per_device``);
 and, as the processes of a ``jax.distributed`` run leave it, its coordination service's
-warning that it stopped watching them (:data:`LEAVING`).
+warning that it stopped watching them (:data:`LEAVING`, for the rest of the process:
+:func:`filtered_stderr_until_exit`).
 
 :func:`filtered_stderr` passes the process's file descriptor 2 through a small filter process
 for the span of a block (``python -I -S``, stdlib only): every other line goes through as it
@@ -26,7 +27,8 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
-__all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "filtered_stderr"]
+__all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "filtered_stderr",
+           "filtered_stderr_until_exit"]
 
 #: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
 ALARM = "Very slow compile?"
@@ -44,8 +46,8 @@ DROPPED = (
 LEAVING = (
     "WatchTasksAsync failed",
     "Additional GRPC error information from remote target coordination_service",
-    ":CANCELLED:CANCELLED",
-    ":UNAVAILABLE:Cancelling all calls",
+    ":CANCELLED:",  # (gRPC's status lines: the watch cancelled, or its service gone)
+    ":UNAVAILABLE:",
     "=== Source Location Trace: ===",
     "distributed_runtime/rpc/grpc_util.h",
 )
@@ -95,6 +97,23 @@ def filtered_stderr(dropped: tuple[str, ...] = DROPPED) -> Iterator[None]:
         child.stdin.close()  # its last line written, the filter ends
         with contextlib.suppress(subprocess.TimeoutExpired):  # (a child process of the
             child.wait(timeout=5)  # block may still hold the pipe: the filter outlives it)
+
+
+#: The filters started by :func:`filtered_stderr_until_exit` (each ends with the process).
+_UNTIL_EXIT: list[subprocess.Popen] = []
+
+
+def filtered_stderr_until_exit(dropped: tuple[str, ...]) -> None:
+    """Passes file descriptor 2 through the filter process, dropping the lines that hold any
+    text of ``dropped``, for the rest of this process's life: for lines that libraries write
+    on their own threads as the process ends (nothing where the filter cannot start)."""
+    started = _start_filter(dropped)
+    if started is None:
+        return
+    saved, child = started
+    os.dup2(child.stdin.fileno(), 2)
+    os.close(saved)  # (the filter writes to its own copy; it ends once fd 2 closes)
+    _UNTIL_EXIT.append(child)
 
 
 def _start_filter(dropped: tuple[str, ...]) -> tuple[int, subprocess.Popen] | None:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from typing import Any
 
 import jax
@@ -434,19 +433,15 @@ def _differ_message(differ: list[str], theirs: dict, mine: dict, other: int, her
             "--compile-cache may differ)")
 
 
-#: Seconds the coordination service's lines may still come after a process left the run, on
-#: the service's own threads (filtered too).
-LEAVE_S = 0.2
-
-
 def leave_distributed() -> None:
     """Ends this process's part of the ``jax.distributed`` run it joined (waiting for the
-    others to end theirs, so JAX's coordination service sees each leave rather than lose it);
-    nothing where it joined none."""
+    others to end theirs, so JAX's coordination service sees each leave rather than lose it),
+    the last thing the process does: the service's warnings as the processes leave, which its
+    threads may write until the process ends, are dropped from its stderr from here on
+    (:data:`~td3_jax.common.library_noise.LEAVING`). Nothing where it joined none."""
     if jax.distributed.is_initialized():
-        with library_noise.filtered_stderr(library_noise.LEAVING):  # (its warning, as they go)
-            jax.distributed.shutdown()
-            time.sleep(LEAVE_S)
+        library_noise.filtered_stderr_until_exit(library_noise.LEAVING)  # (its threads' lines)
+        jax.distributed.shutdown()
 
 
 def _start_runtime(address: str, num_processes: int | None, process_id: int | None) -> None:
@@ -454,8 +449,8 @@ def _start_runtime(address: str, num_processes: int | None, process_id: int | No
     no cluster manager such as SLURM or Open MPI to read them from), its refusal as one line."""
     try:
         jax.distributed.initialize(coordinator_address=address, num_processes=num_processes,
-                                   process_id=process_id,
-                                   initialization_timeout=JOIN_TIMEOUT_S)  # fmt: skip
+                                   process_id=process_id, initialization_timeout=JOIN_TIMEOUT_S,
+                                   coordinator_bind_address=_bind_address(address))  # fmt: skip
     except ValueError as err:
         if "must be defined" not in str(err):
             raise
@@ -464,6 +459,13 @@ def _start_runtime(address: str, num_processes: int | None, process_id: int | No
             "and JAX_PROCESS_ID) where no cluster manager (SLURM, Open MPI, ...) sets them; "
             f"JAX: {err}"
         ) from None
+
+
+def _bind_address(address: str) -> str | None:
+    """Where the first process's coordination service listens: ``address`` itself where it is
+    this host's loopback address 127.0.0.1 (``--local-processes``: the service is then out of
+    reach of other hosts), else JAX's default (every interface, at its port)."""
+    return address if address.rpartition(":")[0] == "127.0.0.1" else None
 
 
 def _whole_or_env(value: int | None, variable: str) -> int | None:

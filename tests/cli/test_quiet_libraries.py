@@ -69,22 +69,24 @@ LEAVING = (
     "=== Source Location Trace: ===\n"
     "external/xla+/xla/tsl/distributed_runtime/rpc/grpc_util.h:89\n"
     "\n"
-    ":UNAVAILABLE:Cancelling all calls\n"
+    ":UNAVAILABLE:failed to connect to all addresses; last error: UNKNOWN: ipv4:127.0.0.1:43645: "
+    "Failed to connect to remote host: Connection refused\n"
 )
 
 
-def test_the_coordination_services_lines_go_as_the_processes_leave_and_only_then():
-    """Dropped in the block that leaves the runtime (:data:`LEAVING`), kept elsewhere: the same
-    lines while training would be news."""
+def test_the_coordination_services_lines_go_once_the_processes_leave_and_only_then():
+    """Kept while training (news then), dropped from the moment the process leaves the runtime
+    to its end (:data:`LEAVING`: the service's threads write them as the process ends); the
+    process's own lines still pass, in order, the last one too."""
     code = ("import os, sys\n"
-            "from td3_jax.common.library_noise import LEAVING, filtered_stderr\n"
-            "with filtered_stderr(LEAVING):\n"
-            f"    os.write(2, {LEAVING.encode()!r} + b'after\\n')\n"
-            "with filtered_stderr():\n"
-            f"    os.write(2, {LEAVING.splitlines()[0].encode()!r} + b'\\n')\n")  # fmt: skip
+            "from td3_jax.common.library_noise import LEAVING, filtered_stderr_until_exit\n"
+            f"os.write(2, {LEAVING.splitlines()[0].encode()!r} + b'\\n')\n"
+            "filtered_stderr_until_exit(LEAVING)\n"
+            f"os.write(2, {LEAVING.encode()!r} + b'ours\\n')\n"
+            "print('and the last', file=sys.stderr)\n")  # fmt: skip
     proc = python(code)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stderr == "after\n" + LEAVING.splitlines()[0] + "\n"
+    assert proc.stderr == LEAVING.splitlines()[0] + "\nours\nand the last\n"
 
 
 def test_a_process_ending_at_once_inside_the_block_loses_nothing_it_wrote():

@@ -108,7 +108,19 @@ def test_a_waiting_process_says_which_ids_to_start_and_how_long_jax_waits(monkey
     assert "its own --process-id, 0 to 2" in said
     assert f"gives up after {sharding.JOIN_TIMEOUT_S} s" in said
     assert given == {"coordinator_address": "127.0.0.1:5", "num_processes": 3, "process_id": 1,
-                     "initialization_timeout": sharding.JOIN_TIMEOUT_S}  # fmt: skip
+                     "initialization_timeout": sharding.JOIN_TIMEOUT_S,
+                     "coordinator_bind_address": "127.0.0.1:5"}  # fmt: skip
+
+
+@pytest.mark.parametrize(("address", "bound"), [("127.0.0.1:5", "127.0.0.1:5"),
+                                                ("10.0.0.1:5", None), ("localhost:5", None),
+                                                ("127.0.0.10:5", None)])  # fmt: skip
+def test_a_loopback_coordinator_listens_on_loopback_alone(address, bound):
+    """--local-processes joins at 127.0.0.1: the service then listens there, not on every
+    interface (JAX's default, kept for other addresses: "localhost" may resolve to ::1)."""
+    from td3_jax.runner import sharding
+
+    assert sharding._bind_address(address) == bound
 
 
 class _Store:
@@ -469,14 +481,16 @@ def test_a_signal_that_reaches_one_process_stops_both_at_one_chunk_checkpointed(
 def test_a_process_leaves_the_distributed_runtime_only_where_it_joined_one(monkeypatch):
     """Leaving waits for the other processes (so the first, which holds the coordination
     service, does not end under another's call): only where this process joined a run."""
+    from td3_jax.common import library_noise
     from td3_jax.runner import sharding
 
     left: list[bool] = []
-    monkeypatch.setattr(sharding, "LEAVE_S", 0.0)
+    filtered: list[tuple] = []
+    monkeypatch.setattr(library_noise, "filtered_stderr_until_exit", filtered.append)
     monkeypatch.setattr(jax.distributed, "shutdown", lambda: left.append(True))
     monkeypatch.setattr(jax.distributed, "is_initialized", lambda: False)
     sharding.leave_distributed()
     assert left == []
     monkeypatch.setattr(jax.distributed, "is_initialized", lambda: True)
     sharding.leave_distributed()
-    assert left == [True]
+    assert left == [True] and filtered == [library_noise.LEAVING]
