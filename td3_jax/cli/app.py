@@ -11,6 +11,7 @@ runs, so ``td3-jax --help`` and ``--version`` answer without importing JAX.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
@@ -18,7 +19,7 @@ from collections.abc import Callable
 
 from td3_jax import __version__
 from td3_jax.cli.argv import check_no_empty_path, expand_home, repeated_flags_warning
-from td3_jax.cli.interrupts import Interrupted, exit_interrupted
+from td3_jax.cli.interrupts import Interrupted, exit_interrupted, signals_while_starting
 from td3_jax.cli.messages import error, warn
 from td3_jax.common import runtime
 from td3_jax.common.errors import WRITE_ERRNOS, Td3JaxError, did_you_mean
@@ -95,7 +96,9 @@ def _dispatch(argv: list[str]) -> None:
     if _launched(argv[0], argv[1:]):
         _launch(argv[0], argv[1:])
         return
-    run_reporting_errors(subcommand(argv[0]), argv[1:])
+    training = argv[0] in ("train", "sweep")
+    with signals_while_starting(argv[1:]) if training else contextlib.nullcontext():
+        run_reporting_errors(subcommand(argv[0]), argv[1:])  # (imports JAX: seconds)
 
 
 def _launched(name: str, args: list[str]) -> bool:

@@ -9,12 +9,14 @@ import functools
 import os
 import signal
 import sys
+from collections.abc import Iterator
 from typing import Any
 
-from td3_jax.common import runtime
+from td3_jax.common import library_noise, runtime
 from td3_jax.config.schema import TrainConfig
 
-__all__ = ["Interrupted", "exit_interrupted", "signals_while_starting", "train_stoppably"]
+__all__ = ["Interrupted", "exit_interrupted", "process_stop", "signals_while_starting",
+           "train_stoppably"]
 
 
 class Interrupted(Exception):
@@ -65,19 +67,37 @@ def train_stoppably(
         raise Interrupted(ended()) from None
 
 
-def signals_while_starting(
-    args: list[str], stop: runtime.StopToken, received: list[int]
-) -> contextlib.AbstractContextManager:
-    """For a process that joins others (:func:`~td3_jax.cli.local_processes.joins_others`),
-    from its first line: the handlers of a run of several processes, so that a Ctrl-C while
-    it imports, joins or compiles sets ``stop`` (the processes then stop together before
-    training, :func:`~td3_jax.runner.sharding.start_agreed`) instead of raising where Python
-    may discard it; a second signal stops at once. Nothing for a process of its own."""
+#: The stop token and signals of this process's handlers while it starts
+#: (:func:`signals_while_starting`), for the run it then trains (:func:`process_stop`).
+_STARTING: list[tuple[runtime.StopToken, list[int]]] = []
+
+
+@contextlib.contextmanager
+def signals_while_starting(args: list[str]) -> Iterator[None]:
+    """For a train or sweep process that joins others (:func:`~td3_jax.cli.local_processes.
+    joins_others`), from before it imports JAX: the handlers of a run of several processes, so
+    that a Ctrl-C while it imports, joins or compiles sets the stop token of
+    :func:`process_stop` (the processes then stop together before training, :func:`~td3_jax.
+    runner.sharding.start_agreed`) instead of raising where Python may discard it; a second
+    signal stops at once. Nothing for a process of its own."""
     from td3_jax.cli.local_processes import joins_others
 
     if not joins_others(args):
-        return contextlib.nullcontext()
-    return runtime.stop_signals(stop, received, several=True)
+        yield
+        return
+    stop, received = runtime.StopToken(), []
+    _STARTING.append((stop, received))
+    try:
+        with runtime.stop_signals(stop, received, several=True):
+            yield
+    finally:
+        _STARTING.remove((stop, received))
+
+
+def process_stop() -> tuple[runtime.StopToken, list[int]]:
+    """The stop token and received signals of :func:`signals_while_starting`, else new ones
+    (a process of its own, or the library called directly)."""
+    return _STARTING[-1] if _STARTING else (runtime.StopToken(), [])
 
 
 def exit_interrupted(message: str, code: int = 130) -> None:
@@ -88,7 +108,7 @@ def exit_interrupted(message: str, code: int = 130) -> None:
     print(message, file=sys.stderr)
     if runtime.background_work_running():
         sys.stdout.flush()
-        sys.stderr.flush()
+        library_noise.drain_filters()  # (what a filter of stderr still holds, this line too)
         runtime.forget_abandoned_work()  # (for a caller whose os._exit returns: tests)
         os._exit(code)
     sys.exit(code)

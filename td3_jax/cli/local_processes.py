@@ -153,12 +153,19 @@ def process_env(gpu: str | None, count: int) -> dict[str, str]:
 
 
 def joins_others(args: list[str]) -> bool:
-    """Whether a train or sweep process of ``args`` joins other processes (started by
-    ``--local-processes``, or given the flags or variables of ``jax.distributed``)."""
-    given = {flag_name(arg) for arg in args}
-    variables = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
-    return (runtime.local_processes() is not None or bool(given & set(_SET_HERE[:3]))
-            or any(name in os.environ for name in variables))  # fmt: skip
+    """Whether a train or sweep process of ``args`` joins other processes: started by
+    ``--local-processes``, or given ``jax.distributed``'s coordinator or process id, or a
+    process count above 1 (flags, or JAX's variables)."""
+    given = {flag_name(arg): i for i, arg in enumerate(args)}
+    counts = [os.environ.get("JAX_NUM_PROCESSES", "")]
+    if "--num-processes" in given:
+        at = given["--num-processes"]
+        _, equals, value = args[at].partition("=")
+        counts.append(value if equals else (args[at + 1] if at + 1 < len(args) else ""))
+    return (runtime.local_processes() is not None
+            or bool({"--coordinator-address", "--process-id"} & set(given))
+            or bool(os.environ.get("JAX_COORDINATOR_ADDRESS"))
+            or any(count.isdigit() and int(count) > 1 for count in counts))  # fmt: skip
 
 
 def run_local_processes(subcommand: str, args: list[str], count: int) -> int:

@@ -13,7 +13,7 @@ from typing import Any
 from td3_jax.cli import notes, settings
 from td3_jax.cli.argv import given_fields
 from td3_jax.cli.commands import SweepCommand, TrainCommand
-from td3_jax.cli.interrupts import Interrupted, signals_while_starting, train_stoppably
+from td3_jax.cli.interrupts import Interrupted, process_stop, train_stoppably
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_sweep_ranking
 from td3_jax.common import runtime
@@ -33,26 +33,30 @@ __all__ = ["parse_train", "sweep_main", "sweep_values", "train_main"]
 def train_main(args: list[str], sweeping: bool = False) -> None:
     """``td3-jax train ARGS`` (``sweeping``: ``td3-jax sweep ARGS``): checks the settings,
     trains (or resumes) the run and prints its last line (a sweep's ranking too)."""
-    stop, received = runtime.StopToken(), []
+    stop, received = process_stop()
     try:
-        with signals_while_starting(args, stop, received):
-            _train_command(args, sweeping, stop, received)
+        _train_command(args, sweeping, stop, received)
     except Interrupted:  # (several processes stop together: none is left mid-call)
-        _leave_processes()
+        _leave_processes(STOPPED_LEAVE_S)
         raise
-    _leave_processes()
+    _leave_processes(None)
 
 
-def _leave_processes() -> None:
+#: Seconds a stopped process of several waits for the others to leave JAX's runtime with it
+#: (they may still be compiling); past them it ends without them.
+STOPPED_LEAVE_S = 30.0
+
+
+def _leave_processes(wait_s: float | None) -> None:
     """A run of several processes, ended or stopped together: each leaves JAX's runtime once
-    all have come to leave it. Left at once, the first process (it holds the runtime's
-    coordination service) could end while another still called it, which then aborted
-    with a C++ stack trace."""
+    all have come to leave it (within ``wait_s``; None: however long). Left at once, the
+    first process (it holds the runtime's coordination service) could end while another still
+    called it, which then aborted with a C++ stack trace."""
     if "jax" not in sys.modules:  # (the run stopped before it imported JAX: nothing joined)
         return
     from td3_jax.runner.sharding import leave_distributed  # lazy: imports JAX
 
-    leave_distributed()
+    leave_distributed(wait_s)
 
 
 def _train_command(
@@ -70,7 +74,7 @@ def _train_command(
         status = run_local_processes("sweep" if sweeping else "train", args,
                                      command.local_processes)  # fmt: skip
         raise SystemExit(status)
-    program_dir = _start_process(command, args)
+    program_dir = _start_process(command, args, stop)
     _check_processes_agree(cfg, command, sweep, sweeping)
     cfg, devices, asked_eval_every = _completed(cfg, command, source, args)
     typed = given_fields(args)
@@ -173,12 +177,13 @@ def _check_sweep_to_resume(out: Path) -> None:
                           f"{rundir.resume_command(out)}")  # fmt: skip
 
 
-def _start_process(command: Any, args: list[str]) -> Path | None:
+def _start_process(command: Any, args: list[str], stop: runtime.StopToken) -> Path | None:
     """This process's side of a run: JAX's compilation cache (``--compile-cache``) and, on
     several hosts, the distributed runtime. Returns the folder of the traced programs (None:
     off)."""
     given_cache = any(arg.split("=", 1)[0] == "--compile-cache" for arg in args)
     program_dir = runtime.enable_compile_cache(command.compile_cache, given=given_cache)
+    stop.raise_if_set()  # (stopped while it started: joining could block for minutes)
     from td3_jax.runner.sharding import initialize_distributed  # lazy: imports JAX
 
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)

@@ -21,13 +21,14 @@ still get through.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import subprocess
 import sys
 from collections.abc import Iterator
 
-__all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "filtered_stderr",
+__all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "drain_filters", "filtered_stderr",
            "filtered_stderr_until_exit"]
 
 #: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
@@ -113,7 +114,24 @@ def filtered_stderr_until_exit(dropped: tuple[str, ...]) -> None:
     saved, child = started
     os.dup2(child.stdin.fileno(), 2)
     os.close(saved)  # (the filter writes to its own copy; it ends once fd 2 closes)
+    if not _UNTIL_EXIT:
+        atexit.register(drain_filters)
     _UNTIL_EXIT.append(child)
+
+
+def drain_filters(timeout_s: float = 5.0) -> None:
+    """Lets the filters of :func:`filtered_stderr_until_exit` write out all they were given
+    before the process ends (else its last line could come after the shell's prompt): fd 2
+    then writes nowhere, and each filter is waited for up to ``timeout_s``."""
+    if not _UNTIL_EXIT:
+        return
+    _flush_stderr()
+    os.dup2(os.open(os.devnull, os.O_WRONLY), 2)
+    for child in _UNTIL_EXIT:
+        child.stdin.close()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            child.wait(timeout=timeout_s)
+    _UNTIL_EXIT.clear()
 
 
 def _start_filter(dropped: tuple[str, ...]) -> tuple[int, subprocess.Popen] | None:

@@ -125,14 +125,19 @@ def train(
     """
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
+    stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
     cfg = _eval_every_within_run(cfg, resume, say=progress and writer)
-    with warp_kernels.beside_compile():  # (Warp's kernels may compile while XLA's programs do)
-        prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer, program_dir,
-                            env)  # fmt: skip
+    try:  # (a check of the writing process alone may stop it: the others are told)
+        with warp_kernels.beside_compile():  # (Warp's kernels may compile beside XLA's programs)
+            prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer,
+                                program_dir, env)  # fmt: skip
+        run_lock = _open_run_dir(out_dir, resume, writer)
+    except BaseException:
+        stop_before_training("token" if stop.is_set() else "error", call=call)
+        raise
     cfg, population, changes, source = prepared
-    run_lock = _open_run_dir(out_dir, resume, writer)
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
-               stop if stop is not None else StopToken(), env=source.env)  # fmt: skip
+               stop, env=source.env, call=call)  # fmt: skip
     try:
         if on_prepared is not None:
             on_prepared()
@@ -193,11 +198,23 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
         compiled, state = _compiled_and_state(run, source, state, say=progress and run.writer)
         if jax.process_count() == 1:  # (several agreed to start: their first chunk stops)
             run.stop.raise_if_set()  # (stopped as the state was made: nothing written yet)
+        _write_and_train(run, compiled, state, progress, resume=resume, preset=preset,
+                         changes=changes)  # fmt: skip
     except BaseException:
-        stop_before_training("token" if run.stop.is_set() else "error", call=run.call)
+        _tell_the_others(run)
         raise
-    _write_and_train(run, compiled, state, progress, resume=resume, preset=preset,
-                     changes=changes)  # fmt: skip
+
+
+def _tell_the_others(run: _Run) -> None:
+    """Several processes: why this one stops where the others would wait for it. Before they
+    agreed to start, where they agree (a stop, or an error: :func:`~td3_jax.runner.sharding.
+    stop_before_training`); after, at the chunk it was in or would have started
+    (:func:`~td3_jax.runner.sharding.stop_failed`; in the loop :func:`_loop` has said so)."""
+    if not run.started_together:
+        stop_before_training("token" if run.stop.is_set() else "error", call=run.call)
+    else:
+        stop_failed(run.last_chunk if run.last_chunk is not None else run.start_chunk,
+                    call=run.call)  # fmt: skip
 
 
 def _agree_to_start(run: _Run) -> None:
@@ -207,6 +224,7 @@ def _agree_to_start(run: _Run) -> None:
     if start_agreed("token" if run.stop.is_set() else "", call=run.call) == "token":
         run.stop.set()
     run.stop.raise_if_set()
+    run.started_together = True
 
 
 def _say_resuming(run: _Run) -> None:
@@ -287,7 +305,9 @@ def _write_failure(run: _Run, err: Exception) -> OutputWriteError:
 def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
                         ) -> tuple[Programs, Any]:  # fmt: skip
     """The run's compiled programs, the state's room checked as soon as its shapes are known
-    (:func:`td3_jax.runner.programs.compiled`), and its state: ``state`` restored, else initialised.
+    (:func:`td3_jax.runner.programs.compiled`), and its state: ``state`` restored, else initialised;
+    KeyboardInterrupt where this process or another of the run was stopped meanwhile
+    (:func:`_agree_to_start`).
     The checksum program of its checkpoints compiles beside them (:func:`_state_shapes_known`)
     and is waited for before anything runs on the devices (no compile runs beside a chunk).
     ``say``: print that it compiles first (a log then shows where the time goes), and from
@@ -422,6 +442,7 @@ class _Run:
     trained_total_steps: int | None = None  # the total_steps it was written under, if recorded
     warned_of_growth: bool = False  # (growth_warning: said once per run)
     call: int = dataclasses.field(default_factory=lambda: next(_TRAIN_CALLS))  # (stop keys)
+    started_together: bool = False  # (the processes agreed to start: _agree_to_start)
     last_chunk: int | None = None  # the index of the chunk begun last
     clock_start: float = dataclasses.field(default_factory=time.perf_counter)
     wall_offset: float = 0.0

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import json
 import os
+from concurrent import futures
 from typing import Any
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from td3_jax.common import library_noise, upstream
+from td3_jax.common import library_noise, runtime, upstream
 from td3_jax.common.errors import ConfigError, ProcessLostError
 from td3_jax.config.schema import flag
 from td3_jax.runner.memory import (
@@ -332,7 +333,7 @@ def stop_agreed(reason: str, chunk: int, end: bool, call: int = 0) -> str:
 
 def start_agreed(reason: str, call: int = 0) -> str:
     """:func:`stop_agreed` at the point where each process of training call ``call`` has
-    its programs compiled and has run none of them (nor read a checkpoint into the devices):
+    its programs compiled and has run none of them (a resumed run has read its checkpoint):
     a stop asked while the processes start (``"token"``) is agreed there, so none is left
     waiting for the others at their first collective. One process: ``reason`` itself."""
     return _agreed(reason, _boundary(call, -1, False), "the start of training")
@@ -433,15 +434,23 @@ def _differ_message(differ: list[str], theirs: dict, mine: dict, other: int, her
             "--compile-cache may differ)")
 
 
-def leave_distributed() -> None:
-    """Ends this process's part of the ``jax.distributed`` run it joined (waiting for the
-    others to end theirs, so JAX's coordination service sees each leave rather than lose it),
-    the last thing the process does: the service's warnings as the processes leave, which its
-    threads may write until the process ends, are dropped from its stderr from here on
-    (:data:`~td3_jax.common.library_noise.LEAVING`). Nothing where it joined none."""
-    if jax.distributed.is_initialized():
-        library_noise.filtered_stderr_until_exit(library_noise.LEAVING)  # (its threads' lines)
-        jax.distributed.shutdown()
+def leave_distributed(wait_s: float | None = None) -> bool:
+    """Ends this process's part of the ``jax.distributed`` run it joined, waiting for the
+    others to end theirs (JAX's coordination service then sees each leave rather than lose
+    it), the last thing the process does: the service's warnings as the processes leave, which
+    its threads may write until the process ends, are dropped from its stderr from here on
+    (:data:`~td3_jax.common.library_noise.LEAVING`). The wait runs on a thread of
+    :func:`~td3_jax.common.runtime.in_background`, so signals are handled meanwhile; past
+    ``wait_s`` (None: no limit) it returns False and the wait goes on there (the CLI then ends
+    the process at once). True where it left, or joined none."""
+    if not jax.distributed.is_initialized():
+        return True
+    library_noise.filtered_stderr_until_exit(library_noise.LEAVING)  # (its threads' lines)
+    leaving = runtime.in_background(jax.distributed.shutdown, name="td3-jax leaving")
+    done, _ = futures.wait([leaving], timeout=wait_s)
+    if done:
+        leaving.result()
+    return bool(done)
 
 
 def _start_runtime(address: str, num_processes: int | None, process_id: int | None) -> None:

@@ -43,6 +43,8 @@ def test_each_process_sees_its_own_gpu_and_no_join_variables(monkeypatch):
 @pytest.mark.parametrize(
     ("args", "variables", "joins"),
     [(["--seed", "1"], {}, False), (["--num-processes", "2"], {}, True),
+     (["--num-processes", "1"], {}, False), (["--num-processes=3"], {}, True),
+     ([], {"JAX_NUM_PROCESSES": "1"}, False),
      (["--process_id=1"], {}, True), (["--coordinator-address", "h:1"], {}, True),
      ([], {"JAX_NUM_PROCESSES": "2"}, True), ([], {"TD3_JAX_LOCAL_PROCESSES": "2"}, True),
      (["--local-processes", "2"], {}, False)],
@@ -57,6 +59,32 @@ def test_a_process_joins_others_where_a_join_flag_variable_or_the_launcher_says_
     for name, value in variables.items():
         monkeypatch.setenv(name, value)
     assert lp.joins_others(args) is joins
+
+
+def test_a_process_of_its_own_starts_with_its_signal_handlers_untouched(monkeypatch, capsys):
+    """Only a process that joins others takes a first Ctrl-C as a stop request from its
+    start (a process of its own raises KeyboardInterrupt, as it always did); both get the
+    token the run then uses."""
+    import signal as signals
+
+    from td3_jax.cli import interrupts
+
+    for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID",
+                 "TD3_JAX_LOCAL_PROCESSES"):  # fmt: skip
+        monkeypatch.delenv(name, raising=False)
+    before = signals.getsignal(signals.SIGINT)
+    with interrupts.signals_while_starting(["--seed", "1"]):
+        assert signals.getsignal(signals.SIGINT) is before
+        assert interrupts.process_stop()[0] is not interrupts.process_stop()[0]  # (new ones)
+    with interrupts.signals_while_starting(["--num-processes", "2"]):
+        stop, received = interrupts.process_stop()
+        assert interrupts.process_stop()[0] is stop
+        os.kill(os.getpid(), signals.SIGINT)  # (no KeyboardInterrupt: a stop request)
+        time.sleep(0.1)
+        assert stop.is_set() and received == [signals.SIGINT]
+    assert signals.getsignal(signals.SIGINT) is before
+    said = capsys.readouterr().err
+    assert "stopping before training starts (Ctrl-C again to stop at once)" in said
 
 
 def test_a_launched_process_resumes_with_the_flag_that_started_it(monkeypatch, tmp_path):
@@ -221,7 +249,8 @@ def test_the_processes_do_not_import_modules_of_the_folder_they_start_in(tmp_pat
     monkeypatch.chdir(tmp_path)
     started, real = [], subprocess.Popen
     monkeypatch.setattr(lp.subprocess, "Popen", lambda cmd, **kw: started.append(cmd) or
-                        real([sys.executable, "-c", "pass"]))  # fmt: skip
+                        real([sys.executable, "-c", "pass"], stdout=kw.get("stdout"),
+                             text=True))  # fmt: skip
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
     assert lp.run_local_processes("train", ["--seed", "1"], 2) == 0
     assert [cmd[:4] for cmd in started] == [[sys.executable, "-P", "-m", "td3_jax"]] * 2

@@ -16,6 +16,7 @@ import jax
 import pytest
 
 from td3_jax.common.errors import ConfigError
+from td3_jax.config.schema import TrainConfig
 from td3_jax.runner.sharding import (
     JOIN_TIMEOUT_S,
     SETTINGS_KEY,
@@ -121,6 +122,10 @@ def test_a_loopback_coordinator_listens_on_loopback_alone(address, bound):
     from td3_jax.runner import sharding
 
     assert sharding._bind_address(address) == bound
+
+
+#: A small run's settings (nothing of it runs in these tests).
+SMALL_CFG = TrainConfig(env="gymnax/Pendulum-v1", num_envs=2, total_steps=64, eval_every=32)
 
 
 class _Store:
@@ -265,7 +270,8 @@ def _stop_run(stop_set: bool = False, budget: float | None = None, wall: float =
     checkpointer = SimpleNamespace(latest_step=lambda: 3)
     return SimpleNamespace(stop=stop, stop_after_chunks=after_chunks, time_budget_s=budget,
                            records=[{"wall_time_s": wall}], checkpointer=checkpointer,
-                           start_chunk=0, start_steps=0, call=0,
+                           start_chunk=0, start_steps=0, call=0, started_together=False,
+                           last_chunk=None, writer=False, out_dir=None,
                            cfg=SimpleNamespace(steps_per_chunk=32, run_steps=1000))  # fmt: skip
 
 
@@ -382,18 +388,75 @@ def test_a_stop_asked_while_the_processes_start_stops_all_before_any_program_run
 
 
 def test_processes_that_all_start_go_on_and_one_alone_needs_no_store(monkeypatch):
+    from td3_jax.common import upstream
     from td3_jax.runner import run as run_module
     from td3_jax.runner.sharding import STOP_KEY
 
     run = _stop_run()
     _as_process(monkeypatch, 1, 2, _Store({f"{STOP_KEY}/0/-1/start/0": ""}))
     run_module._agree_to_start(run)
-    assert not run.stop.is_set()
-    _as_process(monkeypatch, 0, 1, None)
+    assert not run.stop.is_set() and run.started_together
+    monkeypatch.setattr(jax, "process_count", lambda: 1)
+    monkeypatch.setattr(jax, "process_index", lambda: 0)
+    monkeypatch.setattr(upstream, "distributed_store", lambda: pytest.fail("store asked"))
     run_module._agree_to_start(run)
     run.stop.set()
     with pytest.raises(KeyboardInterrupt):
         run_module._agree_to_start(run)
+
+
+def test_a_process_that_fails_after_the_processes_agreed_to_start_tells_the_others(
+    monkeypatch,
+):
+    """Process 0 agreed to start, then failed before its first chunk (its config.json not
+    written: a full disk, say): process 1, at that chunk's start, stops with one line instead
+    of waiting there for it."""
+    from td3_jax.common.errors import ProcessLostError
+    from td3_jax.runner import run as run_module
+    from td3_jax.runner.sharding import STOP_KEY, stop_agreed
+
+    def agreed_then_failed(run, *args, **kwargs):
+        run_module._agree_to_start(run)
+        raise OSError("No space left on device")
+
+    store = _Store({f"{STOP_KEY}/0/-1/start/1": ""})
+    _as_process(monkeypatch, 0, 2, store)
+    monkeypatch.setattr(run_module, "_start", lambda run, source, resume: None)
+    monkeypatch.setattr(run_module.tracking, "start", lambda *a, **k: None)
+    monkeypatch.setattr(run_module, "_compiled_and_state",
+                        lambda run, *a, **k: (agreed_then_failed(run), None))  # fmt: skip
+    with pytest.raises(OSError):
+        run_module._start_and_train(_stop_run(), None, False, False, preset=None, changes=None)
+    _as_process(monkeypatch, 1, 2, store)
+    with pytest.raises(ProcessLostError) as err:
+        stop_agreed("", 0, end=False)
+    assert str(err.value).startswith("process 0 stopped with an error before the start of chunk 1")
+
+
+def test_a_process_whose_own_checks_stop_it_before_its_run_starts_tells_the_others(
+    monkeypatch, tmp_path
+):
+    """A check that only the writing process makes (its --out holding another run, say) stops
+    process 0 before its run exists: process 1 learns it where they agree to start."""
+    from td3_jax.common.errors import ProcessLostError
+    from td3_jax.runner import run as run_module
+
+    store = _Store({})
+    _as_process(monkeypatch, 0, 2, store)
+
+    def refused(*args, **kwargs):
+        raise ConfigError("runs/x already holds a run")
+
+    monkeypatch.setattr(run_module, "_prepare", refused)
+    with pytest.raises(ConfigError):
+        run_module.train(SMALL_CFG, tmp_path / "run", progress=False)
+    _as_process(monkeypatch, 1, 2, store)
+    other = _stop_run()
+    other.call = next(k for k in store.published if k.endswith("/start/0")).split("/")[2]
+    with pytest.raises(ProcessLostError) as err:
+        run_module._agree_to_start(other)
+    assert str(err.value).startswith("process 0 stopped with an error before the start of "
+                                     "training")  # fmt: skip
 
 
 @pytest.mark.parametrize(("stopped", "raised", "reason"),
