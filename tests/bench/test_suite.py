@@ -159,7 +159,9 @@ def test_a_child_is_timed_from_its_launch_and_its_clock_offset_found(tmp_path):
     assert lines[0].startswith("# ") and lines[0].endswith(str(tmp_path / "run"))  # one line
     stamps = [float(line.split()[0]) for line in lines[1:]]
     assert [line.split(maxsplit=1)[1] for line in lines[1:]] == ["compiling", "first record"]
-    assert stamps == sorted(stamps) and stamps[1] - stamps[0] >= 0.25
+    # (read times, to 0.1 s: "first record" cannot be read before the child's 0.3 s sleep,
+    # while "compiling" may be read late on a busy machine, so their gap is not bounded below)
+    assert stamps == sorted(stamps) and stamps[1] >= 0.25
 
 
 def _metrics(folder: Path, rows: list[tuple[int, float, float]]) -> None:
