@@ -43,7 +43,8 @@ DROPPED = (
 )
 #: Text of the lines of JAX's coordination service as the processes of a ``jax.distributed`` run
 #: leave it (a warning that its watch of the other processes was cancelled, with its gRPC
-#: details and source trace), dropped while they leave (:func:`filtered_stderr`'s ``dropped``).
+#: details and source trace), dropped from the moment a process leaves it
+#: (:func:`filtered_stderr_until_exit`).
 LEAVING = (
     "WatchTasksAsync failed",
     "Additional GRPC error information from remote target coordination_service",
