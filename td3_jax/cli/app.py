@@ -14,12 +14,18 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
+import signal
 import sys
 from collections.abc import Callable
 
 from td3_jax import __version__
 from td3_jax.cli.argv import check_no_empty_path, expand_home, repeated_flags_warning
-from td3_jax.cli.interrupts import Interrupted, exit_interrupted, signals_while_starting
+from td3_jax.cli.interrupts import (
+    Interrupted,
+    exit_interrupted,
+    process_stop,
+    signals_while_starting,
+)
 from td3_jax.cli.messages import error, warn
 from td3_jax.common import runtime
 from td3_jax.common.errors import WRITE_ERRNOS, Td3JaxError, did_you_mean
@@ -157,5 +163,7 @@ def run_reporting_errors(command: Callable[[list[str]], None], args: list[str]) 
         where = f"{err.filename}: " if err.filename else ""
         error(f"{where}{err.strerror}")
         sys.exit(2)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # (before a run started: a SIGTERM of a process of several too)
+        if signal.SIGTERM in process_stop()[1]:
+            exit_interrupted("td3-jax: terminated (SIGTERM)", 128 + signal.SIGTERM)
         exit_interrupted("td3-jax: interrupted")

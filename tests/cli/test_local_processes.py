@@ -87,6 +87,25 @@ def test_a_process_of_its_own_starts_with_its_signal_handlers_untouched(monkeypa
     assert "stopping before training starts (Ctrl-C again to stop at once)" in said
 
 
+def test_a_sigterm_that_stops_a_process_of_several_before_its_run_is_said_as_one(monkeypatch,
+                                                                                   capsys):
+    """Stopped before its run started (its token set while it joined), a process that a
+    SIGTERM stopped ends with 143 and says so (it said "interrupted", with 130)."""
+    from td3_jax.cli import app, interrupts
+
+    monkeypatch.setenv("TD3_JAX_LOCAL_PROCESSES", "2")
+
+    def stopped(args):
+        raise KeyboardInterrupt
+
+    with interrupts.signals_while_starting(["--seed", "1"]):
+        interrupts.process_stop()[1].append(signal.SIGTERM)
+        with pytest.raises(SystemExit) as end:
+            app.run_reporting_errors(stopped, [])
+    assert end.value.code == 143
+    assert capsys.readouterr().err.endswith("td3-jax: terminated (SIGTERM)\n")
+
+
 def test_a_launched_process_resumes_with_the_flag_that_started_it(monkeypatch, tmp_path):
     """The run directory does not record how many processes ran it: the resume line a
     process of --local-processes 3 prints names the flag (one of its own names none)."""
