@@ -127,14 +127,8 @@ def train(
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
     cfg = _eval_every_within_run(cfg, resume, say=progress and writer)
-    try:  # (a check of the writing process alone may stop it: the others are told)
-        with warp_kernels.beside_compile():  # (Warp's kernels may compile beside XLA's programs)
-            prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer,
-                                program_dir, env)  # fmt: skip
-        run_lock = _open_run_dir(out_dir, resume, writer)
-    except BaseException:
-        stop_before_training("token" if stop.is_set() else "error", call=call)
-        raise
+    prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
+                                              program_dir, env, stop, call)  # fmt: skip
     cfg, population, changes, source = prepared
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
                stop, env=source.env, call=call)  # fmt: skip
@@ -147,6 +141,23 @@ def train(
         warp_kernels.drop_pending()  # (a run that ended before its first physics step)
         _finish(run, run_lock)
     return run.records
+
+
+def _prepared_and_opened(
+    cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, devices: int | None,
+    writer: bool, program_dir: Path | None, env: Any, stop: StopToken, call: int,
+) -> tuple[tuple, Any]:  # fmt: skip
+    """:func:`_prepare` (Warp's kernels may compile beside XLA's programs) and
+    :func:`_open_run_dir`; a check of the writing process alone may stop it there, so the
+    other processes are told (:func:`~td3_jax.runner.sharding.stop_before_training`)."""
+    try:
+        with warp_kernels.beside_compile():
+            prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer,
+                                program_dir, env)  # fmt: skip
+        return prepared, _open_run_dir(out_dir, resume, writer)
+    except BaseException:
+        stop_before_training("token" if stop.is_set() else "error", call=call)
+        raise
 
 
 def _eval_every_within_run(cfg: TrainConfig, resume: bool, say: bool) -> TrainConfig:
