@@ -40,7 +40,10 @@ def main() -> None:
     parser.add_argument("--out", default="runs/pendulum-two-processes")
     parser.add_argument("--total-steps", type=int, default=20_000)
     args = parser.parse_args()
-    records = train(args.process_id, args.coordinator, args.out, args.total_steps)
+    try:
+        records = train(args.process_id, args.coordinator, args.out, args.total_steps)
+    except ValueError as err:  # td3-jax's refusals (ConfigError): an --out that holds a run, ...
+        raise SystemExit(f"process {args.process_id}: {err}") from None
     print(f"process {args.process_id}: eval return {records[-1]['eval_return_mean']:.1f}")
 
 

@@ -49,8 +49,6 @@ def test_the_two_process_example_trains_one_run_in_both_processes(tmp_path):
     """``examples/two_processes.py`` started twice on CPUs, as its docstring says: both
     processes end with the same records (one run, its evaluation averaged over both)."""
     import os
-    import subprocess
-    import sys
 
     from td3_jax.cli.local_processes import free_port
 
@@ -58,17 +56,32 @@ def test_the_two_process_example_trains_one_run_in_both_processes(tmp_path):
     flags = ["--coordinator", f"localhost:{free_port()}", "--out", str(tmp_path / "run"),
              "--total-steps", "4000"]  # fmt: skip
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    procs = [subprocess.Popen([sys.executable, str(example), "--process-id", str(i), *flags],
-                              env=env, text=True, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE) for i in (0, 1)]  # fmt: skip
-    try:
-        outs = [proc.communicate(timeout=500) for proc in procs]
-    finally:
-        for proc in procs:
-            proc.kill()
+    procs, outs = _both_processes(example, flags, env)
     assert [proc.returncode for proc in procs] == [0, 0], [err[-2000:] for _, err in outs]
     said = [out.strip().splitlines()[-1] for out, _ in outs]
     assert said[0].startswith("process 0: eval return ") and said[1].startswith("process 1: ")
     assert said[0].split(": ", 1)[1] == said[1].split(": ", 1)[1]
     records = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     assert '"env_steps": 4000,' in records[-1]  # (the whole run, written once)
+    flags[1] = f"localhost:{free_port()}"  # (again into the same folder: refused in one line)
+    procs, outs = _both_processes(example, flags, env)
+    assert [proc.returncode for proc in procs] == [1, 1]
+    for i, (_, err) in enumerate(outs):
+        assert err.strip().splitlines()[-1].startswith(f"process {i}: {tmp_path / 'run'} "
+                                                       "already holds a run"), err[-2000:]
+        assert "Traceback" not in err
+
+
+def _both_processes(example: Path, flags: list[str], env: dict) -> tuple[list, list]:
+    """Both processes of the example run to their end: ``(processes, [(stdout, stderr)])``."""
+    import subprocess
+    import sys
+
+    procs = [subprocess.Popen([sys.executable, str(example), "--process-id", str(i), *flags],
+                              env=env, text=True, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE) for i in (0, 1)]  # fmt: skip
+    try:
+        return procs, [proc.communicate(timeout=500) for proc in procs]
+    finally:
+        for proc in procs:
+            proc.kill()

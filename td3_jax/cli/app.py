@@ -16,13 +16,15 @@ import importlib
 import os
 import signal
 import sys
+import traceback
 from collections.abc import Callable
 
 from td3_jax import __version__
 from td3_jax.cli.argv import check_no_empty_path, expand_home, repeated_flags_warning
 from td3_jax.cli.interrupts import (
     Interrupted,
-    exit_interrupted,
+    exit_process,
+    joined_others,
     process_stop,
     signals_while_starting,
 )
@@ -140,7 +142,8 @@ def subcommand(name: str) -> Callable[[list[str]], None]:
 def run_reporting_errors(command: Callable[[list[str]], None], args: list[str]) -> None:
     """Runs a subcommand; a known failure becomes one message and its exit code
     (:mod:`td3_jax.common.errors`: 2 bad input, 3 a run stopped by what it computed; 130
-    interrupted)."""
+    interrupted). A process of several ends any failure with the others
+    (:func:`~td3_jax.cli.interrupts.exit_process`), an unforeseen one after its traceback."""
     runtime.quiet_library_logs()  # orbax's and asyncio's log lines, Brax's notice
     try:
         check_no_empty_path(args)
@@ -149,21 +152,30 @@ def run_reporting_errors(command: Callable[[list[str]], None], args: list[str]) 
         command(expand_home(args))
     except Td3JaxError as err:
         error(str(err))
-        sys.exit(err.exit_code)
-    except RuntimeError as err:
-        if "MUJOCO_GL" not in str(err):  # mujoco's import refuses an unknown MUJOCO_GL value
-            raise
-        error(f"{err} (unset it or use egl, osmesa or glfw)")
-        sys.exit(2)
+        exit_process(None, err.exit_code)
     except Interrupted as err:
-        exit_interrupted(f"td3-jax: {err}", err.code)
-    except OSError as err:  # a full disk, a quota, a read-only file system, no permission
-        if err.errno not in WRITE_ERRNOS:
-            raise
-        where = f"{err.filename}: " if err.filename else ""
-        error(f"{where}{err.strerror}")
-        sys.exit(2)
+        exit_process(f"td3-jax: {err}", err.code)
     except KeyboardInterrupt:  # (before a run started: a SIGTERM of a process of several too)
         if signal.SIGTERM in process_stop()[1]:
-            exit_interrupted("td3-jax: terminated (SIGTERM)", 128 + signal.SIGTERM)
-        exit_interrupted("td3-jax: interrupted")
+            exit_process("td3-jax: terminated (SIGTERM)", 128 + signal.SIGTERM)
+        exit_process("td3-jax: interrupted", 130)
+    except Exception as err:
+        _exit_failed(err)
+
+
+def _exit_failed(err: Exception) -> None:
+    """The failures of :func:`run_reporting_errors` that are not td3-jax's own: mujoco's
+    refusal of an unknown ``MUJOCO_GL``, an operating system's refusal to write (a full disk, a
+    quota, a read-only file system, no permission) as one line and exit status 2; anything
+    else as its traceback (exit status 1), raised again unless the process joined others."""
+    if isinstance(err, RuntimeError) and "MUJOCO_GL" in str(err):
+        error(f"{err} (unset it or use egl, osmesa or glfw)")
+        exit_process(None, 2)
+    if isinstance(err, OSError) and err.errno in WRITE_ERRNOS:
+        where = f"{err.filename}: " if err.filename else ""
+        error(f"{where}{err.strerror}")
+        exit_process(None, 2)
+    if not joined_others():
+        raise err
+    traceback.print_exc()
+    exit_process(None, 1)

@@ -15,8 +15,8 @@ from typing import Any
 from td3_jax.common import library_noise, runtime
 from td3_jax.config.schema import TrainConfig
 
-__all__ = ["Interrupted", "exit_interrupted", "process_stop", "signals_while_starting",
-           "train_stoppably"]
+__all__ = ["STOPPED_LEAVE_S", "Interrupted", "exit_process", "joined_others", "leave_processes",
+           "process_stop", "signals_while_starting", "train_stoppably"]
 
 
 class Interrupted(Exception):
@@ -100,12 +100,42 @@ def process_stop() -> tuple[runtime.StopToken, list[int]]:
     return _STARTING[-1] if _STARTING else (runtime.StopToken(), [])
 
 
-def exit_interrupted(message: str, code: int = 130) -> None:
-    """Prints ``message`` and exits with ``code`` at once: an XLA compile still running on a
-    background thread, or a chunk or evaluation a Ctrl-C left running on the device (neither can
-    be interrupted), is abandoned rather than waited for (the run's outputs are closed by then).
-    Waiting took the rest of the chunk, and tearing down XLA under it could end in SIGSEGV."""
-    print(message, file=sys.stderr)
+#: Seconds a process of several that ends early (stopped, or failed) waits for the others to
+#: leave JAX's runtime with it (they may still be compiling, or in a chunk); past them it ends
+#: without them.
+STOPPED_LEAVE_S = 30.0
+
+
+def leave_processes(wait_s: float | None) -> None:
+    """A run of several processes, ended or stopped together: each leaves JAX's runtime once
+    all have come to leave it (within ``wait_s``; None: however long). Left at once, the
+    first process (it holds the runtime's coordination service) could end while another still
+    called it, which then aborted with a C++ stack trace. Nothing where the process joined no
+    others (or never imported JAX)."""
+    if "jax" not in sys.modules:  # (it stopped before it imported JAX: nothing joined)
+        return
+    from td3_jax.runner.sharding import leave_distributed  # lazy: imports JAX
+
+    leave_distributed(wait_s)
+
+
+def joined_others() -> bool:
+    """Whether this process joined other processes through ``jax.distributed``."""
+    return "jax" in sys.modules and sys.modules["jax"].distributed.is_initialized()
+
+
+def exit_process(message: str | None, code: int) -> None:
+    """Ends a command that stopped or failed with exit status ``code``, after ``message`` on
+    stderr (None: said already). A process of several first leaves JAX's runtime with the
+    others, within :data:`STOPPED_LEAVE_S` (JAX's own exit hook would wait for one that is gone
+    for minutes, then abort the process). Work that a Ctrl-C cannot stop is then abandoned
+    with ``os._exit`` rather than waited for: an XLA compile on a background thread, a chunk
+    or evaluation left running on the device, a leave still waiting (the run's outputs are
+    closed by then). Waiting took the rest of the chunk, and tearing down XLA under it could
+    end in SIGSEGV."""
+    if message is not None:
+        print(message, file=sys.stderr, flush=True)
+    leave_processes(STOPPED_LEAVE_S)
     if runtime.background_work_running():
         sys.stdout.flush()
         library_noise.drain_filters()  # (what a filter of stderr still holds, this line too)

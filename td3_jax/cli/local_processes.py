@@ -24,12 +24,14 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 from td3_jax.common import runtime
 from td3_jax.common.errors import ConfigError
 
 __all__ = [
+    "DRIVER_GPUS",
     "FLAG",
     "GRACE_S",
     "HELD_LINES",
@@ -108,19 +110,33 @@ def check_local_processes(count: int, args: list[str]) -> list[str]:
 
 def local_gpus() -> list[str]:
     """The ids of this host's GPUs as ``CUDA_VISIBLE_DEVICES`` names them (else as
-    ``nvidia-smi`` lists them; none without it)."""
+    ``nvidia-smi`` lists them, else 0 to N - 1 for the N GPUs of the NVIDIA driver's
+    :data:`DRIVER_GPUS`; none without either)."""
     given = os.environ.get("CUDA_VISIBLE_DEVICES")
     if given is not None:
         return [s.strip() for s in given.split(",") if s.strip() and s.strip() != "-1"]
     smi = shutil.which("nvidia-smi")
-    if smi is None:
-        return []
+    if smi is None:  # (a container may have the driver and not its tools)
+        return _driver_gpus()
     try:
         listed = subprocess.run([smi, "--query-gpu=index", "--format=csv,noheader"],
                                 capture_output=True, text=True, timeout=60)  # fmt: skip
     except (OSError, subprocess.SubprocessError):
         return []
     return [line.strip() for line in listed.stdout.splitlines() if line.strip().isdigit()]
+
+
+#: Where the NVIDIA driver lists its GPUs on Linux, a folder each (named by PCI address).
+DRIVER_GPUS = Path("/proc/driver/nvidia/gpus")
+
+
+def _driver_gpus() -> list[str]:
+    """``0 .. N-1`` for the N GPUs of :data:`DRIVER_GPUS` (none where it cannot be read)."""
+    try:
+        count = sum(1 for entry in DRIVER_GPUS.iterdir() if entry.is_dir())
+    except OSError:
+        return []
+    return [str(i) for i in range(count)]
 
 
 def child_args(args: list[str], index: int, count: int, port: int) -> list[str]:

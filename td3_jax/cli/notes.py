@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import re
-import shlex
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -263,11 +262,11 @@ def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
     train it further (a larger ``--total-steps``; a new run where a cosine schedule fixed its
     length)."""
     done = f"{cfg.run_steps:,}"
-    from td3_jax.runner.rundir import load_config  # lazy: imports JAX
+    from td3_jax.runner.rundir import load_config, resume_command  # lazy: imports JAX
 
     planned = load_config(out).run_steps  # (a complete run's resume rewrote nothing)
     if planned > cfg.run_steps:  # a stopped run resumed with a shorter --total-steps
-        go_on = f"td3-jax train --out {shlex.quote(str(out))} --resume"
+        go_on = resume_command(out)
         return (f"nothing to do: the run in {out} has taken {done} env steps, what --total-steps "
                 f"{cfg.total_steps:,} asks; it was set for {planned:,}: {go_on} goes on to "
                 "them")  # fmt: skip
@@ -276,7 +275,7 @@ def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
                    "larger --total-steps to train longer")  # fmt: skip
     else:
         more = 2 * cfg.run_steps
-        go_on = f"td3-jax train --out {shlex.quote(str(out))} --resume --total-steps {more}"
+        go_on = resume_command(out, f" --total-steps {more}")
         further = f"{go_on} goes on to {more:,}"
     return f"nothing to do: the run in {out} is complete ({done} env steps); {further}"
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -13,7 +12,7 @@ from typing import Any
 from td3_jax.cli import notes, settings
 from td3_jax.cli.argv import given_fields
 from td3_jax.cli.commands import SweepCommand, TrainCommand
-from td3_jax.cli.interrupts import Interrupted, process_stop, train_stoppably
+from td3_jax.cli.interrupts import leave_processes, process_stop, train_stoppably
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_sweep_ranking
 from td3_jax.common import runtime
@@ -32,31 +31,12 @@ __all__ = ["parse_train", "sweep_main", "sweep_values", "train_main"]
 
 def train_main(args: list[str], sweeping: bool = False) -> None:
     """``td3-jax train ARGS`` (``sweeping``: ``td3-jax sweep ARGS``): checks the settings,
-    trains (or resumes) the run and prints its last line (a sweep's ranking too)."""
+    trains (or resumes) the run and prints its last line (a sweep's ranking too). Processes of
+    one run leave JAX's runtime together when it ends (stopped or failed, the command's exit
+    does: :func:`~td3_jax.cli.interrupts.exit_process`)."""
     stop, received = process_stop()
-    try:
-        _train_command(args, sweeping, stop, received)
-    except Interrupted:  # (several processes stop together: none is left mid-call)
-        _leave_processes(STOPPED_LEAVE_S)
-        raise
-    _leave_processes(None)
-
-
-#: Seconds a stopped process of several waits for the others to leave JAX's runtime with it
-#: (they may still be compiling); past them it ends without them.
-STOPPED_LEAVE_S = 30.0
-
-
-def _leave_processes(wait_s: float | None) -> None:
-    """A run of several processes, ended or stopped together: each leaves JAX's runtime once
-    all have come to leave it (within ``wait_s``; None: however long). Left at once, the
-    first process (it holds the runtime's coordination service) could end while another still
-    called it, which then aborted with a C++ stack trace."""
-    if "jax" not in sys.modules:  # (the run stopped before it imported JAX: nothing joined)
-        return
-    from td3_jax.runner.sharding import leave_distributed  # lazy: imports JAX
-
-    leave_distributed(wait_s)
+    _train_command(args, sweeping, stop, received)
+    leave_processes(None)
 
 
 def _train_command(

@@ -473,15 +473,29 @@ def is_sweep_dir(out_dir: Path) -> bool:
     )
 
 
-def resume_command(out_dir: Path) -> str:
+def resume_command(out_dir: Path, extra: str = "") -> str:
     """``td3-jax sweep --out OUT --resume`` for a sweep's directory (:func:`is_sweep_dir`; it
-    then ends with the sweep's ranking), else ``td3-jax train``'s; OUT quoted for a shell.
-    In a process that ``--local-processes N`` started, the command ends with that flag (the
-    run directory does not record how many processes ran it)."""
+    then ends with the sweep's ranking), else ``td3-jax train``'s; OUT quoted for a shell,
+    ``extra`` flags (e.g. `` --total-steps N``) after it. The run directory does not record
+    how many processes ran it: in a process that ``--local-processes N`` started, the command
+    ends with that flag, and in one started by hand with the others, with a note that each
+    process resumes with its own join flags."""
     command = "sweep" if is_sweep_dir(out_dir) else "train"
     count = runtime.local_processes()
     processes = f" --local-processes {count}" if count else ""
-    return f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume{processes}"
+    resume = f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume{extra}{processes}"
+    if not count and _joined_by_hand():
+        resume += (" in each process, with its own --coordinator-address, --num-processes and "
+                   "--process-id")  # fmt: skip
+    return resume
+
+
+def _joined_by_hand() -> bool:
+    """Whether this process joined others through ``jax.distributed`` (asked without starting
+    JAX's backend, which the join must come before)."""
+    import jax  # (imported by now: the run directory's records are JAX's)
+
+    return jax.distributed.is_initialized()
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:

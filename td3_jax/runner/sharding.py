@@ -29,7 +29,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from td3_jax.common import library_noise, runtime, upstream
 from td3_jax.common.errors import ConfigError, ProcessLostError
-from td3_jax.config.schema import flag
+from td3_jax.config.schema import as_flag, flag
 from td3_jax.runner.memory import (
     WORKING_ADVICE,
     available_memory,
@@ -286,6 +286,10 @@ def initialize_distributed(
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
     except Exception:  # pragma: no cover - option absent in some jax versions
         pass
+    # JAX's preemption service would take SIGTERM for itself from the moment the processes
+    # join (td3-jax never asks it), so a SIGTERM before training was lost and the run trained
+    # on: td3-jax's own handlers stop the processes together (stop_agreed, start_agreed).
+    jax.config.update("jax_enable_preemption_service", False)
     _start_runtime(coordinator_address, num_processes, process_id)
     from td3_jax.envs.mjx_devices import place_on_local_devices
 
@@ -425,13 +429,22 @@ def _published(store: Any, other: int) -> dict[str, str]:
 
 
 def _differ_message(differ: list[str], theirs: dict, mine: dict, other: int, here: int) -> str:
-    """One line naming the first setting of ``differ`` and how many more differ."""
-    name, missing = differ[0], "(not given)"
+    """One line naming the first setting of ``differ``, as each process was given it on the
+    command line, and how many more differ."""
+    name = differ[0]
     more = f" (and {len(differ) - 1} more)" if len(differ) > 1 else ""
-    return (f"process {other} was given other settings than this process ({here}): {flag(name)} "
-            f"{theirs.get(name, missing)} there, {mine.get(name, missing)} here{more}; start "
-            "every process with the same flags (only --process-id, --menagerie, --quiet and "
-            "--compile-cache may differ)")
+    return (f"process {other} was given other settings than this process ({here}): "
+            f"{_given_as(name, theirs)} there, {_given_as(name, mine)} here{more}; start every "
+            "process with the same flags (only --process-id, --menagerie, --quiet and "
+            "--compile-cache may differ)")  # fmt: skip
+
+
+def _given_as(name: str, texts: dict[str, str]) -> str:
+    """Setting ``name`` of a process's published ``texts`` as command-line text (``--hidden-sizes
+    256 256``, ``--no-resume``; ``no --NAME`` where that process has no such setting)."""
+    if name not in texts:
+        return f"no {flag(name)}"
+    return as_flag(name, json.loads(texts[name]))
 
 
 def leave_distributed(wait_s: float | None = None) -> bool:

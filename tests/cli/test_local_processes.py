@@ -13,7 +13,7 @@ import time
 import pytest
 
 from td3_jax.cli import local_processes as lp
-from td3_jax.common.errors import ConfigError
+from td3_jax.common.errors import ConfigError, ProcessLostError
 
 TINY = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--eval-every", "256",
         "--warmup-steps", "64", "--batch-size", "64", "--updates-per-iter", "2",
@@ -106,6 +106,48 @@ def test_a_sigterm_that_stops_a_process_of_several_before_its_run_is_said_as_one
     assert capsys.readouterr().err.endswith("td3-jax: terminated (SIGTERM)\n")
 
 
+@pytest.mark.parametrize(("failure", "code", "said"), [
+    (lambda: ProcessLostError("process 1 stopped with an error"), 3,
+     "td3-jax: error: process 1 stopped with an error\n"),
+    (lambda: ValueError("unforeseen"), 1, "ValueError: unforeseen\n"),
+])
+def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_a_limit(
+        monkeypatch, capsys, failure, code, said):  # fmt: skip
+    """A process of several that fails (another failed: ProcessLostError; or a bug of its own)
+    says why first, then waits at most STOPPED_LEAVE_S for the others to leave JAX's runtime
+    (JAX's exit hook waited for a process that was gone for five minutes, then aborted with
+    134), and ends with the failure's exit status, a traceback's too."""
+    from td3_jax.cli import app, interrupts
+    from td3_jax.runner import sharding
+
+    left: list[tuple[float | None, str]] = []
+    monkeypatch.setattr(interrupts, "joined_others", lambda: True)
+    monkeypatch.setattr(app, "joined_others", lambda: True)
+    monkeypatch.setattr(sharding, "leave_distributed",
+                        lambda wait_s=None: left.append((wait_s, capsys.readouterr().err)))
+
+    def failing(args):
+        raise failure()
+
+    with pytest.raises(SystemExit) as end:
+        app.run_reporting_errors(failing, [])
+    assert end.value.code == code
+    assert len(left) == 1 and left[0][0] == interrupts.STOPPED_LEAVE_S
+    assert left[0][1].endswith(said)  # (said before it waits for the others)
+
+
+def test_a_process_of_its_own_raises_an_unforeseen_failure_as_it_came(monkeypatch):
+    from td3_jax.cli import app
+
+    monkeypatch.setattr(app, "joined_others", lambda: False)
+
+    def failing(args):
+        raise ValueError("unforeseen")
+
+    with pytest.raises(ValueError, match=r"^unforeseen$"):
+        app.run_reporting_errors(failing, [])
+
+
 def test_a_launched_process_resumes_with_the_flag_that_started_it(monkeypatch, tmp_path):
     """The run directory does not record how many processes ran it: the resume line a
     process of --local-processes 3 prints names the flag (one of its own names none)."""
@@ -116,6 +158,22 @@ def test_a_launched_process_resumes_with_the_flag_that_started_it(monkeypatch, t
     monkeypatch.setenv("TD3_JAX_LOCAL_PROCESSES", "3")
     assert resume_command(tmp_path / "r") == (f"td3-jax train --out {tmp_path / 'r'} --resume "
                                               "--local-processes 3")  # fmt: skip
+    assert resume_command(tmp_path / "r", " --total-steps 8") == (
+        f"td3-jax train --out {tmp_path / 'r'} --resume --total-steps 8 --local-processes 3")
+
+
+def test_a_process_started_by_hand_resumes_with_its_own_join_flags(monkeypatch, tmp_path):
+    """A process of several started by hand (its join flags typed) resumes as it started: the
+    line says that each process gives its own (their values differ per process)."""
+    import jax
+
+    from td3_jax.runner.rundir import resume_command
+
+    monkeypatch.delenv("TD3_JAX_LOCAL_PROCESSES", raising=False)
+    monkeypatch.setattr(jax.distributed, "is_initialized", lambda: True)
+    assert resume_command(tmp_path / "r") == (
+        f"td3-jax train --out {tmp_path / 'r'} --resume in each process, with its own "
+        "--coordinator-address, --num-processes and --process-id")
 
 
 @pytest.mark.parametrize(
@@ -126,10 +184,17 @@ def test_the_gpus_are_those_cuda_visible_devices_names(monkeypatch, visible, gpu
     assert lp.local_gpus() == gpus
 
 
-def test_without_nvidia_smi_a_host_has_no_gpus(monkeypatch):
+def test_without_nvidia_smi_the_gpus_are_those_the_driver_lists(monkeypatch, tmp_path):
+    """A container with the NVIDIA driver and not its tools: the GPUs are the driver's folders
+    (one per PCI address; ids 0 to N - 1, as CUDA numbers them); without the driver, none."""
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
     monkeypatch.setattr(lp.shutil, "which", lambda name: None)
+    monkeypatch.setattr(lp, "DRIVER_GPUS", tmp_path / "absent")
     assert lp.local_gpus() == []
+    for address in ("0000:18:00.0", "0000:2a:00.0", "0000:3a:00.0"):
+        (tmp_path / address).mkdir()
+    monkeypatch.setattr(lp, "DRIVER_GPUS", tmp_path)
+    assert lp.local_gpus() == ["0", "1", "2"]
 
 
 @pytest.mark.parametrize(

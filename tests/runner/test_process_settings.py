@@ -91,6 +91,34 @@ def test_a_coordinator_without_the_counts_jax_needs_is_refused_in_one_line(proce
     assert "waiting for" not in said  # (no process id: nothing said of waiting)
 
 
+_SIGTERM_AFTER_JOINING = """
+import os, signal, sys, time
+got = []
+signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
+from td3_jax.cli.local_processes import free_port
+from td3_jax.runner.sharding import initialize_distributed
+initialize_distributed(f"127.0.0.1:{free_port()}", 1, 0)
+os.kill(os.getpid(), signal.SIGTERM)
+deadline = time.monotonic() + 10
+while not got and time.monotonic() < deadline:
+    time.sleep(0.05)
+print("handled" if got else "lost", flush=True)
+os._exit(0)
+"""
+
+
+def test_a_sigterm_after_the_processes_join_reaches_the_handlers_of_td3_jax():
+    """JAX's preemption service, which its runtime starts on joining, took SIGTERM for itself:
+    a SIGTERM between the join and training was lost and the run trained on. A handler
+    installed before the join still gets it (a fresh process: one joins once)."""
+    proc = subprocess.run([sys.executable, "-c", _SIGTERM_AFTER_JOINING],
+                          env={**os.environ, "JAX_PLATFORMS": "cpu"}, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "handled", proc.stderr[-2000:]
+    assert "SIGTERM caught" not in proc.stderr
+
+
 def test_a_waiting_process_says_which_ids_to_start_and_how_long_jax_waits(monkeypatch, capsys):
     """The waiting line names the ids the other processes need and the join timeout, which is
     the one given to JAX (past it JAX aborts the process with a C++ check failure)."""
@@ -168,16 +196,32 @@ def test_processes_given_other_settings_are_told_which_one_differs(monkeypatch):
     with pytest.raises(ConfigError) as err:
         check_same_settings({"total_steps": 512, "num_envs": 8, "seed": 0})
     assert str(err.value) == (
-        "process 1 was given other settings than this process (0): --num-envs 16 there, 8 here "
-        "(and 1 more); start every process with the same flags (only --process-id, "
-        "--menagerie, --quiet and --compile-cache may differ)")  # fmt: skip
+        "process 1 was given other settings than this process (0): --num-envs 16 there, "
+        "--num-envs 8 here (and 1 more); start every process with the same flags (only "
+        "--process-id, --menagerie, --quiet and --compile-cache may differ)")  # fmt: skip
     assert json.loads(json.loads(store.published[f"{SETTINGS_KEY}/0"])["total_steps"]) == 512
 
 
 def test_a_setting_only_one_process_has_is_named_as_not_given(monkeypatch):
     _as_process(monkeypatch, 1, 2, _Store({f"{SETTINGS_KEY}/0": _publication({"seed": 0})}))
-    with pytest.raises(ConfigError, match=r"--resume \(not given\) there, true here;"):
+    with pytest.raises(ConfigError, match=r": no --resume there, --resume here;"):
         check_same_settings({"seed": 0, "resume": True})
+
+
+@pytest.mark.parametrize(("theirs", "mine", "said"), [
+    ((256, 256), (32, 32), "--hidden-sizes 256 256 there, --hidden-sizes 32 32 here;"),
+    (True, False, "--layer-norm there, --no-layer-norm here;"),
+    ("playground/T1JoystickFlatTerrain", "brax/ant",
+     "--env playground/T1JoystickFlatTerrain there, --env brax/ant here;"),
+])
+def test_a_setting_that_differs_is_said_as_it_is_typed(monkeypatch, theirs, mine, said):
+    """Each side as its flag on the command line (it was the published JSON: [256, 256],
+    true, quoted names)."""
+    name = {tuple: "hidden_sizes", bool: "layer_norm", str: "env"}[type(theirs)]
+    _as_process(monkeypatch, 1, 2, _Store({f"{SETTINGS_KEY}/0": _publication({name: theirs})}))
+    with pytest.raises(ConfigError) as err:
+        check_same_settings({name: mine})
+    assert said in str(err.value)
 
 
 def test_processes_given_the_same_settings_go_on(monkeypatch):
@@ -250,7 +294,8 @@ def test_two_processes_given_different_flags_both_stop_in_one_line(tmp_path):
         assert p.returncode == 2, err[-2000:]
         there, here = ("1024", "512") if i == 0 else ("512", "1024")
         assert (f"td3-jax: error: process {1 - i} was given other settings than this process "
-                f"({i}): --total-steps {there} there, {here} here;") in err  # fmt: skip
+                f"({i}): --total-steps {there} there, --total-steps {here} here;"
+                ) in err  # fmt: skip
     assert not (tmp_path / "run").exists()
 
 
