@@ -3,7 +3,8 @@ it better itself: XLA's slow-compile alarm (a banner of asterisks asking for a b
 a robot's physics compiles on a CPU, which takes minutes) and MLIR's lines about a stored
 program it cannot deserialise (the program store warns of the entry itself and traces the
 programs again), and XLA's notice that GSPMD is to be deprecated (td3-jax chooses GSPMD for
-MuJoCo Warp split over several devices, which Shardy cannot compile: ``envs.per_device``);
+MuJoCo Warp split over several devices, which Shardy cannot compile: ``envs.per_device``), its
+GPU autotuner's warnings about its own timer;
 and, as the processes of a ``jax.distributed`` run leave it, its coordination service's
 warning that it stopped watching them (:data:`LEAVING`, for the rest of the process:
 :func:`filtered_stderr_until_exit`).
@@ -34,12 +35,14 @@ __all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "drain_filters", "f
 #: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
 ALARM = "Very slow compile?"
 #: Text of the lines dropped (besides lines of asterisks alone, the alarm's banner): the
-#: alarm's log line, MLIR's deserialisation errors and XLA's GSPMD notice.
+#: alarm's log line, MLIR's deserialisation errors, XLA's GSPMD notice and its GPU autotuner's
+#: warnings about the accuracy of its timer.
 DROPPED = (
     "slow_operation_alarm.cc",
     'loc("-":0:0): error: ',  # (MLIR's errors in a serialised artifact: "invalid Type index",
     "failed to deserialize portable artifact",  # "invalid Attribute index", ...)
     "GSPMD sharding propagation is going to be deprecated",
+    "Delay kernel timed out",  # (XLA's GPU autotuner: its timer's accuracy, while it compiles)
 )
 #: Text of the lines of JAX's coordination service as the processes of a ``jax.distributed`` run
 #: leave it (a warning that its watch of the other processes was cancelled, with its gRPC

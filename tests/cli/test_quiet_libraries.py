@@ -35,6 +35,12 @@ GSPMD = (
     "going to be deprecated and not supported in the future. Please consider migrating to "
     "Shardy (https://openxla.org/shardy/getting_started_jax#migrating_to_shardy).\n"
 )
+#: What XLA's GPU autotuner writes when its timer is inaccurate (two H200s, jax 0.11.2).
+AUTOTUNER = (
+    "W1130 04:12:21.074842    4162 cuda_timer.cc:88] Delay kernel timed out: measured time has "
+    "sub-optimal accuracy. There may be a missing warmup execution, please investigate in "
+    "Nsight Systems.\n"
+)
 
 FILTERED = f"""
 import os, sys
@@ -44,6 +50,7 @@ with filtered_stderr():
     os.write(2, {ALARM.encode()!r})
     print("ours, in order", file=sys.stderr, flush=True)
     os.write(2, {MLIR.encode()!r} + b"a line of its own\\n\\n" + {GSPMD.encode()!r})
+    os.write(2, {AUTOTUNER.encode()!r})
     os.write(2, {ALARM.encode()!r})  # (said once)
     sys.stderr.write("unfinished")
 print(" line", file=sys.stderr)
