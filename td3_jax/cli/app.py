@@ -152,7 +152,7 @@ def run_reporting_errors(command: Callable[[list[str]], None], args: list[str]) 
         command(expand_home(args))
     except Td3JaxError as err:
         error(str(err))
-        exit_process(None, err.exit_code)
+        exit_process(None, err.exit_code, abandon_work=False)
     except Interrupted as err:
         exit_process(f"td3-jax: {err}", err.code)
     except KeyboardInterrupt:  # (before a run started: a SIGTERM of a process of several too)
@@ -170,12 +170,12 @@ def _exit_failed(err: Exception) -> None:
     else as its traceback (exit status 1), raised again unless the process joined others."""
     if isinstance(err, RuntimeError) and "MUJOCO_GL" in str(err):
         error(f"{err} (unset it or use egl, osmesa or glfw)")
-        exit_process(None, 2)
+        exit_process(None, 2, abandon_work=False)
     if isinstance(err, OSError) and err.errno in WRITE_ERRNOS:
         where = f"{err.filename}: " if err.filename else ""
         error(f"{where}{err.strerror}")
-        exit_process(None, 2)
+        exit_process(None, 2, abandon_work=False)
     if not joined_others():
         raise err
     traceback.print_exc()
-    exit_process(None, 1)
+    exit_process(None, 1, abandon_work=False)

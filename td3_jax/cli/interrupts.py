@@ -106,17 +106,17 @@ def process_stop() -> tuple[runtime.StopToken, list[int]]:
 STOPPED_LEAVE_S = 30.0
 
 
-def leave_processes(wait_s: float | None) -> None:
+def leave_processes(wait_s: float | None) -> bool:
     """A run of several processes, ended or stopped together: each leaves JAX's runtime once
     all have come to leave it (within ``wait_s``; None: however long). Left at once, the
     first process (it holds the runtime's coordination service) could end while another still
     called it, which then aborted with a C++ stack trace. Nothing where the process joined no
-    others (or never imported JAX)."""
+    others (or never imported JAX). False where the others did not come within ``wait_s``."""
     if "jax" not in sys.modules:  # (it stopped before it imported JAX: nothing joined)
-        return
+        return True
     from td3_jax.runner.sharding import leave_distributed  # lazy: imports JAX
 
-    leave_distributed(wait_s)
+    return leave_distributed(wait_s)
 
 
 def joined_others() -> bool:
@@ -124,19 +124,19 @@ def joined_others() -> bool:
     return "jax" in sys.modules and sys.modules["jax"].distributed.is_initialized()
 
 
-def exit_process(message: str | None, code: int) -> None:
+def exit_process(message: str | None, code: int, abandon_work: bool = True) -> None:
     """Ends a command that stopped or failed with exit status ``code``, after ``message`` on
     stderr (None: said already). A process of several first leaves JAX's runtime with the
     others, within :data:`STOPPED_LEAVE_S` (JAX's own exit hook would wait for one that is gone
-    for minutes, then abort the process). Work that a Ctrl-C cannot stop is then abandoned
-    with ``os._exit`` rather than waited for: an XLA compile on a background thread, a chunk
-    or evaluation left running on the device, a leave still waiting (the run's outputs are
-    closed by then). Waiting took the rest of the chunk, and tearing down XLA under it could
-    end in SIGSEGV."""
+    for minutes, then abort the process); past it, the process ends at once (``os._exit``).
+    ``abandon_work`` (a stop): work that a Ctrl-C cannot stop is abandoned the same way rather
+    than waited for: an XLA compile on a background thread, a chunk or evaluation left running
+    on the device (the run's outputs are closed by then). Waiting took the rest of the chunk,
+    and tearing down XLA under it could end in SIGSEGV."""
     if message is not None:
         print(message, file=sys.stderr, flush=True)
-    leave_processes(STOPPED_LEAVE_S)
-    if runtime.background_work_running():
+    left = leave_processes(STOPPED_LEAVE_S)
+    if not left or (abandon_work and runtime.background_work_running()):
         sys.stdout.flush()
         library_noise.drain_filters()  # (what a filter of stderr still holds, this line too)
         runtime.forget_abandoned_work()  # (for a caller whose os._exit returns: tests)

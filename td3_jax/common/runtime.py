@@ -22,7 +22,7 @@ import threading
 import time
 import traceback
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,7 @@ __all__ = [
     "result",
     "root_logging_kept",
     "stop_signals",
+    "wait_ready",
 ]
 
 
@@ -167,12 +168,18 @@ def in_background(function: Callable[..., Any], *args: Any, name: str = "td3-jax
     future: Future = Future()
 
     def work() -> None:
+        value, error = None, None
         try:
-            future.set_result(function(*args))
+            value = function(*args)
         except BaseException as err:  # handed to whoever waits for the result
-            future.set_exception(err)
-        finally:
-            _BACKGROUND.discard(threading.current_thread())
+            error = err
+        # (no longer running work once its result is handed over: a caller that has it
+        # finds none running, though the thread is still ending)
+        _BACKGROUND.discard(threading.current_thread())
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(value)
 
     thread = threading.Thread(target=work, name=name)
     _BACKGROUND.add(thread)
@@ -201,6 +208,22 @@ def awaiting_device() -> Iterator[None]:
     except KeyboardInterrupt:
         _ABANDONED.set()
         raise
+
+
+def wait_ready(values: Iterable[Any]) -> None:
+    """Waits until each JAX array of ``values`` is computed (other values are not waited for):
+    a thread of :func:`in_background` waits for the device while this one waits for that
+    thread, in Python, so that signal handlers run meanwhile. Blocked in JAX's own wait, the
+    main thread of a process of several ran none until the computation ended, so a Ctrl-C's
+    line (and a second Ctrl-C) came at the chunk's end, minutes later on a CPU."""
+    arrays = [value for value in values if hasattr(value, "block_until_ready")]
+    if arrays:
+        in_background(_block_until_ready, arrays, name="td3-jax device wait").result()
+
+
+def _block_until_ready(arrays: list[Any]) -> None:
+    for array in arrays:
+        array.block_until_ready()
 
 
 def forget_abandoned_work() -> None:

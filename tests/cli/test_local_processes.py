@@ -124,7 +124,7 @@ def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_
     monkeypatch.setattr(interrupts, "joined_others", lambda: True)
     monkeypatch.setattr(app, "joined_others", lambda: True)
     monkeypatch.setattr(sharding, "leave_distributed",
-                        lambda wait_s=None: left.append((wait_s, capsys.readouterr().err)))
+                        lambda wait_s=None: left.append((wait_s, capsys.readouterr().err)) is None)
 
     def failing(args):
         raise failure()
@@ -134,6 +134,29 @@ def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_
     assert end.value.code == code
     assert len(left) == 1 and left[0][0] == interrupts.STOPPED_LEAVE_S
     assert left[0][1].endswith(said)  # (said before it waits for the others)
+
+
+def test_a_process_whose_others_do_not_come_to_leave_ends_at_once(monkeypatch, capsys):
+    """Past the limit, the failed process ends without them (``os._exit``: the interpreter's
+    exit would run JAX's own shutdown, which waits for them for minutes)."""
+    from td3_jax.cli import app, interrupts
+    from td3_jax.runner import sharding
+
+    ended: list[int] = []
+
+    def os_exit(code):
+        ended.append(code)
+        raise SystemExit(code)
+
+    monkeypatch.setattr(sharding, "leave_distributed", lambda wait_s=None: False)
+    monkeypatch.setattr(interrupts.os, "_exit", os_exit)
+
+    def failing(args):
+        raise ProcessLostError("process 1 did not reach the start of chunk 2")
+
+    with pytest.raises(SystemExit):
+        app.run_reporting_errors(failing, [])
+    assert ended == [3]
 
 
 def test_a_process_of_its_own_raises_an_unforeseen_failure_as_it_came(monkeypatch):
