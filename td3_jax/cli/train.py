@@ -3,16 +3,23 @@ checked and completed, the run under Ctrl-C handling, and the lines that end it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from td3_jax.cli import notes, settings
 from td3_jax.cli.argv import given_fields
 from td3_jax.cli.commands import SweepCommand, TrainCommand
-from td3_jax.cli.interrupts import leave_processes, process_stop, train_stoppably
+from td3_jax.cli.interrupts import (
+    joined_others,
+    leave_processes,
+    process_stop,
+    train_stoppably,
+)
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_sweep_ranking
 from td3_jax.common import runtime
@@ -55,16 +62,17 @@ def _train_command(
                                      command.local_processes)  # fmt: skip
         raise SystemExit(status)
     program_dir = _start_process(command, args, stop)
-    _check_processes_agree(cfg, command, sweep, sweeping)
-    cfg, devices, asked_eval_every = _completed(cfg, command, source, args)
-    typed = given_fields(args)
-    given = typed | set(sweep or {})  # (a swept setting is every member's own)
-    with notes.preset_noted(cfg, preset_name, given):
-        if command.resume:  # (a run already past --total-steps, before cfg's own checks)
-            from td3_jax.runner.rundir import check_total_steps_reach  # lazy: imports JAX
+    with _others_told_of_a_stop(stop):
+        _check_processes_agree(cfg, command, sweep, sweeping)
+        cfg, devices, asked_eval_every = _completed(cfg, command, source, args)
+        typed = given_fields(args)
+        given = typed | set(sweep or {})  # (a swept setting is every member's own)
+        with notes.preset_noted(cfg, preset_name, given):
+            if command.resume:  # (a run already past --total-steps, before cfg's own checks)
+                from td3_jax.runner.rundir import check_total_steps_reach  # lazy: imports JAX
 
-            check_total_steps_reach(command.out, cfg)
-        validate(cfg)  # (said once the directory and the environment are good too)
+                check_total_steps_reach(command.out, cfg)
+            validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(notes.when_prepared, cfg, preset_name, source, asked_eval_every,
                                  frozenset(typed), command.resume)  # fmt: skip
     started, started_at = time.perf_counter(), []
@@ -168,6 +176,21 @@ def _start_process(command: Any, args: list[str], stop: runtime.StopToken) -> Pa
 
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)
     return program_dir
+
+
+@contextlib.contextmanager
+def _others_told_of_a_stop(stop: runtime.StopToken) -> Iterator[None]:
+    """Between joining the other processes and training: where this process stops (a check of
+    its own host's run directory, a signal), the others are told, so none waits for it
+    (:func:`~td3_jax.runner.run.stop_before_next_training`)."""
+    try:
+        yield
+    except BaseException:
+        if joined_others():
+            from td3_jax.runner.run import stop_before_next_training  # lazy: imports JAX
+
+            stop_before_next_training("token" if stop.is_set() else "error")
+        raise
 
 
 def _check_processes_agree(

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import errno
-import itertools
 import json
 import math
 import re
@@ -67,6 +66,7 @@ from td3_jax.runner.sharding import (
     check_memory,
     host_value,
     make_mesh,
+    prepared_agreed,
     replay_layout_warning,
     start_agreed,
     state_shardings,
@@ -75,11 +75,30 @@ from td3_jax.runner.sharding import (
     stop_failed,
 )
 
-__all__ = ["train"]
+__all__ = ["stop_before_next_training", "train"]
 
-#: Counts this process's training calls: the processes of a ``jax.distributed`` run make the
-#: same calls, so the count names a call's stop decisions apart from an earlier call's.
-_TRAIN_CALLS = itertools.count()
+
+class _CallCounter:
+    """Counts this process's training calls: the processes of a ``jax.distributed`` run make
+    the same calls, so the count names a call's stop decisions apart from an earlier call's."""
+
+    def __init__(self) -> None:
+        self.made = 0
+
+    def __next__(self) -> int:
+        self.made += 1
+        return self.made - 1
+
+
+_TRAIN_CALLS = _CallCounter()
+
+
+def stop_before_next_training(reason: str) -> None:
+    """Tells the other processes of this ``jax.distributed`` run that this one stops before its
+    next training call (``"token"``: stopped; ``"error"``: failed): a process that fails between
+    joining and training (a check of its own host's run directory, say) leaves none waiting for
+    it (:func:`~td3_jax.runner.sharding.stop_before_training`). Nothing in one process."""
+    stop_before_training(reason, call=_TRAIN_CALLS.made)
 
 
 def train(
@@ -133,6 +152,7 @@ def train(
     run = _Run(cfg, out_dir, population, source.mesh.size, writer, stop_after_chunks, time_budget_s,
                stop, env=source.env, call=call)  # fmt: skip
     try:
+        _agree_prepared(run)
         if on_prepared is not None:
             on_prepared()
         _start_and_train(run, source, resume, progress, preset=preset, changes=changes,
@@ -226,6 +246,16 @@ def _tell_the_others(run: _Run) -> None:
     else:
         stop_failed(run.last_chunk if run.last_chunk is not None else run.start_chunk,
                     call=run.call)  # fmt: skip
+
+
+def _agree_prepared(run: _Run) -> None:
+    """Once this process is prepared, before anything needs the others: where another was
+    refused by its own checks, :class:`ProcessLostError` names it; where one was stopped, all
+    stop here as interrupted (KeyboardInterrupt), before compiling
+    (:func:`~td3_jax.runner.sharding.prepared_agreed`)."""
+    if prepared_agreed("token" if run.stop.is_set() else "", call=run.call) == "token":
+        run.stop.set()
+        raise KeyboardInterrupt
 
 
 def _agree_to_start(run: _Run) -> None:

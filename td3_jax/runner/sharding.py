@@ -343,15 +343,25 @@ def start_agreed(reason: str, call: int = 0) -> str:
     return _agreed(reason, _boundary(call, -1, False), "the start of training")
 
 
+def prepared_agreed(reason: str, call: int = 0) -> str:
+    """:func:`stop_agreed` where each process of training call ``call`` has checked its
+    settings, environment and run directory, before anything that needs the others (orbax's
+    checkpoint steps already do): a process refused there by a check of its own (its host's
+    ``--out``, say) is named at once, where the others waited for it in their first collective
+    and failed with a traceback. One process: ``reason`` itself."""
+    return _agreed(reason, _boundary(call, -2, False), "the start of training")
+
+
 def stop_before_training(reason: str, call: int = 0) -> None:
     """Tells the other processes of this ``jax.distributed`` run that this one stops before
     training call ``call`` trains: for ``reason`` ``"token"`` (a Ctrl-C or SIGTERM, they stop
     as interrupted) or ``"error"`` (they stop with :class:`ProcessLostError`), where they
-    agree to start (:func:`start_agreed`). Nothing to do in one process, or where this
-    process already gave its reason there."""
+    agree to go on (:func:`prepared_agreed`, :func:`start_agreed`). Nothing to do in one
+    process; where this process already gave its reason at one of them, that one is kept."""
     store = _store_of_several()
     if store is not None:
-        _announce(store, _boundary(call, -1, False), reason)
+        for step in (-2, -1):
+            _announce(store, _boundary(call, step, False), reason)
 
 
 def _agreed(reason: str, boundary: str, where: str) -> str:
@@ -531,6 +541,7 @@ __all__ = [
     "leave_distributed",
     "make_mesh",
     "memory_of",
+    "prepared_agreed",
     "replicate",
     "start_agreed",
     "state_shardings",

@@ -20,6 +20,7 @@ from td3_jax.config.schema import TrainConfig
 from td3_jax.runner.sharding import (
     JOIN_TIMEOUT_S,
     SETTINGS_KEY,
+    STOP_KEY,
     check_processes,
     check_same_settings,
     initialize_distributed,
@@ -498,10 +499,46 @@ def test_a_process_whose_own_checks_stop_it_before_its_run_starts_tells_the_othe
     _as_process(monkeypatch, 1, 2, store)
     other = _stop_run()
     other.call = next(k for k in store.published if k.endswith("/start/0")).split("/")[2]
-    with pytest.raises(ProcessLostError) as err:
-        run_module._agree_to_start(other)
-    assert str(err.value).startswith("process 0 stopped with an error before the start of "
-                                     "training")  # fmt: skip
+    for agree in (run_module._agree_prepared, run_module._agree_to_start):
+        with pytest.raises(ProcessLostError) as err:  # (before it compiles, where it did)
+            agree(other)
+        assert str(err.value).startswith("process 0 stopped with an error before the start "
+                                         "of training")  # fmt: skip
+
+
+def test_a_process_that_fails_between_joining_and_training_tells_the_others(monkeypatch):
+    """A check the command makes before training (its own host's run directory, say) stops
+    process 1 after it joined: process 0 learns it where its next run would agree to go on,
+    before anything of that run needs process 1 (it waited in orbax's first collective for it
+    and failed with a traceback)."""
+    from td3_jax.common.errors import ProcessLostError
+    from td3_jax.runner import run as run_module
+
+    store = _Store({})
+    _as_process(monkeypatch, 1, 2, store)
+    monkeypatch.setattr(run_module, "_TRAIN_CALLS", run_module._CallCounter())
+    run_module.stop_before_next_training("error")
+    _as_process(monkeypatch, 0, 2, store)
+    waiting = _stop_run()
+    waiting.call = next(run_module._TRAIN_CALLS)  # (its next training call)
+    with pytest.raises(ProcessLostError, match=r"^process 1 stopped with an error before the "
+                                               r"start of training"):  # fmt: skip
+        run_module._agree_prepared(waiting)
+
+
+def test_a_stop_asked_while_the_processes_prepare_stops_all_before_they_compile(monkeypatch):
+    from td3_jax.runner import run as run_module
+
+    store = _Store({f"{STOP_KEY}/0/-2/start/1": "token"})
+    _as_process(monkeypatch, 0, 2, store)
+    run = _stop_run()
+    with pytest.raises(KeyboardInterrupt):
+        run_module._agree_prepared(run)
+    assert run.stop.is_set() and store.published[f"{STOP_KEY}/0/-2/start/0"] == ""
+    _as_process(monkeypatch, 0, 1, None)
+    alone = _stop_run()
+    run_module._agree_prepared(alone)  # (one process: goes on, nothing asked)
+    assert not alone.stop.is_set()
 
 
 @pytest.mark.parametrize(("stopped", "raised", "reason"),
