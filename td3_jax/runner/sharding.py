@@ -277,7 +277,8 @@ def initialize_distributed(
     num_processes = _whole_or_env(num_processes, "JAX_NUM_PROCESSES")
     process_id = _whole_or_env(process_id, "JAX_PROCESS_ID")
     check_processes(coordinator_address, num_processes, process_id)
-    if num_processes is not None and num_processes > 1 and process_id is not None:
+    launched = runtime.local_processes() is not None  # (--local-processes said where they join)
+    if num_processes is not None and num_processes > 1 and process_id is not None and not launched:
         print(f"td3-jax: waiting for {num_processes} processes at {coordinator_address} (this "
               f"is process {process_id}; each runs the same command with its own --process-id, "
               f"0 to {num_processes - 1}; JAX gives up after {JOIN_TIMEOUT_S} s)...",

@@ -132,6 +132,7 @@ def test_a_waiting_process_says_which_ids_to_start_and_how_long_jax_waits(monkey
     monkeypatch.setattr(jax.distributed, "initialize", lambda **kw: given.update(kw))
     monkeypatch.setattr(jax.config, "update", lambda *args: None)
     monkeypatch.setattr(mjx_devices, "place_on_local_devices", lambda: None)
+    monkeypatch.delenv("TD3_JAX_LOCAL_PROCESSES", raising=False)
     assert initialize_distributed("127.0.0.1:5", 3, 1)
     said = capsys.readouterr().out
     assert said.startswith("td3-jax: waiting for 3 processes at 127.0.0.1:5 (this is process 1;")
@@ -140,6 +141,9 @@ def test_a_waiting_process_says_which_ids_to_start_and_how_long_jax_waits(monkey
     assert given == {"coordinator_address": "127.0.0.1:5", "num_processes": 3, "process_id": 1,
                      "initialization_timeout": sharding.JOIN_TIMEOUT_S,
                      "coordinator_bind_address": "127.0.0.1:5"}  # fmt: skip
+    monkeypatch.setenv("TD3_JAX_LOCAL_PROCESSES", "3")  # (--local-processes said where they join)
+    assert initialize_distributed("127.0.0.1:5", 3, 1)
+    assert capsys.readouterr().out == ""
 
 
 @pytest.mark.parametrize(("address", "bound"), [("127.0.0.1:5", "127.0.0.1:5"),
