@@ -20,6 +20,7 @@ import argparse
 import jax
 
 import td3_jax as tj
+from td3_jax.common.errors import Td3JaxError
 
 
 def train(process_id: int, coordinator: str, out: str, total_steps: int) -> list[dict]:
@@ -42,7 +43,7 @@ def main() -> None:
     args = parser.parse_args()
     try:
         records = train(args.process_id, args.coordinator, args.out, args.total_steps)
-    except ValueError as err:  # td3-jax's refusals (ConfigError): an --out that holds a run, ...
+    except Td3JaxError as err:  # a refusal (an --out that holds a run), the other one failed, ...
         raise SystemExit(f"process {args.process_id}: {err}") from None
     print(f"process {args.process_id}: eval return {records[-1]['eval_return_mean']:.1f}")
 

@@ -175,7 +175,7 @@ def _exit_failed(err: Exception) -> None:
         where = f"{err.filename}: " if err.filename else ""
         error(f"{where}{err.strerror}")
         exit_process(None, 2, abandon_work=False)
-    if not joined_others():
+    if isinstance(err, BrokenPipeError) or not joined_others():  # (main: the reader went away)
         raise err
     traceback.print_exc()
     exit_process(None, 1, abandon_work=False)

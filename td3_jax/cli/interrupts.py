@@ -15,8 +15,9 @@ from typing import Any
 from td3_jax.common import library_noise, runtime
 from td3_jax.config.schema import TrainConfig
 
-__all__ = ["STOPPED_LEAVE_S", "Interrupted", "exit_process", "joined_others", "leave_processes",
-           "process_stop", "signals_while_starting", "train_stoppably"]
+__all__ = ["FIRST_PROCESS_LEAVE_S", "STOPPED_LEAVE_S", "Interrupted", "exit_process",
+           "joined_others", "leave_processes", "process_stop", "signals_while_starting",
+           "train_stoppably"]
 
 
 class Interrupted(Exception):
@@ -104,6 +105,10 @@ def process_stop() -> tuple[runtime.StopToken, list[int]]:
 #: leave JAX's runtime with it (they may still be compiling, or in a chunk); past them it ends
 #: without them.
 STOPPED_LEAVE_S = 30.0
+#: The same for the first process, which holds JAX's coordination service: the others need it
+#: until they come to stop themselves (at their next boundary, after a compile or a chunk), and
+#: abort (exit status 134) where it ends before.
+FIRST_PROCESS_LEAVE_S = 300.0
 
 
 def leave_processes(wait_s: float | None) -> bool:
@@ -124,18 +129,24 @@ def joined_others() -> bool:
     return "jax" in sys.modules and sys.modules["jax"].distributed.is_initialized()
 
 
+def _first_of_several() -> bool:
+    """Whether this is the first process (it holds JAX's coordination service) of several."""
+    return joined_others() and sys.modules["jax"].process_index() == 0
+
+
 def exit_process(message: str | None, code: int, abandon_work: bool = True) -> None:
     """Ends a command that stopped or failed with exit status ``code``, after ``message`` on
     stderr (None: said already). A process of several first leaves JAX's runtime with the
-    others, within :data:`STOPPED_LEAVE_S` (JAX's own exit hook would wait for one that is gone
-    for minutes, then abort the process); past it, the process ends at once (``os._exit``).
+    others, within :data:`STOPPED_LEAVE_S` (:data:`FIRST_PROCESS_LEAVE_S` for the first; JAX's
+    own exit hook would wait for one that is gone for minutes, then abort the process); past
+    it, the process ends at once (``os._exit``).
     ``abandon_work`` (a stop): work that a Ctrl-C cannot stop is abandoned the same way rather
     than waited for: an XLA compile on a background thread, a chunk or evaluation left running
     on the device (the run's outputs are closed by then). Waiting took the rest of the chunk,
     and tearing down XLA under it could end in SIGSEGV."""
     if message is not None:
         print(message, file=sys.stderr, flush=True)
-    left = leave_processes(STOPPED_LEAVE_S)
+    left = leave_processes(FIRST_PROCESS_LEAVE_S if _first_of_several() else STOPPED_LEAVE_S)
     if not left or (abandon_work and runtime.background_work_running()):
         sys.stdout.flush()
         library_noise.drain_filters()  # (what a filter of stderr still holds, this line too)

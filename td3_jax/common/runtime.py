@@ -22,7 +22,7 @@ import threading
 import time
 import traceback
 import warnings
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
@@ -55,7 +55,6 @@ __all__ = [
     "result",
     "root_logging_kept",
     "stop_signals",
-    "wait_ready",
 ]
 
 
@@ -208,22 +207,6 @@ def awaiting_device() -> Iterator[None]:
     except KeyboardInterrupt:
         _ABANDONED.set()
         raise
-
-
-def wait_ready(values: Iterable[Any]) -> None:
-    """Waits until each JAX array of ``values`` is computed (other values are not waited for):
-    a thread of :func:`in_background` waits for the device while this one waits for that
-    thread, in Python, so that signal handlers run meanwhile. Blocked in JAX's own wait, the
-    main thread of a process of several ran none until the computation ended, so a Ctrl-C's
-    line (and a second Ctrl-C) came at the chunk's end, minutes later on a CPU."""
-    arrays = [value for value in values if hasattr(value, "block_until_ready")]
-    if arrays:
-        in_background(_block_until_ready, arrays, name="td3-jax device wait").result()
-
-
-def _block_until_ready(arrays: list[Any]) -> None:
-    for array in arrays:
-        array.block_until_ready()
 
 
 def forget_abandoned_work() -> None:

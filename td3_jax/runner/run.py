@@ -31,7 +31,7 @@ from td3_jax.common.errors import (
     ProcessLostError,
 )
 from td3_jax.common.library_noise import filtered_stderr
-from td3_jax.common.runtime import StopToken, awaiting_device, result, wait_ready
+from td3_jax.common.runtime import StopToken, awaiting_device, result
 from td3_jax.config.build import bind_environment, members
 from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.core.population import Member
@@ -153,10 +153,8 @@ def train(
                stop, env=source.env, call=call)  # fmt: skip
     try:
         _agree_prepared(run)
-        if on_prepared is not None:
-            on_prepared()
         _start_and_train(run, source, resume, progress, preset=preset, changes=changes,
-                         on_started=on_started)  # fmt: skip
+                         on_prepared=on_prepared, on_started=on_started)  # fmt: skip
     finally:
         warp_kernels.drop_pending()  # (a run that ended before its first physics step)
         _finish(run, run_lock)
@@ -212,6 +210,7 @@ def check_time_budget(seconds: float | None) -> None:
 
 def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
                      preset: str | None, changes: Any,
+                     on_prepared: Callable[[], None] | None = None,
                      on_started: Callable[[int], None] | None = None) -> None:  # fmt: skip
     """The run's start (restored, else fresh), its programs compiled and its chunks trained;
     a run already complete compiles and rewrites nothing, and one stopped before its first
@@ -219,6 +218,8 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
     stops before training says so to the others (:func:`~td3_jax.runner.sharding.
     stop_before_training`), which stop where they would have started."""
     try:
+        if on_prepared is not None:
+            on_prepared()
         state = _start(run, source, resume)
         if on_started is not None:
             on_started(run.start_steps)
@@ -691,7 +692,6 @@ def _chunk_and_record(
     record of both."""
     chunk_start = time.perf_counter()
     state, metrics = compiled.chunk(compiled.hyperparams, state, np.int32(iterations))
-    _wait_handling_signals(metrics.values())
     metrics = {k: host_value(v) for k, v in metrics.items()}
     chunk_seconds = time.perf_counter() - chunk_start
     env_steps = int(metrics.pop("env_steps")[0])
@@ -701,9 +701,7 @@ def _chunk_and_record(
     _check_finite(run, metrics, env_steps)
     _check_physics(run, metrics, env_steps)
     eval_start = time.perf_counter()
-    returns = compiled.evaluate(state)
-    _wait_handling_signals([returns])
-    returns = host_value(returns).astype(np.float64)
+    returns = host_value(compiled.evaluate(state)).astype(np.float64)
     eval_seconds = time.perf_counter() - eval_start
     returns[sorted(run.diverged)] = np.nan
     record = _record(run, updates, metrics, returns, env_steps)
@@ -715,15 +713,6 @@ def _chunk_and_record(
     record["env_steps_per_s"] = len(run.population) * steps / chunk_seconds
     record["devices"] = run.devices
     return state, record
-
-
-def _wait_handling_signals(values: Any) -> None:
-    """In a process of several, waits for the device's ``values`` with signal handlers running
-    meanwhile (:func:`~td3_jax.common.runtime.wait_ready`): in JAX's own wait its Ctrl-C's line,
-    and a second Ctrl-C, came only at the chunk's end. One process is left to JAX's wait, which
-    a Ctrl-C interrupts, and which ran MuJoCo Warp's T1 loop about 0.5% faster on an H200."""
-    if jax.process_count() > 1:
-        wait_ready(values)
 
 
 def _record(run: _Run, updates, metrics, returns, env_steps) -> dict[str, Any]:

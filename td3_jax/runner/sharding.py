@@ -237,10 +237,13 @@ def replicate(value: Any, mesh: Mesh) -> jax.Array:
 
 
 def host_value(x: jax.Array) -> np.ndarray:
-    """A replicated array's value on this host (also when it spans several processes)."""
+    """A replicated array's value on this host (also when it spans several processes), waited
+    for in JAX's wait, which runs Python's signal handlers meanwhile: NumPy's copy of an array
+    still being computed runs none, so in a process of several a Ctrl-C's line (and a second
+    Ctrl-C) came only once the chunk had ended."""
     if getattr(x, "is_fully_addressable", True):
         return np.asarray(jax.device_get(x))
-    return np.asarray(x.addressable_data(0))
+    return np.asarray(x.block_until_ready().addressable_data(0))
 
 
 #: Key prefix of each process's settings in the distributed key-value store.
@@ -452,10 +455,12 @@ def _differ_message(differ: list[str], theirs: dict, mine: dict, other: int, her
 
 def _given_as(name: str, texts: dict[str, str]) -> str:
     """Setting ``name`` of a process's published ``texts`` as command-line text (``--hidden-sizes
-    256 256``, ``--no-resume``; ``no --NAME`` where that process has no such setting)."""
-    if name not in texts:
+    256 256``, ``--no-resume``, ``td3-jax sweep`` for the subcommand; ``no --NAME`` where that
+    process has no such setting, or it is unset)."""
+    value = json.loads(texts[name]) if name in texts else None
+    if value is None:
         return f"no {flag(name)}"
-    return as_flag(name, json.loads(texts[name]))
+    return f"td3-jax {value}" if name == "command" else as_flag(name, value)
 
 
 def leave_distributed(wait_s: float | None = None) -> bool:

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -116,7 +117,10 @@ def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_
     """A process of several that fails (another failed: ProcessLostError; or a bug of its own)
     says why first, then waits at most STOPPED_LEAVE_S for the others to leave JAX's runtime
     (JAX's exit hook waited for a process that was gone for five minutes, then aborted with
-    134), and ends with the failure's exit status, a traceback's too."""
+    134), and ends with the failure's exit status, a traceback's too. The first process, whose
+    coordination service the others need until they stop, waits FIRST_PROCESS_LEAVE_S."""
+    import jax
+
     from td3_jax.cli import app, interrupts
     from td3_jax.runner import sharding
 
@@ -129,11 +133,14 @@ def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_
     def failing(args):
         raise failure()
 
-    with pytest.raises(SystemExit) as end:
-        app.run_reporting_errors(failing, [])
-    assert end.value.code == code
-    assert len(left) == 1 and left[0][0] == interrupts.STOPPED_LEAVE_S
-    assert left[0][1].endswith(said)  # (said before it waits for the others)
+    for index, limit in ((1, interrupts.STOPPED_LEAVE_S), (0, interrupts.FIRST_PROCESS_LEAVE_S)):
+        monkeypatch.setattr(jax, "process_index", lambda index=index: index)
+        with pytest.raises(SystemExit) as end:
+            app.run_reporting_errors(failing, [])
+        assert end.value.code == code
+        assert left[-1][0] == limit
+        assert left[-1][1].endswith(said)  # (said before it waits for the others)
+    assert interrupts.STOPPED_LEAVE_S < interrupts.FIRST_PROCESS_LEAVE_S
 
 
 def test_a_process_whose_others_do_not_come_to_leave_ends_at_once(monkeypatch, capsys):
@@ -371,8 +378,9 @@ def test_a_killed_process_gives_the_shells_status():
 
 
 def _train(args: list[str], env: dict, **kw) -> subprocess.Popen:
+    kw = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, **kw}
     return subprocess.Popen([sys.executable, "-m", "td3_jax", "train", *args], env=env,
-                            text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+                            text=True, **kw)
 
 
 def _records(run_dir) -> list[dict]:
@@ -424,6 +432,53 @@ def test_a_ctrl_c_stops_every_process_once_after_a_checkpointed_chunk(tmp_path):
     assert err.count("interrupted; the newest checkpoint is") == 1, err[-3000:]
     saved = sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())
     assert saved and _records(run)[-1]["env_steps"] == saved[-1] * 256 < 51200
+
+
+#: A run whose chunk after the first record takes about a minute on 2 CPU cores.
+LONG_CHUNKS = ["--env", "gymnax/Pendulum-v1", "--num-envs", "8", "--eval-every", "4096",
+               "--warmup-steps", "64", "--batch-size", "2048", "--updates-per-iter", "4",
+               "--hidden-sizes", "512", "512", "--eval-envs", "4", "--buffer-size", "8192",
+               "--replay-shards", "2", "--compile-cache", "off", "--total-steps", "40960"]
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.processes
+def test_a_ctrl_c_mid_chunk_is_said_at_once_and_a_second_stops_at_once(tmp_path):
+    """Mid-chunk, a process of several says its Ctrl-C when it comes, not once the chunk has
+    ended (a copy of the chunk's results ran no signal handler: the line came with the chunk's
+    record, 115 s later), and a second Ctrl-C ends the processes before the chunk does."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "CUDA_VISIBLE_DEVICES": ""}
+    proc = _train([*LONG_CHUNKS, "--local-processes", "2", "--out", str(tmp_path / "run")], env,
+                  stderr=subprocess.STDOUT)  # fmt: skip
+    lines: list[tuple[float, str]] = []
+    reader = threading.Thread(target=lambda: lines.extend((time.monotonic(), line)
+                                                          for line in proc.stdout))  # fmt: skip
+    reader.start()
+    try:
+        first = _wait_for(lines, "env steps/s", proc)  # (the early evaluation's record)
+        proc.send_signal(signal.SIGINT)
+        said = _wait_for(lines, "interrupted: stopping once the chunk", proc)
+        records = [line for _, line in lines if "env steps/s" in line]
+        time.sleep(2)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+        stopped = time.monotonic()
+    finally:
+        proc.kill()
+        reader.join(10)
+    assert proc.returncode == 130, "".join(line for _, line in lines)[-3000:]
+    assert said - first < 20 and len(records) == 1, records  # (said within the chunk)
+    assert [line for _, line in lines if "env steps/s" in line] == records  # (stopped in it)
+    assert stopped - said < 30
+
+
+def _wait_for(lines: list[tuple[float, str]], text: str, proc: subprocess.Popen) -> float:
+    """When the first line holding ``text`` came (waiting up to 300 s for it)."""
+    deadline = time.monotonic() + 300
+    while not any(text in line for _, line in list(lines)):
+        assert time.monotonic() < deadline and proc.poll() is None, lines[-20:]
+        time.sleep(0.05)
+    return next(at for at, line in list(lines) if text in line)
 
 
 @pytest.mark.timeout(400)

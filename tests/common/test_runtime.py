@@ -283,41 +283,6 @@ def test_a_ctrl_c_that_leaves_a_device_wait_is_reported_as_uninterruptible_work(
     assert not runtime.background_work_running()
 
 
-class _Computation:
-    """A stand-in for a JAX array still being computed: ready once ``done`` is set."""
-
-    def __init__(self, done: threading.Event) -> None:
-        self.done = done
-
-    def block_until_ready(self) -> _Computation:
-        self.done.wait(30)
-        return self
-
-
-def test_a_signal_that_comes_while_waiting_for_the_device_is_handled_during_the_wait():
-    """The wait for a chunk's results runs signal handlers meanwhile (blocked in JAX's wait, a
-    process of several said its Ctrl-C only once the chunk ended): here the computation ends
-    only because the handler of a signal sent during the wait ran."""
-    done = threading.Event()
-    previous = signal.signal(signal.SIGALRM, lambda signum, frame: done.set())
-    try:
-        signal.setitimer(signal.ITIMER_REAL, 0.05)
-        start = time.monotonic()
-        runtime.wait_ready([_Computation(done), "not an array", 3.0])
-        assert done.is_set() and time.monotonic() - start < 5
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-
-
-def test_a_computation_that_ends_on_its_own_ends_the_wait():
-    done = threading.Event()
-    threading.Timer(0.05, done.set).start()
-    runtime.wait_ready([_Computation(done)])
-    assert done.is_set()
-    runtime.wait_ready([])  # (nothing to wait for)
-
-
 @pytest.fixture
 def restored_logging(monkeypatch):
     """Puts back what :func:`runtime.quiet_library_logs` changes."""

@@ -229,6 +229,18 @@ def test_a_setting_that_differs_is_said_as_it_is_typed(monkeypatch, theirs, mine
     assert said in str(err.value)
 
 
+@pytest.mark.parametrize(("name", "theirs", "mine", "said"), [
+    ("command", "sweep", "train", "td3-jax sweep there, td3-jax train here;"),
+    ("time_budget_s", None, 60.0, "no --time-budget-s there, --time-budget-s 60.0 here;"),
+])
+def test_the_subcommand_and_an_unset_flag_are_said_as_typed(monkeypatch, name, theirs, mine,
+                                                            said):  # fmt: skip
+    _as_process(monkeypatch, 1, 2, _Store({f"{SETTINGS_KEY}/0": _publication({name: theirs})}))
+    with pytest.raises(ConfigError) as err:
+        check_same_settings({name: mine})
+    assert said in str(err.value)
+
+
 def test_processes_given_the_same_settings_go_on(monkeypatch):
     """Equal settings pass (tuples, paths and NaN compare as the JSON the others published);
     without jax.distributed nothing is checked (no store asked for, no backend started)."""
