@@ -20,9 +20,10 @@ from td3_jax.cli.interrupts import (
     process_stop,
     train_stoppably,
 )
+from td3_jax.cli.local_processes import joins_others
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_sweep_ranking
-from td3_jax.common import runtime
+from td3_jax.common import library_noise, runtime
 from td3_jax.config.schema import (
     SWITCHED_ON_BY_THEIR_FLAG,
     ConfigError,
@@ -167,11 +168,16 @@ def _check_sweep_to_resume(out: Path) -> None:
 
 def _start_process(command: Any, args: list[str], stop: runtime.StopToken) -> Path | None:
     """This process's side of a run: JAX's compilation cache (``--compile-cache``) and, on
-    several hosts, the distributed runtime. Returns the folder of the traced programs (None:
-    off)."""
+    several hosts, the distributed runtime, with the line with which JAX's coordination service
+    ends a process (another did not join, or stopped answering) and its stack trace said as
+    one line of td3-jax's (:data:`~td3_jax.common.library_noise.PROCESS_LOST`). Returns the
+    folder of the traced programs (None: off)."""
     given_cache = any(arg.split("=", 1)[0] == "--compile-cache" for arg in args)
     program_dir = runtime.enable_compile_cache(command.compile_cache, given=given_cache)
     stop.raise_if_set()  # (stopped while it started: joining could block for minutes)
+    if joins_others(args):  # (JAX's coordination service may end it with a C++ stack trace)
+        library_noise.filtered_stderr_until_exit(
+            (), fatal=(library_noise.COORDINATION_FATAL, library_noise.PROCESS_LOST))
     from td3_jax.runner.sharding import initialize_distributed  # lazy: imports JAX
 
     initialize_distributed(command.coordinator_address, command.num_processes, command.process_id)

@@ -29,8 +29,8 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
-__all__ = ["ALARM", "DROPPED", "LEAVING", "STILL_COMPILING", "drain_filters", "filtered_stderr",
-           "filtered_stderr_until_exit"]
+__all__ = ["ALARM", "COORDINATION_FATAL", "DROPPED", "LEAVING", "PROCESS_LOST",
+           "STILL_COMPILING", "drain_filters", "filtered_stderr", "filtered_stderr_until_exit"]
 
 #: The text of XLA's slow-compile alarm: its line becomes :data:`STILL_COMPILING` (once).
 ALARM = "Very slow compile?"
@@ -62,14 +62,33 @@ STILL_COMPILING = (
     "compile cache keeps the result for the next run)"
 )
 
-# The filter process (arguments: STILL_COMPILING, ALARM, *DROPPED): lines of stdin to stdout
-# as bytes (any encoding passes), each flushed; an empty line right after a dropped one (the
-# alarm's banner ends with one) is dropped too.
+#: Text of the line with which JAX's coordination service ends a process of several (a C++
+#: check failure: a stack trace follows, then the process aborts, exit status 134) where
+#: another did not join in time or stopped answering (:data:`PROCESS_LOST`).
+COORDINATION_FATAL = "Terminating process because the JAX distributed service detected fatal"
+#: The line that stands for it and its stack trace.
+PROCESS_LOST = (
+    "td3-jax: error: JAX's coordination service ends this process (exit status 134): another "
+    "process of the run did not join in time, or stopped answering (killed or crashed: its own "
+    "output says why, where it could); checkpoints already written are kept"
+)
+
+# The filter process (arguments: STILL_COMPILING, ALARM, a fatal line's text or "", the line
+# that stands for it, *DROPPED): lines of stdin to stdout as bytes (any encoding passes), each
+# flushed; an empty line right after a dropped one (the alarm's banner ends with one) is
+# dropped too; from a fatal line on, its own line stands for the rest (a stack trace).
 _FILTER = r"""
 import sys
-ours, alarm, *dropped = [text.encode() for text in sys.argv[1:]]
-said, after, out = False, False, sys.stdout.buffer
+ours, alarm, fatal, fatal_ours, *dropped = [text.encode() for text in sys.argv[1:]]
+said, after, ended, out = False, False, False, sys.stdout.buffer
 for line in sys.stdin.buffer:
+    if ended:
+        continue
+    if fatal and fatal in line:
+        out.write(fatal_ours + b"\n")
+        out.flush()
+        ended = True
+        continue
     stripped = line.strip()
     drop = bool(stripped and not stripped.strip(b"*")) or any(t in line for t in (alarm, *dropped))
     if drop and alarm in line and not said:
@@ -108,11 +127,14 @@ def filtered_stderr(dropped: tuple[str, ...] = DROPPED) -> Iterator[None]:
 _UNTIL_EXIT: list[subprocess.Popen] = []
 
 
-def filtered_stderr_until_exit(dropped: tuple[str, ...]) -> None:
+def filtered_stderr_until_exit(dropped: tuple[str, ...],
+                               fatal: tuple[str, str] | None = None) -> None:  # fmt: skip
     """Passes file descriptor 2 through the filter process, dropping the lines that hold any
     text of ``dropped``, for the rest of this process's life: for lines that libraries write
-    on their own threads as the process ends (nothing where the filter cannot start)."""
-    started = _start_filter(dropped)
+    on their own threads as the process ends (nothing where the filter cannot start).
+    ``fatal``: ``(text, line)``: from a line holding ``text`` on (a library's fatal error,
+    before its stack trace and abort), ``line`` stands for the rest."""
+    started = _start_filter(dropped, fatal)
     if started is None:
         return
     saved, child = started
@@ -131,14 +153,15 @@ def drain_filters(timeout_s: float = 5.0) -> None:
         return
     _flush_stderr()
     os.dup2(os.open(os.devnull, os.O_WRONLY), 2)
-    for child in _UNTIL_EXIT:
+    for child in reversed(_UNTIL_EXIT):  # (a later filter writes into an earlier one)
         child.stdin.close()
         with contextlib.suppress(subprocess.TimeoutExpired):
             child.wait(timeout=timeout_s)
     _UNTIL_EXIT.clear()
 
 
-def _start_filter(dropped: tuple[str, ...]) -> tuple[int, subprocess.Popen] | None:
+def _start_filter(dropped: tuple[str, ...], fatal: tuple[str, str] | None = None
+                  ) -> tuple[int, subprocess.Popen] | None:  # fmt: skip
     """``(a copy of fd 2, the filter process writing to it, dropping lines with any text of
     dropped)``, or ``None`` where either cannot be had."""
     _flush_stderr()
@@ -148,7 +171,8 @@ def _start_filter(dropped: tuple[str, ...]) -> tuple[int, subprocess.Popen] | No
         return None
     try:
         child = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, STILL_COMPILING,
-                                  ALARM, *dropped], stdin=subprocess.PIPE, stdout=saved,
+                                  ALARM, *(fatal or ("", "")), *dropped],
+                                 stdin=subprocess.PIPE, stdout=saved,
                                  stderr=saved, process_group=0)  # fmt: skip
     except OSError:
         os.close(saved)

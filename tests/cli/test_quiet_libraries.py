@@ -5,6 +5,7 @@ render checks ``MUJOCO_GL`` before MuJoCo's import refuses it in its own words."
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
@@ -12,7 +13,7 @@ import pytest
 from support import TINY_FLAGS, assert_one_line_error, main, python
 
 from td3_jax.cli import app as cli
-from td3_jax.common.library_noise import STILL_COMPILING
+from td3_jax.common.library_noise import PROCESS_LOST, STILL_COMPILING
 
 #: What XLA writes when a compile takes minutes (jaxlib 0.9, a T1 chunk on a CPU).
 ALARM = (
@@ -94,6 +95,36 @@ def test_the_coordination_services_lines_go_once_the_processes_leave_and_only_th
     proc = python(code)
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == LEAVING.splitlines()[0] + "\nours\nand the last\n"
+
+
+#: What JAX's coordination service writes as it ends a process whose partner was killed (two
+#: CPU processes, jax 0.10.2): the check failure's line, its status, then a stack trace.
+COORDINATION_ABORT = (
+    "F1130 04:10:05.087866    9400 client.h:80] Terminating process because the JAX distributed "
+    "service detected fatal errors. This most likely indicates that another task died; see the "
+    "other task logs for more details. absl::Status: UNAVAILABLE: The following tasks are "
+    "unhealthy (stopped sending heartbeats):\n1\nThe tasks have crashed.\n"
+    "*** Check failure stack trace: ***\n"
+    "    @     0x7f4d64040634  absl::lts_20260107::log_internal::LogMessage::SendToLog()\n"
+)
+
+
+def test_the_coordination_services_fatal_end_is_one_line_of_td3_jaxs_and_the_process_aborts():
+    """A process of several that JAX's coordination service ends (another was killed, or did
+    not join in time) says so in one line instead of a C++ stack trace; what it wrote before
+    passes, and a second filter chained after it (the leave's) passes it on."""
+    code = ("import os, sys\n"
+            "from td3_jax.common import library_noise as noise\n"
+            "noise.filtered_stderr_until_exit((), fatal=(noise.COORDINATION_FATAL, "
+            "noise.PROCESS_LOST))\n"
+            "print('td3 before', file=sys.stderr, flush=True)\n"
+            "noise.filtered_stderr_until_exit(noise.LEAVING)\n"
+            f"os.write(2, {COORDINATION_ABORT.encode()!r})\n"
+            "os.write(2, b'more of the trace\\n')\n"
+            "os.abort()\n")  # fmt: skip
+    proc = python(code)
+    assert proc.returncode == -signal.SIGABRT
+    assert proc.stderr == f"td3 before\n{PROCESS_LOST}\n"
 
 
 def test_a_process_ending_at_once_inside_the_block_loses_nothing_it_wrote():
