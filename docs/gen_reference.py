@@ -395,6 +395,8 @@ def metrics_page() -> str:
 EXIT_STATUSES: tuple[tuple[int, str], ...] = (
     (0, "done (also a run stopped by `--time-budget-s`: checkpointed, with the `--resume` line)"),
     (130, "interrupted by Ctrl-C (SIGINT); the newest checkpoint is named"),
+    (134, "a process of several ended by JAX's coordination service: another was killed, or "
+          "did not join in time (one line says so; checkpoints already written are kept)"),
     (141, "the reader of the output went away (a pipe into `head` that closed early)"),
     (143, "stopped by SIGTERM (a scheduler, `timeout`): the chunk in flight is checkpointed first"),
 )
@@ -433,7 +435,8 @@ def errors_page() -> str:
 
 def _code_meaning(code: int) -> str:
     return {
-        1: "an upstream library changed under td3-jax (a private name it relies on is gone)",
+        1: "an upstream library changed under td3-jax (a private name it relies on is gone), "
+           "or a failure td3-jax does not foresee (its traceback)",
         2: "bad input: a setting, a name, a file, a checkpoint, a full disk; said before "
         "anything compiles where it can be",
         3: "a run stopped by what it computed (non-finite numbers, physics out of its buffers) "
