@@ -175,7 +175,10 @@ def _exit_failed(err: Exception) -> None:
         where = f"{err.filename}: " if err.filename else ""
         error(f"{where}{err.strerror}")
         exit_process(None, 2, abandon_work=False)
-    if isinstance(err, BrokenPipeError) or not joined_others():  # (main: the reader went away)
+    if not joined_others():  # (a BrokenPipeError: main says the reader went away)
         raise err
+    if isinstance(err, BrokenPipeError):  # (as main: 141, nothing more to the closed pipe)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        exit_process(None, 141, abandon_work=False)
     traceback.print_exc()
     exit_process(None, 1, abandon_work=False)

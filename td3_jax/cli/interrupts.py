@@ -107,8 +107,9 @@ def process_stop() -> tuple[runtime.StopToken, list[int]]:
 STOPPED_LEAVE_S = 30.0
 #: The same for the first process, which holds JAX's coordination service: the others need it
 #: until they come to stop themselves (at their next boundary, after a compile or a chunk), and
-#: abort (exit status 134) where it ends before.
-FIRST_PROCESS_LEAVE_S = 300.0
+#: abort (exit status 134) where it ends before. Below JAX's own limit on that wait (300 s),
+#: past which JAX aborts the process.
+FIRST_PROCESS_LEAVE_S = 240.0
 
 
 def leave_processes(wait_s: float | None) -> bool:
@@ -130,8 +131,12 @@ def joined_others() -> bool:
 
 
 def _first_of_several() -> bool:
-    """Whether this is the first process (it holds JAX's coordination service) of several."""
-    return joined_others() and sys.modules["jax"].process_index() == 0
+    """Whether this is the first process (it holds JAX's coordination service) of several
+    (asked without starting JAX's backend, which may fail, or wait for a process that is
+    gone)."""
+    from td3_jax.common import upstream
+
+    return joined_others() and upstream.distributed_process_id() == 0
 
 
 def exit_process(message: str | None, code: int, abandon_work: bool = True) -> None:

@@ -73,13 +73,15 @@ PROCESS_LOST = (
     "output says why, where it could); checkpoints already written are kept"
 )
 
-# The filter process (arguments: STILL_COMPILING, ALARM, a fatal line's text or "", the line
-# that stands for it, *DROPPED): lines of stdin to stdout as bytes (any encoding passes), each
-# flushed; an empty line right after a dropped one (the alarm's banner ends with one) is
-# dropped too; from a fatal line on, its own line stands for the rest (a stack trace).
+# The filter process (arguments: STILL_COMPILING, ALARM or "", a fatal line's text or "", the
+# line that stands for it, *DROPPED): lines of stdin to stdout as bytes (any encoding passes),
+# each flushed; with the alarm, lines of asterisks alone (its banner) are dropped too, and an
+# empty line right after a dropped one (the banner ends with one); from a fatal line on, its
+# own line stands for the rest (a stack trace).
 _FILTER = r"""
 import sys
 ours, alarm, fatal, fatal_ours, *dropped = [text.encode() for text in sys.argv[1:]]
+dropped = [text for text in (alarm, *dropped) if text]
 said, after, ended, out = False, False, False, sys.stdout.buffer
 for line in sys.stdin.buffer:
     if ended:
@@ -90,8 +92,8 @@ for line in sys.stdin.buffer:
         ended = True
         continue
     stripped = line.strip()
-    drop = bool(stripped and not stripped.strip(b"*")) or any(t in line for t in (alarm, *dropped))
-    if drop and alarm in line and not said:
+    drop = bool(alarm and stripped and not stripped.strip(b"*")) or any(t in line for t in dropped)
+    if drop and alarm and alarm in line and not said:
         said = True
         out.write(ours + b"\n")
     elif not drop and (stripped or not after):
@@ -134,7 +136,7 @@ def filtered_stderr_until_exit(dropped: tuple[str, ...],
     on their own threads as the process ends (nothing where the filter cannot start).
     ``fatal``: ``(text, line)``: from a line holding ``text`` on (a library's fatal error,
     before its stack trace and abort), ``line`` stands for the rest."""
-    started = _start_filter(dropped, fatal)
+    started = _start_filter(dropped, fatal, alarm=False)
     if started is None:
         return
     saved, child = started
@@ -160,10 +162,12 @@ def drain_filters(timeout_s: float = 5.0) -> None:
     _UNTIL_EXIT.clear()
 
 
-def _start_filter(dropped: tuple[str, ...], fatal: tuple[str, str] | None = None
-                  ) -> tuple[int, subprocess.Popen] | None:  # fmt: skip
-    """``(a copy of fd 2, the filter process writing to it, dropping lines with any text of
-    dropped)``, or ``None`` where either cannot be had."""
+def _start_filter(dropped: tuple[str, ...], fatal: tuple[str, str] | None = None,
+                  alarm: bool = True) -> tuple[int, subprocess.Popen] | None:  # fmt: skip
+    """``(a copy of fd 2, the filter process writing to it)``, or ``None`` where either cannot
+    be had. The filter drops lines with any text of ``dropped``; from a line holding
+    ``fatal[0]`` on, ``fatal[1]`` stands for the rest; ``alarm``: XLA's slow-compile alarm
+    becomes :data:`STILL_COMPILING` and its banner is dropped."""
     _flush_stderr()
     try:
         saved = os.dup(2)
@@ -171,7 +175,7 @@ def _start_filter(dropped: tuple[str, ...], fatal: tuple[str, str] | None = None
         return None
     try:
         child = subprocess.Popen([sys.executable, "-I", "-S", "-c", _FILTER, STILL_COMPILING,
-                                  ALARM, *(fatal or ("", "")), *dropped],
+                                  ALARM if alarm else "", *(fatal or ("", "")), *dropped],
                                  stdin=subprocess.PIPE, stdout=saved,
                                  stderr=saved, process_group=0)  # fmt: skip
     except OSError:

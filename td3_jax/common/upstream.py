@@ -51,6 +51,7 @@ __all__ = [
     "called_jaxpr",
     "compile_options",
     "concatenation_axis",
+    "distributed_process_id",
     "distributed_store",
     "jax_cache_atime",
     "jax_cache_entries",
@@ -296,6 +297,15 @@ def distributed_store() -> Any:
     module = _private_module(JAX_DISTRIBUTED)
     state = _require(module, "global_state", f"{JAX_DISTRIBUTED}.global_state")
     return _require(state, "client", f"{JAX_DISTRIBUTED}.global_state.client")
+
+
+def distributed_process_id() -> int:
+    """This process's id in its ``jax.distributed`` run, as it joined (0 before
+    ``jax.distributed.initialize``), read without starting JAX's backend (which
+    ``jax.process_index()`` does, and which may fail or wait for a process that is gone)."""
+    module = _private_module(JAX_DISTRIBUTED)
+    state = _require(module, "global_state", f"{JAX_DISTRIBUTED}.global_state")
+    return _require(state, "process_id", f"{JAX_DISTRIBUTED}.global_state.process_id")
 
 
 def mjx_device_resolver() -> Callable[..., tuple[Any, Any]] | None:

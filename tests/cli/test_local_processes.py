@@ -119,9 +119,8 @@ def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_
     (JAX's exit hook waited for a process that was gone for five minutes, then aborted with
     134), and ends with the failure's exit status, a traceback's too. The first process, whose
     coordination service the others need until they stop, waits FIRST_PROCESS_LEAVE_S."""
-    import jax
-
     from td3_jax.cli import app, interrupts
+    from td3_jax.common import upstream
     from td3_jax.runner import sharding
 
     left: list[tuple[float | None, str]] = []
@@ -134,7 +133,7 @@ def test_a_process_of_several_that_fails_says_why_then_leaves_the_others_within_
         raise failure()
 
     for index, limit in ((1, interrupts.STOPPED_LEAVE_S), (0, interrupts.FIRST_PROCESS_LEAVE_S)):
-        monkeypatch.setattr(jax, "process_index", lambda index=index: index)
+        monkeypatch.setattr(upstream, "distributed_process_id", lambda index=index: index)
         with pytest.raises(SystemExit) as end:
             app.run_reporting_errors(failing, [])
         assert end.value.code == code
@@ -164,6 +163,29 @@ def test_a_process_whose_others_do_not_come_to_leave_ends_at_once(monkeypatch, c
     with pytest.raises(SystemExit):
         app.run_reporting_errors(failing, [])
     assert ended == [3]
+
+
+def test_a_broken_pipe_in_a_process_of_several_ends_it_with_141_leaving_the_others(
+        monkeypatch, tmp_path):  # fmt: skip
+    """The reader of a process of several went away (``| head``): exit 141 as a process of its
+    own ends, after leaving the others within the limit (JAX's exit would wait for minutes);
+    nothing more goes to the closed pipe."""
+    from td3_jax.cli import app, interrupts
+    from td3_jax.runner import sharding
+
+    left: list[float | None] = []
+    monkeypatch.setattr(app, "joined_others", lambda: True)
+    monkeypatch.setattr(interrupts, "joined_others", lambda: False)
+    monkeypatch.setattr(sharding, "leave_distributed", lambda wait_s=None: not left.append(wait_s))
+    saved = os.dup(1)
+    try:
+        with pytest.raises(SystemExit) as end:
+            app.run_reporting_errors(lambda args: (_ for _ in ()).throw(BrokenPipeError()), [])
+        os.write(1, b"to /dev/null\n")  # (stdout now writes nowhere: no second error)
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+    assert end.value.code == 141 and left == [interrupts.STOPPED_LEAVE_S]
 
 
 def test_a_process_of_its_own_raises_an_unforeseen_failure_as_it_came(monkeypatch):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 from support import TINY_FLAGS, assert_one_line_error, main, python
@@ -125,6 +126,26 @@ def test_the_coordination_services_fatal_end_is_one_line_of_td3_jaxs_and_the_pro
     proc = python(code)
     assert proc.returncode == -signal.SIGABRT
     assert proc.stderr == f"td3 before\n{PROCESS_LOST}\n"
+
+
+def test_chained_filters_for_the_process_life_pass_its_lines_and_drain_at_its_end():
+    """A process of several runs with two filters at its end (the coordination service's fatal
+    line, then the leave's lines): its own lines pass in order, a line of asterisks too (that
+    rule is the compile alarm's banner, dropped only while compiling), and both filters drain
+    at once as it exits (the later writes into the earlier: drained first, not waited out)."""
+    code = ("import os, sys\n"
+            "from td3_jax.common import library_noise as noise\n"
+            "noise.filtered_stderr_until_exit((), fatal=(noise.COORDINATION_FATAL, "
+            "noise.PROCESS_LOST))\n"
+            "noise.filtered_stderr_until_exit(noise.LEAVING)\n"
+            "print('*****', file=sys.stderr)\n"
+            "print('ours', file=sys.stderr)\n"
+            "print('the last', file=sys.stderr)\n")  # fmt: skip
+    start = time.monotonic()
+    proc = python(code)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == "*****\nours\nthe last\n"
+    assert time.monotonic() - start < 4  # (a filter waited for was given 5 s)
 
 
 def test_a_process_ending_at_once_inside_the_block_loses_nothing_it_wrote():
