@@ -151,8 +151,7 @@ def run_reporting_errors(command: Callable[[list[str]], None], args: list[str]) 
             warn(warning)
         command(expand_home(args))
     except Td3JaxError as err:
-        error(str(err))
-        exit_process(None, err.exit_code, abandon_work=False)
+        _fail(str(err), err.exit_code)
     except Interrupted as err:
         exit_process(f"td3-jax: {err}", err.code)
     except KeyboardInterrupt:  # (before a run started: a SIGTERM of a process of several too)
@@ -169,12 +168,9 @@ def _exit_failed(err: Exception) -> None:
     quota, a read-only file system, no permission) as one line and exit status 2; anything
     else as its traceback (exit status 1), raised again unless the process joined others."""
     if isinstance(err, RuntimeError) and "MUJOCO_GL" in str(err):
-        error(f"{err} (unset it or use egl, osmesa or glfw)")
-        exit_process(None, 2, abandon_work=False)
+        _fail(f"{err} (unset it or use egl, osmesa or glfw)", 2)
     if isinstance(err, OSError) and err.errno in WRITE_ERRNOS:
-        where = f"{err.filename}: " if err.filename else ""
-        error(f"{where}{err.strerror}")
-        exit_process(None, 2, abandon_work=False)
+        _fail(f"{err.filename}: {err.strerror}" if err.filename else f"{err.strerror}", 2)
     if not joined_others():  # (a BrokenPipeError: main says the reader went away)
         raise err
     if isinstance(err, BrokenPipeError):  # (as main: 141, nothing more to the closed pipe)
@@ -182,3 +178,10 @@ def _exit_failed(err: Exception) -> None:
         exit_process(None, 141, abandon_work=False)
     traceback.print_exc()
     exit_process(None, 1, abandon_work=False)
+
+
+def _fail(message: str, code: int) -> None:
+    """``td3-jax: error: MESSAGE`` and exit status ``code``, the other processes of a run left
+    first (:func:`~td3_jax.cli.interrupts.exit_process`)."""
+    error(message)
+    exit_process(None, code, abandon_work=False)

@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from td3_jax.common import library_noise, runtime
+from td3_jax.common.runtime import joined_others
 from td3_jax.config.schema import TrainConfig
 
 __all__ = ["FIRST_PROCESS_LEAVE_S", "STOPPED_LEAVE_S", "Interrupted", "exit_process",
@@ -123,11 +124,6 @@ def leave_processes(wait_s: float | None) -> bool:
     from td3_jax.runner.sharding import leave_distributed  # lazy: imports JAX
 
     return leave_distributed(wait_s)
-
-
-def joined_others() -> bool:
-    """Whether this process joined other processes through ``jax.distributed``."""
-    return "jax" in sys.modules and sys.modules["jax"].distributed.is_initialized()
 
 
 def _first_of_several() -> bool:

@@ -50,6 +50,7 @@ __all__ = [
     "background_work_running",
     "enable_compile_cache",
     "in_background",
+    "joined_others",
     "local_processes",
     "quiet_library_logs",
     "result",
@@ -72,6 +73,12 @@ def local_processes() -> int | None:
     :data:`LOCAL_PROCESSES_ENV`), else None."""
     text = os.environ.get(LOCAL_PROCESSES_ENV, "")
     return int(text) if text.isdigit() else None
+
+
+def joined_others() -> bool:
+    """Whether this process joined other processes through ``jax.distributed`` (asked without
+    importing JAX, or starting its backend, which the join must come before)."""
+    return "jax" in sys.modules and sys.modules["jax"].distributed.is_initialized()
 
 
 class StopToken:

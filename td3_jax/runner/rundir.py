@@ -484,18 +484,10 @@ def resume_command(out_dir: Path, extra: str = "") -> str:
     count = runtime.local_processes()
     processes = f" --local-processes {count}" if count else ""
     resume = f"td3-jax {command} --out {shlex.quote(str(out_dir))} --resume{extra}{processes}"
-    if not count and _joined_by_hand():
+    if not count and runtime.joined_others():  # (started by hand)
         resume += (" in each process, with its own --coordinator-address, --num-processes and "
                    "--process-id")  # fmt: skip
     return resume
-
-
-def _joined_by_hand() -> bool:
-    """Whether this process joined others through ``jax.distributed`` (asked without starting
-    JAX's backend, which the join must come before)."""
-    import jax  # (imported by now: the run directory's records are JAX's)
-
-    return jax.distributed.is_initialized()
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
