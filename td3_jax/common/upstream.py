@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from td3_jax.common import skipped_imports
 from td3_jax.common.errors import UpstreamChanged
 
 __all__ = [
@@ -61,6 +62,7 @@ __all__ = [
     "playground_locomotion",
     "playground_menagerie_at",
     "playground_menagerie_path",
+    "playground_module",
     "quiet_warp_overflow_warnings",
     "set_mjx_device_resolver",
     "set_task_mjx_model",
@@ -418,9 +420,16 @@ TASK_MODEL = "_mjx_model"
 PLAYGROUND_MENAGERIE = "mujoco_playground/external_deps/mujoco_menagerie"
 
 
+def playground_module(name: str) -> Any:
+    """Playground's module ``name``, Playground imported without the packages it imports but
+    td3-jax never uses (:mod:`td3_jax.common.skipped_imports`: PyTorch)."""
+    with skipped_imports.skipping_unused_imports():
+        return _private_module(name)
+
+
 def playground_locomotion() -> Any:
     """Playground's locomotion registry module (``ImportError`` without Playground)."""
-    return _private_module(PLAYGROUND_LOCOMOTION)
+    return playground_module(PLAYGROUND_LOCOMOTION)
 
 
 def playground_menagerie_path() -> Path | None:
@@ -444,7 +453,7 @@ def playground_menagerie_at(root: Path) -> Iterator[None]:
     (``mjx_env.ensure_menagerie_exists``) while a task is built."""
     from etils import epath
 
-    mjx_env = _private_module(PLAYGROUND_MJX_ENV)
+    mjx_env = playground_module(PLAYGROUND_MJX_ENV)
     for name in ("MENAGERIE_PATH", "ensure_menagerie_exists"):
         _require(mjx_env, name, f"{PLAYGROUND_MJX_ENV}.{name}")
     saved = mjx_env.MENAGERIE_PATH, mjx_env.ensure_menagerie_exists

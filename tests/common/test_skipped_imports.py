@@ -1,0 +1,134 @@
+"""Packages skipped while a dependency imports: missing inside, importable again after, an
+imported one untouched, and Playground made ready by td3-jax without running PyTorch."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+PACKAGE = """
+import os
+with open(os.environ["LOADED_LOG"], "a") as log:
+    log.write(__name__ + "\\n")
+VALUE = 42
+"""
+
+
+def _fake_package(root: Path, name: str) -> None:
+    (root / name).mkdir(parents=True)
+    (root / name / "__init__.py").write_text(PACKAGE)
+
+
+def _run(tmp_path: Path, code: str) -> tuple[list[str], list[str]]:
+    """Runs ``code`` in a fresh Python that finds the fake packages under ``tmp_path/pkgs``;
+    (its stdout's lines, the names of the packages whose code ran, in order)."""
+    log = tmp_path / "loaded.log"
+    env = {**os.environ, "LOADED_LOG": str(log),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path / "pkgs"), *sys.path])}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    loaded = log.read_text().split() if log.exists() else []
+    return proc.stdout.splitlines(), loaded
+
+
+@pytest.fixture
+def packages(tmp_path: Path) -> Path:
+    _fake_package(tmp_path / "pkgs", "fakepkg")
+    return tmp_path
+
+
+def test_a_skipped_package_is_missing_inside_and_imports_after(packages: Path) -> None:
+    out, loaded = _run(
+        packages,
+        """
+        from td3_jax.common.skipped_imports import skipping_unused_imports
+        with skipping_unused_imports(["fakepkg"]) as skipped:
+            print(skipped)
+            try:
+                import fakepkg
+            except ImportError:
+                print("ImportError")
+        import fakepkg
+        print(fakepkg.VALUE)
+    """,
+    )
+    assert out == ["['fakepkg']", "ImportError", "42"]
+    assert loaded == ["fakepkg"]  # (only the import after)
+
+
+def test_an_imported_package_is_left_as_it_is(packages: Path) -> None:
+    out, loaded = _run(
+        packages,
+        """
+        import sys
+        import fakepkg
+        from td3_jax.common.skipped_imports import skipping_unused_imports
+        with skipping_unused_imports(["fakepkg"]) as skipped:
+            import fakepkg as inside
+            print(skipped, inside is fakepkg)
+        print(sys.modules["fakepkg"] is fakepkg)
+    """,
+    )
+    assert out == ["[] True", "True"]
+    assert loaded == ["fakepkg"]
+
+
+def test_a_package_imported_inside_anyway_stays(packages: Path) -> None:
+    """A package put in ``sys.modules`` inside (by other means than ``import``) is not removed
+    on leaving: only the entries the context made are."""
+    out, _ = _run(
+        packages,
+        """
+        import sys, types
+        from td3_jax.common.skipped_imports import skipping_unused_imports
+        with skipping_unused_imports(["fakepkg"]):
+            sys.modules["fakepkg"] = types.ModuleType("fakepkg")
+        print(type(sys.modules["fakepkg"]).__name__, hasattr(sys.modules["fakepkg"], "VALUE"))
+    """,
+    )
+    assert out == ["module False"]
+
+
+def test_playground_made_ready_by_td3_jax_does_not_run_torch(tmp_path: Path) -> None:
+    """Playground imports ``torch`` wherever it is installed; through td3-jax (MJX and
+    Playground's locomotion registry, as a robot run imports them) torch's code does not run,
+    and ``import torch`` afterwards gives PyTorch as usual."""
+    pytest.importorskip("mujoco_playground")
+    _fake_package(tmp_path / "pkgs", "torch")
+    out, loaded = _run(
+        tmp_path,
+        """
+        import os, sys
+        from td3_jax.common import upstream
+        from td3_jax.envs import physics
+        physics.import_mjx_quietly()
+        registry = upstream.playground_locomotion()
+        wrapper_torch = sys.modules["mujoco_playground._src.wrapper_torch"]
+        print("T1JoystickFlatTerrain" in registry.ALL_ENVS, wrapper_torch.torch,
+              os.path.exists(os.environ["LOADED_LOG"]))
+        import torch
+        print(torch.VALUE)
+    """,
+    )
+    assert out == ["True None False", "42"]
+    assert loaded == ["torch"]
+
+
+def test_the_suite_is_imported_without_torch_too(tmp_path: Path) -> None:
+    pytest.importorskip("mujoco_playground")
+    _fake_package(tmp_path / "pkgs", "torch")
+    out, loaded = _run(
+        tmp_path,
+        """
+        from td3_jax.envs import playground
+        print("CheetahRun" in playground.names())
+    """,
+    )
+    assert out == ["True"]
+    assert loaded == []
