@@ -11,7 +11,7 @@ from pathlib import Path
 from td3_jax.cli.argv import flag_value, given_fields
 from td3_jax.cli.commands import TrainCommand
 from td3_jax.config.presets import device_defaults, env_preset, preset
-from td3_jax.config.schema import ConfigError, TrainConfig, whole_iterations
+from td3_jax.config.schema import ConfigError, TrainConfig
 
 __all__ = ["base_config", "choose_physics", "resumed_settings", "scale_to_device"]
 
@@ -67,10 +67,7 @@ def resumed_settings(cfg: TrainConfig, out: Path) -> TrainConfig:
     if not (out / rundir.CONFIG_FILE).exists():
         return cfg  # (the run says there is nothing to resume)
     saved = rundir.load_config(out)
-    if cfg.env_steps_per_iter > 0 and saved.steps_per_chunk in whole_iterations(
-        cfg.eval_every, cfg.env_steps_per_iter
-    ):
-        cfg = dataclasses.replace(cfg, eval_every=saved.eval_every)
+    cfg = rundir.eval_every_as_saved(cfg, out)
     import jax  # lazy: JAX, only for a run
 
     if jax.process_index() == 0:  # (as the resume itself checks first, in its writer only)

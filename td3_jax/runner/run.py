@@ -55,6 +55,7 @@ from td3_jax.runner.rundir import (
     check_unedited,
     checkpoint_steps,
     environment_record,
+    eval_every_as_saved,
     fixed_settings,
     open_run_dir,
     previous_outputs,
@@ -145,7 +146,7 @@ def train(
     check_time_budget(time_budget_s)
     out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
-    cfg = _eval_every_within_run(cfg, resume, say=progress and writer)
+    cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer)
     prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
                                               program_dir, env, stop, call)  # fmt: skip
     cfg, population, changes, source = prepared
@@ -178,13 +179,14 @@ def _prepared_and_opened(
         raise
 
 
-def _eval_every_within_run(cfg: TrainConfig, resume: bool, say: bool) -> TrainConfig:
+def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
+                           say: bool) -> TrainConfig:  # fmt: skip
     """A fresh run's ``cfg`` with ``eval_every`` as whole iterations and at most the run
     (:func:`~td3_jax.config.schema.eval_every_within_run`; a resume keeps the chunk its checkpoints
-    were written with); ``say``: print what changed (the CLI hands it over changed already,
-    and says so itself)."""
+    were written with: :func:`~td3_jax.runner.rundir.eval_every_as_saved`); ``say``: print what
+    changed (the CLI hands it over changed already, and says so itself)."""
     if resume:
-        return cfg
+        return eval_every_as_saved(cfg, out_dir)
     changed = eval_every_within_run(cfg)
     if say and changed.eval_every != cfg.eval_every:
         print(rounding_note(changed, cfg.eval_every), flush=True)

@@ -38,7 +38,16 @@ from typing import Any
 from td3_jax.common import runtime
 from td3_jax.common.errors import CheckpointError, LockUnavailableError
 from td3_jax.config.build import agent_config, members, ou_params
-from td3_jax.config.schema import SWEEPABLE, WANDB_SETTINGS, ConfigError, TrainConfig, as_flag, flag
+from td3_jax.config.schema import (
+    SWEEPABLE,
+    WANDB_SETTINGS,
+    ConfigError,
+    TrainConfig,
+    as_flag,
+    eval_every_within_run,
+    flag,
+    whole_iterations,
+)
 from td3_jax.core.population import Member
 from td3_jax.envs import Environment, custom
 from td3_jax.runner.logger import check_records, write_atomically
@@ -538,6 +547,22 @@ def config_changes(
             raise ConfigError(_mismatch(field.name, used, _shown(cfg, field.name), safe))
         changes[field.name] = [old, new]
     return changes
+
+
+def eval_every_as_saved(cfg: TrainConfig, out_dir: Path) -> TrainConfig:
+    """``cfg`` for a resume of ``out_dir``: its ``eval_every`` replaced by the saved one where it
+    is the one the run was started with before the fresh run made it whole iterations or lowered
+    it to the run (``3000`` with 16 environments: the run's chunks of 3008 steps); unchanged
+    otherwise (a real change, which :func:`config_changes` refuses), or without a config.json."""
+    if not (Path(out_dir) / CONFIG_FILE).is_file() or cfg.env_steps_per_iter <= 0:
+        return cfg
+    saved = load_config(out_dir)
+    started = eval_every_within_run(dataclasses.replace(cfg, total_steps=saved.total_steps))
+    if started.eval_every == saved.eval_every or saved.steps_per_chunk in whole_iterations(
+        cfg.eval_every, cfg.env_steps_per_iter
+    ):
+        return dataclasses.replace(cfg, eval_every=saved.eval_every)
+    return cfg
 
 
 def fixed_settings(cfg: TrainConfig) -> dict[str, Any]:

@@ -5,6 +5,7 @@ total_steps a resume records as changed is the one its checkpoint was trained fo
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 
@@ -176,6 +177,29 @@ def test_a_run_stopped_before_its_shortened_chunk_resumes_to_the_straight_run(tm
     for fewer in (90, 60):  # (inside its last chunk, and a whole chunk before it)
         with pytest.raises(ConfigError, match=rf"^--total-steps {fewer} is less than the 100 "):
             train(tiny_config(total_steps=fewer), cut, resume=True, progress=False)
+
+
+@pytest.mark.runs
+def test_the_library_resumes_with_the_config_the_run_was_started_with(tmp_path):
+    """``train(cfg, out, resume=True)`` with the very ``cfg`` of the fresh run: an
+    ``eval_every`` the fresh run made whole iterations (66 of 4 environments: 68) or lowered to
+    a shorter run (1000 in 64 steps: 64) is the run's chunk, not a change; another is refused."""
+    from td3_jax.common.errors import ConfigError
+
+    rounded, lowered = tmp_path / "rounded", tmp_path / "lowered"
+    cfg = tiny_config(total_steps=130, eval_every=66)
+    assert [r["env_steps"] for r in train(cfg, rounded, progress=False,
+                                          stop_after_chunks=1)] == [68]  # fmt: skip
+    assert rundir.load_config(rounded).eval_every == 68
+    assert [r["env_steps"] for r in train(cfg, rounded, resume=True, progress=False)] == [132]
+    short = tiny_config(total_steps=64, eval_every=1000)
+    assert [r["env_steps"] for r in train(short, lowered, progress=False)] == [64]
+    longer = dataclasses.replace(short, total_steps=128)
+    assert [r["env_steps"] for r in train(longer, lowered, resume=True, progress=False)] == [128]
+    with pytest.raises(ConfigError, match="^--eval-every 72 given but the run was started with "
+                                          "--eval-every 64: "):  # fmt: skip
+        train(dataclasses.replace(longer, eval_every=72, total_steps=192), lowered, resume=True,
+              progress=False)  # fmt: skip
 
 
 @pytest.mark.runs
