@@ -272,6 +272,14 @@ def api_page() -> str:
         "spec and traced floats ([static and traced settings]"
         "(../concepts/static-and-traced.md)), and `td3_jax.core.training` is the program "
         "itself.\n",
+        "Errors say what is wrong in the caller's own terms: those of `tj.train` and "
+        "`tj.make_train` name `TrainConfig`'s fields and the functions' arguments "
+        "(`total_steps=2000`, `resume=True`, `out_dir`) where the command line names its "
+        "flags, and a `TrainConfig` refuses a value of the wrong type where it is made "
+        "(`TrainConfig.total_steps must be a whole number, got '3000' (str)`); ranges and "
+        "choices are checked when the run is made, each as one `ConfigError`.\n",
+        "(Each name's documentation below is drawn from its docstring when the site is built, "
+        "`mkdocs serve` or `mkdocs build`; this file itself holds only the directives.)\n",
     ]
     for name in td3_jax.__all__:
         module, attribute = td3_jax._PUBLIC[name]

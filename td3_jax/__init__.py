@@ -47,6 +47,10 @@ _PUBLIC: dict[str, tuple[str, str | None]] = {
 
 __all__ = sorted(_PUBLIC)
 
+#: Public functions whose errors name TrainConfig's fields and their own arguments
+#: (``total_steps=2000``, ``resume=True``), where the command line's name its flags.
+_FIELD_NAMED = ("make_train", "train")
+
 
 def __getattr__(name: str) -> Any:
     """Loads a public name on first use (PEP 562): a lazy import that keeps JAX, Flax and
@@ -56,6 +60,8 @@ def __getattr__(name: str) -> Any:
     module_name, attribute = _PUBLIC[name]
     module = importlib.import_module(module_name)
     value = module if attribute is None else getattr(module, attribute)
+    if name in _FIELD_NAMED:
+        value = importlib.import_module("td3_jax.config.schema").with_field_names(value)
     globals()[name] = value
     return value
 

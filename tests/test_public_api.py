@@ -77,3 +77,27 @@ def test_every_error_is_one_class_of_the_errors_module_with_its_exit_code():
     assert errors.ExportError("x").exit_code == errors.CheckpointWriteError("x").exit_code == 2
     assert errors.NonFiniteError("x").exit_code == errors.PhysicsOverflowError("x").exit_code == 3
     assert isinstance(errors.UnknownEnvironmentError("x"), ValueError)  # as before the move
+
+
+def test_key_for_seed_refuses_a_seed_jax_would_wrap_and_takes_a_traced_one():
+    """JAX keeps 32 bits of a seed: -1 would be 2**32 - 1's key; a vmapped seed is not
+    checked (it is not known yet) and gives each seed's own key."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    assert np.array_equal(td3_jax.key_for_seed(7), jax.random.PRNGKey(7))
+    for seed in (-1, 2**32):
+        with pytest.raises(ValueError, match=rf"^seed {seed} must be in \[0, 4294967295\]"):
+            td3_jax.key_for_seed(seed)
+    keys = jax.vmap(td3_jax.key_for_seed)(jnp.arange(3))
+    assert np.array_equal(keys[2], jax.random.PRNGKey(2))
+
+
+def test_each_agent_builder_refuses_the_other_s_config():
+    with pytest.raises(TypeError, match=r"^tj\.ddpg takes a DDPGConfig, got TD3Config; tj\.td3 "):
+        td3_jax.ddpg(td3_jax.TD3Config(), 3, 1)
+    with pytest.raises(TypeError, match=r"^tj\.td3 takes a TD3Config, got DDPGConfig; tj\.ddpg "):
+        td3_jax.td3(td3_jax.DDPGConfig(), 3, 1)
+    with pytest.raises(TypeError, match=r"^tj\.td3 takes a TD3Config, got dict$"):
+        td3_jax.td3({}, 3, 1)

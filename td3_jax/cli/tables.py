@@ -30,8 +30,7 @@ def print_sweep_ranking(record: dict) -> None:
 
     rows = _ranked_settings(record["per_member"])
     labels = [" ".join(f"{k}={v:g}" for k, v in row[0]) for row in rows]
-    title = f"final evaluation return after {record['env_steps']} env steps"
-    table = Table(title=title, min_width=len(title))
+    table = Table()
     for column in ("rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"):
         width = max(map(len, labels)) if column == "setting" else None
         table.add_column(column, justify="right", min_width=width, no_wrap=column == "setting")
@@ -42,7 +41,10 @@ def print_sweep_ranking(record: dict) -> None:
                         if n - diverged > 1 else "- (1 seed)")  # (no interval from one return)
             cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
         table.add_row(str(rank), label, str(n), str(diverged), *cells)
-    output_console().print(table)
+    console = output_console()  # (the title above the table: one line, the table no wider)
+    console.print(f"final evaluation return after {record['env_steps']} env steps",
+                  markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+    console.print(table)
 
 
 def _ranked_settings(per_member: list[dict]) -> list[tuple[tuple, int, int, dict | None]]:
@@ -83,7 +85,7 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
     import numpy as np  # lazy: NumPy, only for a table
     from rich.table import Table  # lazy: rich, only for a table
 
-    table = Table(title=title, min_width=len(title))  # the title on one line
+    table = Table()
     for column in ("member", "mean", "std", "min", "max"):
         table.add_column(column, justify="right")
     for label, returns in rows:
@@ -91,7 +93,8 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
         values = ["-"] * 4 if r is None else [f"{v:.1f}" for v in (r.mean(), r.std(), r.min(),
                                                                     r.max())]  # fmt: skip
         table.add_row(label, *values)
-    console = output_console()
+    console = output_console()  # (the title above the table: one line, the table no wider)
+    console.print(title, markup=False, highlight=False, soft_wrap=True)
     console.print(table)
     if aggregate:
         alive = sum(returns is not None for _, returns in rows)

@@ -6,11 +6,18 @@ traced floats) in :mod:`td3_jax.config.build`."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import numbers
 import re
+import types
+import typing
+from collections.abc import Callable
 from typing import Any, Literal
 
-from td3_jax.common.errors import ConfigError
+import numpy as np
+
+from td3_jax.common.errors import ConfigError, Td3JaxError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,6 +254,9 @@ class TrainConfig:
     """online (needs `wandb login` or WANDB_API_KEY) or offline (no network: written to
     OUT/wandb/, uploaded later with `wandb sync`); default: $WANDB_MODE, else online."""
 
+    def __post_init__(self) -> None:
+        check_field_types(self)
+
     # Derived quantities --------------------------------------------------------------------
     @property
     def env_steps_per_iter(self) -> int:
@@ -430,6 +440,117 @@ def idle_wandb_flags(cfg: TrainConfig, given: set[str]) -> None:
     if typed and not cfg.wandb:
         raise ConfigError(f"{', '.join(typed)} given without --wandb (add --wandb to log to "
                           "Weights & Biases)")  # fmt: skip
+
+
+def value_fits(value: Any, kind: Any, *, choices: bool = True) -> bool:
+    """Whether ``value`` is of a :class:`TrainConfig` field's annotated type ``kind``: a number
+    for a float, a whole number (a whole float too: ``total_steps=1e6``) for an int, a list or
+    tuple of whole numbers for a tuple, one of a union's types; one of a Literal's values
+    (with ``choices=False`` any value there: :func:`validate` names the choices)."""
+    if typing.get_origin(kind) is Literal:
+        return not choices or value in typing.get_args(kind)
+    if typing.get_origin(kind) in (types.UnionType, typing.Union):
+        return any(value_fits(value, arm, choices=choices) for arm in typing.get_args(kind))
+    if typing.get_origin(kind) is tuple:
+        return isinstance(value, tuple | list) and all(value_fits(v, int) for v in value)
+    if kind is type(None):
+        return value is None
+    if isinstance(value, bool | np.bool_):
+        return kind is bool
+    if kind is int:
+        whole = isinstance(value, float) and value.is_integer()
+        return isinstance(value, numbers.Integral) or whole
+    if kind is float:
+        return isinstance(value, numbers.Real)
+    return isinstance(value, kind)
+
+
+_TYPE_WORDS = {"int": "a whole number", "float": "a number", "bool": "True or False",
+               "str": "a string", "tuple": "a tuple of whole numbers"}  # fmt: skip
+
+
+def _options(kind: Any) -> tuple[Any, ...]:
+    """The types a union annotation allows (``kind`` alone for any other)."""
+    union = typing.get_origin(kind) in (types.UnionType, typing.Union)
+    return typing.get_args(kind) if union else (kind,)
+
+
+def _type_name(kind: Any) -> str:
+    return "tuple" if typing.get_origin(kind) is tuple else getattr(kind, "__name__", str(kind))
+
+
+def check_field_types(cfg: TrainConfig) -> None:
+    """Raises :class:`ConfigError` naming the first field of ``cfg`` whose value is not of its
+    annotated type (``TrainConfig(total_steps="3000")``), before anything compares or computes
+    with it; the values' ranges and choices are :func:`validate`'s."""
+    for name, kind in _field_types().items():
+        value = getattr(cfg, name)
+        if not value_fits(value, kind, choices=False):
+            allowed = " or ".join("None" if t is type(None) else
+                                  _TYPE_WORDS.get(_type_name(t), _type_name(t))
+                                  for t in _options(kind))  # fmt: skip
+            raise ConfigError(f"TrainConfig.{name} must be {allowed}, got {value!r} "
+                              f"({type(value).__name__})")  # fmt: skip
+
+
+@functools.cache
+def _field_types() -> dict[str, Any]:
+    """Each :class:`TrainConfig` field's annotated type (resolved once)."""
+    return typing.get_type_hints(TrainConfig)
+
+
+#: What a command-line word that is not a TrainConfig field is called in ``td3_jax.train``.
+_ARGUMENT_NAMES = {"out": "out_dir", "resume": "resume", "devices": "devices",
+                   "time-budget-s": "time_budget_s"}  # fmt: skip
+_FLAG_IN_TEXT = re.compile(r"(?<![\w-])--(no-)?([a-z][a-z0-9]*(?:-[a-z0-9]+)*)"
+                           r"((?: -?\d[\w.+-]*)*)")  # fmt: skip
+
+
+def field_names(message: str) -> str:
+    """``message`` (written with command-line flags) as a Python caller of
+    :func:`td3_jax.train` or :func:`td3_jax.make_train` names things: ``--total-steps 2000`` as
+    ``total_steps=2000``, ``--no-eval-in-chunk`` as ``eval_in_chunk=False``, ``--hidden-sizes
+    256 256`` as ``hidden_sizes=(256, 256)``, ``--out`` as ``out_dir``, ``--resume`` as
+    ``resume=True``, ``--sweep-tau 0.1 0.2`` as ``sweep={'tau': [0.1, 0.2]}``; other words
+    unchanged."""
+    return _FLAG_IN_TEXT.sub(_field_word, message)
+
+
+def _field_word(match: re.Match) -> str:
+    negated, word, values = match.group(1), match.group(2), match.group(3).split()
+    name = word.replace("-", "_")
+    kinds = _field_types()
+    if name.startswith("sweep_") and name[6:] in kinds:
+        listed = ", ".join(values)
+        return f"sweep={{{name[6:]!r}: [{listed}]}}" if values else f"sweep[{name[6:]!r}]"
+    if name not in kinds and word not in _ARGUMENT_NAMES:
+        return match.group(0)
+    name = _ARGUMENT_NAMES.get(word, name)
+    if negated:
+        return f"{name}=False"
+    if not values:
+        flag_only = name == "resume" or kinds.get(name) is bool
+        return f"{name}=True" if flag_only else name
+    if any(typing.get_origin(t) is tuple for t in _options(kinds.get(name))):
+        return f"{name}=({', '.join(values)}{',' if len(values) == 1 else ''})"
+    return f"{name}={values[0]}" if len(values) == 1 else f"{name}={' '.join(values)}"
+
+
+def with_field_names(function: Callable) -> Callable:
+    """``function`` whose td3-jax errors name :class:`TrainConfig`'s fields and its own
+    arguments instead of command-line flags (:func:`field_names`): what ``td3_jax.train`` and
+    ``td3_jax.make_train`` are."""
+
+    @functools.wraps(function)
+    def named(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return function(*args, **kwargs)
+        except Td3JaxError as err:
+            if err.args and isinstance(err.args[0], str):
+                err.args = (field_names(err.args[0]), *err.args[1:])
+            raise
+
+    return named
 
 
 def flag(name: str) -> str:
@@ -759,13 +880,17 @@ __all__ = [
     "WANDB_SETTINGS",
     "TrainConfig",
     "as_flag",
+    "check_field_types",
     "check_seed",
     "eval_every_within_run",
+    "field_names",
     "flag",
     "idle_flags",
     "idle_wandb_flags",
     "rounding_note",
     "unused_settings",
     "validate",
+    "value_fits",
     "whole_iterations",
+    "with_field_names",
 ]

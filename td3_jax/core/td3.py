@@ -79,6 +79,7 @@ def td3(
     due (each agent still only updates on its own schedule), instead of becoming a select that
     computes the actor update on every step.
     """
+    _check_config(config, TD3Config, "td3", "ddpg")
     spec = make_spec(config.hidden_sizes, observation_size, action_size, num_critics=2,
                      target_smoothing=True, policy_freq=config.policy_freq,
                      max_action=config.max_action,
@@ -91,10 +92,20 @@ def ddpg(
 ) -> Agent:
     """Builds a DDPG agent (one critic, no smoothing, actor and targets updated every step);
     ``critic_obs_size`` as for :func:`td3`."""
+    _check_config(config, DDPGConfig, "ddpg", "td3")
     spec = make_spec(config.hidden_sizes, observation_size, action_size, num_critics=1,
                      target_smoothing=False, policy_freq=1, max_action=config.max_action,
                      critic_observation_size=critic_obs_size)  # fmt: skip
     return actor_critic(spec, hyperparams(config), config)
+
+
+def _check_config(config: Any, expected: type, builder: str, other: str) -> None:
+    """A ``TypeError`` naming the right builder when ``config`` is not an ``expected``."""
+    if not isinstance(config, expected):
+        hint = f"; tj.{other} takes a {type(config).__name__}" if (
+            type(config).__name__ in ("TD3Config", "DDPGConfig")) else ""  # fmt: skip
+        raise TypeError(f"tj.{builder} takes a {expected.__name__}, got "
+                        f"{type(config).__name__}{hint}")  # fmt: skip
 
 
 __all__ = [

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import numbers
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -152,7 +153,13 @@ class Hyperparams:
 
 
 def key_for_seed(seed: int) -> PRNGKey:
-    """The key a run of ``seed`` starts from (``td3-jax train --seed`` uses the same)."""
+    """The key a run of ``seed`` starts from (``td3-jax train --seed`` uses the same);
+    ``ValueError`` for a seed outside ``[0, 2**32 - 1]``, which JAX would wrap onto another
+    seed's key (``-1`` and ``2**32 - 1`` give the same key; a traced seed, as in
+    ``jax.vmap(key_for_seed)(seeds)``, is not checked)."""
+    if isinstance(seed, numbers.Integral) and not 0 <= seed <= 2**32 - 1:
+        raise ValueError(f"seed {seed} must be in [0, {2**32 - 1}]: JAX's random keys hold 32 "
+                         "bits of a seed")  # fmt: skip
     return jax.random.PRNGKey(seed)
 
 

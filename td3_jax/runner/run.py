@@ -33,7 +33,13 @@ from td3_jax.common.errors import (
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
 from td3_jax.config.build import bind_environment, members
-from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
+from td3_jax.config.schema import (
+    TrainConfig,
+    eval_every_within_run,
+    field_names,
+    rounding_note,
+    validate,
+)
 from td3_jax.core.population import Member
 from td3_jax.core.stats import population_stats, return_stats
 from td3_jax.core.training import ring_as_saved
@@ -189,7 +195,7 @@ def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
         return eval_every_as_saved(cfg, out_dir)
     changed = eval_every_within_run(cfg)
     if say and changed.eval_every != cfg.eval_every:
-        print(rounding_note(changed, cfg.eval_every), flush=True)
+        print(field_names(rounding_note(changed, cfg.eval_every)), flush=True)
     return changed
 
 

@@ -46,6 +46,7 @@ from td3_jax.config.schema import (
     as_flag,
     eval_every_within_run,
     flag,
+    value_fits,
     whole_iterations,
 )
 from td3_jax.core.population import Member
@@ -836,30 +837,10 @@ def _check_setting_types(settings: dict[str, Any], path: Path) -> None:
     field's type (a hand-edited ``"num_envs": "4"``), rather than a traceback later."""
     hints = typing.get_type_hints(TrainConfig)
     for name, value in settings.items():
-        if not _json_fits(value, hints[name]):
+        if not value_fits(value, hints[name]):
             raise ConfigError(f"{path}: {name} is {json.dumps(value)} (expected "
                               f"{_type_name(hints[name])}); was the file edited? Restore its "
                               "value")  # fmt: skip
-
-
-def _json_fits(value: Any, hint: Any) -> bool:
-    """Whether the JSON value ``value`` is one of ``hint`` (int, float, bool, str, a Literal,
-    a union with None, ``tuple[int, ...]``)."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, types.UnionType):
-        return any(_json_fits(value, arm) for arm in args)
-    if origin is typing.Literal:
-        return value in args
-    if origin is tuple:
-        return isinstance(value, list | tuple) and all(_json_fits(v, args[0]) for v in value)
-    if hint is type(None):
-        return value is None
-    if hint is float:
-        return isinstance(value, int | float) and not isinstance(value, bool)
-    if hint is int:  # (a whole float: TrainConfig(total_steps=1e6) from Python writes 1000000.0)
-        whole = isinstance(value, float) and value.is_integer()
-        return (isinstance(value, int) or whole) and not isinstance(value, bool)
-    return isinstance(value, hint)
 
 
 def _type_name(hint: Any) -> str:

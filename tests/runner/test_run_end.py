@@ -196,8 +196,8 @@ def test_the_library_resumes_with_the_config_the_run_was_started_with(tmp_path):
     assert [r["env_steps"] for r in train(short, lowered, progress=False)] == [64]
     longer = dataclasses.replace(short, total_steps=128)
     assert [r["env_steps"] for r in train(longer, lowered, resume=True, progress=False)] == [128]
-    with pytest.raises(ConfigError, match="^--eval-every 72 given but the run was started with "
-                                          "--eval-every 64: "):  # fmt: skip
+    with pytest.raises(ConfigError, match=r"^--eval-every 72 given but the run was started with "
+                                          r"--eval-every 64: "):  # fmt: skip
         train(dataclasses.replace(longer, eval_every=72, total_steps=192), lowered, resume=True,
               progress=False)  # fmt: skip
 

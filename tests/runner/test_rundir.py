@@ -378,7 +378,7 @@ def test_a_damaged_or_edited_members_json_is_refused_in_one_line(tmp_path):
 def test_a_resume_shorter_than_its_run_is_told_so_before_the_warm_up_check(tmp_path, capsys):
     """--resume --total-steps 16 of a run 128 steps in (its warm-up 32 steps): the one line
     says the run has taken 128 steps; the warm-up check's advice (a smaller --warmup-steps)
-    is not what a resume can follow. The same from ``td3_jax.train``."""
+    is not what a resume can follow. The same from ``td3_jax.train``, in its argument names."""
     cfg = dataclasses.replace(SMALL, env="gymnax/Pendulum-v1")
     rundir.save_config(cfg, [Member(seed=0)], tmp_path)
     (tmp_path / "checkpoints" / "2").mkdir(parents=True)  # 2 chunks of 64 steps done
@@ -389,10 +389,10 @@ def test_a_resume_shorter_than_its_run_is_told_so_before_the_warm_up_check(tmp_p
         "has already taken (give more to extend it)"
     )
     shorter = dataclasses.replace(cfg, total_steps=16)
-    with pytest.raises(ConfigError, match="--total-steps 16 is less than the 128 env steps"):
+    with pytest.raises(ConfigError, match=r"^total_steps=16 is less than the 128 env steps"):
         td3_jax.train(shorter, out_dir=tmp_path, resume=True, progress=False)
     # a setting the check cannot count with is left to the config's own line
-    with pytest.raises(ConfigError, match=r"^--num-envs must be positive, got 0$"):
+    with pytest.raises(ConfigError, match=r"^num_envs must be positive, got 0$"):
         td3_jax.train(dataclasses.replace(cfg, num_envs=0), out_dir=tmp_path, resume=True,
                       progress=False)  # fmt: skip
 

@@ -1,0 +1,95 @@
+"""A TrainConfig refuses values of the wrong type where it is made, and the errors of
+``td3_jax.train`` / ``td3_jax.make_train`` name fields and arguments, not command-line flags."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import numpy as np
+import pytest
+from configs import tiny_config
+
+import td3_jax
+from td3_jax.common.errors import ConfigError
+from td3_jax.config.schema import TrainConfig, _field_types, field_names, value_fits
+from td3_jax.runner import run as run_module
+
+
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        (dict(total_steps="3000"),
+         "TrainConfig.total_steps must be a whole number, got '3000' (str)"),
+        (dict(total_steps=1000.5),
+         "TrainConfig.total_steps must be a whole number, got 1000.5 (float)"),
+        (dict(seed=True), "TrainConfig.seed must be a whole number, got True (bool)"),
+        (dict(tau="0.1"), "TrainConfig.tau must be a number or None, got '0.1' (str)"),
+        (dict(normalize_obs=1), "TrainConfig.normalize_obs must be True or False, got 1 (int)"),
+        (dict(hidden_sizes=(256, "a")),
+         "TrainConfig.hidden_sizes must be a tuple of whole numbers or None, got (256, 'a') "
+         "(tuple)"),
+        (dict(env=None), "TrainConfig.env must be a string, got None (NoneType)"),
+    ],
+)  # fmt: skip
+def test_a_value_of_the_wrong_type_is_refused_where_the_config_is_made(given, message):
+    with pytest.raises(ConfigError) as refused:
+        TrainConfig(**given)
+    assert str(refused.value) == message
+    with pytest.raises(ConfigError):  # (a copy with a changed field is made the same way)
+        dataclasses.replace(TrainConfig(), **given)
+
+
+def test_values_of_the_right_kind_are_taken_as_given():
+    """Whole floats for counts (``total_steps=1e6``), ints and NumPy scalars for floats,
+    lists for sizes: the kinds a Python caller or a config.json gives."""
+    cfg = TrainConfig(total_steps=1e6, tau=1, actor_lr=np.float32(1e-3), num_envs=np.int64(8),
+                      normalize_obs=np.bool_(False), hidden_sizes=[64, 64])  # fmt: skip
+    assert (cfg.total_steps, cfg.tau, cfg.num_envs) == (1e6, 1, 8)
+    assert cfg.hidden_sizes == [64, 64]
+
+
+def test_value_fits_checks_a_literal_s_choices_only_when_asked():
+    kind = _field_types()["algo"]
+    assert value_fits("td3", kind) and not value_fits("sac", kind)
+    assert value_fits("sac", kind, choices=False)
+    assert not value_fits(3.5, _field_types()["impl"]) and value_fits(None, _field_types()["impl"])
+
+
+@pytest.mark.parametrize(
+    ("flags", "names"),
+    [
+        ("--total-steps 2000 is not below (--total-steps 2000): try --warmup-steps 1000",
+         "total_steps=2000 is not below (total_steps=2000): try warmup_steps=1000"),
+        ("--eval-every 1000 given but the run was started with --eval-every 1008",
+         "eval_every=1000 given but the run was started with eval_every=1008"),
+        ("x already holds a run; pass --resume or choose a new --out",
+         "x already holds a run; pass resume=True or choose a new out_dir"),
+        ("--no-eval-in-chunk ends the run; --eval-in-chunk does not",
+         "eval_in_chunk=False ends the run; eval_in_chunk=True does not"),
+        ("--hidden-sizes 256 256 and --critic-hidden-sizes 512",
+         "hidden_sizes=(256, 256) and critic_hidden_sizes=(512,)"),
+        ("--sweep-tau 0.1 0.2 differ from --sweep-foo",
+         "sweep={'tau': [0.1, 0.2]} differ from --sweep-foo"),
+        ("--actor-lr 3e-4 and --tau -1; --critic c51", "actor_lr=3e-4 and tau=-1; critic c51"),
+        ("--not-a-flag 3, --preset t1 and pre--total-steps",
+         "--not-a-flag 3, --preset t1 and pre--total-steps"),
+    ],
+)  # fmt: skip
+def test_flags_in_a_message_become_python_names(flags, names):
+    assert field_names(flags) == names
+
+
+@pytest.mark.runs
+def test_the_public_train_and_make_train_name_fields_the_cli_flags(tmp_path, capsys):
+    """The same refusal: through ``td3_jax.train`` and ``td3_jax.make_train`` in Python's
+    names, through the command line's ``train`` (``td3_jax.runner.run.train``) in its flags."""
+    bad = tiny_config(total_steps=32, warmup_steps=32)
+    expected = "warmup_steps=32 is not below the 32 env steps the run collects (total_steps=32)"
+    for public in (lambda: td3_jax.train(bad, tmp_path / "a", progress=False),
+                   lambda: td3_jax.make_train(bad)):  # fmt: skip
+        with pytest.raises(ConfigError, match=f"^{re.escape(expected)}"):
+            public()
+    with pytest.raises(ConfigError, match=r"^--warmup-steps 32 is not below"):
+        run_module.train(bad, tmp_path / "b", progress=False)
+    assert td3_jax.train.__doc__ == run_module.train.__doc__
