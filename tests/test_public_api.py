@@ -87,8 +87,8 @@ def test_key_for_seed_refuses_a_seed_jax_would_wrap_and_takes_a_traced_one():
     import numpy as np
 
     assert np.array_equal(td3_jax.key_for_seed(7), jax.random.PRNGKey(7))
-    for seed in (-1, 2**32):
-        with pytest.raises(ValueError, match=rf"^seed {seed} must be in \[0, 4294967295\]"):
+    for seed in (-1, 2**32, np.int64(-1), np.array(-1), jnp.array(-1)):
+        with pytest.raises(ValueError, match=r"^seed -?\d+ must be in \[0, 4294967295\]"):
             td3_jax.key_for_seed(seed)
     keys = jax.vmap(td3_jax.key_for_seed)(jnp.arange(3))
     assert np.array_equal(keys[2], jax.random.PRNGKey(2))

@@ -423,8 +423,16 @@ PLAYGROUND_MENAGERIE = "mujoco_playground/external_deps/mujoco_menagerie"
 def playground_module(name: str) -> Any:
     """Playground's module ``name``, Playground imported without the packages it imports but
     td3-jax never uses (:mod:`td3_jax.common.skipped_imports`: PyTorch)."""
-    with skipped_imports.skipping_unused_imports():
-        return _private_module(name)
+    with skipped_imports.skipping_unused_imports() as skipped:
+        try:
+            return _private_module(name)
+        except ModuleNotFoundError as err:
+            if (err.name or "").partition(".")[0] not in skipped:
+                raise
+            raise UpstreamChanged(
+                f"{name} now needs {err.name} to be imported; td3-jax imports MuJoCo Playground "
+                "without it (td3_jax/common/skipped_imports.py; checked: Playground 0.2.0)"
+            ) from err
 
 
 def playground_locomotion() -> Any:

@@ -256,6 +256,8 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_field_types(self)
+        for name, value in _normalized_fields(self).items():
+            object.__setattr__(self, name, value)
 
     # Derived quantities --------------------------------------------------------------------
     @property
@@ -462,7 +464,7 @@ def value_fits(value: Any, kind: Any, *, choices: bool = True) -> bool:
         return isinstance(value, numbers.Integral) or whole
     if kind is float:
         return isinstance(value, numbers.Real)
-    return isinstance(value, kind)
+    return not isinstance(kind, type) or isinstance(value, kind)  # (Any, generics: not checked)
 
 
 _TYPE_WORDS = {"int": "a whole number", "float": "a number", "bool": "True or False",
@@ -493,6 +495,36 @@ def check_field_types(cfg: TrainConfig) -> None:
                               f"({type(value).__name__})")  # fmt: skip
 
 
+def _normalized(value: Any, kind: Any) -> Any:
+    """``value`` (of type ``kind``, :func:`value_fits`) as a plain Python value of the field's
+    own type: a NumPy scalar as its Python value, a whole float as an int for an int field, an
+    int as a float for a float field, a list of sizes as a tuple of ints (so a config hashes,
+    compares, shapes arrays and writes to JSON as one given in plain types does)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    arms = _options(kind)
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, float) and int in arms and float not in arms:
+        return int(value)
+    if isinstance(value, int) and float in arms and int not in arms:
+        return float(value)
+    if isinstance(value, tuple | list) and any(typing.get_origin(a) is tuple for a in arms):
+        return tuple(int(_normalized(v, int)) for v in value)
+    return value
+
+
+def _normalized_fields(cfg: TrainConfig) -> dict[str, Any]:
+    """The fields of ``cfg`` whose values :func:`_normalized` changes, with the new values."""
+    changed = {}
+    for name, kind in _field_types().items():
+        value = getattr(cfg, name)
+        plain = _normalized(value, kind)
+        if plain is not value:
+            changed[name] = plain
+    return changed
+
+
 @functools.cache
 def _field_types() -> dict[str, Any]:
     """Each :class:`TrainConfig` field's annotated type (resolved once)."""
@@ -503,17 +535,22 @@ def _field_types() -> dict[str, Any]:
 _ARGUMENT_NAMES = {"out": "out_dir", "resume": "resume", "devices": "devices",
                    "time-budget-s": "time_budget_s"}  # fmt: skip
 _FLAG_IN_TEXT = re.compile(r"(?<![\w-])--(no-)?([a-z][a-z0-9]*(?:-[a-z0-9]+)*)"
-                           r"((?: -?\d[\w.+-]*)*)")  # fmt: skip
+                           r"((?: (?:-?\d(?:[\w+-]|\.(?=\w))*|-?inf|nan))*)")  # fmt: skip
+#: A command quoted in a message (``continue with: td3-jax train --out x --resume``), kept as
+#: it is up to the end of its clause.
+_COMMAND_IN_TEXT = re.compile(r"(td3-jax [a-z][^;)]*)")
 
 
 def field_names(message: str) -> str:
     """``message`` (written with command-line flags) as a Python caller of
     :func:`td3_jax.train` or :func:`td3_jax.make_train` names things: ``--total-steps 2000`` as
     ``total_steps=2000``, ``--no-eval-in-chunk`` as ``eval_in_chunk=False``, ``--hidden-sizes
-    256 256`` as ``hidden_sizes=(256, 256)``, ``--out`` as ``out_dir``, ``--resume`` as
-    ``resume=True``, ``--sweep-tau 0.1 0.2`` as ``sweep={'tau': [0.1, 0.2]}``; other words
-    unchanged."""
-    return _FLAG_IN_TEXT.sub(_field_word, message)
+    256 256`` as ``hidden_sizes=(256, 256)``, ``--eval-in-chunk`` as ``eval_in_chunk``,
+    ``--out`` as ``out_dir``, ``--resume`` as ``resume=True``, ``--sweep-tau 0.1 0.2`` as
+    ``sweep={'tau': [0.1, 0.2]}``; a quoted ``td3-jax ...`` command and other words unchanged."""
+    parts = _COMMAND_IN_TEXT.split(message)  # (odd parts: the commands)
+    return "".join(part if i % 2 else _FLAG_IN_TEXT.sub(_field_word, part)
+                   for i, part in enumerate(parts))  # fmt: skip
 
 
 def _field_word(match: re.Match) -> str:
@@ -529,8 +566,7 @@ def _field_word(match: re.Match) -> str:
     if negated:
         return f"{name}=False"
     if not values:
-        flag_only = name == "resume" or kinds.get(name) is bool
-        return f"{name}=True" if flag_only else name
+        return "resume=True" if name == "resume" else name
     if any(typing.get_origin(t) is tuple for t in _options(kinds.get(name))):
         return f"{name}=({', '.join(values)}{',' if len(values) == 1 else ''})"
     return f"{name}={values[0]}" if len(values) == 1 else f"{name}={' '.join(values)}"

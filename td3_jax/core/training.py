@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import numbers
+import operator
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -157,7 +157,11 @@ def key_for_seed(seed: int) -> PRNGKey:
     ``ValueError`` for a seed outside ``[0, 2**32 - 1]``, which JAX would wrap onto another
     seed's key (``-1`` and ``2**32 - 1`` give the same key; a traced seed, as in
     ``jax.vmap(key_for_seed)(seeds)``, is not checked)."""
-    if isinstance(seed, numbers.Integral) and not 0 <= seed <= 2**32 - 1:
+    try:
+        value = operator.index(seed)  # (ints, NumPy ints, concrete integer arrays of one value)
+    except TypeError:  # (a traced seed; anything else is PRNGKey's to refuse)
+        value = 0
+    if not 0 <= value <= 2**32 - 1:
         raise ValueError(f"seed {seed} must be in [0, {2**32 - 1}]: JAX's random keys hold 32 "
                          "bits of a seed")  # fmt: skip
     return jax.random.PRNGKey(seed)

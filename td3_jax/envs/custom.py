@@ -124,8 +124,8 @@ def object_run_error(name: str) -> CustomEnvironmentError:
         "the object again (env=obj to td3_jax.train with resume=True, "
         "td3_jax.runner.finished.evaluate_run, td3_jax.tools.export.export_run or "
         "td3_jax.tools.render.render_run), "
-        "or train with a factory (--env module.path:function) so that the CLI's --resume, eval, "
-        "render and export find it"
+        "or train with a factory (module.path:function as the environment's name), so that "
+        "td3-jax train --resume, eval, render and export find it"
     )
 
 

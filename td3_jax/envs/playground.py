@@ -12,7 +12,7 @@ from typing import Any
 
 import jax
 
-from td3_jax.common import skipped_imports
+from td3_jax.common import upstream
 from td3_jax.envs import locomotion, physics
 from td3_jax.envs.base import Environment, EnvOptions, from_mjx_style, refuse_locomotion_options
 
@@ -22,13 +22,11 @@ __all__ = ["data_qpos", "from_env", "make", "names"]
 def _suite():
     physics.import_mjx_quietly()  # (Playground imports MJX, which prints notes without Warp)
     try:
-        with skipped_imports.skipping_unused_imports():
-            from mujoco_playground import dm_control_suite
+        return upstream.playground_module("mujoco_playground").dm_control_suite
     except ImportError as err:  # pragma: no cover - depends on the optional extra
         raise ImportError(
             "playground environments need MuJoCo Playground: pip install 'td3-jax[playground]'"
         ) from err
-    return dm_control_suite
 
 
 def names() -> list[str]:

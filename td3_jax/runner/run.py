@@ -133,7 +133,9 @@ def train(
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
-        the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME`.
+        the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME` (an
+        ``eval_every`` that the fresh run made whole iterations is the saved one:
+        :func:`~td3_jax.runner.rundir.eval_every_as_saved`).
       progress: show progress (a live bar on a terminal, else one line per evaluation).
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``, each combination
         with ``cfg.seeds`` seeds in one program; a member whose numbers become non-finite is

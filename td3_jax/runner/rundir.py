@@ -44,7 +44,6 @@ from td3_jax.config.schema import (
     ConfigError,
     TrainConfig,
     as_flag,
-    eval_every_within_run,
     flag,
     value_fits,
     whole_iterations,
@@ -551,17 +550,15 @@ def config_changes(
 
 
 def eval_every_as_saved(cfg: TrainConfig, out_dir: Path) -> TrainConfig:
-    """``cfg`` for a resume of ``out_dir``: its ``eval_every`` replaced by the saved one where it
-    is the one the run was started with before the fresh run made it whole iterations or lowered
-    it to the run (``3000`` with 16 environments: the run's chunks of 3008 steps); unchanged
-    otherwise (a real change, which :func:`config_changes` refuses), or without a config.json."""
+    """``cfg`` for a resume of ``out_dir``: its ``eval_every`` replaced by the saved one where
+    the fresh run took it as those whole iterations (``3000`` with 16 environments: the run's
+    chunks of 3008 steps); unchanged otherwise, or without a config.json (another value is a
+    change, which :func:`config_changes` refuses, as it refuses one that the fresh run lowered
+    to a run shorter than it: an extension may not ask for longer chunks)."""
     if not (Path(out_dir) / CONFIG_FILE).is_file() or cfg.env_steps_per_iter <= 0:
         return cfg
     saved = load_config(out_dir)
-    started = eval_every_within_run(dataclasses.replace(cfg, total_steps=saved.total_steps))
-    if started.eval_every == saved.eval_every or saved.steps_per_chunk in whole_iterations(
-        cfg.eval_every, cfg.env_steps_per_iter
-    ):
+    if saved.steps_per_chunk in whole_iterations(cfg.eval_every, cfg.env_steps_per_iter):
         return dataclasses.replace(cfg, eval_every=saved.eval_every)
     return cfg
 

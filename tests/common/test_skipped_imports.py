@@ -79,20 +79,45 @@ def test_an_imported_package_is_left_as_it_is(packages: Path) -> None:
     assert loaded == ["fakepkg"]
 
 
-def test_a_package_imported_inside_anyway_stays(packages: Path) -> None:
-    """A package put in ``sys.modules`` inside (by other means than ``import``) is not removed
-    on leaving: only the entries the context made are."""
-    out, _ = _run(
+def test_another_thread_imports_a_skipped_package_as_usual(packages: Path) -> None:
+    """Only the thread inside the context is refused: another thread's import meanwhile gets
+    the package, and then the context's thread finds it imported too."""
+    out, loaded = _run(
         packages,
         """
-        import sys, types
+        import threading
+        from td3_jax.common.skipped_imports import skipping_unused_imports
+        with skipping_unused_imports(["fakepkg"]) as skipped:
+            got = []
+            thread = threading.Thread(target=lambda: got.append(__import__("fakepkg").VALUE))
+            thread.start()
+            thread.join()
+            import fakepkg
+            print(skipped, got, fakepkg.VALUE)
+        """,
+    )
+    assert out == ["['fakepkg'] [42] 42"]
+    assert loaded == ["fakepkg"]
+
+
+def test_a_submodule_of_a_skipped_package_is_refused_too(packages: Path) -> None:
+    (packages / "pkgs" / "fakepkg" / "sub.py").write_text("ANSWER = 7\n")
+    out, loaded = _run(
+        packages,
+        """
+        import sys
         from td3_jax.common.skipped_imports import skipping_unused_imports
         with skipping_unused_imports(["fakepkg"]):
-            sys.modules["fakepkg"] = types.ModuleType("fakepkg")
-        print(type(sys.modules["fakepkg"]).__name__, hasattr(sys.modules["fakepkg"], "VALUE"))
-    """,
+            try:
+                import fakepkg.sub
+            except ModuleNotFoundError as err:
+                print(err.name, "fakepkg" in sys.modules)
+        import fakepkg.sub
+        print(fakepkg.sub.ANSWER)
+        """,
     )
-    assert out == ["module False"]
+    assert out == ["fakepkg False", "7"]
+    assert loaded == ["fakepkg"]
 
 
 def test_playground_made_ready_by_td3_jax_does_not_run_torch(tmp_path: Path) -> None:
@@ -132,3 +157,23 @@ def test_the_suite_is_imported_without_torch_too(tmp_path: Path) -> None:
     )
     assert out == ["True"]
     assert loaded == []
+
+
+def test_a_playground_that_needs_a_skipped_package_is_said_as_such(monkeypatch) -> None:
+    """Where Playground would need PyTorch to import at all, the skip is named (an upstream
+    change), not taken for a missing Playground; another missing module stays itself."""
+    import sys
+
+    from td3_jax.common import upstream
+    from td3_jax.common.errors import UpstreamChanged
+
+    monkeypatch.delitem(sys.modules, "torch", raising=False)
+    for missing, raised in (("torch.nn", UpstreamChanged), ("lxml", ModuleNotFoundError)):
+
+        def failing(name: str, missing: str = missing) -> None:
+            raise ModuleNotFoundError(f"No module named {missing!r}", name=missing)
+
+        monkeypatch.setattr(upstream, "_private_module", failing)
+        with pytest.raises(raised, match="torch.nn to be imported" if raised is UpstreamChanged
+                           else "lxml"):  # fmt: skip
+            upstream.playground_module(upstream.PLAYGROUND_LOCOMOTION)

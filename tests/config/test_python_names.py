@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import pickle
 import re
 
 import numpy as np
@@ -42,11 +44,15 @@ def test_a_value_of_the_wrong_type_is_refused_where_the_config_is_made(given, me
 
 def test_values_of_the_right_kind_are_taken_as_given():
     """Whole floats for counts (``total_steps=1e6``), ints and NumPy scalars for floats,
-    lists for sizes: the kinds a Python caller or a config.json gives."""
+    lists for sizes: the kinds a Python caller or a config.json gives, kept as the field's own
+    plain Python type."""
     cfg = TrainConfig(total_steps=1e6, tau=1, actor_lr=np.float32(1e-3), num_envs=np.int64(8),
                       normalize_obs=np.bool_(False), hidden_sizes=[64, 64])  # fmt: skip
-    assert (cfg.total_steps, cfg.tau, cfg.num_envs) == (1e6, 1, 8)
-    assert cfg.hidden_sizes == [64, 64]
+    plain = (cfg.total_steps, cfg.tau, cfg.actor_lr, cfg.num_envs, cfg.normalize_obs,
+             cfg.hidden_sizes)  # fmt: skip
+    assert plain == (1_000_000, 1.0, float(np.float32(1e-3)), 8, False, (64, 64))
+    assert [type(v) for v in plain] == [int, float, float, int, bool, tuple]
+    hash(cfg)  # (plain values: the config hashes, and config.json can write it)
 
 
 def test_value_fits_checks_a_literal_s_choices_only_when_asked():
@@ -66,12 +72,18 @@ def test_value_fits_checks_a_literal_s_choices_only_when_asked():
         ("x already holds a run; pass --resume or choose a new --out",
          "x already holds a run; pass resume=True or choose a new out_dir"),
         ("--no-eval-in-chunk ends the run; --eval-in-chunk does not",
-         "eval_in_chunk=False ends the run; eval_in_chunk=True does not"),
+         "eval_in_chunk=False ends the run; eval_in_chunk does not"),
         ("--hidden-sizes 256 256 and --critic-hidden-sizes 512",
          "hidden_sizes=(256, 256) and critic_hidden_sizes=(512,)"),
         ("--sweep-tau 0.1 0.2 differ from --sweep-foo",
          "sweep={'tau': [0.1, 0.2]} differ from --sweep-foo"),
         ("--actor-lr 3e-4 and --tau -1; --critic c51", "actor_lr=3e-4 and tau=-1; critic c51"),
+        ("only --total-steps, --wandb, --matmuls may change; --hidden-sizes 256 256.",
+         "only total_steps, wandb, matmuls may change; hidden_sizes=(256, 256)."),
+        ("--v-min -inf, --tau nan", "v_min=-inf, tau=nan"),
+        ("cannot be written; continue with: td3-jax train --out 'runs/a b' --resume --seed 1",
+         "cannot be written; continue with: td3-jax train --out 'runs/a b' --resume --seed 1"),
+        ("(td3-jax eval --run x); --resume too", "(td3-jax eval --run x); resume=True too"),
         ("--not-a-flag 3, --preset t1 and pre--total-steps",
          "--not-a-flag 3, --preset t1 and pre--total-steps"),
     ],
@@ -93,3 +105,6 @@ def test_the_public_train_and_make_train_name_fields_the_cli_flags(tmp_path, cap
     with pytest.raises(ConfigError, match=r"^--warmup-steps 32 is not below"):
         run_module.train(bad, tmp_path / "b", progress=False)
     assert td3_jax.train.__doc__ == run_module.train.__doc__
+    assert inspect.signature(td3_jax.train) == inspect.signature(run_module.train)
+    for public in (td3_jax.train, td3_jax.make_train):  # (e.g. sent to a process pool)
+        assert pickle.loads(pickle.dumps(public)) is public

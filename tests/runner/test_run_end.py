@@ -182,8 +182,9 @@ def test_a_run_stopped_before_its_shortened_chunk_resumes_to_the_straight_run(tm
 @pytest.mark.runs
 def test_the_library_resumes_with_the_config_the_run_was_started_with(tmp_path):
     """``train(cfg, out, resume=True)`` with the very ``cfg`` of the fresh run: an
-    ``eval_every`` the fresh run made whole iterations (66 of 4 environments: 68) or lowered to
-    a shorter run (1000 in 64 steps: 64) is the run's chunk, not a change; another is refused."""
+    ``eval_every`` the fresh run made whole iterations (66 of 4 environments: 68) is the run's
+    chunk, not a change; another value is refused, and so is one the fresh run lowered to a
+    shorter run (1000 in 64 steps: 64), twice alike, as the command line refuses them."""
     from td3_jax.common.errors import ConfigError
 
     rounded, lowered = tmp_path / "rounded", tmp_path / "lowered"
@@ -192,14 +193,22 @@ def test_the_library_resumes_with_the_config_the_run_was_started_with(tmp_path):
                                           stop_after_chunks=1)] == [68]  # fmt: skip
     assert rundir.load_config(rounded).eval_every == 68
     assert [r["env_steps"] for r in train(cfg, rounded, resume=True, progress=False)] == [132]
+    longer = dataclasses.replace(cfg, total_steps=200)
+    for other in (64, 72):  # (other chunks, though 66 lies between them)
+        with pytest.raises(ConfigError, match=rf"^--eval-every {other} given but the run was "
+                                              r"started with --eval-every 68: "):  # fmt: skip
+            train(dataclasses.replace(longer, eval_every=other), rounded, resume=True,
+                  progress=False)  # fmt: skip
     short = tiny_config(total_steps=64, eval_every=1000)
     assert [r["env_steps"] for r in train(short, lowered, progress=False)] == [64]
-    longer = dataclasses.replace(short, total_steps=128)
-    assert [r["env_steps"] for r in train(longer, lowered, resume=True, progress=False)] == [128]
-    with pytest.raises(ConfigError, match=r"^--eval-every 72 given but the run was started with "
-                                          r"--eval-every 64: "):  # fmt: skip
-        train(dataclasses.replace(longer, eval_every=72, total_steps=192), lowered, resume=True,
-              progress=False)  # fmt: skip
+    assert rundir.load_config(lowered).eval_every == 64
+    for total in (128, 192):
+        with pytest.raises(ConfigError, match=r"^--eval-every 1000 given but the run was "
+                                              r"started with --eval-every 64: "):  # fmt: skip
+            train(dataclasses.replace(short, total_steps=total), lowered, resume=True,
+                  progress=False)  # fmt: skip
+    extended = dataclasses.replace(short, total_steps=128, eval_every=64)
+    assert [r["env_steps"] for r in train(extended, lowered, resume=True, progress=False)] == [128]
 
 
 @pytest.mark.runs
