@@ -61,7 +61,7 @@ def __getattr__(name: str) -> Any:
     module = importlib.import_module(module_name)
     value = module if attribute is None else getattr(module, attribute)
     if name in _FIELD_NAMED:
-        value = importlib.import_module("td3_jax.config.schema").with_field_names(value)
+        value = importlib.import_module("td3_jax.config.python_names").with_field_names(value)
         value.__module__, value.__qualname__ = __name__, name  # (pickled as td3_jax.NAME)
     globals()[name] = value
     return value

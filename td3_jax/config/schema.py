@@ -12,12 +12,11 @@ import numbers
 import re
 import types
 import typing
-from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
 
-from td3_jax.common.errors import ConfigError, Td3JaxError
+from td3_jax.common.errors import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -471,7 +470,7 @@ _TYPE_WORDS = {"int": "a whole number", "float": "a number", "bool": "True or Fa
                "str": "a string", "tuple": "a tuple of whole numbers"}  # fmt: skip
 
 
-def _options(kind: Any) -> tuple[Any, ...]:
+def union_arms(kind: Any) -> tuple[Any, ...]:
     """The types a union annotation allows (``kind`` alone for any other)."""
     union = typing.get_origin(kind) in (types.UnionType, typing.Union)
     return typing.get_args(kind) if union else (kind,)
@@ -485,12 +484,12 @@ def check_field_types(cfg: TrainConfig) -> None:
     """Raises :class:`ConfigError` naming the first field of ``cfg`` whose value is not of its
     annotated type (``TrainConfig(total_steps="3000")``), before anything compares or computes
     with it; the values' ranges and choices are :func:`validate`'s."""
-    for name, kind in _field_types().items():
+    for name, kind in field_types().items():
         value = getattr(cfg, name)
         if not value_fits(value, kind, choices=False):
             allowed = " or ".join("None" if t is type(None) else
                                   _TYPE_WORDS.get(_type_name(t), _type_name(t))
-                                  for t in _options(kind))  # fmt: skip
+                                  for t in union_arms(kind))  # fmt: skip
             raise ConfigError(f"TrainConfig.{name} must be {allowed}, got {value!r} "
                               f"({type(value).__name__})")  # fmt: skip
 
@@ -502,7 +501,7 @@ def _normalized(value: Any, kind: Any) -> Any:
     compares, shapes arrays and writes to JSON as one given in plain types does)."""
     if isinstance(value, np.generic):
         value = value.item()
-    arms = _options(kind)
+    arms = union_arms(kind)
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return value
     if isinstance(value, float) and int in arms and float not in arms:
@@ -517,7 +516,7 @@ def _normalized(value: Any, kind: Any) -> Any:
 def _normalized_fields(cfg: TrainConfig) -> dict[str, Any]:
     """The fields of ``cfg`` whose values :func:`_normalized` changes, with the new values."""
     changed = {}
-    for name, kind in _field_types().items():
+    for name, kind in field_types().items():
         value = getattr(cfg, name)
         plain = _normalized(value, kind)
         if plain is not value:
@@ -526,67 +525,9 @@ def _normalized_fields(cfg: TrainConfig) -> dict[str, Any]:
 
 
 @functools.cache
-def _field_types() -> dict[str, Any]:
+def field_types() -> dict[str, Any]:
     """Each :class:`TrainConfig` field's annotated type (resolved once)."""
     return typing.get_type_hints(TrainConfig)
-
-
-#: What a command-line word that is not a TrainConfig field is called in ``td3_jax.train``.
-_ARGUMENT_NAMES = {"out": "out_dir", "resume": "resume", "devices": "devices",
-                   "time-budget-s": "time_budget_s"}  # fmt: skip
-_FLAG_IN_TEXT = re.compile(r"(?<![\w-])--(no-)?([a-z][a-z0-9]*(?:-[a-z0-9]+)*)"
-                           r"((?: (?:-?\d(?:[\w+-]|\.(?=\w))*|-?inf|nan))*)")  # fmt: skip
-#: A command quoted in a message (``continue with: td3-jax train --out x --resume``), kept as
-#: it is up to the end of its clause.
-_COMMAND_IN_TEXT = re.compile(r"(td3-jax [a-z][^;)]*)")
-
-
-def field_names(message: str) -> str:
-    """``message`` (written with command-line flags) as a Python caller of
-    :func:`td3_jax.train` or :func:`td3_jax.make_train` names things: ``--total-steps 2000`` as
-    ``total_steps=2000``, ``--no-eval-in-chunk`` as ``eval_in_chunk=False``, ``--hidden-sizes
-    256 256`` as ``hidden_sizes=(256, 256)``, ``--eval-in-chunk`` as ``eval_in_chunk``,
-    ``--out`` as ``out_dir``, ``--resume`` as ``resume=True``, ``--sweep-tau 0.1 0.2`` as
-    ``sweep={'tau': [0.1, 0.2]}``; a quoted ``td3-jax ...`` command and other words unchanged."""
-    parts = _COMMAND_IN_TEXT.split(message)  # (odd parts: the commands)
-    return "".join(part if i % 2 else _FLAG_IN_TEXT.sub(_field_word, part)
-                   for i, part in enumerate(parts))  # fmt: skip
-
-
-def _field_word(match: re.Match) -> str:
-    negated, word, values = match.group(1), match.group(2), match.group(3).split()
-    name = word.replace("-", "_")
-    kinds = _field_types()
-    if name.startswith("sweep_") and name[6:] in kinds:
-        listed = ", ".join(values)
-        return f"sweep={{{name[6:]!r}: [{listed}]}}" if values else f"sweep[{name[6:]!r}]"
-    if name not in kinds and word not in _ARGUMENT_NAMES:
-        return match.group(0)
-    name = _ARGUMENT_NAMES.get(word, name)
-    if negated:
-        return f"{name}=False"
-    if not values:
-        return "resume=True" if name == "resume" else name
-    if any(typing.get_origin(t) is tuple for t in _options(kinds.get(name))):
-        return f"{name}=({', '.join(values)}{',' if len(values) == 1 else ''})"
-    return f"{name}={values[0]}" if len(values) == 1 else f"{name}={' '.join(values)}"
-
-
-def with_field_names(function: Callable) -> Callable:
-    """``function`` whose td3-jax errors name :class:`TrainConfig`'s fields and its own
-    arguments instead of command-line flags (:func:`field_names`): what ``td3_jax.train`` and
-    ``td3_jax.make_train`` are."""
-
-    @functools.wraps(function)
-    def named(*args: Any, **kwargs: Any) -> Any:
-        try:
-            return function(*args, **kwargs)
-        except Td3JaxError as err:
-            if err.args and isinstance(err.args[0], str):
-                err.args = (field_names(err.args[0]), *err.args[1:])
-            raise
-
-    return named
 
 
 def flag(name: str) -> str:
@@ -919,14 +860,14 @@ __all__ = [
     "check_field_types",
     "check_seed",
     "eval_every_within_run",
-    "field_names",
+    "field_types",
     "flag",
     "idle_flags",
     "idle_wandb_flags",
     "rounding_note",
+    "union_arms",
     "unused_settings",
     "validate",
     "value_fits",
     "whole_iterations",
-    "with_field_names",
 ]

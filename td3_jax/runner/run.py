@@ -33,13 +33,8 @@ from td3_jax.common.errors import (
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
 from td3_jax.config.build import bind_environment, members
-from td3_jax.config.schema import (
-    TrainConfig,
-    eval_every_within_run,
-    field_names,
-    rounding_note,
-    validate,
-)
+from td3_jax.config.python_names import field_names
+from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.core.population import Member
 from td3_jax.core.stats import population_stats, return_stats
 from td3_jax.core.training import ring_as_saved

@@ -44,6 +44,7 @@ from td3_jax.config.schema import (
     ConfigError,
     TrainConfig,
     as_flag,
+    field_types,
     flag,
     value_fits,
     whole_iterations,
@@ -832,7 +833,7 @@ def load_config(out_dir: Path) -> TrainConfig:
 def _check_setting_types(settings: dict[str, Any], path: Path) -> None:
     """A one-line ConfigError for a setting of config.json whose JSON value is not of its
     field's type (a hand-edited ``"num_envs": "4"``), rather than a traceback later."""
-    hints = typing.get_type_hints(TrainConfig)
+    hints = field_types()
     for name, value in settings.items():
         if not value_fits(value, hints[name]):
             raise ConfigError(f"{path}: {name} is {json.dumps(value)} (expected "

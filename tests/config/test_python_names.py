@@ -14,7 +14,8 @@ from configs import tiny_config
 
 import td3_jax
 from td3_jax.common.errors import ConfigError
-from td3_jax.config.schema import TrainConfig, _field_types, field_names, value_fits
+from td3_jax.config.python_names import field_names
+from td3_jax.config.schema import TrainConfig, field_types, value_fits
 from td3_jax.runner import run as run_module
 
 
@@ -56,10 +57,10 @@ def test_values_of_the_right_kind_are_taken_as_given():
 
 
 def test_value_fits_checks_a_literal_s_choices_only_when_asked():
-    kind = _field_types()["algo"]
+    kind = field_types()["algo"]
     assert value_fits("td3", kind) and not value_fits("sac", kind)
     assert value_fits("sac", kind, choices=False)
-    assert not value_fits(3.5, _field_types()["impl"]) and value_fits(None, _field_types()["impl"])
+    assert not value_fits(3.5, field_types()["impl"]) and value_fits(None, field_types()["impl"])
 
 
 @pytest.mark.parametrize(
