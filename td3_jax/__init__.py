@@ -63,8 +63,7 @@ def __getattr__(name: str) -> Any:
     if name in _FIELD_NAMED:
         value = importlib.import_module("td3_jax.config.python_names").with_field_names(value)
         value.__module__, value.__qualname__ = __name__, name  # (pickled as td3_jax.NAME)
-    globals()[name] = value
-    return value
+    return globals().setdefault(name, value)  # (two threads at once: both get one object)
 
 
 def __dir__() -> list[str]:

@@ -36,7 +36,9 @@ class _Refusing(importlib.abc.MetaPathFinder):
         self.names, self.thread = frozenset(names), thread
 
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> None:
-        if fullname.partition(".")[0] in self.names and threading.get_ident() == self.thread:
+        top = fullname.partition(".")[0]
+        if (top in self.names and top not in sys.modules
+                and threading.get_ident() == self.thread):  # fmt: skip
             raise ModuleNotFoundError(f"No module named {fullname!r} (skipped by td3-jax: "
                                       "not needed)", name=fullname)  # fmt: skip
         return None
@@ -48,7 +50,9 @@ def skipping_unused_imports(names: Iterable[str] = UNUSED_BY_TD3_JAX) -> Iterato
     raises ``ModuleNotFoundError`` in this thread; the names skipped. Nothing changes for other
     threads, nor for a package already imported, nor after leaving.
 
-    Only for imports that handle a missing package (Playground's ``try: import torch``).
+    Only for imports that handle a missing package (Playground's ``try: import torch``); a
+    probe of one, ``importlib.util.find_spec("torch")``, raises the same error meanwhile (in
+    this thread). Once another thread has imported the package, this one gets it too.
     """
     skipped = [name for name in names if name not in sys.modules]
     if not skipped:

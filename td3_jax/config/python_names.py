@@ -19,8 +19,9 @@ __all__ = ["field_names", "with_field_names"]
 #: What a command-line word that is not a TrainConfig field is called in ``td3_jax.train``.
 _ARGUMENT_NAMES = {"out": "out_dir", "resume": "resume", "devices": "devices",
                    "time-budget-s": "time_budget_s"}  # fmt: skip
-_FLAG_IN_TEXT = re.compile(r"(?<![\w-])--(no-)?([a-z][a-z0-9]*(?:-[a-z0-9]+)*)"
-                           r"((?: (?:-?\d(?:[\w+-]|\.(?=\w))*|-?inf|nan))*)")  # fmt: skip
+#: A flag in a message, with the numbers after it (``--hidden-sizes 256 256``, ``--v-min -inf``).
+_VALUE = r"(?:-?\d(?:[\w+-]|\.(?=\w))*|(?:-?inf|nan)(?![\w.]))"
+_FLAG_IN_TEXT = re.compile(rf"(?<![\w-])--(no-)?([a-z][a-z0-9]*(?:-[a-z0-9]+)*)((?: {_VALUE})*)")
 #: A command quoted in a message (``continue with: td3-jax train --out x --resume``), kept as
 #: it is up to the end of its clause.
 _COMMAND_IN_TEXT = re.compile(r"(td3-jax [a-z][^;)]*)")

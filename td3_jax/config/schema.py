@@ -448,6 +448,8 @@ def value_fits(value: Any, kind: Any, *, choices: bool = True) -> bool:
     for a float, a whole number (a whole float too: ``total_steps=1e6``) for an int, a list or
     tuple of whole numbers for a tuple, one of a union's types; one of a Literal's values
     (with ``choices=False`` any value there: :func:`validate` names the choices)."""
+    if kind is Any:
+        return True
     if typing.get_origin(kind) is Literal:
         return not choices or value in typing.get_args(kind)
     if typing.get_origin(kind) in (types.UnionType, typing.Union):
@@ -486,6 +488,7 @@ def check_field_types(cfg: TrainConfig) -> None:
     with it; the values' ranges and choices are :func:`validate`'s."""
     for name, kind in field_types().items():
         value = getattr(cfg, name)
+        value = value.item() if isinstance(value, np.generic) else value
         if not value_fits(value, kind, choices=False):
             allowed = " or ".join("None" if t is type(None) else
                                   _TYPE_WORDS.get(_type_name(t), _type_name(t))
@@ -506,8 +509,11 @@ def _normalized(value: Any, kind: Any) -> Any:
         return value
     if isinstance(value, float) and int in arms and float not in arms:
         return int(value)
-    if isinstance(value, int) and float in arms and int not in arms:
-        return float(value)
+    if isinstance(value, numbers.Real) and float in arms and int not in arms:
+        try:
+            return value if isinstance(value, float) else float(value)
+        except OverflowError:
+            raise ConfigError(f"{value} is too large for a float setting") from None
     if isinstance(value, tuple | list) and any(typing.get_origin(a) is tuple for a in arms):
         return tuple(int(_normalized(v, int)) for v in value)
     return value

@@ -120,6 +120,24 @@ def test_a_submodule_of_a_skipped_package_is_refused_too(packages: Path) -> None
     assert loaded == ["fakepkg"]
 
 
+def test_a_package_another_thread_imported_meanwhile_is_not_refused(packages: Path) -> None:
+    (packages / "pkgs" / "fakepkg" / "sub.py").write_text("ANSWER = 7\n")
+    out, _ = _run(
+        packages,
+        """
+        import threading
+        from td3_jax.common.skipped_imports import skipping_unused_imports
+        with skipping_unused_imports(["fakepkg"]):
+            thread = threading.Thread(target=lambda: __import__("fakepkg"))
+            thread.start()
+            thread.join()
+            import fakepkg.sub
+            print(fakepkg.sub.ANSWER)
+        """,
+    )
+    assert out == ["7"]
+
+
 def test_playground_made_ready_by_td3_jax_does_not_run_torch(tmp_path: Path) -> None:
     """Playground imports ``torch`` wherever it is installed; through td3-jax (MJX and
     Playground's locomotion registry, as a robot run imports them) torch's code does not run,

@@ -7,6 +7,7 @@ import dataclasses
 import inspect
 import pickle
 import re
+import typing
 
 import numpy as np
 import pytest
@@ -85,6 +86,7 @@ def test_value_fits_checks_a_literal_s_choices_only_when_asked():
         ("cannot be written; continue with: td3-jax train --out 'runs/a b' --resume --seed 1",
          "cannot be written; continue with: td3-jax train --out 'runs/a b' --resume --seed 1"),
         ("(td3-jax eval --run x); --resume too", "(td3-jax eval --run x); resume=True too"),
+        ("--out infra and --out runs, --out 5.", "out_dir infra and out_dir runs, out_dir=5."),
         ("--not-a-flag 3, --preset t1 and pre--total-steps",
          "--not-a-flag 3, --preset t1 and pre--total-steps"),
     ],
@@ -109,3 +111,15 @@ def test_the_public_train_and_make_train_name_fields_the_cli_flags(tmp_path, cap
     assert inspect.signature(td3_jax.train) == inspect.signature(run_module.train)
     for public in (td3_jax.train, td3_jax.make_train):  # (e.g. sent to a process pool)
         assert pickle.loads(pickle.dumps(public)) is public
+
+
+def test_odd_numbers_are_refused_or_made_plain_where_the_config_is_made():
+    """A NumPy float holding a whole number is a count like a Python one; a fraction is a
+    float; a number too large for a float is one ConfigError."""
+    import fractions
+
+    cfg = TrainConfig(num_envs=np.float32(8.0), tau=fractions.Fraction(1, 4))
+    assert (cfg.num_envs, type(cfg.num_envs), cfg.tau, type(cfg.tau)) == (8, int, 0.25, float)
+    with pytest.raises(ConfigError, match="too large for a float setting"):
+        TrainConfig(tau=10**400)
+    assert value_fits(object(), typing.Any)
