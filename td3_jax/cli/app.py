@@ -93,6 +93,10 @@ def _dispatch(argv: list[str]) -> None:
         print(f"{USAGE}\ntd3-jax: error: a subcommand is required", file=sys.stderr)
         sys.exit(2)
     if argv[0] in ("-V", "--version"):
+        if argv[1:]:  # (one line, as for any unknown word)
+            print(f"td3-jax: error: {argv[0]} takes nothing after it, got {argv[1]!r}",
+                  file=sys.stderr)  # fmt: skip
+            sys.exit(2)
         print(f"td3-jax {__version__}")
         return
     if argv[0] not in COMMANDS:

@@ -107,6 +107,14 @@ def test_version_is_the_packaged_version(capsys):
     assert capsys.readouterr().out == f"td3-jax {pyproject['project']['version']}\n"
 
 
+def test_a_word_after_version_is_one_line_and_exit_2(capsys):
+    with pytest.raises(SystemExit) as ended:
+        app.main(["--version", "extra"])
+    out, err = capsys.readouterr()
+    assert ended.value.code == 2 and out == ""
+    assert err == "td3-jax: error: --version takes nothing after it, got 'extra'\n"
+
+
 @pytest.mark.subprocess  # a child process that imports JAX (for presets): 4 s
 def test_usage_version_and_an_unknown_name_answer_without_importing_jax():
     """The usage, the version and an unknown subcommand import no subcommand's module (those
