@@ -90,6 +90,8 @@ def test_key_for_seed_refuses_a_seed_jax_would_wrap_and_takes_a_traced_one():
     for seed in (-1, 2**32, np.int64(-1), np.array(-1), jnp.array(-1)):
         with pytest.raises(ValueError, match=r"^seed -?\d+ must be in \[0, 4294967295\]"):
             td3_jax.key_for_seed(seed)
+    with pytest.raises(TypeError, match=r"^seed must be a whole number, got 1\.5$"):
+        td3_jax.key_for_seed(1.5)
     keys = jax.vmap(td3_jax.key_for_seed)(jnp.arange(3))
     assert np.array_equal(keys[2], jax.random.PRNGKey(2))
 

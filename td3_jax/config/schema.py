@@ -348,17 +348,15 @@ _FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noi
            "weight_decay", "max_grad_norm", "max_weight_norm", "return_bound",
            "lr_final_fraction")  # fmt: skip
 _SIGNED_FLOATS = ("v_min", "v_max")
-_CHOICES = {
-    "critic": ("plain", "distributional"),
-    "actor_q": ("auto", "first", "min", "mean"),
-    "precision": ("float32", "bfloat16"),
-    "matmuls": ("auto", "cublas"),
-    "lr_schedule": ("constant", "cosine"),
-    "target_update": ("with_actor", "every_update"),
-    "c51_target_head": ("unprojected", "projected"),
-    "critic_network": ("mlp", "residual"),
-    "actor_network": ("mlp", "residual"),
-}
+def _choices() -> dict[str, tuple[Any, ...]]:
+    """Each field whose annotation is a Literal (or a Literal or None) and its choices, None
+    left out (an optional one may also be None): what :func:`validate` checks them against."""
+    choices = {}
+    for name, kind in field_types().items():
+        literals = [a for a in union_arms(kind) if typing.get_origin(a) is Literal]
+        if literals:
+            choices[name] = typing.get_args(literals[0])
+    return choices
 _BACKENDS = ("generalized", "jax", "mjx", "positional", "spring", "warp")
 #: The settings of Weights & Biases (``--wandb``, ...): where the records are mirrored, never
 #: what the run computes.
@@ -619,8 +617,6 @@ def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
     _check_options(cfg)
     _check_wandb(cfg)
     _check_devices(cfg, devices)
-    if cfg.algo not in ("td3", "ddpg"):
-        raise ConfigError(f"unknown algorithm {cfg.algo!r}; choose td3 or ddpg")
     for name in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
         sizes = getattr(cfg, name)
         if sizes is not None and (len(sizes) == 0 or min(sizes) <= 0):
@@ -671,8 +667,6 @@ def _check_environment(cfg: TrainConfig) -> None:
         raise ConfigError(f"--env-backend {cfg.env_backend} is Playground's physics (--impl); "
                           "Brax's backends are generalized, mjx, positional and "
                           "spring")  # fmt: skip
-    if cfg.impl not in (None, "warp", "jax"):
-        raise ConfigError(f"unknown --impl {cfg.impl!r}; choose warp or jax")
     physics_flags = [flag(n) for n in ("impl", "nconmax", "njmax") if getattr(cfg, n) is not None]
     if physics_flags and not cfg.env.startswith("playground/"):
         verb = "applies" if len(physics_flags) == 1 else "apply"
@@ -680,8 +674,6 @@ def _check_environment(cfg: TrainConfig) -> None:
     for name in ("nconmax", "njmax"):
         if getattr(cfg, name) is not None and getattr(cfg, name) <= 0:
             raise ConfigError(f"{flag(name)} must be positive, got {getattr(cfg, name)}")
-    if cfg.pushes not in ("default", "on", "off"):
-        raise ConfigError(f"--pushes must be default, on or off, got {cfg.pushes!r}")
     for name in ("actor_obs_key", "critic_obs_key"):
         if not getattr(cfg, name):
             raise ConfigError(f"{flag(name)} must name an observation key")
@@ -706,16 +698,15 @@ def _check_devices(cfg: TrainConfig, devices: int) -> None:
 def _check_wandb(cfg: TrainConfig) -> None:
     """The W&B settings: a project to log to and a known mode (whether W&B can run here is
     :func:`td3_jax.runner.tracking.check_ready`'s question)."""
-    if cfg.wandb_mode not in (None, "online", "offline"):
-        raise ConfigError(f"unknown --wandb-mode {cfg.wandb_mode!r}; choose online or offline")
     if cfg.wandb and not cfg.wandb_project:
         raise ConfigError("--wandb-project must name a W&B project")
 
 
 def _check_options(cfg: TrainConfig) -> None:
     """The FastTD3-class options: known choices, a support, a pair of exploration bounds."""
-    for name, allowed in _CHOICES.items():
-        if getattr(cfg, name) not in allowed:
+    for name, allowed in _choices().items():
+        optional = type(None) in union_arms(field_types()[name])
+        if getattr(cfg, name) not in allowed and not (optional and getattr(cfg, name) is None):
             raise ConfigError(f"unknown {flag(name)} {getattr(cfg, name)!r}; choose one of "
                               f"{', '.join(allowed)}")  # fmt: skip
     if cfg.num_atoms < 2:

@@ -30,6 +30,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from td3_jax import envs
@@ -157,6 +158,8 @@ def key_for_seed(seed: int) -> PRNGKey:
     ``ValueError`` for a seed outside ``[0, 2**32 - 1]``, which JAX would wrap onto another
     seed's key (``-1`` and ``2**32 - 1`` give the same key; a traced seed, as in
     ``jax.vmap(key_for_seed)(seeds)``, is not checked)."""
+    if isinstance(seed, float | np.floating):
+        raise TypeError(f"seed must be a whole number, got {seed!r}")
     try:
         value = operator.index(seed)  # (ints, NumPy ints, concrete integer arrays of one value)
     except TypeError:  # (a traced seed; anything else is PRNGKey's to refuse)

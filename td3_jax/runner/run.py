@@ -123,7 +123,8 @@ def train(
     """Trains ``cfg`` (its ``seeds`` x the ``sweep`` combinations) into ``out_dir``, locked
     throughout (:mod:`~td3_jax.runner.rundir`; a busy one, or a used one without ``resume``, is
     refused), until ``cfg.total_steps`` rounded up to a whole iteration
-    (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl). A
+    (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl; none
+    where a resumed run had already reached ``total_steps``: give more to extend it). A
     full disk stops it with :class:`~td3_jax.common.errors.OutputWriteError`.
 
     Args:

@@ -80,7 +80,8 @@ def test_small_config_validates():
         (dict(tau=0.0), "tau"),
         (dict(tau=1.5), "tau"),
         (dict(episode_length=0), "episode-length"),
-        (dict(algo="sac"), "algorithm"),
+        (dict(algo="sac"), "unknown --algo 'sac'; choose one of td3, ddpg"),
+        (dict(exploration="OU"), "unknown --exploration 'OU'; choose one of gaussian, ou"),
         (dict(n_step=0), "n-step"),
         # 3-step runs over 4 envs span 12 rows; the ring holds 8
         (dict(n_step=3, buffer_size=8, batch_size=4), "n-step"),
