@@ -21,16 +21,11 @@ from collections.abc import Callable
 
 from td3_jax import __version__
 from td3_jax.cli.argv import check_no_empty_path, expand_home, repeated_flags_warning
-from td3_jax.cli.interrupts import (
-    Interrupted,
-    exit_process,
-    joined_others,
-    process_stop,
-    signals_while_starting,
-)
+from td3_jax.cli.interrupts import Interrupted, exit_process, process_stop, signals_while_starting
 from td3_jax.cli.messages import error, warn
 from td3_jax.common import runtime
 from td3_jax.common.errors import WRITE_ERRNOS, Td3JaxError, did_you_mean
+from td3_jax.common.runtime import joined_others
 
 __all__ = ["COMMANDS", "USAGE", "main", "run_reporting_errors", "subcommand"]
 

@@ -17,8 +17,7 @@ from td3_jax.common.runtime import joined_others
 from td3_jax.config.schema import TrainConfig
 
 __all__ = ["FIRST_PROCESS_LEAVE_S", "STOPPED_LEAVE_S", "Interrupted", "exit_process",
-           "joined_others", "leave_processes", "process_stop", "signals_while_starting",
-           "train_stoppably"]
+           "leave_processes", "process_stop", "signals_while_starting", "train_stoppably"]
 
 
 class Interrupted(Exception):

@@ -14,12 +14,7 @@ from typing import Any
 from td3_jax.cli import notes, settings
 from td3_jax.cli.argv import given_fields
 from td3_jax.cli.commands import SweepCommand, TrainCommand
-from td3_jax.cli.interrupts import (
-    joined_others,
-    leave_processes,
-    process_stop,
-    train_stoppably,
-)
+from td3_jax.cli.interrupts import leave_processes, process_stop, train_stoppably
 from td3_jax.cli.local_processes import joins_others
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.tables import print_sweep_ranking
@@ -192,7 +187,7 @@ def _others_told_of_a_stop(stop: runtime.StopToken) -> Iterator[None]:
     try:
         yield
     except BaseException:
-        if joined_others():
+        if runtime.joined_others():
             from td3_jax.runner.run import stop_before_next_training  # lazy: imports JAX
 
             stop_before_next_training("token" if stop.is_set() else "error")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 import numbers
 import re
@@ -466,8 +467,9 @@ def value_fits(value: Any, kind: Any, *, choices: bool = True) -> bool:
     return not isinstance(kind, type) or isinstance(value, kind)  # (Any, generics: not checked)
 
 
-_TYPE_WORDS = {"int": "a whole number", "float": "a number", "bool": "True or False",
-               "str": "a string", "tuple": "a tuple of whole numbers"}  # fmt: skip
+#: Each plain field type as a reader says it: (in Python's words, in JSON's).
+_TYPE_WORDS = {int: ("a whole number", "an integer"), float: ("a number", "a number"),
+               bool: ("True or False", "true or false"), str: ("a string", "a string")}  # fmt: skip
 
 
 def union_arms(kind: Any) -> tuple[Any, ...]:
@@ -476,8 +478,20 @@ def union_arms(kind: Any) -> tuple[Any, ...]:
     return typing.get_args(kind) if union else (kind,)
 
 
-def _type_name(kind: Any) -> str:
-    return "tuple" if typing.get_origin(kind) is tuple else getattr(kind, "__name__", str(kind))
+def type_words(kind: Any, *, json_words: bool = False) -> str:
+    """A field's annotated type ``kind`` as a reader says it: "a whole number or None" (in
+    JSON's words, as config.json holds it: "an integer or null"), "one of "td3", "ddpg""."""
+    arms = union_arms(kind)
+    if len(arms) > 1:
+        return " or ".join(type_words(arm, json_words=json_words) for arm in arms)
+    if typing.get_origin(kind) is Literal:
+        return "one of " + ", ".join(json.dumps(a) for a in typing.get_args(kind))
+    if typing.get_origin(kind) is tuple:
+        return "a list of integers" if json_words else "a tuple of whole numbers"
+    if kind is type(None):
+        return "null" if json_words else "None"
+    words = _TYPE_WORDS.get(kind)
+    return words[json_words] if words else getattr(kind, "__name__", str(kind))
 
 
 def check_field_types(cfg: TrainConfig) -> None:
@@ -488,10 +502,7 @@ def check_field_types(cfg: TrainConfig) -> None:
         value = getattr(cfg, name)
         value = value.item() if isinstance(value, np.generic) else value
         if not value_fits(value, kind, choices=False):
-            allowed = " or ".join("None" if t is type(None) else
-                                  _TYPE_WORDS.get(_type_name(t), _type_name(t))
-                                  for t in union_arms(kind))  # fmt: skip
-            raise ConfigError(f"TrainConfig.{name} must be {allowed}, got {value!r} "
+            raise ConfigError(f"TrainConfig.{name} must be {type_words(kind)}, got {value!r} "
                               f"({type(value).__name__})")  # fmt: skip
 
 

@@ -124,14 +124,12 @@ def train(
     throughout (:mod:`~td3_jax.runner.rundir`; a busy one, or a used one without ``resume``, is
     refused), until ``cfg.total_steps`` rounded up to a whole iteration
     (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl; none
-    where a resumed run had already reached ``total_steps``: give more to extend it). A
-    full disk stops it with :class:`~td3_jax.common.errors.OutputWriteError`.
+    for a resumed run already complete). A full disk stops it with ``OutputWriteError``.
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
-        the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME` (an
-        ``eval_every`` that the fresh run made whole iterations is the saved one:
-        :func:`~td3_jax.runner.rundir.eval_every_as_saved`).
+        the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME` (and
+        ``eval_every`` as :func:`~td3_jax.runner.rundir.eval_every_as_saved` takes it).
       progress: show progress (a live bar on a terminal, else one line per evaluation).
       sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``, each combination
         with ``cfg.seeds`` seeds in one program; a member whose numbers become non-finite is

@@ -29,8 +29,6 @@ import os
 import shlex
 import socket
 import time
-import types
-import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -46,6 +44,7 @@ from td3_jax.config.schema import (
     as_flag,
     field_types,
     flag,
+    type_words,
     value_fits,
     whole_iterations,
 )
@@ -836,22 +835,9 @@ def _check_setting_types(settings: dict[str, Any], path: Path) -> None:
     hints = field_types()
     for name, value in settings.items():
         if not value_fits(value, hints[name]):
-            raise ConfigError(f"{path}: {name} is {json.dumps(value)} (expected "
-                              f"{_type_name(hints[name])}); was the file edited? Restore its "
-                              "value")  # fmt: skip
-
-
-def _type_name(hint: Any) -> str:
-    """``hint`` as a reader would say it: "int or null", "one of 'td3', 'ddpg'"."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin in (typing.Union, types.UnionType):
-        return " or ".join(_type_name(arm) for arm in args)
-    if origin is typing.Literal:
-        return "one of " + ", ".join(json.dumps(a) for a in args)
-    if origin is tuple:
-        return "a list of integers" if args[0] is int else "a list"
-    names = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
-    return "null" if hint is type(None) else names.get(hint, hint.__name__)
+            expected = type_words(hints[name], json_words=True)
+            raise ConfigError(f"{path}: {name} is {json.dumps(value)} (expected {expected}); was "
+                              "the file edited? Restore its value")  # fmt: skip
 
 
 def load_run_info(out_dir: Path) -> dict:
