@@ -12,7 +12,13 @@ they would share the CPU cores that compile):
 
 ``--workers 0``: no precompile (each module compiles at its first launch, one at a time), as
 with ``TD3_JAX_WARP_PRECOMPILE=0``; ``--workers N``: td3-jax's precompile on N threads (its
-default is one per CPU core, at most 8).
+default is one per CPU core, at most 16). ``--optimization-level L`` compiles every module at
+CUDA optimization level L (Warp's ``config.optimization_level``; its default is 3);
+``--rate-steps N`` then times the physics with those kernels (the task's vmapped step in a
+scan of N steps, third call); ``--listed-order`` compiles the modules in the order they were
+listed, not the slowest first; ``--queries-in-listing`` has the listing answer MuJoCo Warp's
+block-size queries for real (each compiles its module inside the listing, one at a time).
+The row names the modules that took longest to compile.
 """
 
 from __future__ import annotations
@@ -37,25 +43,30 @@ def _arguments() -> argparse.Namespace:
     parser.add_argument("--menagerie", type=Path, help="a MuJoCo Menagerie root")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--workers", type=int, default=0)
+    parser.add_argument("--optimization-level", type=int, choices=range(4))
+    parser.add_argument("--rate-steps", type=int, default=0)
+    parser.add_argument("--listed-order", action="store_true")
+    parser.add_argument("--queries-in-listing", action="store_true")
     parser.add_argument("--out", type=Path)
     return parser.parse_args()
 
 
-def _compiles_named() -> list[str]:
-    """The names of the Warp modules compiled from now on, in order (each compile counted and
-    timed by :func:`robots._time_warp_compiles` too)."""
+def _compiles_named() -> list[tuple[str, float]]:
+    """The names of the Warp modules compiled from now on, in order, each with its seconds
+    (each compile counted and timed by :func:`robots._time_warp_compiles` too)."""
     from benchmarks.robots import _time_warp_compiles
     from td3_jax.common import upstream
 
     _time_warp_compiles()
-    names: list[str] = []
+    names: list[tuple[str, float]] = []
     module_class = upstream.warp_module_class()
     counted = module_class._compile
 
     def named(self, *args, **kwargs):
+        start = time.perf_counter()
         compiled = counted(self, *args, **kwargs)
         if compiled:
-            names.append(self.name)
+            names.append((self.name, round(time.perf_counter() - start, 2)))
         return compiled
 
     module_class._compile = named
@@ -75,24 +86,38 @@ def _first_steps(env, envs: int) -> tuple[float, bool]:
     return time.perf_counter() - begin, bool(jnp.all(jnp.isfinite(state.obs["state"])))
 
 
+def _set_variant(args: argparse.Namespace) -> None:
+    """The precompile as ``--listed-order`` and ``--queries-in-listing`` ask."""
+    from td3_jax.envs import warp_kernels
+
+    if args.listed_order:
+        warp_kernels.SLOW_FIRST = ()
+    if args.queries_in_listing:
+        listed = warp_kernels.listed_modules
+        warp_kernels.listed_modules = lambda run, **_: listed(run, answer_queries=True)
+
+
 def main() -> None:
     args = _arguments()
     import warp
 
     warp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="warp-cache-")
+    warp.config.optimization_level = args.optimization_level
     import jax
 
-    from benchmarks.robots import _WARP
+    from benchmarks.robots import _WARP, raw_rate
     from td3_jax.common import upstream
     from td3_jax.envs import locomotion, warp_kernels
     from td3_jax.envs.base import EnvOptions
 
     names = _compiles_named()
+    _set_variant(args)
     root = str(args.menagerie) if args.menagerie else None
     options = EnvOptions(menagerie=root, impl="warp", worlds=args.envs)
     env, config = locomotion.load(args.task, impl="warp", options=options)
     task = getattr(env, "unwrapped", env)
     row = {"task": args.task, "envs": args.envs, "workers": args.workers,
+           "optimization_level": args.optimization_level,
            "device": jax.devices()[0].device_kind,
            "made_s": time.perf_counter() - START}  # fmt: skip
     if args.workers:
@@ -105,7 +130,10 @@ def main() -> None:
     seconds, finite = _first_steps(env, args.envs)
     row.update(first_steps_s=seconds, later_compiled=_WARP["n"] - before, finite=finite,
                warp_compile_s=_WARP["s"], total_s=time.perf_counter() - START,
-               later_names=names[before:][:10])  # fmt: skip
+               later_names=[name for name, _ in names[before:][:10]],
+               longest=sorted(names, key=lambda named: -named[1])[:8])  # fmt: skip
+    if args.rate_steps:
+        row.update(raw_rate(args.task, args.envs, args.rate_steps, root, "warp"))
     line = json.dumps(row)
     print(line, flush=True)
     if args.out:

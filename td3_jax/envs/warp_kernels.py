@@ -6,7 +6,8 @@ compiled 39 modules in 99 s on an H100, one CPU core busy. Most of those modules
 the model by MuJoCo Warp's kernel factories, so they cannot be listed before the model is known.
 :func:`precompile` lists them by running MuJoCo Warp's step once in Python with every
 module load recorded instead of done (no kernel runs: every launch returns before it starts
-one), then has Warp compile and load them on several threads (``warp.force_load``). The
+one; a block-size query is answered with a placeholder and its module listed), then has Warp
+compile and load them on several threads (``warp.force_load``), the slowest first. The
 compiled modules land in Warp's kernel cache as they would have, and the first real step finds
 them loaded. A module the listing misses is compiled at its first launch, as without it (MJX's
 own glue is one: its module is made at MJX's first call).
@@ -46,6 +47,7 @@ __all__ = [
     "MAX_WORKERS",
     "PRECOMPILE",
     "PROC_CGROUP",
+    "SLOW_FIRST",
     "Precompiled",
     "beside_compile",
     "cores",
@@ -53,6 +55,7 @@ __all__ = [
     "default_workers",
     "drop_pending",
     "listed_modules",
+    "longest_first",
     "precompile",
     "precompile_task",
     "programs_traced",
@@ -66,6 +69,12 @@ PRECOMPILE = "TD3_JAX_WARP_PRECOMPILE"
 #: At most this many modules compile at once (each compile holds its own compiler's memory).
 #: On a 16-core H200 host T1's cold precompile took 75 s on 8 threads and 24-55 s on 16.
 MAX_WORKERS = 16
+#: Parts of the names of the modules that take longest to compile, longest first: these are
+#: started first, so that the longest is not left to start last. Measured for T1 on an H200
+#: at 16 threads (docs/benchmarks.md, "Warp's kernels on a fresh machine"): the convex
+#: collision kernel took 31-39 s, the next ones 13-23 s, and 38 modules 200-280 s in all.
+SLOW_FIRST = ("ccd_kernel", "_src.smooth", "_src.passive", "_src.sensor", "_src.forward",
+              "_src.solver", "_update_gradient_cholesky", "_tile_cholesky")  # fmt: skip
 #: Set to 0 (or false, off, no), a training run's precompile runs first, then its XLA
 #: compile; otherwise (the default) on its own thread beside the XLA compile
 #: (:func:`beside_compile`).
@@ -90,12 +99,14 @@ _LISTING = threading.Lock()
 
 
 @contextlib.contextmanager
-def _loads_recorded(seen: dict[tuple[Any, Any], None]) -> Iterator[None]:
+def _loads_recorded(seen: dict[tuple[Any, Any], None], answer_queries: bool) -> Iterator[None]:
     """Inside, a Warp module load on this thread is recorded in ``seen`` as ``(module,
     block_dim)`` and returns nothing, so each launch stops before it runs a kernel; a
     conditional loop runs its body once and a conditional runs both branches (no kernel sets
-    their conditions). Other threads load and branch as usual. A block-size query (which loads
-    the module's default variant on a GPU to ask it) is answered for real."""
+    their conditions). Other threads load and branch as usual. A block-size query on a GPU
+    (which compiles and loads the module's default variant to ask it) is answered for real
+    where ``answer_queries``; otherwise its load is recorded too and it is answered
+    :func:`_placeholder_answer` (MuJoCo Warp sizes launch grids by the answer)."""
     import warp
 
     module_class, owner = upstream.warp_module_class(), threading.get_ident()
@@ -125,6 +136,9 @@ def _loads_recorded(seen: dict[tuple[Any, Any], None]) -> Iterator[None]:
     def suggested_block_size(kernel: Any, device: Any = None) -> tuple[int, int]:
         if mine() != owner:  # (swapping the load here could leave the recording one installed)
             return real[3](kernel, device)
+        if not answer_queries and _query_loads(kernel, device):
+            seen[(kernel.module, None)] = None
+            return _placeholder_answer(device)
         module_class.load = real[0]
         try:
             return real[3](kernel, device)
@@ -141,15 +155,42 @@ def _loads_recorded(seen: dict[tuple[Any, Any], None]) -> Iterator[None]:
             warp.get_suggested_block_size = real[3]
 
 
-def listed_modules(run: Callable[[], Any]) -> dict[Any, list[Any]]:
+def _query_loads(kernel: Any, device: Any) -> bool:
+    """Whether Warp's block-size query for ``kernel`` on ``device`` loads its module (on a GPU;
+    a CPU is answered (1, 1) unasked, and a kernel of external constant parameters is asked
+    without its module)."""
+    import warp
+
+    options = kernel.module.options | kernel.options
+    if options.get("entry_point_abi", "warp") != "warp":
+        return False
+    return bool(warp.get_device(device).is_cuda)
+
+
+def _placeholder_answer(device: Any) -> tuple[int, int]:
+    """A block-size query's answer for the listing: 256 threads, one block per multiprocessor
+    (the listing launches nothing, so only the launches' grid sizes see it)."""
+    import warp
+
+    return 256, max(1, int(getattr(warp.get_device(device), "sm_count", 1) or 1))
+
+
+def listed_modules(run: Callable[[], Any], *, answer_queries: bool = True
+                   ) -> dict[Any, list[Any]]:  # fmt: skip
     """The Warp modules that ``run`` (MuJoCo Warp's functions) would load, grouped by the
-    block size each is launched with (``None``: the module's own), without running a kernel."""
+    block size each is launched with (``None``: the module's own), without running a kernel.
+    A block-size query on a GPU loads (compiles) the module it asks about, one at a time;
+    with ``answer_queries`` off it is answered with a placeholder and its module is listed
+    (``None``) instead, so it can be compiled with the others. A module listed with its own
+    block size both given and not (``None``) is listed once, given: it is one compile."""
     seen: dict[tuple[Any, Any], None] = {}
-    with _loads_recorded(seen):
+    with _loads_recorded(seen, answer_queries):
         run()
     groups: dict[Any, list[Any]] = {}
     for module, block_dim in seen:
-        groups.setdefault(block_dim, []).append(module)
+        own = getattr(module, "options", {}).get("block_dim")  # (Warp's load of None: this)
+        if block_dim is not None or (module, own) not in seen:
+            groups.setdefault(block_dim, []).append(module)
     return groups
 
 
@@ -250,19 +291,31 @@ def default_workers() -> int:
     return min(cores(), MAX_WORKERS)
 
 
+def longest_first(groups: dict[Any, list[Any]]) -> list[tuple[Any, Any]]:
+    """The ``(module, block size)`` pairs of ``groups`` (block size -> modules) in the order to
+    compile them: those named in :data:`SLOW_FIRST` first, in its order, then the others as
+    listed."""
+
+    def rank(job: tuple[Any, Any]) -> int:
+        name = str(getattr(job[0], "name", job[0]))
+        return next((i for i, part in enumerate(SLOW_FIRST) if part in name), len(SLOW_FIRST))
+
+    return sorted(((module, block_dim) for block_dim, modules in groups.items()
+                   for module in modules), key=rank)  # fmt: skip
+
+
 def _compile_modules(groups: dict[Any, list[Any]], workers: int,
                      cancel: threading.Event | None = None) -> int:  # fmt: skip
     """Compiles and loads the modules of ``groups`` (block size -> modules) on Warp's default
-    device, ``workers`` threads taking one module at a time; returns how many it loaded. A
-    thread takes no new module once ``cancel`` is set or the main thread has ended (a process
-    that stops waits for the modules in hand only); the first failure stops them all and is
-    raised."""
+    device, ``workers`` threads taking one module at a time, the slowest first
+    (:func:`longest_first`); returns how many it loaded. A thread takes no new module once
+    ``cancel`` is set or the main thread has ended (a process that stops waits for the
+    modules in hand only); the first failure stops them all and is raised."""
     import warp
 
     device, jobs = warp.get_device(), queue.SimpleQueue()
-    for block_dim, modules in groups.items():
-        for module in modules:
-            jobs.put((module, block_dim))
+    for job in longest_first(groups):
+        jobs.put(job)
     failures: list[BaseException] = []
     loaded: list[None] = []
 
@@ -301,11 +354,27 @@ def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: i
     :func:`default_workers`). ``njmax``/``naconmax``: the constraint and contact buffers the
     run uses (they decide which kernels some steps launch); ``options``: MJX's
     (:func:`static_options`); ``cancel``: once set, no further module is started. The count
-    is of the modules loaded."""
-    start = time.perf_counter()
-    groups = listed_modules(_mujoco_warp_step(mj_model, options or {}, njmax, naconmax))
-    loaded = _compile_modules(groups, workers or default_workers(), cancel)
+    is of the modules loaded.
+
+    The step is listed twice: first with MuJoCo Warp's block-size queries answered by a
+    placeholder, so that the modules they ask about (the convex collision kernel, the slowest
+    to compile) compile on the threads with the others instead of one at a time inside the
+    listing; then, those loaded, with real answers, and any module only that listing names is
+    compiled too."""
+    start, workers = time.perf_counter(), workers or default_workers()
+    run = _mujoco_warp_step(mj_model, options or {}, njmax, naconmax)
+    groups = listed_modules(run, answer_queries=False)
+    loaded = _compile_modules(groups, workers, cancel)
+    if cancel is None or not cancel.is_set():  # (real answers now: their modules are loaded)
+        loaded += _compile_modules(_not_in(listed_modules(run), groups), workers, cancel)
     return Precompiled(loaded, time.perf_counter() - start)
+
+
+def _not_in(groups: dict[Any, list[Any]], known: dict[Any, list[Any]]) -> dict[Any, list[Any]]:
+    """The modules of ``groups`` (block size -> modules) that ``known`` has not."""
+    left = {size: [m for m in modules if m not in known.get(size, ())]
+            for size, modules in groups.items()}  # fmt: skip
+    return {size: modules for size, modules in left.items() if modules}
 
 
 class _Pending(NamedTuple):

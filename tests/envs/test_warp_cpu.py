@@ -152,6 +152,16 @@ def test_the_precompile_lists_every_module_a_robot_step_launches(warp_on_cpu, mo
     assert again == listed
     assert warp.get_suggested_block_size is cuda_like_query  # (put back after the listing)
 
+    # The precompile's first listing answers a GPU's query itself and lists the module asked
+    # about (its default variant), so that it compiles on the threads with the others.
+    asked = list(queried)
+    queried.clear()
+    monkeypatch.setattr(warp_kernels, "_query_loads", lambda kernel, device: True)
+    first = warp_kernels.listed_modules(step, answer_queries=False)
+    assert queried == []
+    assert set(asked) <= set(first[None])
+    assert {m.name for group in first.values() for m in group} == listed
+
 
 def test_the_modules_are_compiled_once_each_over_the_threads_and_a_failure_stops_them(
     monkeypatch,

@@ -1,10 +1,15 @@
 """MuJoCo Warp's kernel precompile as a run drives it: off by its variable, on a thread of its
-own beside XLA's compile (started once the programs are traced), and the CPU cores it counts.
-Warp itself is not needed: the precompile is replaced where it would run."""
+own beside XLA's compile (started once the programs are traced), the order and the listings of
+its compile, and the CPU cores it counts. Warp itself is not needed: the precompile, or Warp's
+functions it calls, are replaced where they would run."""
 
 from __future__ import annotations
 
+import contextlib
+import sys
+import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -147,3 +152,78 @@ def test_the_cores_counted_are_at_most_the_cgroups_cpu_quota(tmp_path):
     assert warp_kernels.cores(root, own) == 1
     own.write_text("0::/\n4:memory:/user.slice/job-7\n")  # (a root path; no cpu controller)
     assert warp_kernels.cores(root, own) == here
+
+
+class _Module:
+    """What the precompile reads of a Warp module: its name and options."""
+
+    def __init__(self, name: str, block_dim: int = 256):
+        self.name, self.options = name, {"block_dim": block_dim}
+
+
+def test_the_slowest_modules_are_compiled_first_in_the_listed_order_otherwise(monkeypatch):
+    from td3_jax.envs import warp_kernels
+
+    first, solver, ccd = _Module("a"), _Module("x._src.solver"), _Module("ccd_kernel_ab12")
+    smooth, last = _Module("mujoco_warp._src.smooth"), _Module("b")
+    groups = {None: [first, solver, smooth], 64: [last, ccd]}
+    named = [(job[0].name, job[1]) for job in warp_kernels.longest_first(groups)]
+    assert named == [("ccd_kernel_ab12", 64), ("mujoco_warp._src.smooth", None),
+                     ("x._src.solver", None), ("a", None), ("b", 64)]  # fmt: skip
+    monkeypatch.setattr(warp_kernels, "SLOW_FIRST", ())
+    assert warp_kernels.longest_first(groups) == [(first, None), (solver, None), (smooth, None),
+                                                  (last, 64), (ccd, 64)]  # fmt: skip
+    started = []
+    fake_warp = SimpleNamespace(get_device=lambda: "gpu",
+                                force_load=lambda device, modules, **kw: started.append(modules))
+    monkeypatch.setitem(sys.modules, "warp", fake_warp)
+    monkeypatch.setattr(warp_kernels, "SLOW_FIRST", ("solver",))
+    assert warp_kernels._compile_modules(groups, workers=1) == 5
+    assert started[0] == [solver] and len(started) == 5
+
+
+def test_a_module_listed_with_and_without_its_own_block_size_is_listed_once(monkeypatch):
+    """Warp loads a module asked for with no block size (a block-size query) at its own, so
+    the two are one compile."""
+    from td3_jax.envs import warp_kernels
+
+    own, other = _Module("own", 128), _Module("other", 256)
+    loads = [(own, None), (other, None), (own, 128), (other, 64)]
+    answered = []
+
+    @contextlib.contextmanager
+    def recorded(seen, answer_queries):
+        answered.append(answer_queries)
+        yield
+        seen.update(dict.fromkeys(loads))
+
+    monkeypatch.setattr(warp_kernels, "_loads_recorded", recorded)
+    listed = warp_kernels.listed_modules(lambda: None, answer_queries=False)
+    assert listed == {None: [other], 128: [own], 64: [other]} and answered == [False]
+
+
+def test_the_precompile_compiles_what_the_second_listing_adds_unless_cancelled(monkeypatch):
+    from td3_jax.envs import warp_kernels
+
+    listings, compiled = [], []
+
+    def listed(run, *, answer_queries=True):
+        listings.append(answer_queries)
+        return {None: ["a", "b"], 64: ["c"]} if not answer_queries else {None: ["b", "d"],
+                                                                         64: ["c", "e"]}
+
+    def compile_modules(groups, workers, cancel=None):
+        compiled.append(groups)
+        return sum(len(modules) for modules in groups.values())
+
+    monkeypatch.setattr(warp_kernels, "_mujoco_warp_step", lambda *args: "step")
+    monkeypatch.setattr(warp_kernels, "listed_modules", listed)
+    monkeypatch.setattr(warp_kernels, "_compile_modules", compile_modules)
+    done = warp_kernels.precompile("model", workers=2)
+    assert listings == [False, True] and done.modules == 5
+    assert compiled == [{None: ["a", "b"], 64: ["c"]}, {None: ["d"], 64: ["e"]}]
+    listings.clear()
+    cancel = threading.Event()
+    cancel.set()
+    assert warp_kernels.precompile("model", workers=2, cancel=cancel).modules == 3
+    assert listings == [False]  # (a second listing would compile the queried modules itself)
