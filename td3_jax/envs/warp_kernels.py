@@ -72,7 +72,7 @@ MAX_WORKERS = 16
 #: Parts of the names of the modules that take longest to compile, longest first: these are
 #: started first, so that the longest is not left to start last. Measured for T1 on an H200
 #: at 16 threads (docs/benchmarks.md, "Warp's kernels on a fresh machine"): the convex
-#: collision kernel took 31-39 s, the next ones 13-23 s, and 38 modules 200-280 s in all.
+#: collision kernel took 31-39 s, the next ones 13-23 s, all of them 190-285 s summed.
 SLOW_FIRST = ("ccd_kernel", "_src.smooth", "_src.passive", "_src.sensor", "_src.forward",
               "_src.solver", "_update_gradient_cholesky", "_tile_cholesky")  # fmt: skip
 #: Set to 0 (or false, off, no), a training run's precompile runs first, then its XLA
@@ -101,11 +101,11 @@ _LISTING = threading.Lock()
 @contextlib.contextmanager
 def _loads_recorded(seen: dict[tuple[Any, Any], None], answer_queries: bool) -> Iterator[None]:
     """Inside, a Warp module load on this thread is recorded in ``seen`` as ``(module,
-    block_dim)`` and returns nothing, so each launch stops before it runs a kernel; a
-    conditional loop runs its body once and a conditional runs both branches (no kernel sets
-    their conditions). Other threads load and branch as usual. A block-size query on a GPU
-    (which compiles and loads the module's default variant to ask it) is answered for real
-    where ``answer_queries``; otherwise its load is recorded too and it is answered
+    block_dim)`` (:func:`_variant`) and returns nothing, so each launch stops before it runs a
+    kernel; a conditional loop runs its body once and a conditional runs both branches
+    (:func:`_branches_run`). Other threads load and branch as usual. A block-size query on a
+    GPU (which compiles and loads the module's own variant to ask it) is answered for real
+    where ``answer_queries``; otherwise that load is recorded too and it is answered
     :func:`_placeholder_answer` (MuJoCo Warp sizes launch grids by the answer)."""
     import warp
 
@@ -116,28 +116,14 @@ def _loads_recorded(seen: dict[tuple[Any, Any], None], answer_queries: bool) -> 
     def load(module: Any, device: Any, block_dim: Any = None, *args: Any, **kwargs: Any):
         if mine() != owner:
             return real[0](module, device, block_dim, *args, **kwargs)
-        seen[(module, block_dim)] = None
-        return None
-
-    def capture_while(condition: Any, while_body: Callable, stream: Any = None, **kwargs: Any):
-        if mine() != owner:
-            return real[1](condition, while_body, stream, **kwargs)
-        return while_body(**kwargs)
-
-    def capture_if(condition: Any, on_true: Any = None, on_false: Any = None, stream: Any = None,
-                   **kwargs: Any) -> None:  # fmt: skip
-        if mine() != owner:
-            return real[2](condition, on_true, on_false, stream, **kwargs)
-        for branch in (on_true, on_false):
-            if callable(branch):
-                branch(**kwargs)
+        seen[(module, _variant(module, block_dim))] = None
         return None
 
     def suggested_block_size(kernel: Any, device: Any = None) -> tuple[int, int]:
         if mine() != owner:  # (swapping the load here could leave the recording one installed)
             return real[3](kernel, device)
         if not answer_queries and _query_loads(kernel, device):
-            seen[(kernel.module, None)] = None
+            seen[(kernel.module, _variant(kernel.module, None))] = None
             return _placeholder_answer(device)
         module_class.load = real[0]
         try:
@@ -146,13 +132,43 @@ def _loads_recorded(seen: dict[tuple[Any, Any], None], answer_queries: bool) -> 
             module_class.load = load
 
     with _LISTING:
-        module_class.load, warp.capture_while, warp.capture_if = load, capture_while, capture_if
-        warp.get_suggested_block_size = suggested_block_size
+        module_class.load, warp.get_suggested_block_size = load, suggested_block_size
+        warp.capture_while, warp.capture_if = _branches_run(owner, real[1], real[2])
         try:
             yield
         finally:
             module_class.load, warp.capture_while, warp.capture_if = real[:3]
             warp.get_suggested_block_size = real[3]
+
+
+def _variant(module: Any, block_dim: Any) -> Any:
+    """The block size of the variant that Warp's ``Module.load`` loads when given
+    ``block_dim``: ``None`` is the module's own (``options["block_dim"]``)."""
+    if block_dim is not None:
+        return block_dim
+    return getattr(module, "options", {}).get("block_dim")
+
+
+def _branches_run(owner: int, real_while: Callable, real_if: Callable) -> tuple[Callable, ...]:
+    """Warp's ``capture_while`` and ``capture_if`` as the listing thread ``owner`` runs them
+    (a loop's body once, both branches of a conditional, no kernel deciding); other threads
+    get Warp's own (``real_while``, ``real_if``)."""
+
+    def capture_while(condition: Any, while_body: Callable, stream: Any = None, **kwargs: Any):
+        if threading.get_ident() != owner:
+            return real_while(condition, while_body, stream, **kwargs)
+        return while_body(**kwargs)
+
+    def capture_if(condition: Any, on_true: Any = None, on_false: Any = None, stream: Any = None,
+                   **kwargs: Any) -> None:  # fmt: skip
+        if threading.get_ident() != owner:
+            return real_if(condition, on_true, on_false, stream, **kwargs)
+        for branch in (on_true, on_false):
+            if callable(branch):
+                branch(**kwargs)
+        return None
+
+    return capture_while, capture_if
 
 
 def _query_loads(kernel: Any, device: Any) -> bool:
@@ -169,7 +185,7 @@ def _query_loads(kernel: Any, device: Any) -> bool:
 
 def _placeholder_answer(device: Any) -> tuple[int, int]:
     """A block-size query's answer for the listing: 256 threads, one block per multiprocessor
-    (the listing launches nothing, so only the launches' grid sizes see it)."""
+    (the listing launches nothing, so only the launches' sizes see it)."""
     import warp
 
     return 256, max(1, int(getattr(warp.get_device(device), "sm_count", 1) or 1))
@@ -178,19 +194,17 @@ def _placeholder_answer(device: Any) -> tuple[int, int]:
 def listed_modules(run: Callable[[], Any], *, answer_queries: bool = True
                    ) -> dict[Any, list[Any]]:  # fmt: skip
     """The Warp modules that ``run`` (MuJoCo Warp's functions) would load, grouped by the
-    block size each is launched with (``None``: the module's own), without running a kernel.
-    A block-size query on a GPU loads (compiles) the module it asks about, one at a time;
-    with ``answer_queries`` off it is answered with a placeholder and its module is listed
-    (``None``) instead, so it can be compiled with the others. A module listed with its own
-    block size both given and not (``None``) is listed once, given: it is one compile."""
+    block size of the variant each loads (a load without one is of the module's own, as in
+    Warp), without running a kernel. A block-size query on a GPU loads (compiles) the module
+    it asks about, one at a time; with ``answer_queries`` off it is answered with a
+    placeholder and its module listed instead, so it can be compiled with the others (a
+    variant listed twice is one compile)."""
     seen: dict[tuple[Any, Any], None] = {}
     with _loads_recorded(seen, answer_queries):
         run()
     groups: dict[Any, list[Any]] = {}
     for module, block_dim in seen:
-        own = getattr(module, "options", {}).get("block_dim")  # (Warp's load of None: this)
-        if block_dim is not None or (module, own) not in seen:
-            groups.setdefault(block_dim, []).append(module)
+        groups.setdefault(block_dim, []).append(module)
     return groups
 
 
@@ -360,14 +374,26 @@ def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: i
     placeholder, so that the modules they ask about (the convex collision kernel, the slowest
     to compile) compile on the threads with the others instead of one at a time inside the
     listing; then, those loaded, with real answers, and any module only that listing names is
-    compiled too."""
+    compiled too (:func:`_listed_again`)."""
     start, workers = time.perf_counter(), workers or default_workers()
     run = _mujoco_warp_step(mj_model, options or {}, njmax, naconmax)
     groups = listed_modules(run, answer_queries=False)
     loaded = _compile_modules(groups, workers, cancel)
-    if cancel is None or not cancel.is_set():  # (real answers now: their modules are loaded)
-        loaded += _compile_modules(_not_in(listed_modules(run), groups), workers, cancel)
+    if cancel is None or not cancel.is_set():
+        loaded += _listed_again(run, groups, workers, cancel)
     return Precompiled(loaded, time.perf_counter() - start)
+
+
+def _listed_again(run: Callable[[], Any], groups: dict[Any, list[Any]], workers: int,
+                  cancel: threading.Event | None) -> int:  # fmt: skip
+    """How many modules ``run``'s listing with real block-size answers names beyond ``groups``
+    (those the queries asked about are loaded by now), compiled on ``workers`` threads. A
+    failure here is left to the module's first launch (which raises it, should it be real):
+    the modules of ``groups`` are loaded already."""
+    try:
+        return _compile_modules(_not_in(listed_modules(run), groups), workers, cancel)
+    except Exception:  # (an optimisation: the first launch compiles what is missing)
+        return 0
 
 
 def _not_in(groups: dict[Any, list[Any]], known: dict[Any, list[Any]]) -> dict[Any, list[Any]]:

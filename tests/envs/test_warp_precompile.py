@@ -5,7 +5,6 @@ functions it calls, are replaced where they would run."""
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import threading
 import time
@@ -182,24 +181,56 @@ def test_the_slowest_modules_are_compiled_first_in_the_listed_order_otherwise(mo
     assert started[0] == [solver] and len(started) == 5
 
 
-def test_a_module_listed_with_and_without_its_own_block_size_is_listed_once(monkeypatch):
-    """Warp loads a module asked for with no block size (a block-size query) at its own, so
-    the two are one compile."""
+def test_the_listing_records_loads_as_warp_resolves_them_and_answers_gpu_queries_itself(
+    monkeypatch,
+):
+    """A load without a block size is of the module's own (as Warp's ``Module.load``), so a
+    module loaded both ways is one compile; with ``answer_queries`` off, a GPU's block-size
+    query is answered with a placeholder and its module's own variant listed, without asking
+    Warp (which would compile it there and then); on, Warp answers, its load the real one."""
+    from td3_jax.common import upstream
     from td3_jax.envs import warp_kernels
 
-    own, other = _Module("own", 128), _Module("other", 256)
-    loads = [(own, None), (other, None), (own, 128), (other, 64)]
-    answered = []
+    class FakeModuleClass:  # (Warp's Module: its load is what the listing replaces)
+        def load(self, device, block_dim=None):
+            raise AssertionError("no module is loaded while listed")
 
-    @contextlib.contextmanager
-    def recorded(seen, answer_queries):
-        answered.append(answer_queries)
-        yield
-        seen.update(dict.fromkeys(loads))
+    class Module(FakeModuleClass, _Module):
+        pass
 
-    monkeypatch.setattr(warp_kernels, "_loads_recorded", recorded)
-    listed = warp_kernels.listed_modules(lambda: None, answer_queries=False)
-    assert listed == {None: [other], 128: [own], 64: [other]} and answered == [False]
+    own, other = Module("own", 128), Module("other", 256)
+    kernel = SimpleNamespace(module=own, options={})
+    asked = []
+
+    def real_query(kernel, device=None):  # (Warp's: loads the module's own variant, then asks)
+        asked.append(FakeModuleClass.load is real_load)
+        return 64, 3
+
+    real_load = FakeModuleClass.load
+    gpu = SimpleNamespace(is_cuda=True, sm_count=132)
+    monkeypatch.setitem(sys.modules, "warp", SimpleNamespace(
+        capture_while=None, capture_if=None, get_suggested_block_size=real_query,
+        get_device=lambda device=None: gpu))  # fmt: skip
+    monkeypatch.setattr(upstream, "warp_module_class", lambda: FakeModuleClass)
+    answers = []
+
+    def run():
+        warp = sys.modules["warp"]
+        for module, size in ((own, None), (own, 128), (other, None), (other, 64)):
+            module.load("cuda:0", size)
+        answers.append(warp.get_suggested_block_size(kernel, "cuda:0"))
+
+    listed = warp_kernels.listed_modules(run, answer_queries=False)
+    assert listed == {128: [own], 256: [other], 64: [other]}
+    assert answers == [(256, 132)] and asked == []
+    assert warp_kernels.listed_modules(run) == listed
+    assert answers[-1] == (64, 3) and asked == [True]
+    assert FakeModuleClass.load is real_load and sys.modules["warp"].get_suggested_block_size is (
+        real_query
+    )
+    gpu.is_cuda = False  # (a CPU: Warp answers (1, 1) without loading; the listing asks it)
+    warp_kernels.listed_modules(run, answer_queries=False)
+    assert asked == [True, True]
 
 
 def test_the_precompile_compiles_what_the_second_listing_adds_unless_cancelled(monkeypatch):
@@ -227,3 +258,12 @@ def test_the_precompile_compiles_what_the_second_listing_adds_unless_cancelled(m
     cancel.set()
     assert warp_kernels.precompile("model", workers=2, cancel=cancel).modules == 3
     assert listings == [False]  # (a second listing would compile the queried modules itself)
+
+    def second_fails(groups, workers, cancel=None):  # (left to the modules' first launch)
+        if compiled:
+            raise RuntimeError("nvrtc: error")
+        return compile_modules(groups, workers, cancel)
+
+    compiled.clear()
+    monkeypatch.setattr(warp_kernels, "_compile_modules", second_fails)
+    assert warp_kernels.precompile("model", workers=2).modules == 3
