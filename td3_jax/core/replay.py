@@ -115,6 +115,11 @@ def sample(buffer: ReplayBuffer, key: PRNGKey, batch_size: int) -> Any:
     """``batch_size`` transitions drawn uniformly with replacement from the filled slots.
 
     Returns a pytree shaped like ``buffer.data`` with leading axis ``batch_size``.
+
+    An empty buffer is a ``ValueError`` when its size is known here (outside ``jax.jit``).
+    Inside a compiled function the size is not known until it runs, and an empty buffer
+    gives rows of its initial zeros: sample only once transitions were added (td3-jax's
+    own loop adds each iteration's transitions before its updates).
     """
     if not isinstance(buffer.size, jax.core.Tracer) and int(buffer.size) == 0:
         raise ValueError("cannot sample from an empty replay buffer; add transitions first")
@@ -134,6 +139,7 @@ def sample_runs(
     uniform over the filled slots, like :func:`sample`.
 
     Returns a pytree shaped like ``buffer.data`` with leading axes ``[batch_size, length]``.
+    Too few filled slots are a ``ValueError`` outside ``jax.jit`` only, as in :func:`sample`.
     """
     span = (length - 1) * stride
     if not isinstance(buffer.size, jax.core.Tracer) and int(buffer.size) <= span:

@@ -538,6 +538,14 @@ def all_finite(tree: Any) -> jax.Array:
     return jnp.all(jnp.stack(leaves))
 
 
+def observations_finite(state: TrainState) -> jax.Array:
+    """Whether every observation in the replay ring (``obs``, ``next_obs`` and any critic
+    observations of the stored transitions) is finite (a bool scalar): the environment's side
+    of a diverged run, checked when one is found."""
+    stored: Transition = state.buffer.data[0]
+    return all_finite((stored.obs, stored.next_obs, stored.critic_obs, stored.next_critic_obs))
+
+
 def summarize(totals: Metrics, iterations: jax.Array, state: TrainState) -> Metrics:
     """A chunk's metrics from the sums of its per-iteration metrics over ``iterations``.
 

@@ -37,7 +37,7 @@ from td3_jax.config.python_names import field_names
 from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
 from td3_jax.core.population import Member
 from td3_jax.core.stats import population_stats, return_stats
-from td3_jax.core.training import ring_as_saved
+from td3_jax.core.training import observations_finite, ring_as_saved
 from td3_jax.envs import warp_kernels
 from td3_jax.runner import programs, tracking
 from td3_jax.runner.checkpoint import Checkpointer, CheckpointWriteError
@@ -702,7 +702,7 @@ def _chunk_and_record(
     updates = int(metrics.pop("agent_steps")[0])
     policy = metrics.pop("eval_policy_env_steps", None)  # (every member's: one env clock)
     metrics = {k: v.astype(np.float64) for k, v in metrics.items()}
-    _check_finite(run, metrics, env_steps)
+    _check_finite(run, metrics, env_steps, state)
     _check_physics(run, metrics, env_steps)
     eval_start = time.perf_counter()
     returns = host_value(compiled.evaluate(state)).astype(np.float64)
@@ -753,23 +753,40 @@ def _member_record(run: _Run, i: int, metrics, returns) -> dict[str, Any]:
 
 #: How a chunk's non-finite mean reward is named: the environment's, not the learner's fault.
 ENV_REWARDS = "rewards from the environment (its step returned NaN or inf)"
+ENV_OBSERVATIONS = "observations from the environment (its reset or step returned NaN or inf)"
 
 
-def _nonfinite(metrics: dict[str, np.ndarray], i: int) -> list[str]:
-    """What is non-finite in member ``i``'s chunk metrics: the environment's rewards first
-    (a cause, where the rest are its consequences), then losses, Q and parameters."""
+def _nonfinite(metrics: dict[str, np.ndarray], i: int,
+               observations_finite: np.ndarray | None = None) -> list[str]:  # fmt: skip
+    """What is non-finite in member ``i``'s chunk metrics: the environment's rewards, or else
+    its observations where ``observations_finite`` (``[members]``) says so, first (a cause,
+    where the rest are its consequences), then losses, Q and parameters."""
     rewards = metrics.get("reward_mean")
     env = [ENV_REWARDS] if rewards is not None and not math.isfinite(rewards[i]) else []
+    if not env and observations_finite is not None and not observations_finite[i]:
+        env = [ENV_OBSERVATIONS]
     names = [k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])]
     return env + names + (["parameters"] if metrics["params_finite"][i] < 1.0 else [])
 
 
-def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) -> None:
+def _diverged(run: _Run, metrics: dict[str, np.ndarray], state: Any) -> dict[int, list[str]]:
+    """Member -> what is non-finite, for the members newly diverged in this chunk; where the
+    environment's rewards do not explain one, the replay ring's observations are checked
+    (:func:`~td3_jax.core.training.observations_finite`, only then: a pass over the ring)."""
+    members = [i for i in range(len(run.population)) if i not in run.diverged]
+    bad = {i: names for i in members if (names := _nonfinite(metrics, i))}
+    if any(ENV_REWARDS not in names for names in bad.values()):
+        finite = host_value(jax.jit(jax.vmap(observations_finite))(state))
+        bad = {i: _nonfinite(metrics, i, finite) for i in bad}
+    return bad
+
+
+def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int,
+                  state: Any) -> None:  # fmt: skip
     """Marks newly diverged members of a population; stops a single run, or a population
     whose members have all diverged, with :class:`NonFiniteError`."""
     population = run.population
-    bad = {i: _nonfinite(metrics, i) for i in range(len(population)) if i not in run.diverged}
-    bad = {i: names for i, names in bad.items() if names}
+    bad = _diverged(run, metrics, state)
     if len(population) > 1 and len(run.diverged) + len(bad) < len(population):
         for i, names in bad.items():
             print(f"td3-jax: warning: member {population[i].label()} diverged (non-finite "

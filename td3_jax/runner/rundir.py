@@ -508,6 +508,8 @@ def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
             return f"{cause} after the run's last chunk: the run is complete ({newest})"
         return f"{cause}; the newest checkpoint is {newest} (continue with: " \
                f"{resume_command(out_dir)})"  # fmt: skip
+    if not Path(out_dir).exists():
+        return f"{cause} before the run wrote anything to {out_dir} (run the same command again)"
     again = ("remove it or choose another --out to start again" if previous_outputs(out_dir)
              else "run the same command again to start over")  # fmt: skip
     return f"{cause} before the first checkpoint: {out_dir} holds none to resume ({again})"

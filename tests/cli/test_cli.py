@@ -1186,7 +1186,7 @@ def test_divergence_before_the_first_checkpoint_says_how_to_start_again(
 ):
     """Exit 3, and the last line says the directory holds nothing to resume and what to do;
     doing that works."""
-    monkeypatch.setattr(run_module, "_nonfinite", lambda metrics, i: ["critic_loss"])
+    monkeypatch.setattr(run_module, "_nonfinite", lambda metrics, i, finite=None: ["critic_loss"])
     out = tmp_path / "run"
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
     monkeypatch.undo()

@@ -596,6 +596,31 @@ def test_nan_rewards_from_an_environment_are_named_as_its_own(tmp_path):
     assert record["env_steps"] == 32 and np.isfinite(record["reward_mean"])
 
 
+@pytest.mark.runs
+def test_nan_observations_from_an_environment_are_named_as_its_own(tmp_path):
+    """Observations that turn NaN after 40 env steps (the rewards stay finite) stop the run
+    naming the environment's observations first, not the learner alone."""
+
+    def reset_counted(key):
+        x = jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0)
+        return (x, jnp.zeros((), jnp.int32)), x
+
+    def step_counted(state, action):
+        x, count = state[0] + 0.1 * action, state[1] + 1
+        seen = jnp.where(count > 10, jnp.nan, x)  # (4 envs: 40 env steps)
+        return (x, count), seen, -jnp.sum(x**2), jnp.zeros((), bool)
+
+    env = FunctionalEnv(reset_counted, step_counted, observation_size=2, action_size=2,
+                        episode_length=1000, name="nan-obs-later")  # fmt: skip
+    cfg = TrainConfig(**{**TINY, "eval_every": 32, "total_steps": 96, "warmup_steps": 64})
+    with pytest.raises(errors.NonFiniteError) as info:
+        train(cfg, tmp_path / "run", env=env, progress=False)
+    said = str(info.value)
+    assert said.startswith("non-finite observations from the environment (its reset or step "
+                           "returned NaN or inf), critic_loss"), said  # fmt: skip
+    assert "in the chunk ending at env step 64" in said
+
+
 def test_a_run_of_an_object_records_it_and_resumes_only_with_it(tmp_path, capsys):
     """config.json records ``object/drift``; resuming without the object (CLI or eval) is one
     line saying what to do; with it the run goes on; no traced programs are stored."""

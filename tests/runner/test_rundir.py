@@ -709,6 +709,10 @@ def test_a_sweep_section_without_its_base_values_is_one_line(tmp_path):
 
 
 def test_interrupted_message_says_what_is_kept(tmp_path):
+    missing = tmp_path / "not-made"  # (stopped before the run made its directory)
+    assert rundir.interrupted_message(missing) == (
+        f"interrupted before the run wrote anything to {missing} (run the same command again)"
+    )
     message = rundir.interrupted_message(tmp_path)
     assert "before the first checkpoint" in message and "run the same command again" in message
     (tmp_path / "metrics.jsonl").write_text('{"env_steps": 8}\n')  # records, no checkpoint
