@@ -568,11 +568,9 @@ def test_make_train_takes_an_object_and_vmaps_over_seeds():
     assert not np.allclose(returns[0], returns[1])
 
 
-@pytest.mark.runs
-def test_nan_rewards_from_an_environment_are_named_as_its_own(tmp_path):
-    """A step whose reward turns NaN after 40 env steps stops the run naming the environment's
-    rewards first (the losses and values it poisons follow), not the learner alone; the
-    chunk before it is recorded with its finite mean reward."""
+def _turning_nan(what: str) -> FunctionalEnv:
+    """An environment whose rewards (``what="reward"``) or observations (``"obs"``) turn NaN
+    after each environment's 10th step (4 environments: 40 env steps)."""
 
     def reset_counted(key):
         x = jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0)
@@ -580,18 +578,35 @@ def test_nan_rewards_from_an_environment_are_named_as_its_own(tmp_path):
 
     def step_counted(state, action):
         x, count = state[0] + 0.1 * action, state[1] + 1
-        reward = jnp.where(count > 10, jnp.nan, -jnp.sum(x**2))  # (4 envs: 40 env steps)
-        return (x, count), x, reward, jnp.zeros((), bool)
+        reward, seen = -jnp.sum(x**2), x
+        if what == "reward":
+            reward = jnp.where(count > 10, jnp.nan, reward)
+        else:
+            seen = jnp.where(count > 10, jnp.nan, seen)
+        return (x, count), seen, reward, jnp.zeros((), bool)
 
-    env = FunctionalEnv(reset_counted, step_counted, observation_size=2, action_size=2,
-                        episode_length=1000, name="nan-later")  # fmt: skip
+    return FunctionalEnv(reset_counted, step_counted, observation_size=2, action_size=2,
+                         episode_length=1000, name=f"nan-{what}-later")  # fmt: skip
+
+
+def _stopped_by_nan(what: str, run_dir: Path) -> str:
+    """The error that stops a run of :func:`_turning_nan` ``(what)`` (warm-up of 64 steps)."""
     cfg = TrainConfig(**{**TINY, "eval_every": 32, "total_steps": 96, "warmup_steps": 64})
     with pytest.raises(errors.NonFiniteError) as info:
-        train(cfg, tmp_path / "run", env=env, progress=False)
+        train(cfg, run_dir, env=_turning_nan(what), progress=False)
     said = str(info.value)
+    assert "in the chunk ending at env step 64" in said
+    return said
+
+
+@pytest.mark.runs
+def test_nan_rewards_from_an_environment_are_named_as_its_own(tmp_path):
+    """A step whose reward turns NaN after 40 env steps stops the run naming the environment's
+    rewards first (the losses and values it poisons follow), not the learner alone; the
+    chunk before it is recorded with its finite mean reward."""
+    said = _stopped_by_nan("reward", tmp_path / "run")
     assert said.startswith("non-finite rewards from the environment (its step returned NaN or "
                            "inf)"), said  # fmt: skip
-    assert "in the chunk ending at env step 64" in said
     (record,) = read_records(tmp_path / "run")
     assert record["env_steps"] == 32 and np.isfinite(record["reward_mean"])
 
@@ -600,25 +615,9 @@ def test_nan_rewards_from_an_environment_are_named_as_its_own(tmp_path):
 def test_nan_observations_from_an_environment_are_named_as_its_own(tmp_path):
     """Observations that turn NaN after 40 env steps (the rewards stay finite) stop the run
     naming the environment's observations first, not the learner alone."""
-
-    def reset_counted(key):
-        x = jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0)
-        return (x, jnp.zeros((), jnp.int32)), x
-
-    def step_counted(state, action):
-        x, count = state[0] + 0.1 * action, state[1] + 1
-        seen = jnp.where(count > 10, jnp.nan, x)  # (4 envs: 40 env steps)
-        return (x, count), seen, -jnp.sum(x**2), jnp.zeros((), bool)
-
-    env = FunctionalEnv(reset_counted, step_counted, observation_size=2, action_size=2,
-                        episode_length=1000, name="nan-obs-later")  # fmt: skip
-    cfg = TrainConfig(**{**TINY, "eval_every": 32, "total_steps": 96, "warmup_steps": 64})
-    with pytest.raises(errors.NonFiniteError) as info:
-        train(cfg, tmp_path / "run", env=env, progress=False)
-    said = str(info.value)
+    said = _stopped_by_nan("obs", tmp_path / "run")
     assert said.startswith("non-finite observations from the environment (its reset or step "
                            "returned NaN or inf), critic_loss"), said  # fmt: skip
-    assert "in the chunk ending at env step 64" in said
 
 
 def test_a_run_of_an_object_records_it_and_resumes_only_with_it(tmp_path, capsys):
