@@ -149,15 +149,16 @@ def cli_page() -> str:
 def other_names_section() -> str:
     """The flags of CleanRL, Stable-Baselines3 and FastTD3 that the command line answers with
     its own (``--gamma``: did you mean ``--discount``?), from the table the parser uses."""
-    from td3_jax.cli.parse_errors import _OTHER_NAMES  # (the parser's own table, read as is)
+    from td3_jax.config.other_names import OTHER_NAMES  # (the parser's own table, read as is)
 
     rows = ["| there | here |", "| --- | --- |"]
-    for there, here in sorted(_OTHER_NAMES.items()):
+    for there, here in sorted(OTHER_NAMES.items()):
         rows.append(f"| `--{there}` | {', '.join(f'`--{flag}`' for flag in here)} |")
     return (
         "## Flag names from other libraries\n\n"
         "Coming from CleanRL, Stable-Baselines3 or FastTD3: an unknown flag of one of these "
-        "names (with `-` or `_`) is answered with the flag it is here. Steps here are env steps "
+        "names (with `-` or `_`) is answered with the flag it is here, and a `TrainConfig` "
+        "keyword of one (`gamma=0.99`) with the field it is here. Steps here are env steps "
         "summed over the environments: FastTD3's `--total_timesteps`, `--learning_starts` and "
         "`--eval_interval` count vectorised steps, so multiply them by its `--num_envs`.\n\n"
         + "\n".join(rows)

@@ -7,44 +7,12 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import re
-from collections.abc import Iterable
 
 from td3_jax.cli.argv import flag_values, number_kinds
+from td3_jax.config.other_names import names_meant
 from td3_jax.config.schema import SWEEPABLE, flag
 
 __all__ = ["parse_error"]
-
-#: Other libraries' names for td3-jax's flags (CleanRL, Stable-Baselines3, FastTD3), offered
-#: for an unknown flag of that name: ``--gamma`` (did you mean --discount?).
-_OTHER_NAMES = {
-    "gamma": ("discount",),
-    "env-name": ("env",),
-    "actor-learning-rate": ("actor-lr",),
-    "critic-learning-rate": ("critic-lr",),
-    "num-steps": ("n-step",),
-    "use-wandb": ("wandb",),
-    "learning-starts": ("warmup-steps",),
-    "learning-rate": ("actor-lr", "critic-lr"),
-    "total-timesteps": ("total-steps",),
-    "n-envs": ("num-envs",),
-    "env-id": ("env",),
-    "policy-frequency": ("policy-freq",),
-    "policy-delay": ("policy-freq",),
-    "target-policy-noise": ("policy-noise",),
-    "target-noise-clip": ("noise-clip",),
-    "exploration-noise": ("expl-noise",),
-    "action-noise": ("expl-noise",),
-    "gradient-steps": ("updates-per-iter",),
-    "num-updates": ("updates-per-iter",),
-    "std-min": ("expl-noise-min",),
-    "std-max": ("expl-noise-max",),
-    "num-eval-envs": ("eval-envs",),
-    "eval-freq": ("eval-every",),
-    "eval-interval": ("eval-every",),
-    "track": ("wandb",),
-    "wandb-project-name": ("wandb-project",),
-}
-
 
 def parse_error(text: str, command_type: type, args: list[str], prog: str) -> str:
     """tyro's error box (``text``, its stderr) as one line: the options not known (with the
@@ -189,24 +157,9 @@ def _misplaced_sweep(unknown: list[str], known: set[str], args: list[str],
 def _with_guess(name: str, names: dict[str, str]) -> str:
     """``name`` with the flags it most likely means (``--totl-steps (did you mean
     --total-steps?)``), at most four named; ``name`` alone where none is close."""
-    close = _closest_flags(name.lstrip("-"), names) or difflib.get_close_matches(
-        name.lstrip("-"), names, n=1, cutoff=0.7
-    )
+    close = names_meant(name.lstrip("-"), names)
     guesses = " or ".join(names[c] for c in close[:4]) + (" or ..." if len(close) > 4 else "")
     return f"{name} (did you mean {guesses}?)" if close else name
-
-
-def _closest_flags(bare: str, names: Iterable[str]) -> list[str]:
-    """The flags (bare: ``actor-lr``) that ``bare`` most likely means, by another library's
-    name (``gamma``: ``discount``) or as the end of ours (``lr``: ``actor-lr``, ``critic-lr``),
-    each also under ``sweep-`` (``sweep-gamma``: ``sweep-discount``); ``[]``: none."""
-    stem = bare.removeprefix("sweep-")
-    prefix = bare[: len(bare) - len(stem)]
-    other = [prefix + n for n in _OTHER_NAMES.get(stem.replace("_", "-"), ())]
-    ours = [n for n in other if n in names]
-    ends = sorted(n for n in names if n.startswith(prefix) and n.endswith("-" + stem)
-                  and not n.startswith("no-") and n != bare)  # fmt: skip
-    return ours or ends
 
 
 def _is_number(text: str) -> bool:

@@ -13,15 +13,39 @@ import numbers
 import re
 import types
 import typing
+from collections.abc import Iterable
 from typing import Any, Literal
 
 import numpy as np
 
 from td3_jax.common.errors import ConfigError
+from td3_jax.config.other_names import names_meant
+
+
+class _KeywordsNamed(type):
+    """The class of :class:`TrainConfig`: a keyword that is none of its fields is a
+    ``TypeError`` naming the field most likely meant (:func:`~td3_jax.config.other_names.
+    names_meant`: ``gamma``, did you mean ``discount``?)."""
+
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
+        fields = {field.name for field in dataclasses.fields(cls)}
+        unknown = next((name for name in kwargs if name not in fields), None)
+        if unknown is not None:
+            raise TypeError(unknown_keyword(cls.__name__, unknown, fields))
+        return super().__call__(*args, **kwargs)
+
+
+def unknown_keyword(owner: str, name: str, fields: Iterable[str]) -> str:
+    """``owner() got an unexpected keyword argument 'gamma'; did you mean discount?`` (the
+    guess only where one of ``fields`` is close)."""
+    dashed = {field.replace("_", "-"): field for field in fields}
+    meant = [dashed[n] for n in names_meant(name.replace("_", "-"), dashed)]
+    guess = f"; did you mean {' or '.join(meant[:4])}?" if meant else ""
+    return f"{owner}() got an unexpected keyword argument {name!r}{guess}"
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(metaclass=_KeywordsNamed):
     """Everything one training run needs. Sizes are static; the run compiles once for them.
 
     An *iteration* is ``steps_per_iter`` vectorised environment steps (each one step in every one

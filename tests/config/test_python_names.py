@@ -44,6 +44,26 @@ def test_a_value_of_the_wrong_type_is_refused_where_the_config_is_made(given, me
         dataclasses.replace(TrainConfig(), **given)
 
 
+@pytest.mark.parametrize(
+    ("name", "meant"),
+    [("gamma", "discount"), ("total_timesteps", "total_steps"), ("num_env", "num_envs"),
+     ("learning_rate", "actor_lr or critic_lr"), ("lr", "actor_lr or critic_lr"),
+     ("buffer_sz", "buffer_size"), ("zzz", None)],
+)  # fmt: skip
+def test_a_keyword_that_is_no_field_names_the_field_meant(name, meant):
+    """Other libraries' names (CleanRL's gamma, SB3's total_timesteps) and misspellings get
+    the field they stand for, as the command line's flags do; a copy checks its changes too."""
+    expected = f"TrainConfig() got an unexpected keyword argument {name!r}"
+    expected += f"; did you mean {meant}?" if meant else ""
+    with pytest.raises(TypeError) as refused:
+        TrainConfig(**{name: 1})
+    assert str(refused.value) == expected
+    with pytest.raises(TypeError, match=re.escape(expected)):
+        dataclasses.replace(TrainConfig(), **{name: 1})
+    assert TrainConfig(discount=0.9, num_envs=4) == dataclasses.replace(TrainConfig(),
+                                                                      discount=0.9, num_envs=4)
+
+
 def test_values_of_the_right_kind_are_taken_as_given():
     """Whole floats for counts (``total_steps=1e6``), ints and NumPy scalars for floats,
     lists for sizes: the kinds a Python caller or a config.json gives, kept as the field's own
