@@ -55,6 +55,7 @@ class MetricsLogger:
         kept = [r for r in records
                 if resume_env_steps is not None and r["env_steps"] <= resume_env_steps]  # fmt: skip
         write_atomically(self.path, "".join(json.dumps(record) + "\n" for record in kept))
+        _say_missing(self.path, kept, resume_env_steps)
         purge = _purge_step(records, resume_env_steps)
         self._tb = _tensorboard_writer(Path(out_dir) / "tensorboard", purge)
         self._to_tensorboard(kept, since=purge or 0)
@@ -95,6 +96,18 @@ class MetricsLogger:
         except OSError as err:
             upstream.abandon_tensorboard_writer(self._tb)
             raise OSError(err.errno, err.strerror, err.filename or self._tb.logdir) from err
+
+
+def _say_missing(path: Path, kept: list[dict[str, Any]], resume_env_steps: int | None) -> None:
+    """A warning where a resume from ``resume_env_steps`` finds ``path`` without the record of
+    its checkpoint's chunk (every checkpoint's chunk wrote one): the file lost its last
+    records (cut short or edited), and the resumed run cannot write them again."""
+    last = int(kept[-1]["env_steps"]) if kept else 0
+    if resume_env_steps and last < resume_env_steps:
+        print(f"td3-jax: warning: {path} has no record after env step {last:,} but the run "
+              f"resumes from its checkpoint at {resume_env_steps:,}: the records between are "
+              "lost (was the file cut short or edited?); the run goes on from the checkpoint",
+              file=sys.stderr)  # fmt: skip
 
 
 def _plotted(key: str, value: Any) -> bool:

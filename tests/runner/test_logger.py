@@ -4,6 +4,7 @@ more."""
 from __future__ import annotations
 
 import errno
+import json
 import os
 import subprocess
 import sys
@@ -146,6 +147,25 @@ def test_a_resume_shows_each_in_chunk_evaluation_once_in_tensorboard(tmp_path, m
     assert points["eval_return_mean"] == [(0, 1.0), (32, 2.0), (64, 3.0), (96, 4.0)]
     steps, losses = zip(*points["critic_loss"], strict=True)
     assert steps == (32, 64, 96, 128) and losses == pytest.approx((0.1, 0.2, 0.3, 0.4))
+
+
+def test_a_resume_past_the_last_record_says_the_records_between_are_lost(tmp_path, capsys):
+    """metrics.jsonl cut back to the record of 32 while the checkpoint is at 96: the resume
+    keeps what is there and warns that the records after 32 are lost; a file that holds its
+    checkpoint's record resumes without a word."""
+    from td3_jax.runner.logger import MetricsLogger, read_metrics
+
+    lines = "".join(json.dumps({"env_steps": s, "critic_loss": 0.1}) + "\n" for s in (32, 64))
+    (tmp_path / "metrics.jsonl").write_text(lines[: len(lines) // 2 + 3])  # (64's line cut)
+    MetricsLogger(tmp_path, resume_env_steps=96).close()
+    err = capsys.readouterr().err
+    assert (f"warning: {tmp_path / 'metrics.jsonl'} has no record after env step 32 but the "
+            "run resumes from its checkpoint at 96: the records between are lost") in err
+    assert [r["env_steps"] for r in read_metrics(tmp_path / "metrics.jsonl")] == [32]
+    (tmp_path / "metrics.jsonl").write_text(lines)
+    MetricsLogger(tmp_path, resume_env_steps=64).close()
+    MetricsLogger(tmp_path).close()  # (a fresh run: nothing to say)
+    assert capsys.readouterr().err == ""
 
 
 def test_two_writers_open_at_once_in_one_folder_each_keep_their_points(tmp_path, monkeypatch):
