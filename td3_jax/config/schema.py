@@ -22,17 +22,23 @@ from td3_jax.common.errors import ConfigError
 from td3_jax.config.other_names import names_meant
 
 
-class _KeywordsNamed(type):
-    """The class of :class:`TrainConfig`: a keyword that is none of its fields is a
-    ``TypeError`` naming the field most likely meant (:func:`~td3_jax.config.other_names.
-    names_meant`: ``gamma``, did you mean ``discount``?)."""
+def _keywords_named(cls: type) -> type:
+    """``cls`` (a dataclass) whose ``__init__`` refuses a keyword that is none of its fields
+    with a ``TypeError`` naming the field most likely meant
+    (:func:`~td3_jax.config.other_names.names_meant`: ``gamma``, did you mean ``discount``?);
+    the signature stays the fields'."""
+    init = cls.__init__
 
-    def __call__(cls, *args: Any, **kwargs: Any) -> Any:
-        fields = {field.name for field in dataclasses.fields(cls)}
+    @functools.wraps(init)
+    def checked(self: Any, *args: Any, **kwargs: Any) -> None:
+        fields = {field.name for field in dataclasses.fields(self)}
         unknown = next((name for name in kwargs if name not in fields), None)
         if unknown is not None:
-            raise TypeError(unknown_keyword(cls.__name__, unknown, fields))
-        return super().__call__(*args, **kwargs)
+            raise TypeError(unknown_keyword(type(self).__name__, unknown, fields))
+        init(self, *args, **kwargs)
+
+    cls.__init__ = checked
+    return cls
 
 
 def unknown_keyword(owner: str, name: str, fields: Iterable[str]) -> str:
@@ -44,8 +50,9 @@ def unknown_keyword(owner: str, name: str, fields: Iterable[str]) -> str:
     return f"{owner}() got an unexpected keyword argument {name!r}{guess}"
 
 
+@_keywords_named
 @dataclasses.dataclass(frozen=True)
-class TrainConfig(metaclass=_KeywordsNamed):
+class TrainConfig:
     """Everything one training run needs. Sizes are static; the run compiles once for them.
 
     An *iteration* is ``steps_per_iter`` vectorised environment steps (each one step in every one

@@ -538,12 +538,15 @@ def all_finite(tree: Any) -> jax.Array:
     return jnp.all(jnp.stack(leaves))
 
 
-def observations_finite(state: TrainState) -> jax.Array:
-    """Whether every observation in the replay ring (``obs``, ``next_obs`` and any critic
-    observations of the stored transitions) is finite (a bool scalar): the environment's side
-    of a diverged run, checked when one is found."""
-    stored: Transition = state.buffer.data[0]
-    return all_finite((stored.obs, stored.next_obs, stored.critic_obs, stored.next_critic_obs))
+def observations_finite(buffer: replay.ReplayBuffer) -> jax.Array:
+    """Whether every observation in the replay ring ``buffer`` (``obs``, ``next_obs`` and any
+    critic observations of the stored transitions) is finite (a bool scalar): the
+    environment's side of a diverged run, checked when one is found. Each leaf is reduced
+    as ``sum(x * 0)`` (NaN where any value is NaN or inf), which needs no mask of its size."""
+    stored: Transition = buffer.data[0]
+    leaves = jax.tree.leaves((stored.obs, stored.next_obs, stored.critic_obs,
+                              stored.next_critic_obs))  # fmt: skip
+    return jnp.all(jnp.stack([jnp.isfinite(jnp.sum(x * 0)) for x in leaves]))
 
 
 def summarize(totals: Metrics, iterations: jax.Array, state: TrainState) -> Metrics:

@@ -102,11 +102,13 @@ def _say_missing(path: Path, kept: list[dict[str, Any]], resume_env_steps: int |
     """A warning where a resume from ``resume_env_steps`` finds ``path`` without the record of
     its checkpoint's chunk (every checkpoint's chunk wrote one): the file lost its last
     records (cut short or edited), and the resumed run cannot write them again."""
-    last = int(kept[-1]["env_steps"]) if kept else 0
+    last = max((int(record["env_steps"]) for record in kept), default=0)
     if resume_env_steps and last < resume_env_steps:
-        print(f"td3-jax: warning: {path} has no record after env step {last:,} but the run "
-              f"resumes from its checkpoint at {resume_env_steps:,}: the records between are "
-              "lost (was the file cut short or edited?); the run goes on from the checkpoint",
+        held = f"has no record after env step {last:,}" if kept else "holds no records"
+        lost = f"after env step {last:,} " if kept else ""
+        print(f"td3-jax: warning: {path} {held} but the run resumes from its checkpoint at "
+              f"{resume_env_steps:,}: the records {lost}up to it are lost (was the file cut "
+              "short or edited?); the run goes on from the checkpoint",
               file=sys.stderr)  # fmt: skip
 
 

@@ -753,17 +753,21 @@ def _member_record(run: _Run, i: int, metrics, returns) -> dict[str, Any]:
 
 #: How a chunk's non-finite mean reward is named: the environment's, not the learner's fault.
 ENV_REWARDS = "rewards from the environment (its step returned NaN or inf)"
+#: ... and its observations, found non-finite in the replay ring of a run that diverged.
 ENV_OBSERVATIONS = "observations from the environment (its reset or step returned NaN or inf)"
+#: ``[members]`` whether each member's replay ring holds only finite observations.
+_RINGS_FINITE = jax.jit(jax.vmap(observations_finite))
 
 
 def _nonfinite(metrics: dict[str, np.ndarray], i: int,
-               observations_finite: np.ndarray | None = None) -> list[str]:  # fmt: skip
+               finite: np.ndarray | None = None) -> list[str]:  # fmt: skip
     """What is non-finite in member ``i``'s chunk metrics: the environment's rewards, or else
-    its observations where ``observations_finite`` (``[members]``) says so, first (a cause,
-    where the rest are its consequences), then losses, Q and parameters."""
+    its observations where ``finite`` (``[members]``: its ring's observations are finite)
+    says so, first (a cause, where the rest are its consequences), then losses, Q and
+    parameters."""
     rewards = metrics.get("reward_mean")
     env = [ENV_REWARDS] if rewards is not None and not math.isfinite(rewards[i]) else []
-    if not env and observations_finite is not None and not observations_finite[i]:
+    if not env and finite is not None and not finite[i]:
         env = [ENV_OBSERVATIONS]
     names = [k for k in ("critic_loss", "actor_loss", "q_mean") if not math.isfinite(metrics[k][i])]
     return env + names + (["parameters"] if metrics["params_finite"][i] < 1.0 else [])
@@ -776,7 +780,10 @@ def _diverged(run: _Run, metrics: dict[str, np.ndarray], state: Any) -> dict[int
     members = [i for i in range(len(run.population)) if i not in run.diverged]
     bad = {i: names for i in members if (names := _nonfinite(metrics, i))}
     if any(ENV_REWARDS not in names for names in bad.values()):
-        finite = host_value(jax.jit(jax.vmap(observations_finite))(state))
+        try:
+            finite = host_value(_RINGS_FINITE(state.buffer))
+        except Exception:  # (a diagnosis: the run's own error is said without it)
+            finite = None
         bad = {i: _nonfinite(metrics, i, finite) for i in bad}
     return bad
 

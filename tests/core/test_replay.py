@@ -336,3 +336,26 @@ def test_a_ring_grown_after_its_adds_equals_the_larger_ring_after_them(shards, a
         over = replay.add_slices(large, extra)
         with pytest.raises(ValueError, match="shrink"):
             replay.resize_slices(over, short)
+
+
+@pytest.mark.parametrize(("field", "value"), [("obs", jnp.inf), ("next_obs", jnp.nan),
+                                              ("critic_obs", -jnp.inf), (None, 0.0)])  # fmt: skip
+def test_a_ring_s_observations_are_finite_unless_one_value_is_not(field, value):
+    """``training.observations_finite`` over a ring of 6 rows, one value of one field made
+    non-finite (the actions and rewards, which it does not read, always are)."""
+    from td3_jax.core.training import observations_finite
+    from td3_jax.core.types import Transition
+
+    rows = Transition(obs=jnp.ones((6, 3)), action=jnp.full((6, 2), jnp.nan),
+                      reward=jnp.full((6,), jnp.inf), next_obs=jnp.ones((6, 3)),
+                      done=jnp.zeros(6), critic_obs=jnp.ones((6, 5)),
+                      next_critic_obs=jnp.ones((6, 5)))  # fmt: skip
+    if field is not None:
+        rows = rows._replace(**{field: getattr(rows, field).at[4, 1].set(value)})
+    ring = replay.add(replay.init(8, (jax.tree.map(lambda x: x[0], rows),
+                                      jnp.zeros((), bool))), (rows, jnp.zeros(6, bool)))
+    assert bool(observations_finite(ring)) is (field is None)
+    without_critic = rows._replace(critic_obs=None, next_critic_obs=None)
+    ring = replay.add(replay.init(8, (jax.tree.map(lambda x: x[0], without_critic),
+                                      jnp.zeros((), bool))), (without_critic, jnp.zeros(6, bool)))
+    assert bool(observations_finite(ring)) is (field in (None, "critic_obs"))

@@ -745,9 +745,10 @@ def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, ca
     records = train(cfg, tmp_path / "run", env=drift(limit=8), progress=True)
     assert [r["env_steps"] for r in records] == [32, 64, 92]
     out = capsys.readouterr().out
-    assert "--eval-every 30 runs as 32 (whole iterations of 4 env steps)" in out
+    assert "eval_every=30 runs as 32 (whole iterations of 4 env steps)" in out  # (Python's)
     longer = dataclasses.replace(cfg, eval_every=200, total_steps=64)
-    assert run._eval_every_within_run(longer, resume=True, say=True) == longer  # (kept)
-    lowered = run._eval_every_within_run(longer, resume=False, say=True)
+    assert run._eval_every_within_run(longer, tmp_path / "run", resume=True,
+                                      say=True) == longer  # (kept: not the saved chunk's)
+    lowered = run._eval_every_within_run(longer, tmp_path / "new", resume=False, say=True)
     assert lowered.eval_every == 64 and lowered.run_steps == 64
-    assert "--eval-every 200 is longer than --total-steps 64" in capsys.readouterr().out
+    assert "eval_every=200 is longer than total_steps=64" in capsys.readouterr().out

@@ -160,8 +160,13 @@ def test_a_resume_past_the_last_record_says_the_records_between_are_lost(tmp_pat
     MetricsLogger(tmp_path, resume_env_steps=96).close()
     err = capsys.readouterr().err
     assert (f"warning: {tmp_path / 'metrics.jsonl'} has no record after env step 32 but the "
-            "run resumes from its checkpoint at 96: the records between are lost") in err
+            "run resumes from its checkpoint at 96: the records after env step 32 up to it are "
+            "lost") in err
     assert [r["env_steps"] for r in read_metrics(tmp_path / "metrics.jsonl")] == [32]
+    (tmp_path / "metrics.jsonl").unlink()
+    MetricsLogger(tmp_path, resume_env_steps=96).close()
+    assert "holds no records but the run resumes from its checkpoint at 96: the records up to " \
+        "it are lost" in capsys.readouterr().err
     (tmp_path / "metrics.jsonl").write_text(lines)
     MetricsLogger(tmp_path, resume_env_steps=64).close()
     MetricsLogger(tmp_path).close()  # (a fresh run: nothing to say)
