@@ -277,8 +277,9 @@ def api_page() -> str:
         "`tj.make_train` name `TrainConfig`'s fields and the functions' arguments "
         "(`total_steps=2000`, `resume=True`, `out_dir`) where the command line names its "
         "flags, and a `TrainConfig` refuses a value of the wrong type where it is made "
-        "(`TrainConfig.total_steps must be a whole number, got '3000' (str)`); ranges and "
-        "choices are checked when the run is made, each as one `ConfigError`.\n",
+        "(`TrainConfig.total_steps must be a whole number, got '3000' (str)`) and a keyword "
+        "that is none of its fields with the field meant (`gamma`: `did you mean discount?`); "
+        "ranges and choices are checked when the run is made, each as one `ConfigError`.\n",
         "(Each name's documentation below is drawn from its docstring when the site is built, "
         "`mkdocs serve` or `mkdocs build`; this file itself holds only the directives.)\n",
     ]
