@@ -178,7 +178,7 @@ def _save(labelled: Sequence[tuple[Curve, str | None]], path: Path, title: str) 
     for ax, x_label in zip(axes, (step_label, "wall-clock (s)"), strict=True):
         ax.set_xlabel(x_label)
         ax.grid(alpha=0.3)
-    axes[0].legend(loc="lower right", fontsize=8)
+    axes[0].legend(loc="best", fontsize=8)  # (where it covers the fewest points)
     axes[0].set_ylabel("evaluation return")
     fig.suptitle(title)
     fig.tight_layout()
