@@ -532,8 +532,10 @@ def iteration(spec: TrainSpec, hp: Hyperparams, state: TrainState) -> tuple[Trai
 
 
 def all_finite(tree: Any) -> jax.Array:
-    """Whether every floating-point leaf of ``tree`` is finite (a bool scalar)."""
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)
+    """Whether every floating-point leaf of ``tree`` is finite (a bool scalar). Each leaf is
+    reduced as ``sum(x * 0)`` (NaN where any value is NaN or inf), which needs no mask of its
+    size (a replay ring's, say)."""
+    leaves = [jnp.isfinite(jnp.sum(x * 0)) for x in jax.tree.leaves(tree)
               if jnp.issubdtype(x.dtype, jnp.floating)]  # fmt: skip
     return jnp.all(jnp.stack(leaves))
 
@@ -541,12 +543,9 @@ def all_finite(tree: Any) -> jax.Array:
 def observations_finite(buffer: replay.ReplayBuffer) -> jax.Array:
     """Whether every observation in the replay ring ``buffer`` (``obs``, ``next_obs`` and any
     critic observations of the stored transitions) is finite (a bool scalar): the
-    environment's side of a diverged run, checked when one is found. Each leaf is reduced
-    as ``sum(x * 0)`` (NaN where any value is NaN or inf), which needs no mask of its size."""
+    environment's side of a diverged run, checked when one is found."""
     stored: Transition = buffer.data[0]
-    leaves = jax.tree.leaves((stored.obs, stored.next_obs, stored.critic_obs,
-                              stored.next_critic_obs))  # fmt: skip
-    return jnp.all(jnp.stack([jnp.isfinite(jnp.sum(x * 0)) for x in leaves]))
+    return all_finite((stored.obs, stored.next_obs, stored.critic_obs, stored.next_critic_obs))
 
 
 def summarize(totals: Metrics, iterations: jax.Array, state: TrainState) -> Metrics:
