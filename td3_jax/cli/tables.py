@@ -41,10 +41,16 @@ def print_sweep_ranking(record: dict) -> None:
                         if n - diverged > 1 else "- (1 seed)")  # (no interval from one return)
             cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
         table.add_row(str(rank), label, str(n), str(diverged), *cells)
-    console = output_console()  # (the title above the table: one line, the table no wider)
-    console.print(f"final evaluation return after {record['env_steps']} env steps",
-                  markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+    _print_titled(f"final evaluation return after {record['env_steps']} env steps", table)
+
+
+def _print_titled(title: str, table: Any) -> Any:
+    """``title`` on a line of its own (so the table is no wider for it), then ``table``, on
+    :func:`output_console`; returns that console."""
+    console = output_console()
+    console.print(title, markup=False, highlight=False, soft_wrap=True)
     console.print(table)
+    return console
 
 
 def _ranked_settings(per_member: list[dict]) -> list[tuple[tuple, int, int, dict | None]]:
@@ -93,9 +99,7 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
         values = ["-"] * 4 if r is None else [f"{v:.1f}" for v in (r.mean(), r.std(), r.min(),
                                                                     r.max())]  # fmt: skip
         table.add_row(label, *values)
-    console = output_console()  # (the title above the table: one line, the table no wider)
-    console.print(title, markup=False, highlight=False, soft_wrap=True)
-    console.print(table)
+    console = _print_titled(title, table)
     if aggregate:
         alive = sum(returns is not None for _, returns in rows)
         console.print(

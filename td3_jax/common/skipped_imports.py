@@ -55,9 +55,6 @@ def skipping_unused_imports(names: Iterable[str] = UNUSED_BY_TD3_JAX) -> Iterato
     this thread). Once another thread has imported the package, this one gets it too.
     """
     skipped = [name for name in names if name not in sys.modules]
-    if not skipped:
-        yield skipped
-        return
     finder = _Refusing(skipped, threading.get_ident())
     sys.meta_path.insert(0, finder)
     try:

@@ -380,6 +380,7 @@ _FLOATS = ("actor_lr", "critic_lr", "tau", "discount", "expl_noise", "policy_noi
            "weight_decay", "max_grad_norm", "max_weight_norm", "return_bound",
            "lr_final_fraction")  # fmt: skip
 _SIGNED_FLOATS = ("v_min", "v_max")
+@functools.cache
 def _choices() -> dict[str, tuple[Any, ...]]:
     """Each field whose annotation is a Literal (or a Literal or None) and its choices, None
     left out (an optional one may also be None): what :func:`validate` checks them against."""
@@ -747,8 +748,7 @@ def _check_wandb(cfg: TrainConfig) -> None:
 def _check_options(cfg: TrainConfig) -> None:
     """The FastTD3-class options: known choices, a support, a pair of exploration bounds."""
     for name, allowed in _choices().items():
-        optional = type(None) in union_arms(field_types()[name])
-        if getattr(cfg, name) not in allowed and not (optional and getattr(cfg, name) is None):
+        if not value_fits(getattr(cfg, name), field_types()[name]):
             raise ConfigError(f"unknown {flag(name)} {getattr(cfg, name)!r}; choose one of "
                               f"{', '.join(allowed)}")  # fmt: skip
     if cfg.num_atoms < 2:
