@@ -67,7 +67,7 @@ def resumed_settings(cfg: TrainConfig, out: Path) -> TrainConfig:
     if not (out / rundir.CONFIG_FILE).exists():
         return cfg  # (the run says there is nothing to resume)
     saved = rundir.load_config(out)
-    cfg = rundir.eval_every_as_saved(cfg, out)
+    cfg = rundir.eval_every_as_saved(cfg, saved)
     import jax  # lazy: JAX, only for a run
 
     if jax.process_index() == 0:  # (as the resume itself checks first, in its writer only)

@@ -58,6 +58,7 @@ from td3_jax.runner.rundir import (
     environment_record,
     eval_every_as_saved,
     fixed_settings,
+    load_config,
     open_run_dir,
     previous_outputs,
     resume_command,
@@ -187,8 +188,9 @@ def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
     (:func:`~td3_jax.config.schema.eval_every_within_run`; a resume keeps the chunk its checkpoints
     were written with: :func:`~td3_jax.runner.rundir.eval_every_as_saved`); ``say``: print what
     changed (the CLI hands it over changed already, and says so itself)."""
-    if resume:
-        return eval_every_as_saved(cfg, out_dir)
+    if resume:  # (without a config.json: the resume says there is nothing to resume)
+        saved = Path(out_dir) / CONFIG_FILE
+        return eval_every_as_saved(cfg, load_config(out_dir)) if saved.is_file() else cfg
     changed = eval_every_within_run(cfg)
     if say and changed.eval_every != cfg.eval_every:
         print(field_names(rounding_note(changed, cfg.eval_every)), flush=True)

@@ -551,15 +551,14 @@ def config_changes(
     return changes
 
 
-def eval_every_as_saved(cfg: TrainConfig, out_dir: Path) -> TrainConfig:
-    """``cfg`` for a resume of ``out_dir``: its ``eval_every`` replaced by the saved one where
-    the fresh run took it as those whole iterations (``3000`` with 16 environments: the run's
-    chunks of 3008 steps); unchanged otherwise, or without a config.json (another value is a
-    change, which :func:`config_changes` refuses; so is one that the fresh run lowered to a run
-    shorter than it, unless it rounds to the saved chunk)."""
-    if not (Path(out_dir) / CONFIG_FILE).is_file() or cfg.env_steps_per_iter <= 0:
+def eval_every_as_saved(cfg: TrainConfig, saved: TrainConfig) -> TrainConfig:
+    """``cfg`` for a resume of the run whose config.json holds ``saved``: its ``eval_every``
+    replaced by the saved one where the fresh run took it as those whole iterations (``3000``
+    with 16 environments: the run's chunks of 3008 steps); unchanged otherwise (another value
+    is a change, which :func:`config_changes` refuses; so is one that the fresh run lowered to
+    a run shorter than it, unless it rounds to the saved chunk)."""
+    if cfg.env_steps_per_iter <= 0:
         return cfg
-    saved = load_config(out_dir)
     if saved.steps_per_chunk in whole_iterations(cfg.eval_every, cfg.env_steps_per_iter):
         return dataclasses.replace(cfg, eval_every=saved.eval_every)
     return cfg
