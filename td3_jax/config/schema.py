@@ -286,9 +286,11 @@ class TrainConfig:
     OUT/wandb/, uploaded later with `wandb sync`); default: $WANDB_MODE, else online."""
 
     def __post_init__(self) -> None:
-        check_field_types(self)
-        for name, value in _normalized_fields(self).items():
-            object.__setattr__(self, name, value)
+        for name, kind in field_types().items():
+            value = getattr(self, name)
+            plain = _normalized(_checked(name, value, kind), kind)
+            if plain is not value:
+                object.__setattr__(self, name, plain)
 
     # Derived quantities --------------------------------------------------------------------
     @property
@@ -526,16 +528,16 @@ def type_words(kind: Any, *, json_words: bool = False) -> str:
     return words[json_words] if words else getattr(kind, "__name__", str(kind))
 
 
-def check_field_types(cfg: TrainConfig) -> None:
-    """Raises :class:`ConfigError` naming the first field of ``cfg`` whose value is not of its
-    annotated type (``TrainConfig(total_steps="3000")``), before anything compares or computes
-    with it; the values' ranges and choices are :func:`validate`'s."""
-    for name, kind in field_types().items():
-        value = getattr(cfg, name)
-        value = value.item() if isinstance(value, np.generic) else value
-        if not value_fits(value, kind, choices=False):
-            raise ConfigError(f"TrainConfig.{name} must be {type_words(kind)}, got {value!r} "
-                              f"({type(value).__name__})")  # fmt: skip
+def _checked(name: str, value: Any, kind: Any) -> Any:
+    """``value`` of field ``name`` (a NumPy scalar as its Python value), or a
+    :class:`ConfigError` where it is not of its annotated type ``kind``
+    (``TrainConfig(total_steps="3000")``), before anything compares or computes with it; the
+    values' ranges and choices are :func:`validate`'s."""
+    value = value.item() if isinstance(value, np.generic) else value
+    if not value_fits(value, kind, choices=False):
+        raise ConfigError(f"TrainConfig.{name} must be {type_words(kind)}, got {value!r} "
+                          f"({type(value).__name__})")  # fmt: skip
+    return value
 
 
 def _normalized(value: Any, kind: Any) -> Any:
@@ -543,8 +545,6 @@ def _normalized(value: Any, kind: Any) -> Any:
     own type: a NumPy scalar as its Python value, a whole float as an int for an int field, an
     int as a float for a float field, a list of sizes as a tuple of ints (so a config hashes,
     compares, shapes arrays and writes to JSON as one given in plain types does)."""
-    if isinstance(value, np.generic):
-        value = value.item()
     arms = union_arms(kind)
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return value
@@ -558,17 +558,6 @@ def _normalized(value: Any, kind: Any) -> Any:
     if isinstance(value, tuple | list) and any(typing.get_origin(a) is tuple for a in arms):
         return tuple(int(_normalized(v, int)) for v in value)
     return value
-
-
-def _normalized_fields(cfg: TrainConfig) -> dict[str, Any]:
-    """The fields of ``cfg`` whose values :func:`_normalized` changes, with the new values."""
-    changed = {}
-    for name, kind in field_types().items():
-        value = getattr(cfg, name)
-        plain = _normalized(value, kind)
-        if plain is not value:
-            changed[name] = plain
-    return changed
 
 
 @functools.cache
@@ -896,7 +885,6 @@ __all__ = [
     "WANDB_SETTINGS",
     "TrainConfig",
     "as_flag",
-    "check_field_types",
     "check_seed",
     "eval_every_within_run",
     "field_types",
