@@ -95,10 +95,10 @@ def fasttd3_curve(task_id: str, path: Path = PUBLISHED_CURVES) -> list[tuple[flo
 
 def _shown_robot_runs(preset: str) -> tuple[str, ...]:
     """A robot's td3-jax runs in its main table besides the preset's: pushes on, two GPUs (one
-    process, or one per GPU), and the run timed beside Playground's PPO on the other GPU of one
-    command."""
+    process, or one per GPU), and the runs timed beside Playground's PPO on the other GPU of one
+    command (named ``PRESET, BUDGET-s budget, ...``)."""
     return (f"{preset} --pushes on", f"{preset} --devices 2", f"{preset} --local-processes 2",
-            f"{preset}, 330-s budget")  # fmt: skip
+            f"{preset}, ")  # fmt: skip
 
 
 def _robot(name: str, title: str, env: str) -> Task:

@@ -1,0 +1,139 @@
+"""How XLA compile options change the time to compile a preset's training chunk, and its speed.
+
+Usage::
+
+    python -m benchmarks.compile_options --preset t1 \\
+        --variant default \\
+        --variant no-fusion-autotuner:xla_gpu_experimental_enable_fusion_autotuner=false
+
+The environment is made and the chunk traced and lowered once; then, for ``--rounds`` rounds,
+each variant's options (on top of the run's own, e.g. the preset's ``matmuls``) compile that same
+lowered program from nothing (JAX's in-memory and persistent caches are not used), and the
+compiled chunk runs ``--iterations`` iterations from one shared state (after one untimed call) to
+give its env steps/s. A variant is ``NAME`` (the run's options alone) or
+``NAME:KEY=VALUE[,KEY=VALUE...]`` with XLA ``DebugOptions`` fields (``true``/``false``, numbers,
+or text). Prints one JSON line per compile, then one summary line per variant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import json
+import time
+
+import jax
+import numpy as np
+from jax._src.interpreters import pxla
+
+from td3_jax.common import upstream
+from td3_jax.config import build
+from td3_jax.config.build import make_population, members
+from td3_jax.config.presets import preset
+from td3_jax.runner import programs
+from td3_jax.runner.sharding import make_mesh
+
+
+def option_value(text: str) -> bool | int | float | str:
+    """``true``/``false`` as booleans, numbers as numbers, anything else as the text."""
+    lowered = text.strip().lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``"NAME:K=V,K2=V2"`` -> ``("NAME", {"K": V, "K2": V2})``; ``"NAME"`` -> ``("NAME", {})``."""
+    name, _, options = text.partition(":")
+    pairs = [item.split("=", 1) for item in options.split(",") if item]
+    if not name or any(len(pair) != 2 or not pair[0] for pair in pairs):
+        raise SystemExit(f"compile_options: --variant {text!r} is not NAME[:KEY=VALUE,...]")
+    return name, {key.strip(): option_value(value) for key, value in pairs}
+
+
+def parse() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default="t1")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME[:K=V,...]")
+    parser.add_argument("--rounds", type=int, default=2, help="each variant this many times")
+    parser.add_argument("--iterations", type=int, default=200, help="timed chunk iterations")
+    args = parser.parse_args()
+    args.variants = [parse_variant(v) for v in args.variant or ["default"]]
+    return args
+
+
+def lowered_chunk(cfg, devices: int = 1):
+    """The preset's chunk lowered once, its jitted programs and the env steps of an iteration."""
+    mesh = make_mesh(devices)
+    env = build.make_env(cfg)
+    program = make_population(cfg, members(cfg), devices=mesh.size, env=env, mesh=mesh)
+    compiled = programs.jitted(program, mesh)
+    specs = programs.chunk_argument_specs(program, compiled.shardings)
+    base = upstream.compile_options(mesh.devices.flat[0].platform, cfg.matmuls)
+    return compiled.chunk.lower(*specs), compiled, base
+
+
+def timed_compile(lowered, options: dict) -> tuple[object, float]:
+    """``lowered`` compiled with ``options`` from nothing, and the seconds it took."""
+    pxla.clear_in_memory_compilation_cache()
+    start = time.perf_counter()
+    executable = lowered.compile(compiler_options=dict(options))
+    return executable, time.perf_counter() - start
+
+
+def loop_rate(executable, hyperparams, state, iterations: int, steps_per_iteration: int):
+    """Env steps/s of ``iterations`` chunk iterations from ``state`` (donated; after one untimed
+    call), and the state they end in."""
+    state, metrics = executable(hyperparams, state, np.int32(1))
+    jax.block_until_ready(metrics)
+    start = time.perf_counter()
+    state, metrics = executable(hyperparams, state, np.int32(iterations))
+    jax.block_until_ready((state, metrics))
+    return iterations * steps_per_iteration / (time.perf_counter() - start), state
+
+
+def past_warmup(lowered, base: dict, compiled, cfg):
+    """The initial state run past the warm-up (random actions, no updates), so that every
+    timed iteration learns; compiled with the run's own options (not timed)."""
+    state = jax.block_until_ready(compiled.init())
+    executable = lowered.compile(compiler_options=dict(base))
+    iterations = -(-cfg.warmup_steps // cfg.env_steps_per_iter) + 1
+    state, metrics = executable(compiled.hyperparams, state, np.int32(iterations))
+    jax.block_until_ready(metrics)
+    return state
+
+
+def main() -> None:
+    args = parse()
+    jax.config.update("jax_enable_compilation_cache", False)  # each compile from nothing
+    changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
+    cfg = dataclasses.replace(preset(args.preset), **changes)
+    start = time.perf_counter()
+    lowered, compiled, base = lowered_chunk(cfg)
+    print(json.dumps({"made_and_lowered_s": round(time.perf_counter() - start, 1),
+                      "base_options": base}), flush=True)  # fmt: skip
+    state = past_warmup(lowered, base, compiled, cfg)
+    steps = cfg.env_steps_per_iter
+    results: dict[str, list] = {name: [] for name, _ in args.variants}
+    for round_index in range(args.rounds):
+        for name, options in args.variants:
+            executable, seconds = timed_compile(lowered, {**base, **options})
+            rate, state = loop_rate(executable, compiled.hyperparams, state, args.iterations,
+                                    steps)  # fmt: skip
+            results[name].append((round(seconds, 1), round(rate)))
+            print(json.dumps({"round": round_index, "variant": name, "options": options,
+                              "compile_s": round(seconds, 1), "env_steps_per_s": round(rate)}),
+                  flush=True)  # fmt: skip
+            del executable
+    for name, rows in results.items():
+        print(json.dumps({"variant": name, "compile_s": [r[0] for r in rows],
+                          "env_steps_per_s": [r[1] for r in rows]}), flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
