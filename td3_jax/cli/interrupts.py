@@ -9,6 +9,7 @@ import functools
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -45,7 +46,7 @@ def train_stoppably(
     (:func:`signals_while_starting`). Returns the run's records, one per chunk."""
     import jax  # lazy: JAX, only for a run
 
-    from td3_jax.runner.run import train  # lazy: imports JAX
+    from td3_jax.runner.run import RunCompleteWarning, train  # lazy: imports JAX
     from td3_jax.runner.rundir import interrupted_message  # lazy: imports JAX
 
     received = [] if received is None else received
@@ -55,7 +56,8 @@ def train_stoppably(
         several = jax.process_count() > 1  # (a first Ctrl-C too stops at an agreed boundary)
         signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
                                        aftermath=ended, several=several)  # fmt: skip
-        with signals:
+        with signals, warnings.catch_warnings():  # (the command says so in its own words)
+            warnings.simplefilter("ignore", RunCompleteWarning)
             return train(cfg, command.out, resume=command.resume, stop=stop,
                          progress=not command.quiet, time_budget_s=command.time_budget_s,
                          **train_options)  # fmt: skip

@@ -639,10 +639,24 @@ def rounding_note(cfg: TrainConfig, asked_eval_every: int | None = None) -> str 
     return "; ".join(notes) or None
 
 
+def check_is_config(cfg: Any) -> TrainConfig:
+    """``cfg``, where it is a :class:`TrainConfig`; anything else (a dict of settings, a
+    preset's name) is a ``TypeError`` that says how to make one."""
+    if isinstance(cfg, TrainConfig):
+        return cfg
+    shown = repr(cfg) if len(repr(cfg)) <= 60 else repr(cfg)[:57] + "..."
+    make = ("TrainConfig(**settings) makes one of a dict" if isinstance(cfg, dict)
+            else "make one with TrainConfig(env=..., ...)")  # fmt: skip
+    raise TypeError(f"cfg must be a td3_jax.TrainConfig, got {shown} ({type(cfg).__name__}); "
+                    f"{make}")  # fmt: skip
+
+
 def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
     """Raises :class:`ConfigError` with one clear sentence for a setting that cannot work, on
     its own or on ``devices`` devices (the run's mesh: its global sizes split over them);
-    returns ``cfg``."""
+    returns ``cfg``. Anything but a :class:`TrainConfig` is a ``TypeError``
+    (:func:`check_is_config`)."""
+    check_is_config(cfg)
     _check_counts(cfg)
     _check_floats(cfg)
     _check_replay(cfg)
@@ -885,6 +899,7 @@ __all__ = [
     "WANDB_SETTINGS",
     "TrainConfig",
     "as_flag",
+    "check_is_config",
     "check_seed",
     "eval_every_within_run",
     "field_types",

@@ -10,9 +10,11 @@ import dataclasses
 import errno
 import json
 import math
+import os
 import re
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from concurrent.futures import Future
 from functools import partial
@@ -34,7 +36,13 @@ from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
 from td3_jax.config.build import bind_environment, members
 from td3_jax.config.python_names import field_names
-from td3_jax.config.schema import TrainConfig, eval_every_within_run, rounding_note, validate
+from td3_jax.config.schema import (
+    TrainConfig,
+    check_is_config,
+    eval_every_within_run,
+    rounding_note,
+    validate,
+)
 from td3_jax.core.population import Member
 from td3_jax.core.stats import population_stats, return_stats
 from td3_jax.core.training import observations_finite, ring_as_saved
@@ -78,7 +86,7 @@ from td3_jax.runner.sharding import (
     stop_failed,
 )
 
-__all__ = ["stop_before_next_training", "train"]
+__all__ = ["RunCompleteWarning", "stop_before_next_training", "train"]
 
 
 class _CallCounter:
@@ -125,7 +133,9 @@ def train(
     throughout (:mod:`~td3_jax.runner.rundir`; a busy one, or a used one without ``resume``, is
     refused), until ``cfg.total_steps`` rounded up to a whole iteration
     (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl; none
-    for a resumed run already complete). A full disk stops it with ``OutputWriteError``.
+    for a resumed run already complete, which warns: :class:`RunCompleteWarning`). A full disk
+    stops it with ``OutputWriteError``; a ``cfg`` that is no :class:`TrainConfig` or an
+    ``out_dir`` that is no path, with ``TypeError``.
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
@@ -146,8 +156,9 @@ def train(
       stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
+    check_is_config(cfg)
     check_time_budget(time_budget_s)
-    out_dir, writer = Path(out_dir), jax.process_index() == 0  # several processes: one writes
+    out_dir, writer = _as_path(out_dir), jax.process_index() == 0  # several: one writes
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
     cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer)
     prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
@@ -180,6 +191,14 @@ def _prepared_and_opened(
     except BaseException:
         stop_before_training("token" if stop.is_set() else "error", call=call)
         raise
+
+
+def _as_path(out_dir: Any) -> Path:
+    """``out_dir`` as a ``Path``; a ``TypeError`` that names ``out_dir`` for what is no path."""
+    if isinstance(out_dir, (str, os.PathLike)) and str(out_dir):
+        return Path(out_dir)
+    raise TypeError(f"out_dir must be a directory's path (str or os.PathLike), got "
+                    f"{out_dir!r} ({type(out_dir).__name__})")  # fmt: skip
 
 
 def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
@@ -230,6 +249,9 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
         if on_started is not None:
             on_started(run.start_steps)
         if run.start_steps >= run.cfg.run_steps:
+            if run.writer:
+                warnings.warn(_complete_message(run), RunCompleteWarning,
+                              stacklevel=_outside_level())  # fmt: skip
             return
         _say_resuming(run)
         run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
@@ -241,6 +263,32 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
     except BaseException:
         _tell_the_others(run)
         raise
+
+
+class RunCompleteWarning(UserWarning):
+    """A resume (``resume=True``) found its run complete: :func:`train` trained nothing and
+    returns no record (the command line says so in its own words instead)."""
+
+
+def _outside_level() -> int:
+    """The ``stacklevel`` of a warning from the calling function that points at the first
+    caller outside td3-jax (the line of the user's ``td3_jax.train(...)``)."""
+    frame, level = sys._getframe(1), 1
+    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith("td3_jax"):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def _complete_message(run: _Run) -> str:
+    """What a resume of a complete run says to a Python caller: how far the run went and how
+    to train it further."""
+    done = run.cfg.run_steps
+    if run.cfg.lr_schedule == "cosine":
+        further = ("its cosine learning-rate schedule fixed its length: start a new run with a "
+                   "larger total_steps to train longer")  # fmt: skip
+    else:
+        further = f"resume=True with total_steps={2 * done} goes on to {2 * done:,}"
+    return f"nothing to do: the run in {run.out_dir} is complete ({done:,} env steps); {further}"
 
 
 def _tell_the_others(run: _Run) -> None:

@@ -328,6 +328,7 @@ def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     # a --resume of that finished run says only that it is complete (nothing loaded)
     code, out, err = main(["train", "--resume", "--out", str(tmp_path / "again")], capsys)
     assert code == 0 and out.splitlines()[-1].startswith("nothing to do: the run in "), err
+    assert "RunCompleteWarning" not in err  # (the library's own words for it are not shown)
     assert not [line for line in out.splitlines() if line.startswith(("using the", "compiling"))]
 
 

@@ -150,3 +150,28 @@ def test_odd_numbers_are_refused_or_made_plain_where_the_config_is_made():
     with pytest.raises(ConfigError, match="too large for a float setting"):
         TrainConfig(tau=10**400)
     assert value_fits(object(), typing.Any)
+
+
+@pytest.mark.parametrize(
+    ("given", "advice"),
+    [({"env": "gymnax/Pendulum-v1"}, "TrainConfig(**settings) makes one of a dict"),
+     ("pendulum", "make one with TrainConfig(env=..., ...)"),
+     (None, "make one with TrainConfig(env=..., ...)")],
+)  # fmt: skip
+def test_train_and_make_train_refuse_anything_but_a_train_config_by_name(given, advice, tmp_path):
+    """A dict of settings or a preset's name is one TypeError that says what to pass, where it
+    was an AttributeError from deep inside; nothing is written."""
+    expected = f"cfg must be a td3_jax.TrainConfig, got {given!r} ({type(given).__name__})"
+    for call in (lambda: td3_jax.make_train(given), lambda: td3_jax.train(given, tmp_path / "r")):
+        with pytest.raises(TypeError) as refused:
+            call()
+        assert str(refused.value) == f"{expected}; {advice}"
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("out_dir", [5, None, "", b"runs/x"])
+def test_train_refuses_an_out_dir_that_is_no_path_by_name(out_dir):
+    with pytest.raises(TypeError) as refused:
+        td3_jax.train(tiny_config(), out_dir)
+    assert str(refused.value) == (f"out_dir must be a directory's path (str or os.PathLike), "
+                                  f"got {out_dir!r} ({type(out_dir).__name__})")  # fmt: skip

@@ -211,6 +211,30 @@ def test_the_library_resumes_with_the_config_the_run_was_started_with(tmp_path):
     assert [r["env_steps"] for r in train(extended, lowered, resume=True, progress=False)] == [128]
 
 
+def test_the_library_warns_that_a_resumed_run_is_complete_and_writes_nothing(tmp_path):
+    """A resume of a complete run trains nothing and returns no record, as the command line
+    does, and says so with a warning in Python's words (with a cosine schedule: a new run)."""
+    from td3_jax.runner.run import RunCompleteWarning
+
+    cfg, out = tiny_config(total_steps=64, eval_every=64), tmp_path / "done"
+    assert [r["env_steps"] for r in train(cfg, out, progress=False)] == [64]
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".lock"}
+    with pytest.warns(RunCompleteWarning) as said:
+        assert train(cfg, out, resume=True, progress=False) == []
+    assert [str(w.message) for w in said] == [
+        f"nothing to do: the run in {out} is complete (64 env steps); resume=True with "
+        "total_steps=128 goes on to 128"]  # fmt: skip
+    assert said[0].filename == __file__  # (where the caller called train)
+    after = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".lock"}
+    assert after == before
+    cosine = dataclasses.replace(cfg, lr_schedule="cosine")
+    train(cosine, tmp_path / "cosine", progress=False)
+    with pytest.warns(RunCompleteWarning, match="its cosine learning-rate schedule fixed its "
+                                                "length: start a new run with a larger "
+                                                "total_steps to train longer$"):  # fmt: skip
+        assert train(cosine, tmp_path / "cosine", resume=True, progress=False) == []
+
+
 @pytest.mark.runs
 def test_resume_changes_record_the_total_steps_the_run_was_trained_for(tmp_path, capsys):
     """A config.json whose total_steps was edited by hand (128 to 192) is not the run's: the
