@@ -8,9 +8,12 @@ Usage::
 
 The environment is made and the chunk traced and lowered once; then, for ``--rounds`` rounds,
 each variant's options (on top of the run's own, e.g. the preset's ``matmuls``) compile that same
-lowered program from nothing (JAX's in-memory and persistent caches are not used), and the
-compiled chunk runs ``--iterations`` iterations from one shared state (after one untimed call) to
-give its env steps/s. A variant is ``NAME`` (the run's options alone) or
+lowered program again (JAX's in-memory and persistent caches are not used; XLA keeps its GPU
+autotuning results for the whole process, so after the first compile they are reused and the
+times leave autotuning out: compare autotuning in processes of their own), and the compiled
+chunk runs ``--iterations`` iterations to give its env steps/s. The state runs past the
+warm-up first and goes on from one variant to the next (each timed call after one untimed).
+A variant is ``NAME`` (the run's options alone) or
 ``NAME:KEY=VALUE[,KEY=VALUE...]`` with XLA ``DebugOptions`` fields (``true``/``false``, numbers,
 or text). Prints one JSON line per compile, then one summary line per variant.
 """
@@ -25,7 +28,6 @@ import time
 
 import jax
 import numpy as np
-from jax._src.interpreters import pxla
 
 from td3_jax.common import upstream
 from td3_jax.config import build
@@ -37,9 +39,9 @@ from td3_jax.runner.sharding import make_mesh
 
 def option_value(text: str) -> bool | int | float | str:
     """``true``/``false`` as booleans, numbers as numbers, anything else as the text."""
-    lowered = text.strip().lower()
-    if lowered in ("true", "false"):
-        return lowered == "true"
+    text = text.strip()
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
     try:
         return ast.literal_eval(text)
     except (ValueError, SyntaxError):
@@ -68,19 +70,21 @@ def parse() -> argparse.Namespace:
 
 
 def lowered_chunk(cfg, devices: int = 1):
-    """The preset's chunk lowered once, its jitted programs and the env steps of an iteration."""
+    """The preset's chunk lowered once, its jitted (not yet compiled) programs, and the run's
+    own compile options."""
     mesh = make_mesh(devices)
     env = build.make_env(cfg)
     program = make_population(cfg, members(cfg), devices=mesh.size, env=env, mesh=mesh)
-    compiled = programs.jitted(program, mesh)
-    specs = programs.chunk_argument_specs(program, compiled.shardings)
+    jitted = programs.jitted(program, mesh)
+    specs = programs.chunk_argument_specs(program, jitted.shardings)
     base = upstream.compile_options(mesh.devices.flat[0].platform, cfg.matmuls)
-    return compiled.chunk.lower(*specs), compiled, base
+    return jitted.chunk.lower(*specs), jitted, base
 
 
 def timed_compile(lowered, options: dict) -> tuple[object, float]:
-    """``lowered`` compiled with ``options`` from nothing, and the seconds it took."""
-    pxla.clear_in_memory_compilation_cache()
+    """``lowered`` compiled with ``options`` again (not read back from JAX's caches), and the
+    seconds it took."""
+    jax.clear_caches()
     start = time.perf_counter()
     executable = lowered.compile(compiler_options=dict(options))
     return executable, time.perf_counter() - start
@@ -97,13 +101,13 @@ def loop_rate(executable, hyperparams, state, iterations: int, steps_per_iterati
     return iterations * steps_per_iteration / (time.perf_counter() - start), state
 
 
-def past_warmup(lowered, base: dict, compiled, cfg):
+def past_warmup(lowered, base: dict, jitted, cfg):
     """The initial state run past the warm-up (random actions, no updates), so that every
     timed iteration learns; compiled with the run's own options (not timed)."""
-    state = jax.block_until_ready(compiled.init())
+    state = jax.block_until_ready(jitted.init())
     executable = lowered.compile(compiler_options=dict(base))
     iterations = -(-cfg.warmup_steps // cfg.env_steps_per_iter) + 1
-    state, metrics = executable(compiled.hyperparams, state, np.int32(iterations))
+    state, metrics = executable(jitted.hyperparams, state, np.int32(iterations))
     jax.block_until_ready(metrics)
     return state
 
@@ -114,16 +118,16 @@ def main() -> None:
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = dataclasses.replace(preset(args.preset), **changes)
     start = time.perf_counter()
-    lowered, compiled, base = lowered_chunk(cfg)
+    lowered, jitted, base = lowered_chunk(cfg)
     print(json.dumps({"made_and_lowered_s": round(time.perf_counter() - start, 1),
                       "base_options": base}), flush=True)  # fmt: skip
-    state = past_warmup(lowered, base, compiled, cfg)
+    state = past_warmup(lowered, base, jitted, cfg)
     steps = cfg.env_steps_per_iter
     results: dict[str, list] = {name: [] for name, _ in args.variants}
     for round_index in range(args.rounds):
         for name, options in args.variants:
             executable, seconds = timed_compile(lowered, {**base, **options})
-            rate, state = loop_rate(executable, compiled.hyperparams, state, args.iterations,
+            rate, state = loop_rate(executable, jitted.hyperparams, state, args.iterations,
                                     steps)  # fmt: skip
             results[name].append((round(seconds, 1), round(rate)))
             print(json.dumps({"round": round_index, "variant": name, "options": options,

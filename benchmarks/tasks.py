@@ -96,7 +96,8 @@ def fasttd3_curve(task_id: str, path: Path = PUBLISHED_CURVES) -> list[tuple[flo
 def _shown_robot_runs(preset: str) -> tuple[str, ...]:
     """A robot's td3-jax runs in its main table besides the preset's: pushes on, two GPUs (one
     process, or one per GPU), and the runs timed beside Playground's PPO on the other GPU of one
-    command (named ``PRESET, BUDGET-s budget, ...``)."""
+    command (named with a comma after the preset's name: ``t1, 300-s budget, beside
+    Playground PPO``)."""
     return (f"{preset} --pushes on", f"{preset} --devices 2", f"{preset} --local-processes 2",
             f"{preset}, ")  # fmt: skip
 

@@ -228,6 +228,9 @@ def presets_page() -> str:
         "it and flags given override it. Without `--preset`, a run whose `--env` has a preset of "
         "its own starts from it (and says so); another environment starts from settings scaled "
         "to the device. `td3-jax presets [NAME ...]` prints the same values as flags.\n",
+        "From Python, `td3_jax.config.presets.preset(NAME)` is a preset's `TrainConfig` (change "
+        "it with `dataclasses.replace`); `td3_jax.TrainConfig(env=...)` alone takes the "
+        "defaults below, not the environment's preset.\n",
         *(f"`{old}` is a former name of `{new}`; `--preset {old}` still runs it.\n"
           for old, new in presets.RENAMED.items()),
     ]  # fmt: skip

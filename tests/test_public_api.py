@@ -103,3 +103,11 @@ def test_each_agent_builder_refuses_the_other_s_config():
         td3_jax.td3(td3_jax.DDPGConfig(), 3, 1)
     with pytest.raises(TypeError, match=r"^tj\.td3 takes a TD3Config, got dict$"):
         td3_jax.td3({}, 3, 1)
+
+
+def test_dir_shows_the_public_names_not_the_modules_helpers():
+    """Tab completion on ``td3_jax.`` offers ``__all__`` (loaded or not), not ``Any`` or
+    ``importlib``, which the package imports for itself."""
+    shown = [name for name in dir(td3_jax) if not name.startswith("_")]
+    assert shown == sorted(td3_jax.__all__)
+    assert "__version__" in dir(td3_jax)

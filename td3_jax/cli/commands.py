@@ -46,8 +46,9 @@ def default_in_help(metavar: str) -> Any:
 
 
 #: The values a sweep tries for one setting (none: the setting is not swept).
-SweptValues = Annotated[tuple[float, ...], tyro.conf.arg(metavar="VALUES",
-                                                     help_behavior_hint="(default: not swept)")]
+SweptValues = Annotated[
+    tuple[float, ...], tyro.conf.arg(metavar="VALUES", help_behavior_hint="(default: not swept)")
+]
 
 
 @dataclasses.dataclass(frozen=True)

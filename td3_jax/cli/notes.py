@@ -32,7 +32,6 @@ __all__ = [
     "large_for_cpu",
     "members_note",
     "no_learning_warning",
-    "nothing_to_do",
     "preset_noted",
     "preset_source_note",
     "unnamed_env_warning",
@@ -255,29 +254,6 @@ def when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
     for warning in warnings:
         if warning:
             warn(warning)
-
-
-def nothing_to_do(out: Path, cfg: TrainConfig) -> str:
-    """The line of a ``--resume`` that finds its run complete: how far the run went and how to
-    train it further (a larger ``--total-steps``; a new run where a cosine schedule fixed its
-    length)."""
-    done = f"{cfg.run_steps:,}"
-    from td3_jax.runner.rundir import load_config, resume_command  # lazy: imports JAX
-
-    planned = load_config(out).run_steps  # (a complete run's resume rewrote nothing)
-    if planned > cfg.run_steps:  # a stopped run resumed with a shorter --total-steps
-        go_on = resume_command(out)
-        return (f"nothing to do: the run in {out} has taken {done} env steps, what --total-steps "
-                f"{cfg.total_steps:,} asks; it was set for {planned:,}: {go_on} goes on to "
-                "them")  # fmt: skip
-    if cfg.lr_schedule == "cosine":
-        further = ("its cosine learning-rate schedule fixed its length: start a new run with a "
-                   "larger --total-steps to train longer")  # fmt: skip
-    else:
-        more = 2 * cfg.run_steps
-        go_on = resume_command(out, f" --total-steps {more}")
-        further = f"{go_on} goes on to {more:,}"
-    return f"nothing to do: the run in {out} is complete ({done} env steps); {further}"
 
 
 def members_note(last: dict, sweeping: bool = False) -> str:

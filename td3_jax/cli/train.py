@@ -77,10 +77,11 @@ def _train_command(
                                   sweep=sweep, preset=preset_name, on_prepared=prepared,
                                   program_dir=program_dir,
                                   on_started=started_at.append)  # fmt: skip
+    from td3_jax.runner.rundir import is_sweep_dir, nothing_to_do  # lazy: imports JAX
+
     if not records:
-        print(notes.nothing_to_do(command.out, cfg))
+        print(nothing_to_do(command.out, cfg))
         return
-    from td3_jax.runner.rundir import is_sweep_dir  # lazy: imports JAX
 
     ranked = sweeping or (command.resume and is_sweep_dir(command.out))  # (also train --resume)
     resumed_at = started_at[0] if command.resume and started_at else None

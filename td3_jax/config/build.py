@@ -38,6 +38,7 @@ from td3_jax.config.schema import (
     SWEEPABLE,
     SWITCHED_ON_BY_THEIR_FLAG,
     TrainConfig,
+    check_is_config,
     flag,
     flag_pattern,
     unused_settings,
@@ -302,8 +303,16 @@ def make_train(
     first (:func:`~td3_jax.config.schema.validate`: a setting that cannot work is a ConfigError, as
     on the command line).
     """
-    spec = make_spec(validate(cfg), env, axis_name)
+    spec = make_spec(_validated(cfg, env), env, axis_name)
     return training.make_train(spec, hyperparams(cfg), cfg.num_chunks)
+
+
+def _validated(cfg: TrainConfig, env: Any) -> TrainConfig:
+    """:func:`~td3_jax.config.schema.validate` of ``cfg``, the name of the environment it
+    makes itself (``env`` None) checked first: a misspelt name is said before any size."""
+    if env is None:
+        envs.check_name(check_is_config(cfg).env)
+    return validate(cfg)
 
 
 class Trainer(NamedTuple):
@@ -337,7 +346,7 @@ def make_trainer(
 ) -> Trainer:
     """:class:`Trainer` of ``cfg``: :mod:`td3_jax.core.training`'s steps with ``spec`` and ``hp``
     bound (``cfg`` validated first: a setting that cannot work is a ConfigError here too)."""
-    spec = make_spec(validate(cfg), env, axis_name, env_groups)
+    spec = make_spec(_validated(cfg, env), env, axis_name, env_groups)
     hp = hyperparams(cfg)
     return Trainer(
         config=cfg,

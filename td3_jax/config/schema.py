@@ -657,6 +657,7 @@ def validate(cfg: TrainConfig, devices: int = 1) -> TrainConfig:
     returns ``cfg``. Anything but a :class:`TrainConfig` is a ``TypeError``
     (:func:`check_is_config`)."""
     check_is_config(cfg)
+    _check_choices(cfg)  # (a misspelt choice is said before any size)
     _check_counts(cfg)
     _check_floats(cfg)
     _check_replay(cfg)
@@ -748,12 +749,16 @@ def _check_wandb(cfg: TrainConfig) -> None:
         raise ConfigError("--wandb-project must name a W&B project")
 
 
-def _check_options(cfg: TrainConfig) -> None:
-    """The FastTD3-class options: known choices, a support, a pair of exploration bounds."""
+def _check_choices(cfg: TrainConfig) -> None:
+    """Every setting of a fixed set of choices (``--algo``, ``--exploration``, ...) is one."""
     for name, allowed in _choices().items():
         if not value_fits(getattr(cfg, name), field_types()[name]):
             raise ConfigError(f"unknown {flag(name)} {getattr(cfg, name)!r}; choose one of "
                               f"{', '.join(allowed)}")  # fmt: skip
+
+
+def _check_options(cfg: TrainConfig) -> None:
+    """The FastTD3-class options: a support, a pair of exploration bounds."""
     if cfg.num_atoms < 2:
         raise ConfigError(f"--num-atoms must be at least 2, got {cfg.num_atoms}")
     if not cfg.v_min < cfg.v_max:

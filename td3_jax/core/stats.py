@@ -43,7 +43,8 @@ def bootstrap_ci(
 
 
 def summary(values: np.ndarray) -> dict[str, float]:
-    """Mean, median, IQM, standard deviation and 95% bootstrap CI of the mean."""
+    """Mean, median, IQM, standard deviation (of the values themselves, ``ddof=0``: NumPy's
+    ``std``; not the sample estimate) and 95% bootstrap CI of the mean."""
     x = np.asarray(values, np.float64).ravel()
     low, high = bootstrap_ci(x)
     return {

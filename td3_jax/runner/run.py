@@ -24,6 +24,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from td3_jax import envs
 from td3_jax.common.errors import (
     WRITE_ERRNOS,
     ConfigError,
@@ -67,6 +68,7 @@ from td3_jax.runner.rundir import (
     eval_every_as_saved,
     fixed_settings,
     load_config,
+    nothing_to_do,
     open_run_dir,
     previous_outputs,
     resume_command,
@@ -156,9 +158,7 @@ def train(
       stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
-    check_is_config(cfg)
-    check_time_budget(time_budget_s)
-    out_dir, writer = _as_path(out_dir), jax.process_index() == 0  # several: one writes
+    out_dir, writer = _checked(cfg, out_dir, time_budget_s), jax.process_index() == 0
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
     cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer)
     prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
@@ -193,9 +193,12 @@ def _prepared_and_opened(
         raise
 
 
-def _as_path(out_dir: Any) -> Path:
-    """``out_dir`` as a ``Path``; a ``TypeError`` that names ``out_dir`` for what is no path."""
-    if isinstance(out_dir, (str, os.PathLike)) and str(out_dir):
+def _checked(cfg: Any, out_dir: Any, time_budget_s: float | None) -> Path:
+    """:func:`train`'s own arguments checked (``cfg`` a :class:`TrainConfig`, the budget
+    positive); ``out_dir`` as a ``Path``, where it is one (a ``TypeError`` that names it)."""
+    check_is_config(cfg)
+    check_time_budget(time_budget_s)
+    if isinstance(out_dir, (str, os.PathLike)) and os.fspath(out_dir):
         return Path(out_dir)
     raise TypeError(f"out_dir must be a directory's path (str or os.PathLike), got "
                     f"{out_dir!r} ({type(out_dir).__name__})")  # fmt: skip
@@ -250,8 +253,8 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
             on_started(run.start_steps)
         if run.start_steps >= run.cfg.run_steps:
             if run.writer:
-                warnings.warn(_complete_message(run), RunCompleteWarning,
-                              stacklevel=_outside_level())  # fmt: skip
+                said = nothing_to_do(run.out_dir, run.cfg, python=True)
+                warnings.warn(said, RunCompleteWarning, stacklevel=_outside_level())
             return
         _say_resuming(run)
         run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
@@ -270,25 +273,17 @@ class RunCompleteWarning(UserWarning):
     returns no record (the command line says so in its own words instead)."""
 
 
+def _in_td3_jax(module: str) -> bool:
+    return module == "td3_jax" or module.startswith("td3_jax.")
+
+
 def _outside_level() -> int:
     """The ``stacklevel`` of a warning from the calling function that points at the first
     caller outside td3-jax (the line of the user's ``td3_jax.train(...)``)."""
     frame, level = sys._getframe(1), 1
-    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith("td3_jax"):
+    while frame.f_back is not None and _in_td3_jax(frame.f_globals.get("__name__", "")):
         frame, level = frame.f_back, level + 1
     return level
-
-
-def _complete_message(run: _Run) -> str:
-    """What a resume of a complete run says to a Python caller: how far the run went and how
-    to train it further."""
-    done = run.cfg.run_steps
-    if run.cfg.lr_schedule == "cosine":
-        further = ("its cosine learning-rate schedule fixed its length: start a new run with a "
-                   "larger total_steps to train longer")  # fmt: skip
-    else:
-        further = f"resume=True with total_steps={2 * done} goes on to {2 * done:,}"
-    return f"nothing to do: the run in {run.out_dir} is complete ({done:,} env steps); {further}"
 
 
 def _tell_the_others(run: _Run) -> None:
@@ -495,6 +490,7 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     naming the environment ``env`` when one is given
     (:func:`~td3_jax.config.build.bind_environment`). Nothing is written."""
     cfg, env = bind_environment(cfg, env)
+    envs.check_name(cfg.env)  # (a misspelt name is said before any size)
     if resume:  # (a run already past --total-steps: said before what cfg alone would say)
         check_total_steps_reach(out_dir, cfg)
     validate(cfg, devices=mesh.size)

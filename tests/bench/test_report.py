@@ -113,6 +113,20 @@ def test_a_robot_table_adds_the_published_results():
     assert fast[-1] == "not reached"  # (38.5)
 
 
+@pytest.mark.parametrize(("run", "shown"), [
+    ("t1", True), ("t1 --pushes on", True), ("t1 --devices 2 --replay-shards 2", True),
+    ("t1 --local-processes 2 --replay-shards 2", True),
+    ("t1, 300-s budget, beside Playground PPO, new host", True),
+    ("t1, 330-s budget, beside Playground PPO", True),
+    ("t1 --num-envs 8192 --eval-every 8192000", False), ("t1-rough, 300-s budget", False),
+    ("g1, 300-s budget", False),
+])  # fmt: skip
+def test_a_robot_table_shows_the_preset_its_variants_and_the_runs_timed_beside_ppo(run, shown):
+    """T1's main table: the preset, pushes, two GPUs and every run named with a comma after
+    the preset's name (those timed beside PPO); other settings only in the settings table."""
+    assert TASKS["t1"].in_main_table(run) is shown
+
+
 def test_curves_round_trip_through_csv(tmp_path):
     path = tmp_path / "toy.csv"
     points = [*PRESET, *PPO]

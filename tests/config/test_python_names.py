@@ -156,12 +156,15 @@ def test_odd_numbers_are_refused_or_made_plain_where_the_config_is_made():
     ("given", "advice"),
     [({"env": "gymnax/Pendulum-v1"}, "TrainConfig(**settings) makes one of a dict"),
      ("pendulum", "make one with TrainConfig(env=..., ...)"),
-     (None, "make one with TrainConfig(env=..., ...)")],
+     (None, "make one with TrainConfig(env=..., ...)"),
+     ("x" * 70, "make one with TrainConfig(env=..., ...)")],
 )  # fmt: skip
 def test_train_and_make_train_refuse_anything_but_a_train_config_by_name(given, advice, tmp_path):
     """A dict of settings or a preset's name is one TypeError that says what to pass, where it
-    was an AttributeError from deep inside; nothing is written."""
-    expected = f"cfg must be a td3_jax.TrainConfig, got {given!r} ({type(given).__name__})"
+    was an AttributeError from deep inside; nothing is written. A long value is cut to 60
+    characters."""
+    shown = repr(given) if len(repr(given)) <= 60 else "'" + "x" * 56 + "..."
+    expected = f"cfg must be a td3_jax.TrainConfig, got {shown} ({type(given).__name__})"
     for call in (lambda: td3_jax.make_train(given), lambda: td3_jax.train(given, tmp_path / "r")):
         with pytest.raises(TypeError) as refused:
             call()
@@ -175,3 +178,22 @@ def test_train_refuses_an_out_dir_that_is_no_path_by_name(out_dir):
         td3_jax.train(tiny_config(), out_dir)
     assert str(refused.value) == (f"out_dir must be a directory's path (str or os.PathLike), "
                                   f"got {out_dir!r} ({type(out_dir).__name__})")  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("wrong", "said"),
+    [({"algo": "sac"}, "unknown algo 'sac'; choose one of td3, ddpg"),
+     ({"env": "gymnax/Pendulum-v2"},
+      "unknown environment 'gymnax/Pendulum-v2'; did you mean gymnax/Pendulum-v1?")],
+)  # fmt: skip
+def test_a_misspelt_name_is_said_before_a_size_that_does_not_fit(wrong, said, tmp_path):
+    """A config wrong twice (a warm-up longer than the run, and a misspelt choice or
+    environment) names the misspelling first, from make_train and from train alike."""
+    from td3_jax.common.errors import Td3JaxError
+
+    cfg = TrainConfig(total_steps=1000, **wrong)  # (warmup_steps=2000 does not fit in 1000)
+    for call in (lambda: td3_jax.make_train(cfg), lambda: td3_jax.train(cfg, tmp_path / "r")):
+        with pytest.raises(Td3JaxError) as refused:
+            call()
+        assert str(refused.value).startswith(said)
+    assert not (tmp_path / "r").exists()

@@ -213,7 +213,7 @@ def test_the_library_resumes_with_the_config_the_run_was_started_with(tmp_path):
 
 def test_the_library_warns_that_a_resumed_run_is_complete_and_writes_nothing(tmp_path):
     """A resume of a complete run trains nothing and returns no record, as the command line
-    does, and says so with a warning in Python's words (with a cosine schedule: a new run)."""
+    does, and says so with a warning in Python's words at the caller's line."""
     from td3_jax.runner.run import RunCompleteWarning
 
     cfg, out = tiny_config(total_steps=64, eval_every=64), tmp_path / "done"
@@ -227,12 +227,31 @@ def test_the_library_warns_that_a_resumed_run_is_complete_and_writes_nothing(tmp
     assert said[0].filename == __file__  # (where the caller called train)
     after = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".lock"}
     assert after == before
+
+
+@pytest.mark.parametrize("python", [False, True])
+def test_nothing_to_do_says_how_to_go_on_in_the_callers_words(tmp_path, python):
+    """Complete: resume to twice the steps; complete with a cosine schedule: a new run; set for
+    more than a shorter resume asked (stopped at 128 of 256): resume to the steps it was set
+    for. The command line's words, or a Python caller's."""
+    out, cfg = tmp_path / "run", tiny_config(total_steps=128)
+    out.mkdir()
+    rundir.save_config(cfg, members(cfg), out)
+    resume = "resume=True with total_steps=256" if python else (
+        f"td3-jax train --out {out} --resume --total-steps 256")  # fmt: skip
+    assert rundir.nothing_to_do(out, cfg, python=python) == (
+        f"nothing to do: the run in {out} is complete (128 env steps); {resume} goes on to 256")
     cosine = dataclasses.replace(cfg, lr_schedule="cosine")
-    train(cosine, tmp_path / "cosine", progress=False)
-    with pytest.warns(RunCompleteWarning, match="its cosine learning-rate schedule fixed its "
-                                                "length: start a new run with a larger "
-                                                "total_steps to train longer$"):  # fmt: skip
-        assert train(cosine, tmp_path / "cosine", resume=True, progress=False) == []
+    steps = "total_steps" if python else "--total-steps"
+    assert rundir.nothing_to_do(out, cosine, python=python).endswith(
+        f"complete (128 env steps); its cosine learning-rate schedule fixed its length: start a "
+        f"new run with a larger {steps} to train longer")  # fmt: skip
+    rundir.save_config(dataclasses.replace(cfg, total_steps=256), members(cfg), out)
+    asked = "total_steps=128" if python else "--total-steps 128"
+    resume = "resume=True with total_steps=256" if python else f"td3-jax train --out {out} --resume"
+    assert rundir.nothing_to_do(out, cfg, python=python) == (
+        f"nothing to do: the run in {out} has taken 128 env steps, what {asked} asks; it was "
+        f"set for 256: {resume} goes on to them")  # fmt: skip
 
 
 @pytest.mark.runs
