@@ -9,8 +9,9 @@ Usage::
 The environment is made and the chunk traced and lowered once; then, for ``--rounds`` rounds,
 each variant's options (on top of the run's own, e.g. the preset's ``matmuls``) compile that same
 lowered program again (JAX's in-memory and persistent caches are not used; XLA keeps its GPU
-autotuning results for the whole process, so after the first compile they are reused and the
-times leave autotuning out: compare autotuning in processes of their own), and the compiled
+autotuning results for the whole process, so the untimed compile that runs the warm-up first
+leaves autotuning out of every timed one: compare autotuning in processes of their own), and
+the compiled
 chunk runs ``--iterations`` iterations to give its env steps/s. The state runs past the
 warm-up first and goes on from one variant to the next (each timed call after one untimed).
 A variant is ``NAME`` (the run's options alone) or
@@ -114,7 +115,7 @@ def past_warmup(lowered, base: dict, jitted, cfg):
 
 def main() -> None:
     args = parse()
-    jax.config.update("jax_enable_compilation_cache", False)  # each compile from nothing
+    jax.config.update("jax_enable_compilation_cache", False)  # (none read back from disk)
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = dataclasses.replace(preset(args.preset), **changes)
     start = time.perf_counter()

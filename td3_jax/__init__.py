@@ -67,5 +67,8 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    """The public names and the module's own dunders (not its helpers' imports)."""
-    return sorted({*__all__, *(name for name in globals() if name.startswith("__"))})
+    """The public names, the subpackages imported so far (``td3_jax.runner``, ...) and the
+    module's own dunders; not what the package imports for itself (``Any``, ``importlib``)."""
+    own = (name for name, value in globals().items()
+           if name.startswith("__") or getattr(value, "__name__", "") == f"{__name__}.{name}")
+    return sorted({*__all__, *own})

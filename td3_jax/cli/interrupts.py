@@ -49,7 +49,6 @@ def train_stoppably(
     from td3_jax.runner.run import RunCompleteWarning, train  # lazy: imports JAX
     from td3_jax.runner.rundir import interrupted_message  # lazy: imports JAX
 
-    warnings.filterwarnings("ignore", category=RunCompleteWarning)  # (said in its own words)
     received = [] if received is None else received
     stop = runtime.StopToken() if stop is None else stop  # (the run's only way to be stopped)
     ended = functools.partial(interrupted_message, command.out)  # what a stop leaves, one line
@@ -57,7 +56,8 @@ def train_stoppably(
         several = jax.process_count() > 1  # (a first Ctrl-C too stops at an agreed boundary)
         signals = runtime.stop_signals(stop, received, say=jax.process_index() == 0,
                                        aftermath=ended, several=several)  # fmt: skip
-        with signals:
+        with signals, warnings.catch_warnings():  # (the command says it in its own words)
+            warnings.filterwarnings("ignore", category=RunCompleteWarning)
             return train(cfg, command.out, resume=command.resume, stop=stop,
                          progress=not command.quiet, time_budget_s=command.time_budget_s,
                          **train_options)  # fmt: skip

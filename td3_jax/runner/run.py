@@ -274,6 +274,7 @@ class RunCompleteWarning(UserWarning):
 
 
 def _in_td3_jax(module: str) -> bool:
+    """Whether the module named ``module`` is td3-jax's own (not ``td3_jax_experiments``)."""
     return module == "td3_jax" or module.startswith("td3_jax.")
 
 

@@ -36,7 +36,6 @@ from typing import Any
 from td3_jax.common import runtime
 from td3_jax.common.errors import CheckpointError, LockUnavailableError
 from td3_jax.config.build import agent_config, members, ou_params
-from td3_jax.config.python_names import field_names
 from td3_jax.config.schema import (
     SWEEPABLE,
     WANDB_SETTINGS,
@@ -504,28 +503,29 @@ def resume_command(out_dir: Path, extra: str = "") -> str:
 def nothing_to_do(out_dir: Path, cfg: TrainConfig, python: bool = False) -> str:
     """The line of a resume that finds nothing to train: how far the run went and how to
     train it further (a larger ``--total-steps``; a new run where a cosine schedule fixed its
-    length). ``python``: in the words of :func:`td3_jax.train`'s caller (``total_steps=N``,
-    ``resume=True``), else the command line's."""
+    length; for a run stopped short and resumed with a smaller ``--total-steps``, the steps it
+    was set for). ``python``: in the words of :func:`td3_jax.train`'s caller
+    (``total_steps=N``, ``resume=True``), else the command line's."""
+    steps = "total_steps" if python else "--total-steps"
 
-    def go_on(steps: int, saved: bool) -> str:  # (saved: the steps config.json holds)
+    def go_on(total: int, saved: bool) -> str:  # (saved: the steps config.json holds)
         if python:
-            return f"resume=True with total_steps={steps}"
-        return resume_command(out_dir, "" if saved else f" --total-steps {steps}")
+            return f"resume=True with total_steps={total}"
+        return resume_command(out_dir, "" if saved else f" --total-steps {total}")
 
     done, planned = f"{cfg.run_steps:,}", load_config(out_dir).run_steps
     if planned > cfg.run_steps:  # a stopped run resumed with a shorter --total-steps
-        line = (f"nothing to do: the run in {out_dir} has taken {done} env steps, what "
-                f"--total-steps {cfg.total_steps} asks; it was set for {planned:,}: "
-                f"{go_on(planned, saved=True)} goes on to them")  # fmt: skip
-    elif cfg.lr_schedule == "cosine":
-        line = (f"nothing to do: the run in {out_dir} is complete ({done} env steps); its cosine "
-                "learning-rate schedule fixed its length: start a new run with a larger "
-                "--total-steps to train longer")  # fmt: skip
+        asked = f"total_steps={cfg.total_steps}" if python else f"--total-steps {cfg.total_steps}"
+        return (f"nothing to do: the run in {out_dir} has taken {done} env steps, what {asked} "
+                f"asks; it was set for {planned:,}: {go_on(planned, saved=True)} goes on to "
+                "them")  # fmt: skip
+    if cfg.lr_schedule == "cosine":
+        further = ("its cosine learning-rate schedule fixed its length: start a new run with a "
+                   f"larger {steps} to train longer")  # fmt: skip
     else:
         more = 2 * cfg.run_steps
-        line = (f"nothing to do: the run in {out_dir} is complete ({done} env steps); "
-                f"{go_on(more, saved=False)} goes on to {more:,}")  # fmt: skip
-    return field_names(line) if python else line
+        further = f"{go_on(more, saved=False)} goes on to {more:,}"
+    return f"nothing to do: the run in {out_dir} is complete ({done} env steps); {further}"
 
 
 def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
