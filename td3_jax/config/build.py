@@ -68,6 +68,7 @@ __all__ = [
     "member_hyperparams",
     "members",
     "ou_params",
+    "validated",
 ]
 
 #: The settings that a part of the program takes as they are, by their own names (the
@@ -303,16 +304,18 @@ def make_train(
     first (:func:`~td3_jax.config.schema.validate`: a setting that cannot work is a ConfigError, as
     on the command line).
     """
-    spec = make_spec(_validated(cfg, env), env, axis_name)
+    spec = make_spec(validated(cfg, env), env, axis_name)
     return training.make_train(spec, hyperparams(cfg), cfg.num_chunks)
 
 
-def _validated(cfg: TrainConfig, env: Any) -> TrainConfig:
-    """:func:`~td3_jax.config.schema.validate` of ``cfg``, the name of the environment it
-    makes itself (``env`` None) checked first: a misspelt name is said before any size."""
+def validated(cfg: TrainConfig, env: Any = None, devices: int = 1) -> TrainConfig:
+    """:func:`~td3_jax.config.schema.validate` of ``cfg`` on ``devices`` devices, the name of
+    its environment checked first (a misspelt name is said before any size); returns ``cfg``.
+    ``env``: an environment object given instead of ``cfg.env``'s, whose name is then not
+    checked (a config :func:`bind_environment` made names it ``object/...``, which passes)."""
     if env is None:
         envs.check_name(check_is_config(cfg).env)
-    return validate(cfg)
+    return validate(cfg, devices)
 
 
 class Trainer(NamedTuple):
@@ -346,7 +349,7 @@ def make_trainer(
 ) -> Trainer:
     """:class:`Trainer` of ``cfg``: :mod:`td3_jax.core.training`'s steps with ``spec`` and ``hp``
     bound (``cfg`` validated first: a setting that cannot work is a ConfigError here too)."""
-    spec = make_spec(_validated(cfg, env), env, axis_name, env_groups)
+    spec = make_spec(validated(cfg, env), env, axis_name, env_groups)
     hp = hyperparams(cfg)
     return Trainer(
         config=cfg,

@@ -24,7 +24,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from td3_jax import envs
 from td3_jax.common.errors import (
     WRITE_ERRNOS,
     ConfigError,
@@ -35,14 +34,13 @@ from td3_jax.common.errors import (
 )
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
-from td3_jax.config.build import bind_environment, members
+from td3_jax.config.build import bind_environment, members, validated
 from td3_jax.config.python_names import field_names
 from td3_jax.config.schema import (
     TrainConfig,
     check_is_config,
     eval_every_within_run,
     rounding_note,
-    validate,
 )
 from td3_jax.core.population import Member
 from td3_jax.core.stats import population_stats, return_stats
@@ -491,10 +489,9 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     naming the environment ``env`` when one is given
     (:func:`~td3_jax.config.build.bind_environment`). Nothing is written."""
     cfg, env = bind_environment(cfg, env)
-    envs.check_name(cfg.env)  # (a misspelt name is said before any size)
     if resume:  # (a run already past --total-steps: said before what cfg alone would say)
         check_total_steps_reach(out_dir, cfg)
-    validate(cfg, devices=mesh.size)
+    validated(cfg, devices=mesh.size)  # (cfg names env now: object/...)
     if writer:  # (before anything is traced or compiled)
         tracking.check_ready(cfg)
     layout = replay_layout_warning(cfg.replay_shards, mesh.size)
