@@ -72,7 +72,8 @@ def parse() -> argparse.Namespace:
 
 def lowered_chunk(cfg, devices: int = 1):
     """The preset's chunk lowered once, its jitted (not yet compiled) programs, and the run's
-    own compile options."""
+    own compile options. (With ``eval_in_chunk`` the chunk is its iterations: the program that
+    starts its evaluation round, :func:`lowered_round`, compiles apart.)"""
     mesh = make_mesh(devices)
     env = build.make_env(cfg)
     program = make_population(cfg, members(cfg), devices=mesh.size, env=env, mesh=mesh)
@@ -80,6 +81,14 @@ def lowered_chunk(cfg, devices: int = 1):
     specs = programs.chunk_argument_specs(program, jitted.shardings)
     base = upstream.compile_options(mesh.devices.flat[0].platform, cfg.matmuls)
     return jitted.chunk.lower(*specs), jitted, base
+
+
+def lowered_round(jitted):
+    """The program that starts a chunk's evaluation round, lowered (``None`` without one)."""
+    if jitted.start_round is None:
+        return None
+    return jitted.start_round.lower(programs.with_sharding(jitted.abstract_state,
+                                                           jitted.shardings))
 
 
 def timed_compile(lowered, options: dict) -> tuple[object, float]:
@@ -122,6 +131,7 @@ def main() -> None:
     lowered, jitted, base = lowered_chunk(cfg)
     print(json.dumps({"made_and_lowered_s": round(time.perf_counter() - start, 1),
                       "base_options": base}), flush=True)  # fmt: skip
+    round_program = lowered_round(jitted)
     state = past_warmup(lowered, base, jitted, cfg)
     steps = cfg.env_steps_per_iter
     results: dict[str, list] = {name: [] for name, _ in args.variants}
@@ -131,9 +141,12 @@ def main() -> None:
             rate, state = loop_rate(executable, jitted.hyperparams, state, args.iterations,
                                     steps)  # fmt: skip
             results[name].append((round(seconds, 1), round(rate)))
-            print(json.dumps({"round": round_index, "variant": name, "options": options,
-                              "compile_s": round(seconds, 1), "env_steps_per_s": round(rate)}),
-                  flush=True)  # fmt: skip
+            row = {"round": round_index, "variant": name, "options": options,
+                   "compile_s": round(seconds, 1), "env_steps_per_s": round(rate)}
+            if round_program is not None:  # (compiled beside the chunk in a run)
+                row["round_compile_s"] = round(timed_compile(round_program,
+                                                             {**base, **options})[1], 1)
+            print(json.dumps(row), flush=True)
             del executable
     for name, rows in results.items():
         print(json.dumps({"variant": name, "compile_s": [r[0] for r in rows],

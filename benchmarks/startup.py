@@ -143,7 +143,7 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
     clock.lap("init_run")
     # The command's first call: the early part of the first chunk (all of it without one).
     first = cfg.early_iterations or cfg.iters_per_chunk
-    state, metrics = compiled.chunk(compiled.hyperparams, state, np.int32(first))
+    state, metrics = compiled.train_chunk(state, np.int32(first))
     jax.block_until_ready(metrics)
     clock.lap("first_chunk")
     jax.block_until_ready(compiled.evaluate(state))
@@ -152,9 +152,7 @@ def run_start(cfg, clock: Clock, sequential: bool, program_dir, loop_chunks: int
     if loop_chunks:
         start = time.perf_counter()
         for _ in range(loop_chunks):
-            state, metrics = compiled.chunk(
-                compiled.hyperparams, state, np.int32(cfg.iters_per_chunk)
-            )
+            state, metrics = compiled.train_chunk(state, np.int32(cfg.iters_per_chunk))
         jax.block_until_ready(metrics)
         steps = loop_chunks * cfg.steps_per_chunk
         out["loop_env_steps_per_s"] = round(steps / (time.perf_counter() - start))
@@ -184,8 +182,10 @@ def _compile_in_turn(compiled, program, clock: Clock, options: dict):
     hp_spec, state_spec, iterations = programs.chunk_argument_specs(program, compiled.shardings)
     done = {}
     steps = (("init", ()), ("chunk", (hp_spec, state_spec, iterations)),
-             ("evaluate", (state_spec,)))  # fmt: skip
+             ("start_round", (state_spec,)), ("evaluate", (state_spec,)))  # fmt: skip
     for name, args in steps:
+        if getattr(compiled, name) is None:  # (no evaluation round without eval_in_chunk)
+            continue
         lowered = getattr(compiled, name).lower(*args)
         clock.lap(f"{name}_trace")
         done[name] = lowered.compile(compiler_options=options)

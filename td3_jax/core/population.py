@@ -53,6 +53,12 @@ class Population(NamedTuple):
       chunk: ``chunk(hp, state, iterations=None) -> (state, metrics[num_members])``:
         ``iterations`` (an int32 scalar shared by the members; default ``iters_per_chunk``)
         iterations of every member.
+      iterate: ``iterate(hp, state, iterations=None)``: ``chunk`` without starting an
+        evaluation round (:func:`td3_jax.core.training.chunk_iterations`; ``chunk`` itself
+        without ``eval_in_chunk``), so that ``start_round`` and it compile apart.
+      start_round: ``start_round(state) -> state``, with ``eval_in_chunk``: the evaluation
+        round that ``chunk`` starts (:func:`td3_jax.core.training.start_evaluation_round`);
+        ``None`` without.
       evaluate: ``evaluate(state, keys[num_members]) -> returns[num_members, eval_envs]``.
       scheduled_evaluate: ``scheduled_evaluate(state) -> returns[num_members, eval_envs]``,
         with the run's own key schedule (:func:`td3_jax.core.training.evaluation_key`); with
@@ -72,6 +78,8 @@ class Population(NamedTuple):
     abstract_state: Any
     keys: np.ndarray
     init_from_keys: Callable[[jax.Array], TrainState]
+    iterate: Callable[..., tuple[TrainState, dict[str, jax.Array]]]
+    start_round: Callable[[TrainState], TrainState] | None = None
 
     @property
     def env(self) -> envs.Environment:
@@ -110,14 +118,17 @@ def _lone(fn: Callable, *args: Any) -> Any:
     return _add_axis(fn(*map(_drop_axis, args)))
 
 
-def _lone_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: Any = None) -> Any:
-    """:func:`_lone` of :func:`td3_jax.core.training.chunk` (``iterations`` has no member axis)."""
-    return _add_axis(training.chunk(spec, _drop_axis(hp), _drop_axis(state), iterations))
+def _lone_chunk(fn: Callable, spec: training.TrainSpec, hp: Any, state: Any,
+                iterations: Any = None) -> Any:  # fmt: skip
+    """:func:`_lone` of a chunk function ``fn`` (:func:`td3_jax.core.training.chunk` or
+    :func:`~td3_jax.core.training.chunk_iterations`; ``iterations`` has no member axis)."""
+    return _add_axis(fn(spec, _drop_axis(hp), _drop_axis(state), iterations))
 
 
-def _members_chunk(spec: training.TrainSpec, hp: Any, state: Any, iterations: Any = None) -> Any:
-    """:func:`td3_jax.core.training.chunk` vmapped over the members (``iterations`` shared)."""
-    chunk = functools.partial(training.chunk, spec)
+def _members_chunk(fn: Callable, spec: training.TrainSpec, hp: Any, state: Any,
+                   iterations: Any = None) -> Any:  # fmt: skip
+    """A chunk function ``fn`` vmapped over the members (``iterations`` shared)."""
+    chunk = functools.partial(fn, spec)
     return jax.vmap(chunk, in_axes=(0, 0, None), axis_name=MEMBERS)(hp, state, iterations)
 
 
@@ -136,8 +147,14 @@ def make_population(
     batch = (lambda f: functools.partial(_lone, f)) if lone else (
         lambda f: jax.vmap(f, axis_name=MEMBERS))  # fmt: skip
     init_from_keys, evaluate, scheduled = map(batch, steps)
-    chunk = _lone_chunk if lone else _members_chunk
+    batched_chunk = _lone_chunk if lone else _members_chunk
+    start_round = None
+    if spec.eval_in_chunk:
+        start_round = batch(functools.partial(training.start_evaluation_round, spec))
     init = functools.partial(init_from_keys, keys)
-    return Population(population, spec, hyperparams, init, functools.partial(chunk, spec),
-                      evaluate, scheduled, abstract_state=jax.eval_shape(init), keys=keys,
-                      init_from_keys=init_from_keys)  # fmt: skip
+    return Population(population, spec, hyperparams, init,
+                      functools.partial(batched_chunk, training.chunk, spec), evaluate, scheduled,
+                      abstract_state=jax.eval_shape(init), keys=keys,
+                      init_from_keys=init_from_keys,
+                      iterate=functools.partial(batched_chunk, training.chunk_iterations, spec),
+                      start_round=start_round)  # fmt: skip

@@ -598,14 +598,25 @@ def chunk(
     to ``spec.iters_per_chunk``; a run's first chunk may be split in two (an early evaluation)
     without a second compile. With ``eval_in_chunk`` the chunk starts an evaluation round
     (:func:`start_evaluation_round`) and keeps it once finished (at the end of this chunk when
-    it holds an episode, else of a later call).
+    it holds an episode, else of a later call). It is :func:`chunk_iterations` after
+    :func:`start_evaluation_round`.
     """
+    if spec.eval_in_chunk:
+        state = start_evaluation_round(spec, state)
+    return chunk_iterations(spec, hp, state, iterations)
+
+
+def chunk_iterations(
+    spec: TrainSpec, hp: Hyperparams, state: TrainState, iterations: jax.Array | None = None
+) -> tuple[TrainState, Metrics]:
+    """:func:`chunk` without starting an evaluation round: the same state and metrics where
+    :func:`start_evaluation_round` ran on ``state`` first. The host loop compiles the two as
+    programs of their own, side by side, so that the chunk's compile leaves out the round's
+    reset of the environment (a second copy of it: the step's resets are the first)."""
     iterations = spec.iters_per_chunk if iterations is None else iterations
     zeros = {**{name: jnp.zeros((), jnp.float32) for name in EPISODE_METRICS},
              **skip_learning(state.agent)[1]}  # fmt: skip
     body = functools.partial(_iteration_summed, spec, hp)
-    if spec.eval_in_chunk:
-        state = start_evaluation_round(spec, state)
     state, totals = jax.lax.fori_loop(0, iterations, body, (state, zeros))
     if spec.eval_in_chunk:
         state = state.replace(evaluator=eval_worlds.close(state.evaluator))
@@ -748,6 +759,7 @@ __all__ = [
     "TrainState",
     "chunk",
     "chunk_and_evaluate",
+    "chunk_iterations",
     "collect",
     "collect_step",
     "evaluate",

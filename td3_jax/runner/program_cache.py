@@ -56,6 +56,8 @@ __all__ = [
     "FORMAT",
     "MAX_ENTRIES",
     "NAMES",
+    "PACKAGE_ROOT",
+    "ROUND",
     "FlatProgram",
     "as_tree_function",
     "assets_digest",
@@ -64,6 +66,7 @@ __all__ = [
     "export_flat",
     "fingerprint",
     "load",
+    "names",
     "save",
     "source_digest",
     "warn",
@@ -90,6 +93,16 @@ PACKAGES = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco", "mujoco-core", "
 UNTRACED_SETTINGS = ("cache", "log", "traceback", "debug", "profil", "topology", "platform",
                      "dump")  # fmt: skip
 NAMES = ("chunk", "evaluate", "init")
+#: The td3_jax package's folder, whose Python files :func:`source_digest` reads.
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]
+#: The program that starts a chunk's evaluation round, which runs with ``eval_in_chunk`` only.
+ROUND = "round"
+
+
+def names(with_init: bool = True, eval_in_chunk: bool = False) -> tuple[str, ...]:
+    """The programs a run needs: the chunk and the evaluation, the round's with
+    ``eval_in_chunk``, and ``init`` unless it resumes (``with_init`` off)."""
+    return (*NAMES[:2], *((ROUND,) if eval_in_chunk else ()), *(("init",) if with_init else ()))
 
 
 class FlatProgram(NamedTuple):
@@ -150,9 +163,9 @@ def _version(package: str) -> str | None:
         return None
 
 
-def source_digest() -> str:
-    """A digest of td3-jax's own Python files (a changed file changes every key)."""
-    root = Path(__file__).parent
+def source_digest(root: Path = PACKAGE_ROOT) -> str:
+    """A digest of td3-jax's own Python files, those of every subpackage (a changed file
+    changes every key)."""
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
         digest.update(str(path.relative_to(root)).encode())

@@ -60,10 +60,15 @@ class Programs(NamedTuple):
       hyperparams: the members' float settings replicated on the mesh (leaves ``[members]``;
         the ``hp`` to pass to ``chunk``).
       init: ``init() -> state`` (``None`` where compiled without it: a resumed run).
-      chunk: ``chunk(hp, state, iterations) -> (state, metrics[members])``; ``iterations`` is
-        an int32 scalar; donates its state.
+      chunk: ``chunk(hp, state, iterations) -> (state, metrics[members])``, the chunk's
+        iterations (``Population.iterate`` of :class:`td3_jax.core.population.Population`),
+        after ``start_round`` where there is one (:meth:`train_chunk` runs both);
+        ``iterations`` is an int32 scalar; donates its state.
       evaluate: ``evaluate(state) -> returns[members, eval_envs]`` with the run's key
         schedule (with ``eval_in_chunk``: the returns of the chunk's evaluation round).
+      start_round: ``start_round(state) -> state``, with ``eval_in_chunk``: starts the
+        chunk's evaluation round (a program of its own, compiled beside the chunk); donates
+        its state. ``None`` without.
     Metrics and returns come back replicated.
     """
 
@@ -73,6 +78,14 @@ class Programs(NamedTuple):
     init: Callable[[], TrainState] | None
     chunk: Callable[..., tuple[TrainState, dict[str, jax.Array]]]
     evaluate: Callable[[TrainState], jax.Array]
+    start_round: Callable[[TrainState], TrainState] | None = None
+
+    def train_chunk(self, state: TrainState, iterations: Any) -> tuple[TrainState, dict]:
+        """One chunk of ``iterations`` (an int32 scalar): its evaluation round started where
+        there is one (``start_round``), then its iterations (``chunk``)."""
+        if self.start_round is not None:
+            state = self.start_round(state)
+        return self.chunk(self.hyperparams, state, iterations)
 
 
 @dataclasses.dataclass
@@ -109,7 +122,7 @@ def find(cfg: TrainConfig, population: list[Member], mesh: Mesh, directory: Path
     the key cannot see: never) and makes the population's program, environment included
     (``env`` when given: :func:`td3_jax.config.build.make_env`), only when none is stored; nothing
     is compiled."""
-    names = program_cache.NAMES if with_init else program_cache.NAMES[:2]
+    names = program_cache.names(with_init, cfg.eval_in_chunk)
     source = Source(cfg, population, mesh, names)
     if cfg.impl == "warp" or env is not None or is_custom(cfg.env):
         directory = None  # XLA's persistent compilation cache still applies
@@ -285,13 +298,14 @@ def _export_each(source: Source, stop: StopToken) -> tuple[dict, dict, dict]:
     hp, state, scalar = chunk_argument_specs(program, shardings)
     keys = jax.ShapeDtypeStruct(program.keys.shape, program.keys.dtype, sharding=replicated)
     plans = {
-        "chunk": (program.chunk, (hp, state, scalar),
+        "chunk": (program.iterate, (hp, state, scalar),
                   lambda out: (shardings, everywhere(out[1])), (1,)),
+        program_cache.ROUND: (program.start_round, (state,), lambda out: shardings, (0,)),
         "evaluate": (program.scheduled_evaluate, (state,), everywhere, ()),
         "init": (program.init_from_keys, (keys,), lambda out: shardings, ()),
     }  # fmt: skip
     executables, flat, trees = {}, {}, {"state": program.abstract_state}
-    for name in program_cache.NAMES:
+    for name in program_cache.names(True, program.start_round is not None):
         stop.raise_if_set()
         try:
             flat[name], trees[name] = program_cache.export_flat(*plans[name])
@@ -316,6 +330,7 @@ def _flat_programs(source: Source, executables: dict, trees: dict, hp: Any, keys
         init=(lambda: init(keys)) if init else None,
         chunk=calls["chunk"],
         evaluate=calls["evaluate"],
+        start_round=calls.get(program_cache.ROUND),
     )
 
 
@@ -329,18 +344,23 @@ def jitted(program: Population, mesh: Mesh) -> Programs:
     replicated; each function compiles at its first call (:func:`compile_ahead`: now)."""
     shardings = state_shardings(program.abstract_state, mesh)
     replicated = NamedSharding(mesh, PartitionSpec())
+    start_round = program.start_round
+    if start_round is not None:
+        start_round = jax.jit(start_round, in_shardings=(shardings,), out_shardings=shardings,
+                              donate_argnums=0)  # fmt: skip
     return Programs(
         abstract_state=program.abstract_state,
         shardings=shardings,
         hyperparams=jax.tree.map(lambda x: replicate(x, mesh), program.hyperparams),
         init=jax.jit(program.init, out_shardings=shardings),
         chunk=jax.jit(
-            program.chunk,
+            program.iterate,
             in_shardings=(replicated, shardings, replicated),
             out_shardings=(shardings, replicated),
             donate_argnums=1,
         ),
         evaluate=jax.jit(program.scheduled_evaluate, out_shardings=replicated),
+        start_round=start_round,
     )
 
 
@@ -380,10 +400,10 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
     """
     stop = stop if stop is not None else StopToken()
     hp_spec, state_spec, iterations = chunk_argument_specs(program, programs.shardings)
-    lowerings = {
-        "chunk": lambda: programs.chunk.lower(hp_spec, state_spec, iterations),
-        "evaluate": lambda: programs.evaluate.lower(state_spec),
-    }
+    lowerings = {"chunk": lambda: programs.chunk.lower(hp_spec, state_spec, iterations)}
+    if programs.start_round is not None:
+        lowerings["start_round"] = lambda: programs.start_round.lower(state_spec)
+    lowerings["evaluate"] = lambda: programs.evaluate.lower(state_spec)
     if with_init:
         lowerings["init"] = programs.init.lower
     futures = {}

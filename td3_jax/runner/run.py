@@ -739,7 +739,7 @@ def _chunk_and_record(
     """One compiled chunk of ``iterations``, the finiteness check, the evaluation and the
     record of both."""
     chunk_start = time.perf_counter()
-    state, metrics = compiled.chunk(compiled.hyperparams, state, np.int32(iterations))
+    state, metrics = compiled.train_chunk(state, np.int32(iterations))
     metrics = {k: host_value(v) for k, v in metrics.items()}
     chunk_seconds = time.perf_counter() - chunk_start
     env_steps = int(metrics.pop("env_steps")[0])

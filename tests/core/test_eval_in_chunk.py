@@ -20,8 +20,9 @@ from td3_jax.config import build
 from td3_jax.config.schema import ConfigError, TrainConfig
 from td3_jax.core import eval_worlds, training
 from td3_jax.envs import FunctionalEnv
-from td3_jax.runner import logger
+from td3_jax.runner import logger, programs
 from td3_jax.runner.run import train
+from td3_jax.runner.sharding import make_mesh
 
 LIMIT = 12  # the time limit of the drift environment
 
@@ -109,6 +110,28 @@ def test_each_finished_round_is_a_separate_evaluation_of_its_frozen_policy():
         early += int(state.env_steps - taken) < LIMIT * spec.num_envs
     assert checked >= 4
     assert early >= 1  # some round ended before the time limit: every episode terminated
+
+
+@pytest.mark.parametrize("seeds", [1, 2])
+def test_the_host_loops_two_programs_are_the_librarys_chunk(seeds):
+    """The host loop runs a chunk as two programs (the round's start, then the iterations:
+    Programs.train_chunk); they give what the library's one chunk gives, bit for bit, whether
+    a call starts a round or not (one iteration at a time: most calls start none)."""
+    cfg = dataclasses.replace(IN_CHUNK, seeds=seeds)
+    env, mesh = _drift_env(), make_mesh(1)
+    program = build.make_population(cfg, build.members(cfg), env=env, mesh=mesh)
+    split = programs.jitted(program, mesh)
+    assert split.start_round is not None
+    whole = jax.jit(program.chunk)
+    a = split.init()
+    b = split.init()
+    for iterations in (1, LIMIT, 1, 1, LIMIT - 1, LIMIT, 3):
+        a, metrics_a = whole(program.hyperparams, a, np.int32(iterations))
+        b, metrics_b = split.train_chunk(b, np.int32(iterations))
+        leaves = jax.tree.leaves((a, metrics_a))
+        for x, y in zip(leaves, jax.tree.leaves((b, metrics_b)), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert int(a.evaluator.rounds[0]) >= 3  # rounds started and finished on the way
 
 
 @pytest.mark.runs

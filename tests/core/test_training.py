@@ -338,8 +338,8 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch, second_
     def poisoned_make_population(cfg, population, **kwargs):
         program = real_make_population(cfg, population, **kwargs)
 
-        def chunk(hp, state, iterations):
-            state, metrics = program.chunk(hp, state, iterations)
+        def chunk(hp, state, iterations):  # (the host loop's chunk: its iterations)
+            state, metrics = program.iterate(hp, state, iterations)
             poisoned = state.env_steps[0] > 2 * per_chunk  # from the third chunk on
             actor = jax.tree.map(
                 lambda p: jnp.where(poisoned, jnp.nan, p), state.agent.actor_params
@@ -354,7 +354,7 @@ def test_nonfinite_run_stops_and_keeps_checkpoint(tmp_path, monkeypatch, second_
             ).all(axis=0)  # per member
             return state, {**metrics, "params_finite": finite.astype(jnp.float32)}
 
-        return program._replace(chunk=chunk)
+        return program._replace(iterate=chunk)
 
     monkeypatch.setattr(programs, "make_population", poisoned_make_population)
     out = tmp_path / "run"

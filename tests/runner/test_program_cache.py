@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -116,6 +117,39 @@ def test_a_stored_run_traces_nothing_and_matches_a_traced_one(tmp_path, monkeypa
     monkeypatch.undo()
     fresh = train(other, tmp_path / "e", progress=False)
     assert _numbers(stored) == _numbers(fresh) != _numbers(first)
+
+
+def test_a_stored_run_with_in_chunk_evaluation_keeps_its_round_program(tmp_path, monkeypatch):
+    in_chunk = dataclasses.replace(TINY, eval_in_chunk=True)
+    programs = tmp_path / "programs"
+    first = train(in_chunk, tmp_path / "a", progress=False, program_dir=programs)
+    (entry,) = [p for p in programs.iterdir() if not p.name.startswith(".")]
+    assert (entry / "round.bin").is_file()
+    monkeypatch.setattr(build, "make_env", _refuse)
+    again = train(in_chunk, tmp_path / "b", progress=False, program_dir=programs)
+    assert _numbers(again) == _numbers(first)
+    assert [r["eval_policy_env_steps"] for r in again] == [0, 32, 64]
+
+
+def test_the_programs_a_run_needs_are_named_in_the_order_they_compile():
+    assert program_cache.names() == ("chunk", "evaluate", "init")
+    assert program_cache.names(with_init=False) == ("chunk", "evaluate")
+    assert program_cache.names(True, eval_in_chunk=True) == ("chunk", "evaluate", "round",
+                                                             "init")  # fmt: skip
+
+
+def test_the_source_digest_reads_every_subpackage(tmp_path):
+    import td3_jax
+
+    assert program_cache.PACKAGE_ROOT == Path(td3_jax.__file__).resolve().parent
+    (tmp_path / "core").mkdir()
+    (tmp_path / "core" / "training.py").write_text("A = 1\n")
+    (tmp_path / "top.py").write_text("")
+    before = program_cache.source_digest(tmp_path)
+    (tmp_path / "core" / "training.py").write_text("A = 2\n")
+    assert program_cache.source_digest(tmp_path) != before
+    (tmp_path / "core" / "notes.txt").write_text("not code")
+    assert program_cache.source_digest(tmp_path) == program_cache.source_digest(tmp_path)
 
 
 def test_the_programs_are_one_type_whatever_their_origin(tmp_path):
