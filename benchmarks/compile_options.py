@@ -14,7 +14,9 @@ leaves autotuning out of every timed one: compare autotuning in processes of the
 the compiled
 chunk runs ``--iterations`` iterations to give its env steps/s. The state runs past the
 warm-up first and goes on from one variant to the next (each timed call after one untimed).
-A variant is ``NAME`` (the run's options alone) or
+With in-chunk evaluation the start of the chunk's evaluation round is a program of its own, as
+in a run: each variant compiles it too (``round_compile_s``), and a round starts before each
+call of the chunk. A variant is ``NAME`` (the run's options alone) or
 ``NAME:KEY=VALUE[,KEY=VALUE...]`` with XLA ``DebugOptions`` fields (``true``/``false``, numbers,
 or text). Prints one JSON line per compile, then one summary line per variant.
 """
@@ -100,23 +102,31 @@ def timed_compile(lowered, options: dict) -> tuple[object, float]:
     return executable, time.perf_counter() - start
 
 
-def loop_rate(executable, hyperparams, state, iterations: int, steps_per_iteration: int):
+def loop_rate(executable, hyperparams, state, iterations: int, steps_per_iteration: int,
+              start_round=None):  # fmt: skip
     """Env steps/s of ``iterations`` chunk iterations from ``state`` (donated; after one untimed
-    call), and the state they end in."""
-    state, metrics = executable(hyperparams, state, np.int32(1))
+    call), and the state they end in. ``start_round``: the compiled start of an evaluation
+    round, run before each call as a run runs it before each chunk (timed with it)."""
+    state, metrics = executable(hyperparams, _round_started(start_round, state), np.int32(1))
     jax.block_until_ready(metrics)
     start = time.perf_counter()
+    state = _round_started(start_round, state)
     state, metrics = executable(hyperparams, state, np.int32(iterations))
     jax.block_until_ready((state, metrics))
     return iterations * steps_per_iteration / (time.perf_counter() - start), state
 
 
-def past_warmup(lowered, base: dict, jitted, cfg):
+def _round_started(start_round, state):
+    return state if start_round is None else start_round(state)
+
+
+def past_warmup(lowered, base: dict, jitted, cfg, start_round=None):
     """The initial state run past the warm-up (random actions, no updates), so that every
     timed iteration learns; compiled with the run's own options (not timed)."""
     state = jax.block_until_ready(jitted.init())
     executable = lowered.compile(compiler_options=dict(base))
     iterations = -(-cfg.warmup_steps // cfg.env_steps_per_iter) + 1
+    state = _round_started(start_round, state)
     state, metrics = executable(jitted.hyperparams, state, np.int32(iterations))
     jax.block_until_ready(metrics)
     return state
@@ -132,14 +142,16 @@ def main() -> None:
     print(json.dumps({"made_and_lowered_s": round(time.perf_counter() - start, 1),
                       "base_options": base}), flush=True)  # fmt: skip
     round_program = lowered_round(jitted)
-    state = past_warmup(lowered, base, jitted, cfg)
+    start_round = None if round_program is None else round_program.compile(
+        compiler_options=dict(base))
+    state = past_warmup(lowered, base, jitted, cfg, start_round)
     steps = cfg.env_steps_per_iter
     results: dict[str, list] = {name: [] for name, _ in args.variants}
     for round_index in range(args.rounds):
         for name, options in args.variants:
             executable, seconds = timed_compile(lowered, {**base, **options})
             rate, state = loop_rate(executable, jitted.hyperparams, state, args.iterations,
-                                    steps)  # fmt: skip
+                                    steps, start_round)  # fmt: skip
             results[name].append((round(seconds, 1), round(rate)))
             row = {"round": round_index, "variant": name, "options": options,
                    "compile_s": round(seconds, 1), "env_steps_per_s": round(rate)}

@@ -65,7 +65,7 @@ CSV_FIELDS = ("env", "mode", "devices", "num_envs", "batch_size", "updates_per_i
               "replay_shards", "iterations", "env_steps_per_s", "updates_per_s",
               "samples_per_s", "speedup_env_steps", "efficiency_env_steps", "speedup_samples",
               "efficiency_samples", "chunk_s", "compile_chunk_s", "compile_init_s",
-              "peak_gib_per_device", "error")  # fmt: skip
+              "compile_round_s", "peak_gib_per_device", "error")  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -347,8 +347,10 @@ def abstract_inputs(compiled, program) -> tuple[Any, Any]:
 
 
 def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
-    """``(chunk executable, init executable, hyperparams, seconds)``: built, traced and
-    compiled ahead, before any state exists."""
+    """``(chunk, init executable, hyperparams, seconds)``: built, traced and compiled ahead,
+    before any state exists. ``chunk`` is the chunk's iterations, a compiled executable, with
+    ``chunk.start_round``: the compiled start of its evaluation round (``None`` without
+    in-chunk evaluation), which :func:`run_chunk` runs first, as a run does."""
     from td3_jax.common import upstream
     from td3_jax.config.build import make_population, members
     from td3_jax.config.schema import validate
@@ -368,8 +370,27 @@ def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     chunk = lowered.compile(compiler_options=options)
     seconds["compile_chunk_s"], clock = time.perf_counter() - clock, time.perf_counter()
     init = compiled.init.lower().compile(compiler_options=options)
-    seconds["compile_init_s"] = time.perf_counter() - clock
-    return chunk, init, compiled.hyperparams, seconds
+    seconds["compile_init_s"], clock = time.perf_counter() - clock, time.perf_counter()
+    start_round = None
+    if compiled.start_round is not None:  # (a program of its own, as in a run)
+        start_round = compiled.start_round.lower(state).compile(compiler_options=options)
+        seconds["compile_round_s"] = time.perf_counter() - clock
+    return _Chunk(chunk, start_round), init, compiled.hyperparams, seconds
+
+
+class _Chunk:
+    """A compiled chunk's iterations and the compiled start of its evaluation round."""
+
+    def __init__(self, iterations: Any, start_round: Any) -> None:
+        self.iterations, self.start_round = iterations, start_round
+
+    def as_text(self) -> str:
+        return self.iterations.as_text()
+
+    def __call__(self, hp: Any, state: Any, iterations: Any) -> tuple[Any, Any]:
+        if self.start_round is not None:
+            state = self.start_round(state)
+        return self.iterations(hp, state, iterations)
 
 
 def run_chunk(chunk, hp, state, iterations: int) -> tuple[Any, dict[str, Any], float]:

@@ -1,8 +1,8 @@
 """Traced programs kept across processes, so that a repeated run skips making its environment
 and tracing its programs.
 
-MJX programs are large: tracing a run's three programs (init, chunk, evaluation) takes seconds
-to a minute, and JAX's persistent compilation cache
+MJX programs are large: tracing a run's programs (init, chunk, evaluation, and with in-chunk
+evaluation the round start) takes seconds to a minute, and JAX's persistent compilation cache
 (:func:`td3_jax.common.runtime.enable_compile_cache`) only helps after it, since its key is the
 traced program. This module keeps the traced programs themselves: each is exported with
 :mod:`jax.export` as a function of its flat list of array leaves and stored under ``DIR/<key>/``,
@@ -100,9 +100,11 @@ ROUND = "round"
 
 
 def names(with_init: bool = True, eval_in_chunk: bool = False) -> tuple[str, ...]:
-    """The programs a run needs: the chunk and the evaluation, the round's with
-    ``eval_in_chunk``, and ``init`` unless it resumes (``with_init`` off)."""
-    return (*NAMES[:2], *((ROUND,) if eval_in_chunk else ()), *(("init",) if with_init else ()))
+    """The programs a run needs, in the order they are traced: the chunk, the round start's
+    with ``eval_in_chunk``, the evaluation, and ``init`` unless it resumes (``with_init``
+    off)."""
+    return ("chunk", *((ROUND,) if eval_in_chunk else ()), "evaluate",
+            *(("init",) if with_init else ()))  # fmt: skip
 
 
 class FlatProgram(NamedTuple):

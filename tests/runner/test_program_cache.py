@@ -131,10 +131,10 @@ def test_a_stored_run_with_in_chunk_evaluation_keeps_its_round_program(tmp_path,
     assert [r["eval_policy_env_steps"] for r in again] == [0, 32, 64]
 
 
-def test_the_programs_a_run_needs_are_named_in_the_order_they_compile():
+def test_the_programs_a_run_needs_are_named_in_the_order_they_are_traced():
     assert program_cache.names() == ("chunk", "evaluate", "init")
     assert program_cache.names(with_init=False) == ("chunk", "evaluate")
-    assert program_cache.names(True, eval_in_chunk=True) == ("chunk", "evaluate", "round",
+    assert program_cache.names(True, eval_in_chunk=True) == ("chunk", "round", "evaluate",
                                                              "init")  # fmt: skip
 
 
@@ -147,9 +147,13 @@ def test_the_source_digest_reads_every_subpackage(tmp_path):
     (tmp_path / "top.py").write_text("")
     before = program_cache.source_digest(tmp_path)
     (tmp_path / "core" / "training.py").write_text("A = 2\n")
-    assert program_cache.source_digest(tmp_path) != before
-    (tmp_path / "core" / "notes.txt").write_text("not code")
-    assert program_cache.source_digest(tmp_path) == program_cache.source_digest(tmp_path)
+    changed = program_cache.source_digest(tmp_path)
+    assert changed != before
+    (tmp_path / "core" / "notes.txt").write_text("not code")  # (only Python files count)
+    assert program_cache.source_digest(tmp_path) == changed
+    package = program_cache.PACKAGE_ROOT
+    assert program_cache.source_digest() == program_cache.source_digest(package)
+    assert program_cache.source_digest() != program_cache.source_digest(package / "runner")
 
 
 def test_the_programs_are_one_type_whatever_their_origin(tmp_path):
