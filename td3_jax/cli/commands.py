@@ -81,8 +81,9 @@ class TrainCommand(TrainConfig):
     quiet: bool = False
     """No progress display (a live bar on a terminal, else one line per evaluation)."""
     time_budget_s: float | None = None
-    """Stop after the first chunk that ends past this wall-clock budget (compile included):
-    checkpointed, exit status 0, and a last line naming the --resume that continues it."""
+    """Stop after the first chunk that ends past this wall-clock budget (compile included),
+    counted over the whole run: a resume's budget includes the time of the calls before it.
+    Checkpointed, exit status 0, and a last line naming the --resume that continues it."""
     devices: int | None = None
     """Data-parallel over this many devices (default: all; one GPU for MuJoCo Warp physics);
     num_envs and batch stay global."""

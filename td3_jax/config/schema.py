@@ -95,8 +95,9 @@ class TrainConfig:
     eval_every: int = 4_000
     """Environment steps between evaluations: the length of one compiled chunk (a checkpoint
     follows every --checkpoint-every chunks). It runs as whole iterations of --num-envs x
-    --steps-per-iter env steps: rounded down, or, in a fresh run (`td3-jax train`,
-    `td3_jax.train`), up where whole chunks of that length run fewer steps past --total-steps;
+    --steps-per-iter env steps: rounded down (to one iteration at least), or, in a fresh run
+    (`td3-jax train`, `td3_jax.train`), up where whole chunks of that length run fewer steps
+    past --total-steps;
     the run prints the value it uses. A fresh run also lowers it to --total-steps where it is
     longer (not with --eval-in-chunk, whose chunk must hold a whole episode)."""
     eval_envs: int = 16

@@ -34,6 +34,7 @@ from td3_jax.common.errors import (
 )
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
+from td3_jax.config import presets
 from td3_jax.config.build import bind_environment, members, validated
 from td3_jax.config.python_names import field_names
 from td3_jax.config.schema import (
@@ -72,6 +73,7 @@ from td3_jax.runner.rundir import (
     resume_command,
     run_info,
     save_config,
+    stopped_before_checkpoint,
 )
 from td3_jax.runner.sharding import (
     check_memory,
@@ -149,14 +151,16 @@ def train(
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock, counted across resumes (the run stays resumable).
       devices: data-parallel over this many devices (default: all); the numbers do not change.
-      preset: the preset ``cfg`` came from (recorded in config.json).
+      preset: the name of the preset ``cfg`` came from, recorded in config.json: a label, which
+        changes no setting (a preset's settings: ``td3_jax.config.presets.preset(NAME)``); a
+        name that is no preset is a one-line ConfigError.
       program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
       on_prepared: called once settings and environment are checked (nothing compiled yet).
       on_started: called with the env steps the run starts from (0 when fresh).
       stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
-    out_dir, writer = _checked(cfg, out_dir, time_budget_s), jax.process_index() == 0
+    out_dir, writer = _checked(cfg, out_dir, time_budget_s, preset), jax.process_index() == 0
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
     cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer)
     prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
@@ -185,17 +189,20 @@ def _prepared_and_opened(
         with warp_kernels.beside_compile():
             prepared = _prepare(cfg, out_dir, resume, sweep, make_mesh(devices), writer,
                                 program_dir, env)  # fmt: skip
-        return prepared, _open_run_dir(out_dir, resume, writer)
+        return prepared, _open_run_dir(out_dir, resume, writer, prepared[:2])
     except BaseException:
         stop_before_training("token" if stop.is_set() else "error", call=call)
         raise
 
 
-def _checked(cfg: Any, out_dir: Any, time_budget_s: float | None) -> Path:
+def _checked(cfg: Any, out_dir: Any, time_budget_s: float | None, preset: str | None) -> Path:
     """:func:`train`'s own arguments checked (``cfg`` a :class:`TrainConfig`, the budget
-    positive); ``out_dir`` as a ``Path``, where it is one (a ``TypeError`` that names it)."""
+    positive, ``preset`` a preset's name); ``out_dir`` as a ``Path``, where it is one (a
+    ``TypeError`` that names it)."""
     check_is_config(cfg)
     check_time_budget(time_budget_s)
+    if preset is not None and preset not in presets.PRESETS:
+        presets.preset(preset)  # (a ConfigError naming the closest; a former name: a note)
     if isinstance(out_dir, (str, os.PathLike)) and os.fspath(out_dir):
         return Path(out_dir)
     raise TypeError(f"out_dir must be a directory's path (str or os.PathLike), got "
@@ -217,11 +224,12 @@ def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
     return changed
 
 
-def _open_run_dir(out_dir: Path, resume: bool, writer: bool) -> Any:
-    """:func:`~td3_jax.runner.rundir.open_run_dir`; a refusal also drops a Warp precompile started
-    for the run (:func:`~td3_jax.envs.warp_kernels.drop_pending`)."""
+def _open_run_dir(out_dir: Path, resume: bool, writer: bool, run: tuple) -> Any:
+    """:func:`~td3_jax.runner.rundir.open_run_dir` (``run``: the run's ``(cfg, population)``); a
+    refusal also drops a Warp precompile started for the run
+    (:func:`~td3_jax.envs.warp_kernels.drop_pending`)."""
     try:
-        return open_run_dir(out_dir, resume=resume, writer=writer)
+        return open_run_dir(out_dir, resume=resume, writer=writer, run=run)
     except BaseException:
         warp_kernels.drop_pending()
         raise
@@ -500,8 +508,9 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
     if resume:
         population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
     else:
-        check_fresh(out_dir, writer=writer)
         population, changes = members(cfg, sweep), {}
+        over = writer and stopped_before_checkpoint(out_dir, cfg, population)
+        check_fresh(out_dir, writer=writer, start_over=over)
     source = programs.find(cfg, population, mesh, program_dir, with_init=not resume, env=env)
     if resume:  # (the environment just made, before anything is compiled)
         check_environment_unchanged(out_dir, cfg.env, source.env)

@@ -10,7 +10,10 @@ its evaluations) is :mod:`td3_jax.runner.finished`'s.
   continues it) or a previous run's records without a checkpoint (move them away first). What a
   run leaves that ended before its first record (killed, even by ``kill -9`` or the kernel's
   out-of-memory killer: config.json, an empty metrics.jsonl) is no run to keep: the same
-  command starts over there, once no live process holds the lock.
+  command starts over there, once no live process holds the lock. So does a run stopped after
+  its first records but before its first checkpoint (a Ctrl-C while it trains its first
+  chunk): a fresh run of the same settings and members writes all of them again
+  (:func:`stopped_before_checkpoint`), so it replaces them, and says so.
 * **config.json says what each member trained with.** In a sweep each swept setting is the
   list of its values, and the ``sweep`` section names the swept settings, each member's values
   and the configuration's own ones (``base``, which the members' values override).
@@ -27,6 +30,7 @@ import fcntl
 import json
 import os
 import shlex
+import shutil
 import socket
 import time
 from collections.abc import Sequence
@@ -67,6 +71,7 @@ __all__ = [
     "check_resume",
     "check_total_steps_reach",
     "checkpoint_steps",
+    "clear_outputs",
     "config_changes",
     "ended_before_recording",
     "environment_record",
@@ -79,6 +84,7 @@ __all__ = [
     "previous_outputs",
     "run_info",
     "save_config",
+    "stopped_before_checkpoint",
     "sweep_entries",
     "swept_values",
 ]
@@ -239,12 +245,15 @@ def previous_outputs(out_dir: Path) -> list[str]:
 # --------------------------------------------------------------------------------------------
 
 
-def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> None:
+def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False,
+                start_over: bool = False) -> None:  # fmt: skip
     """Raises one-line errors when a fresh run cannot start in ``out_dir``; creates nothing.
 
     ``writer``: this process writes the logs (the lock and the outputs are its business; other
     processes of a multi-process run only check what cannot change under them). ``locked``:
     this process holds the lock already (a second flock of the file would fail).
+    ``start_over``: the outputs there are those of the same run stopped before its first
+    checkpoint (:func:`stopped_before_checkpoint`), which it may replace.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -257,7 +266,7 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
         check_not_in_use(out_dir)
     if checkpoint_steps(out_dir):
         raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
-    outputs = previous_outputs(out_dir) if writer else []
+    outputs = previous_outputs(out_dir) if writer and not start_over else []
     if outputs and not ended_before_recording(out_dir):
         raise ConfigError(
             f"{out_dir} holds a previous run's outputs ({', '.join(outputs)}) but no checkpoint "
@@ -270,6 +279,48 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False) -> 
             f"{', ...' if len(others) > 3 else ''}); a run needs a new or empty directory of "
             "its own"
         )
+
+
+def stopped_before_checkpoint(out_dir: Path, cfg: TrainConfig, population: list[Member]) -> bool:
+    """Whether ``out_dir`` holds the outputs of a run of ``cfg`` and ``population`` (its
+    config.json's settings and members.json as this run writes them) that stopped before its
+    first checkpoint (every record before that checkpoint's env step: not a run whose
+    checkpoints were deleted), and nothing of others: a fresh run of the same settings starts
+    over there (:func:`clear_outputs`), since it writes again everything that run wrote."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir() or checkpoint_steps(out_dir) or foreign_entries(out_dir):
+        return False
+    try:
+        saved = json.loads((out_dir / CONFIG_FILE).read_text())
+        listing = json.loads((out_dir / MEMBERS_FILE).read_text())
+        steps = _recorded_steps(out_dir / "metrics.jsonl")
+    except (OSError, ValueError, TypeError, KeyError):
+        return False
+    values = _as_used(cfg)
+    expected = json.loads(json.dumps({**values, **sweep_entries(values, population)}))
+    same = isinstance(saved, dict) and all(saved.get(k) == v for k, v in expected.items())
+    first = min(cfg.checkpoint_every * cfg.steps_per_chunk, cfg.run_steps)
+    return (same and listing == json.loads(json.dumps(_members_listing(population)))
+            and all(step < first for step in steps))  # fmt: skip
+
+
+def _recorded_steps(path: Path) -> list[int]:
+    """The env steps of the records in a metrics.jsonl (none where it is missing)."""
+    if not path.exists():
+        return []
+    return [int(json.loads(line)["env_steps"]) for line in path.read_text().splitlines()
+            if line.strip()]  # fmt: skip
+
+
+def clear_outputs(out_dir: Path) -> None:
+    """Removes a run's outputs from ``out_dir`` (:data:`OUTPUTS`; its lock and W&B's folder
+    stay), for a run that starts over there (:func:`stopped_before_checkpoint`)."""
+    for name in OUTPUTS:
+        path = Path(out_dir) / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
 
 
 def ended_before_recording(out_dir: Path) -> bool:
@@ -383,9 +434,13 @@ def _read_only(folder: Path) -> bool:
         return False
 
 
-def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock:
+def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True,
+                 run: tuple[TrainConfig, list[Member]] | None = None) -> RunLock:  # fmt: skip
     """Creates (fresh run) and locks ``out_dir``, re-checking a fresh one under the lock.
 
+    ``run``: the fresh run's ``(cfg, population)``; where ``out_dir`` holds the outputs of the
+    same run stopped before its first checkpoint (:func:`stopped_before_checkpoint`), they
+    are removed under the lock, with a line that says so, and the run starts over there.
     Processes other than the writer neither lock nor check; they get a lock that holds nothing.
     """
     out_dir = Path(out_dir)
@@ -398,7 +453,12 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True) -> RunLock
     lock = acquire_lock(out_dir)
     if not resume:
         try:
-            check_fresh(out_dir, locked=True)
+            over = run is not None and stopped_before_checkpoint(out_dir, *run)
+            check_fresh(out_dir, locked=True, start_over=over)
+            if over:
+                clear_outputs(out_dir)
+                print(f"td3-jax: starting over in {out_dir}: the run of these settings there "
+                      "stopped before its first checkpoint", flush=True)  # fmt: skip
         except BaseException:
             lock.unlock()
             raise
@@ -417,7 +477,8 @@ def _start_instead(out_dir: Path) -> str:
     records stay, e.g. a run stopped after its first evaluation but before its first
     checkpoint, or one whose checkpoints were deleted)."""
     if not ended_before_recording(out_dir):
-        return f" (it holds a run's outputs but no checkpoint: {_MOVE_AWAY})"
+        return (f" (it holds a run's outputs but no checkpoint: the command that started it, "
+                f"without --resume, starts it over; or {_MOVE_AWAY})")
     return " (its run stopped before the first: run without --resume to start it)"
 
 
@@ -539,9 +600,8 @@ def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
                f"{resume_command(out_dir)})"  # fmt: skip
     if not Path(out_dir).exists():
         return f"{cause} before the run wrote anything to {out_dir} (run the same command again)"
-    again = ("remove it or choose another --out to start again" if previous_outputs(out_dir)
-             else "run the same command again to start over")  # fmt: skip
-    return f"{cause} before the first checkpoint: {out_dir} holds none to resume ({again})"
+    return (f"{cause} before the first checkpoint: {out_dir} holds none to resume (run the "
+            "same command again to start over)")
 
 
 def _complete(out_dir: Path, chunks_done: int) -> bool:
@@ -716,8 +776,12 @@ def save_config(
     values = _as_used(cfg)
     extra = {k: v for k, v in (info or {}).items() if k != SWEEP}  # (made anew: the members')
     _write_json(out_dir / CONFIG_FILE, {**values, **extra, **sweep_entries(values, population)})
-    listing = [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
-    _write_json(out_dir / MEMBERS_FILE, listing)
+    _write_json(out_dir / MEMBERS_FILE, _members_listing(population))
+
+
+def _members_listing(population: list[Member]) -> list[dict[str, Any]]:
+    """members.json's content for ``population``."""
+    return [{"seed": m.seed, "overrides": dict(m.overrides)} for m in population]
 
 
 def sweep_entries(values: dict[str, Any], population: Sequence[Member]) -> dict[str, Any]:

@@ -1181,6 +1181,29 @@ def test_fresh_run_on_a_previous_runs_outputs_exits_2(finished_run, tmp_path, ca
     assert {p: (run_dir / p).read_bytes() for p in before} == before
 
 
+def test_the_same_command_starts_over_a_run_stopped_before_its_first_checkpoint(
+    finished_run, tmp_path, capsys
+):
+    """What a run stopped in its first chunk leaves (no checkpoint, no record past the first
+    checkpoint's step, its curve and TensorBoard's file): the same command starts over there
+    and writes the run's records once; other settings are still refused."""
+    run_dir = _copy_run(finished_run, tmp_path)
+    shutil.rmtree(run_dir / "checkpoints")
+    expected = read_records(run_dir)
+    (run_dir / "metrics.jsonl").write_text("")
+    code, _, err = main(["train", *TINY_FLAGS, "--seed", "8", "--out", str(run_dir), "--quiet"],
+                        capsys)  # fmt: skip
+    assert_one_line_error(code, err, "previous run's outputs", "no checkpoint")
+    code, out, err = main(["train", *TINY_FLAGS, "--out", str(run_dir), "--quiet"], capsys)
+    assert code == 0, err
+    assert f"starting over in {run_dir}" in out
+    again = read_records(run_dir)
+    assert [r["env_steps"] for r in again] == [r["env_steps"] for r in expected] == [64, 128]
+    for a, b in zip(again, expected, strict=True):
+        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-6)
+    assert rundir.checkpoint_steps(run_dir) == [1, 2]
+
+
 def test_divergence_before_the_first_checkpoint_says_how_to_start_again(
     tmp_path, capsys, monkeypatch
 ):
@@ -1220,7 +1243,7 @@ def test_ctrl_c_says_what_the_run_directory_holds(finished_run, tmp_path, capsys
     assert code == 130
     assert err.strip() == (
         f"td3-jax: interrupted before the first checkpoint: {out} holds none to resume "
-        "(remove it or choose another --out to start again)"
+        "(run the same command again to start over)"
     )
     _interrupt(monkeypatch)
     run_dir = _copy_run(finished_run, tmp_path)

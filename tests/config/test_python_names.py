@@ -180,6 +180,14 @@ def test_train_refuses_an_out_dir_that_is_no_path_by_name(out_dir):
                                   f"got {out_dir!r} ({type(out_dir).__name__})")  # fmt: skip
 
 
+def test_train_refuses_a_preset_label_that_names_no_preset(tmp_path):
+    """``preset=`` only labels the run in config.json; a misspelt one was recorded as it was."""
+    with pytest.raises(ConfigError, match=r"unknown preset 'pendullum'; did you mean "
+                       r"pendulum or ddpg-pendulum\?"):  # fmt: skip
+        td3_jax.train(tiny_config(), tmp_path / "r", preset="pendullum")
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize(
     ("wrong", "said"),
     [({"algo": "sac"}, "unknown algo 'sac'; choose one of td3, ddpg"),

@@ -291,13 +291,15 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
             rundir.check_resume(tmp_path, SMALL)
         rundir.check_fresh(tmp_path)
     # A run with records but no checkpoint (stopped after its first evaluation, or its
-    # checkpoints deleted) cannot start fresh there either: move it away.
+    # checkpoints deleted) is not resumed: the command that started it starts it over
+    # (test_a_run_stopped_before_its_first_checkpoint_starts_over_with_the_same_settings).
     (tmp_path / "metrics.jsonl").write_text('{"env_steps": 64}\n')
     with pytest.raises(ConfigError) as refused:
         rundir.check_resume(tmp_path, SMALL)
     assert str(refused.value).endswith(
-        "checkpoints has no checkpoint (it holds a run's outputs but no checkpoint: move it "
-        "away or choose another --out to train again)"
+        "checkpoints has no checkpoint (it holds a run's outputs but no checkpoint: the "
+        "command that started it, without --resume, starts it over; or move it away or choose "
+        "another --out to train again)"
     )
     with pytest.raises(ConfigError, match="previous run's outputs"):
         rundir.check_fresh(tmp_path)
@@ -717,7 +719,7 @@ def test_interrupted_message_says_what_is_kept(tmp_path):
     assert "before the first checkpoint" in message and "run the same command again" in message
     (tmp_path / "metrics.jsonl").write_text('{"env_steps": 8}\n')  # records, no checkpoint
     message = rundir.interrupted_message(tmp_path)
-    assert "holds none to resume (remove it or choose another --out" in message
+    assert "holds none to resume (run the same command again to start over)" in message
     (tmp_path / "checkpoints" / "2").mkdir(parents=True)
     message = rundir.interrupted_message(tmp_path)
     assert str(tmp_path / "checkpoints" / "2") in message and "--resume" in message
@@ -1159,3 +1161,43 @@ def test_a_sweep_directory_is_told_by_its_sweep_section_or_its_swept_members(tmp
             text = listing if isinstance(listing, str) else json.dumps(listing)
             (run / rundir.MEMBERS_FILE).write_text(text)
         assert rundir.is_sweep_dir(run) == sweep, name
+
+
+def test_a_run_stopped_before_its_first_checkpoint_starts_over_with_the_same_settings(
+    tmp_path, capsys
+):
+    """A run stopped after its first record but before its first checkpoint (a Ctrl-C in its
+    first chunk) left config.json, members.json, a record, TensorBoard's file and curve.png:
+    the same settings start over there (the outputs removed under the lock, then written
+    anew: one run's records, not two), other settings or members are refused as before."""
+    out = tmp_path / "run"
+    cfg = dataclasses.replace(SMALL, hidden_sizes=(8,))
+    lock = rundir.open_run_dir(out, resume=False)
+    rundir.save_config(cfg, members(cfg), out, {"preset": None})
+    (out / "metrics.jsonl").write_text('{"env_steps": 8}\n')  # (an early record)
+    (out / "curve.png").write_bytes(b"png")
+    (out / "tensorboard").mkdir()
+    (out / "tensorboard" / "events").write_bytes(b"")
+    (out / "checkpoints").mkdir()
+    lock.unlock()
+    assert rundir.stopped_before_checkpoint(out, cfg, members(cfg))
+    other = dataclasses.replace(cfg, seed=cfg.seed + 1)
+    for settings in (other, dataclasses.replace(cfg, actor_lr=1e-4)):
+        assert not rundir.stopped_before_checkpoint(out, settings, members(settings))
+        with pytest.raises(ConfigError, match="previous run's outputs"):
+            rundir.check_fresh(out, start_over=False)
+    assert not rundir.stopped_before_checkpoint(out, cfg, members(other))
+    rundir.check_fresh(out, start_over=True)
+    lock = rundir.open_run_dir(out, resume=False, run=(cfg, members(cfg)))
+    try:
+        assert sorted(p.name for p in out.iterdir()) == [".lock"]
+        assert "starting over in" in capsys.readouterr().out
+    finally:
+        lock.unlock()
+    rundir.save_config(cfg, members(cfg), out)
+    (out / "metrics.jsonl").write_text(f'{{"env_steps": {cfg.steps_per_chunk}}}\n')
+    assert not rundir.stopped_before_checkpoint(out, cfg, members(cfg))  # (checkpoints deleted)
+    (out / "metrics.jsonl").write_text("")
+    assert rundir.stopped_before_checkpoint(out, cfg, members(cfg))
+    (out / "notes.txt").write_text("mine")  # (a file of someone else's: never removed)
+    assert not rundir.stopped_before_checkpoint(out, cfg, members(cfg))
