@@ -136,24 +136,22 @@ def train(
     refused), until ``cfg.total_steps`` rounded up to a whole iteration
     (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl; none
     for a resumed run already complete, which warns: :class:`RunCompleteWarning`). A full disk
-    stops it with ``OutputWriteError``; a ``cfg`` that is no :class:`TrainConfig` or an
-    ``out_dir`` that is no path, with ``TypeError``.
+    stops it with ``OutputWriteError``; a ``cfg`` not a :class:`TrainConfig`, or an ``out_dir``
+    not a path, with ``TypeError``.
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
         the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME` (and
         ``eval_every`` as :func:`~td3_jax.runner.rundir.eval_every_as_saved` takes it).
       progress: show progress (a live bar on a terminal, else one line per evaluation).
-      sweep: float settings to vary, e.g. ``{"actor_lr": [1e-3, 3e-4]}``, each combination
-        with ``cfg.seeds`` seeds in one program; a member whose numbers become non-finite is
-        marked diverged, and the run stops when all have.
+      sweep: float settings to vary (``{"actor_lr": [1e-3, 3e-4]}``), ``cfg.seeds`` seeds of
+        each in one program; a member gone non-finite is marked diverged (all: the run stops).
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call.
       time_budget_s: stop after the first chunk that ends past this many seconds of the run's
         wall-clock, counted across resumes (the run stays resumable).
       devices: data-parallel over this many devices (default: all); the numbers do not change.
-      preset: the name of the preset ``cfg`` came from, recorded in config.json: a label, which
-        changes no setting (a preset's settings: ``td3_jax.config.presets.preset(NAME)``); a
-        name that is no preset is a one-line ConfigError.
+      preset: the preset ``cfg`` came from, a label for config.json that changes no setting
+        (those: ``td3_jax.config.presets.preset(NAME)``); no preset's name: a ConfigError.
       program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
       on_prepared: called once settings and environment are checked (nothing compiled yet).
       on_started: called with the env steps the run starts from (0 when fresh).
