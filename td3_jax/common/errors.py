@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import difflib
 import errno
+import sys
 from collections.abc import Sequence
 
 
@@ -145,7 +146,23 @@ __all__ = [
     "UpstreamChanged",
     "WandbError",
     "did_you_mean",
+    "in_td3_jax",
+    "outside_stacklevel",
 ]
+
+
+def in_td3_jax(module: str) -> bool:
+    """Whether the module named ``module`` is td3-jax's own (not ``td3_jax_experiments``)."""
+    return module == "td3_jax" or module.startswith("td3_jax.")
+
+
+def outside_stacklevel() -> int:
+    """The ``stacklevel`` of a warning from the calling function that points at the first
+    caller outside td3-jax (the line of the user's ``td3_jax.train(...)``)."""
+    frame, level = sys._getframe(1), 1
+    while frame.f_back is not None and in_td3_jax(frame.f_globals.get("__name__", "")):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def did_you_mean(word: str, names: Sequence[str]) -> str:

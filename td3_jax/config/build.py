@@ -25,6 +25,7 @@ import functools
 import itertools
 import math
 import re
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -33,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from td3_jax import envs
-from td3_jax.common.errors import ConfigError
+from td3_jax.common.errors import ConfigError, outside_stacklevel
 from td3_jax.config.schema import (
     SWEEPABLE,
     SWITCHED_ON_BY_THEIR_FLAG,
@@ -298,13 +299,17 @@ def make_train(
 
     ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
     ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
-    resumed. Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
+    resumed, and ``cfg.seeds`` is not used (a warning where it asks for more than one). Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
     keeps the reset and warm-up branches as real branches. ``env``: the environment instead
     of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`). ``cfg`` is validated
     first (:func:`~td3_jax.config.schema.validate`: a setting that cannot work is a ConfigError, as
     on the command line).
     """
     spec = make_spec(validated(cfg, env), env, axis_name)
+    if cfg.seeds > 1:  # (the command line and td3_jax.train run them; this, one per key)
+        warnings.warn(f"make_train trains one agent per key: seeds={cfg.seeds} is for "
+                      "td3_jax.train and the command line; jax.vmap the function over keys "
+                      "for several", UserWarning, stacklevel=outside_stacklevel())  # fmt: skip
     return training.make_train(spec, hyperparams(cfg), cfg.num_chunks)
 
 

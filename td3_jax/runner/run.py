@@ -31,6 +31,7 @@ from td3_jax.common.errors import (
     OutputWriteError,
     PhysicsOverflowError,
     ProcessLostError,
+    outside_stacklevel,
 )
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
@@ -258,7 +259,7 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
         if run.start_steps >= run.cfg.run_steps:
             if run.writer:
                 said = nothing_to_do(run.out_dir, run.cfg, python=True)
-                warnings.warn(said, RunCompleteWarning, stacklevel=_outside_level())
+                warnings.warn(said, RunCompleteWarning, stacklevel=outside_stacklevel())
             return
         _say_resuming(run)
         run.tracker = tracking.start(run.cfg, run.out_dir, resume=resume, enabled=run.writer)
@@ -275,20 +276,6 @@ def _start_and_train(run: _Run, source: Source, resume: bool, progress: bool, *,
 class RunCompleteWarning(UserWarning):
     """A resume (``resume=True``) found its run complete: :func:`train` trained nothing and
     returns no record (the command line says so in its own words instead)."""
-
-
-def _in_td3_jax(module: str) -> bool:
-    """Whether the module named ``module`` is td3-jax's own (not ``td3_jax_experiments``)."""
-    return module == "td3_jax" or module.startswith("td3_jax.")
-
-
-def _outside_level() -> int:
-    """The ``stacklevel`` of a warning from the calling function that points at the first
-    caller outside td3-jax (the line of the user's ``td3_jax.train(...)``)."""
-    frame, level = sys._getframe(1), 1
-    while frame.f_back is not None and _in_td3_jax(frame.f_globals.get("__name__", "")):
-        frame, level = frame.f_back, level + 1
-    return level
 
 
 def _tell_the_others(run: _Run) -> None:

@@ -180,6 +180,18 @@ def test_train_refuses_an_out_dir_that_is_no_path_by_name(out_dir):
                                   f"got {out_dir!r} ({type(out_dir).__name__})")  # fmt: skip
 
 
+def test_make_train_says_that_it_trains_one_agent_per_key_where_seeds_asks_for_more():
+    import dataclasses
+    import warnings
+
+    with pytest.warns(UserWarning, match=r"one agent per key: seeds=3 is for td3_jax.train") as said:
+        td3_jax.make_train(dataclasses.replace(tiny_config(), seeds=3))
+    assert [w.filename for w in said] == [__file__]  # (the caller's line, not td3-jax's)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        td3_jax.make_train(tiny_config())  # (one seed: nothing said)
+
+
 def test_train_refuses_a_preset_label_that_names_no_preset(tmp_path):
     """``preset=`` only labels the run in config.json; a misspelt one was recorded as it was."""
     with pytest.raises(ConfigError, match=r"unknown preset 'pendullum'; did you mean "
