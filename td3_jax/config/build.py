@@ -299,8 +299,9 @@ def make_train(
 
     ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
     ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
-    resumed, and ``cfg.seeds`` is not used (a warning where it asks for more than one). Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here
-    keeps the reset and warm-up branches as real branches. ``env``: the environment instead
+    resumed, and ``cfg.seeds`` is not used (a warning where it asks for more than one).
+    Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here keeps the
+    reset and warm-up branches as real branches. ``env``: the environment instead
     of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`). ``cfg`` is validated
     first (:func:`~td3_jax.config.schema.validate`: a setting that cannot work is a ConfigError, as
     on the command line).

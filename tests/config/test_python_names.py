@@ -184,7 +184,7 @@ def test_make_train_says_that_it_trains_one_agent_per_key_where_seeds_asks_for_m
     import dataclasses
     import warnings
 
-    with pytest.warns(UserWarning, match=r"one agent per key: seeds=3 is for td3_jax.train") as said:
+    with pytest.warns(UserWarning, match=r"one agent per key: seeds=3 is for td3_jax") as said:
         td3_jax.make_train(dataclasses.replace(tiny_config(), seeds=3))
     assert [w.filename for w in said] == [__file__]  # (the caller's line, not td3-jax's)
     with warnings.catch_warnings():
