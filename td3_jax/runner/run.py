@@ -201,7 +201,7 @@ def _checked(cfg: Any, out_dir: Any, time_budget_s: float | None, preset: str | 
     check_is_config(cfg)
     check_time_budget(time_budget_s)
     if preset is not None and preset not in presets.PRESETS:
-        presets.preset(preset)  # (a ConfigError naming the closest; a former name: a note)
+        presets.preset(preset)  # (a ConfigError naming the closest presets)
     if isinstance(out_dir, (str, os.PathLike)) and os.fspath(out_dir):
         return Path(out_dir)
     raise TypeError(f"out_dir must be a directory's path (str or os.PathLike), got "

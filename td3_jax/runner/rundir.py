@@ -24,6 +24,7 @@ its evaluations) is :mod:`td3_jax.runner.finished`'s.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import fcntl
@@ -282,13 +283,16 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False,
 
 
 def stopped_before_checkpoint(out_dir: Path, cfg: TrainConfig, population: list[Member]) -> bool:
-    """Whether ``out_dir`` holds the outputs of a run of ``cfg`` and ``population`` (its
-    config.json's settings and members.json as this run writes them) that stopped before its
-    first checkpoint (every record before that checkpoint's env step: not a run whose
-    checkpoints were deleted), and nothing of others: a fresh run of the same settings starts
-    over there (:func:`clear_outputs`), since it writes again everything that run wrote."""
+    """Whether ``out_dir`` holds the outputs of a fresh run of ``cfg`` and ``population`` (its
+    config.json's settings and members.json as this run writes them, no resume) that
+    recorded, then stopped before its first checkpoint (every record at that checkpoint's env
+    step or before: not a run whose checkpoints were deleted), and nothing of others (in its
+    folders too): a fresh run of the same settings starts over there (:func:`clear_outputs`),
+    since it writes again everything that run wrote. Never for an environment of the user's
+    own, whose code may have changed since."""
     out_dir = Path(out_dir)
-    if not out_dir.is_dir() or checkpoint_steps(out_dir) or foreign_entries(out_dir):
+    if (custom.is_custom(cfg.env) or not out_dir.is_dir() or checkpoint_steps(out_dir)
+            or foreign_entries(out_dir) or not _only_run_files(out_dir)):  # fmt: skip
         return False
     try:
         saved = json.loads((out_dir / CONFIG_FILE).read_text())
@@ -298,10 +302,23 @@ def stopped_before_checkpoint(out_dir: Path, cfg: TrainConfig, population: list[
         return False
     values = _as_used(cfg)
     expected = json.loads(json.dumps({**values, **sweep_entries(values, population)}))
-    same = isinstance(saved, dict) and all(saved.get(k) == v for k, v in expected.items())
+    if not isinstance(saved, dict) or "resume_changes" in saved:
+        return False
+    same = all(saved.get(k) == v for k, v in expected.items())
     first = min(cfg.checkpoint_every * cfg.steps_per_chunk, cfg.run_steps)
     return (same and listing == json.loads(json.dumps(_members_listing(population)))
-            and all(step < first for step in steps))  # fmt: skip
+            and bool(steps) and all(step <= first for step in steps))  # fmt: skip
+
+
+def _only_run_files(out_dir: Path) -> bool:
+    """Whether ``out_dir``'s checkpoints folder holds nothing but Orbax's unfinished writes
+    and its TensorBoard folder nothing but event files (what a run puts there)."""
+    checkpoints, events = Path(out_dir) / CHECKPOINTS, Path(out_dir) / "tensorboard"
+    kept = [p for p in checkpoints.iterdir() if "orbax-checkpoint-tmp" not in p.name] if (
+        checkpoints.is_dir()) else []  # fmt: skip
+    others = [p for p in events.iterdir() if not (p.is_file() and p.name.startswith(
+        "events.out.tfevents."))] if events.is_dir() else []  # fmt: skip
+    return not kept and not others
 
 
 def _recorded_steps(path: Path) -> list[int]:
@@ -473,12 +490,13 @@ _MOVE_AWAY = "move it away or choose another --out to train again"
 def _start_instead(out_dir: Path) -> str:
     """What a ``--resume`` of ``out_dir`` without a checkpoint says to do: start without it
     where its run ended before its first record (:func:`ended_before_recording`: a fresh start
-    is accepted there), else move it away (a fresh start there is refused while a run's
-    records stay, e.g. a run stopped after its first evaluation but before its first
-    checkpoint, or one whose checkpoints were deleted)."""
+    is accepted there), else move it away, unless the command that started it starts it over
+    (a run stopped in its first chunk: :func:`stopped_before_checkpoint`; not one whose
+    checkpoints were deleted)."""
     if not ended_before_recording(out_dir):
-        return (f" (it holds a run's outputs but no checkpoint: the command that started it, "
-                f"without --resume, starts it over; or {_MOVE_AWAY})")
+        return (f" (it holds a run's outputs but no checkpoint: {_MOVE_AWAY}, unless its run "
+                "stopped in its first chunk: then the command that started it, without "
+                "--resume, starts it over)")
     return " (its run stopped before the first: run without --resume to start it)"
 
 
@@ -600,8 +618,11 @@ def interrupted_message(out_dir: Path, cause: str = "interrupted") -> str:
                f"{resume_command(out_dir)})"  # fmt: skip
     if not Path(out_dir).exists():
         return f"{cause} before the run wrote anything to {out_dir} (run the same command again)"
-    return (f"{cause} before the first checkpoint: {out_dir} holds none to resume (run the "
-            "same command again to start over)")
+    again = "run the same command again to start over"
+    with contextlib.suppress(OSError, ValueError, AttributeError):  # (no config.json: as said)
+        if custom.is_custom(json.loads((Path(out_dir) / CONFIG_FILE).read_text()).get("env", "")):
+            again = "remove it or choose another --out to start again"  # (its code may differ)
+    return f"{cause} before the first checkpoint: {out_dir} holds none to resume ({again})"
 
 
 def _complete(out_dir: Path, chunks_done: int) -> bool:

@@ -1181,27 +1181,28 @@ def test_fresh_run_on_a_previous_runs_outputs_exits_2(finished_run, tmp_path, ca
     assert {p: (run_dir / p).read_bytes() for p in before} == before
 
 
-def test_the_same_command_starts_over_a_run_stopped_before_its_first_checkpoint(
-    finished_run, tmp_path, capsys
-):
-    """What a run stopped in its first chunk leaves (no checkpoint, no record past the first
-    checkpoint's step, its curve and TensorBoard's file): the same command starts over there
-    and writes the run's records once; other settings are still refused."""
-    run_dir = _copy_run(finished_run, tmp_path)
-    shutil.rmtree(run_dir / "checkpoints")
+def test_the_same_command_starts_over_a_run_stopped_before_its_first_checkpoint(tmp_path, capsys):
+    """What a run stopped in its first chunk leaves (here: a run checkpointed every 2 chunks,
+    its checkpoint removed and only its first record kept): the same command starts over
+    there and writes the run's records once; other settings are refused."""
+    flags = [*TINY_FLAGS, "--checkpoint-every", "2", "--out", str(tmp_path / "run"), "--quiet"]
+    code, _, err = main(["train", *flags], capsys)
+    assert code == 0, err
+    run_dir = tmp_path / "run"
     expected = read_records(run_dir)
-    (run_dir / "metrics.jsonl").write_text("")
-    code, _, err = main(["train", *TINY_FLAGS, "--seed", "8", "--out", str(run_dir), "--quiet"],
-                        capsys)  # fmt: skip
+    shutil.rmtree(run_dir / "checkpoints")
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    (run_dir / "metrics.jsonl").write_text(lines[0] + "\n")  # (the record before the first)
+    code, _, err = main(["train", *flags, "--seed", "8"], capsys)
     assert_one_line_error(code, err, "previous run's outputs", "no checkpoint")
-    code, out, err = main(["train", *TINY_FLAGS, "--out", str(run_dir), "--quiet"], capsys)
+    code, out, err = main(["train", *flags], capsys)
     assert code == 0, err
     assert f"starting over in {run_dir}" in out
     again = read_records(run_dir)
     assert [r["env_steps"] for r in again] == [r["env_steps"] for r in expected] == [64, 128]
     for a, b in zip(again, expected, strict=True):
         assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-6)
-    assert rundir.checkpoint_steps(run_dir) == [1, 2]
+    assert rundir.checkpoint_steps(run_dir) == [2]
 
 
 def test_divergence_before_the_first_checkpoint_says_how_to_start_again(

@@ -297,9 +297,9 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_again_fresh(tmp_path):
     with pytest.raises(ConfigError) as refused:
         rundir.check_resume(tmp_path, SMALL)
     assert str(refused.value).endswith(
-        "checkpoints has no checkpoint (it holds a run's outputs but no checkpoint: the "
-        "command that started it, without --resume, starts it over; or move it away or choose "
-        "another --out to train again)"
+        "checkpoints has no checkpoint (it holds a run's outputs but no checkpoint: move it "
+        "away or choose another --out to train again, unless its run stopped in its first "
+        "chunk: then the command that started it, without --resume, starts it over)"
     )
     with pytest.raises(ConfigError, match="previous run's outputs"):
         rundir.check_fresh(tmp_path)
@@ -1163,23 +1163,29 @@ def test_a_sweep_directory_is_told_by_its_sweep_section_or_its_swept_members(tmp
         assert rundir.is_sweep_dir(run) == sweep, name
 
 
+def _stopped_in_first_chunk(out: Path, cfg: TrainConfig, record_steps: int = 8) -> None:
+    """What a run of ``cfg`` stopped in its first chunk leaves in ``out``: config.json,
+    members.json, a record, TensorBoard's event file, curve.png and an empty checkpoints
+    folder (its lock released)."""
+    lock = rundir.open_run_dir(out, resume=False)
+    rundir.save_config(cfg, members(cfg), out, {"preset": None})
+    (out / "metrics.jsonl").write_text(f'{{"env_steps": {record_steps}}}\n')
+    (out / "curve.png").write_bytes(b"png")
+    (out / "tensorboard").mkdir()
+    (out / "tensorboard" / "events.out.tfevents.1.host").write_bytes(b"")
+    (out / "checkpoints").mkdir()
+    lock.unlock()
+
+
 def test_a_run_stopped_before_its_first_checkpoint_starts_over_with_the_same_settings(
     tmp_path, capsys
 ):
-    """A run stopped after its first record but before its first checkpoint (a Ctrl-C in its
-    first chunk) left config.json, members.json, a record, TensorBoard's file and curve.png:
-    the same settings start over there (the outputs removed under the lock, then written
-    anew: one run's records, not two), other settings or members are refused as before."""
+    """The same settings start over there (the outputs removed under the lock, then written
+    anew: one run's records, not two); other settings or members are refused as before, also
+    when they are found only under the lock, and nothing is removed then."""
     out = tmp_path / "run"
     cfg = dataclasses.replace(SMALL, hidden_sizes=(8,))
-    lock = rundir.open_run_dir(out, resume=False)
-    rundir.save_config(cfg, members(cfg), out, {"preset": None})
-    (out / "metrics.jsonl").write_text('{"env_steps": 8}\n')  # (an early record)
-    (out / "curve.png").write_bytes(b"png")
-    (out / "tensorboard").mkdir()
-    (out / "tensorboard" / "events").write_bytes(b"")
-    (out / "checkpoints").mkdir()
-    lock.unlock()
+    _stopped_in_first_chunk(out, cfg)
     assert rundir.stopped_before_checkpoint(out, cfg, members(cfg))
     other = dataclasses.replace(cfg, seed=cfg.seed + 1)
     for settings in (other, dataclasses.replace(cfg, actor_lr=1e-4)):
@@ -1187,6 +1193,10 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_over_with_the_same_set
         with pytest.raises(ConfigError, match="previous run's outputs"):
             rundir.check_fresh(out, start_over=False)
     assert not rundir.stopped_before_checkpoint(out, cfg, members(other))
+    before = sorted(p.name for p in out.iterdir())
+    with pytest.raises(ConfigError, match="previous run's outputs"):  # (checked under the lock)
+        rundir.open_run_dir(out, resume=False, run=(other, members(other)))
+    assert sorted(p.name for p in out.iterdir()) == before
     rundir.check_fresh(out, start_over=True)
     lock = rundir.open_run_dir(out, resume=False, run=(cfg, members(cfg)))
     try:
@@ -1194,10 +1204,37 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_over_with_the_same_set
         assert "starting over in" in capsys.readouterr().out
     finally:
         lock.unlock()
-    rundir.save_config(cfg, members(cfg), out)
-    (out / "metrics.jsonl").write_text(f'{{"env_steps": {cfg.steps_per_chunk}}}\n')
-    assert not rundir.stopped_before_checkpoint(out, cfg, members(cfg))  # (checkpoints deleted)
-    (out / "metrics.jsonl").write_text("")
+
+
+@pytest.mark.parametrize("left", ["record past the first checkpoint", "no record", "resumed",
+                                  "a file in checkpoints", "a folder in tensorboard",
+                                  "a file of others", "an environment of one's own"])  # fmt: skip
+def test_what_could_not_be_written_again_is_never_started_over(tmp_path, left):
+    """A finished run whose checkpoints were deleted, one that recorded nothing (a fresh start
+    is accepted there without removing anything), a resumed run (its config.json holds what
+    this run would not write), anything of others in its folders, and an environment of the
+    user's own (its code may have changed): no start-over."""
+    out = tmp_path / "run"
+    cfg = dataclasses.replace(SMALL, hidden_sizes=(8,))
+    first = cfg.checkpoint_every * cfg.steps_per_chunk
+    _stopped_in_first_chunk(out, cfg, record_steps=first)  # (a record at the first: still one)
     assert rundir.stopped_before_checkpoint(out, cfg, members(cfg))
-    (out / "notes.txt").write_text("mine")  # (a file of someone else's: never removed)
+    if left == "record past the first checkpoint":
+        (out / "metrics.jsonl").write_text(f'{{"env_steps": {first}}}\n{{"env_steps": '
+                                           f'{first + cfg.steps_per_chunk}}}\n')  # fmt: skip
+    elif left == "no record":
+        (out / "metrics.jsonl").write_text("")
+    elif left == "resumed":
+        saved = json.loads((out / "config.json").read_text())
+        saved["resume_changes"] = [{"at_env_steps": first, "total_steps": [first, 2 * first]}]
+        (out / "config.json").write_text(json.dumps(saved))
+    elif left == "a file in checkpoints":
+        (out / "checkpoints" / "my_best_policy").mkdir()
+    elif left == "a folder in tensorboard":
+        (out / "tensorboard" / "other_run").mkdir()
+    elif left == "a file of others":
+        (out / "notes.txt").write_text("mine")
+    else:
+        cfg = dataclasses.replace(cfg, env="mypackage.envs:make_env")
+        rundir.save_config(cfg, members(cfg), out, {"preset": None})
     assert not rundir.stopped_before_checkpoint(out, cfg, members(cfg))
