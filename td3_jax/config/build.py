@@ -375,6 +375,17 @@ def make_trainer(
 # --------------------------------------------------------------------------------------------
 
 
+def _sweep_lists(sweep: dict[str, Sequence[float]] | None) -> dict[str, list[float]]:
+    """``sweep``'s values as lists; a single number (not a list of them) is a ConfigError."""
+    lists = {}
+    for name, values in (sweep or {}).items():
+        if isinstance(values, (int, float, str)):
+            shown = f"{{{name!r}: [{values!r}, ...]}}; got {{{name!r}: {values!r}}}"
+            raise ConfigError(f"sweep values are a list for each setting, e.g. {shown}")
+        lists[name] = list(values)
+    return lists
+
+
 def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -> list[pop.Member]:
     """Every combination of the swept values, times ``cfg.seeds`` seeds from ``cfg.seed``.
 
@@ -382,7 +393,7 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     one-line :class:`ConfigError` for a setting that cannot be swept or changes nothing with
     ``cfg``, a non-finite value, or a combination ``cfg`` cannot run with (named by its
     ``--sweep-*`` flag)."""
-    sweep = {k: list(v) for k, v in (sweep or {}).items() if v}
+    sweep = {k: v for k, v in _sweep_lists(sweep).items() if v}
     unknown = sorted(set(sweep) - set(SWEEPABLE))
     if unknown:
         raise ConfigError(f"cannot sweep {unknown}; sweepable: {', '.join(SWEEPABLE)}")

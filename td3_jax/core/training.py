@@ -747,8 +747,23 @@ def make_train(
 
 
 def _train(spec: TrainSpec, hp: Hyperparams, num_chunks: int, key: PRNGKey):
+    check_key(key)
     step = lambda s, _: chunk_and_evaluate(spec, hp, s)
     return jax.lax.scan(step, init(spec, key), None, length=num_chunks)
+
+
+def check_key(key: Any) -> None:
+    """A ``TypeError`` that says what to pass where ``key`` is not one PRNG key (a raw
+    ``uint32`` key, e.g. :func:`key_for_seed`'s, or a typed ``jax.random.key``): an int seed,
+    or a batch of keys given to the unbatched function (checked on shapes while tracing)."""
+    shape, dtype = jnp.shape(key), getattr(key, "dtype", None)
+    typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key)
+    if (typed and shape == ()) or (dtype == jnp.uint32 and len(shape) == 1):
+        return
+    what = f"{type(key).__name__} {key!r}" if not shape else f"an array of shape {shape}"
+    raise TypeError(f"train takes one PRNG key (td3_jax.key_for_seed(seed) or "
+                    f"jax.random.PRNGKey(seed)), got {what}; for several keys, "
+                    "jax.vmap the function over them")  # fmt: skip
 
 
 __all__ = [
@@ -757,6 +772,7 @@ __all__ = [
     "Recording",
     "TrainSpec",
     "TrainState",
+    "check_key",
     "chunk",
     "chunk_and_evaluate",
     "chunk_iterations",

@@ -192,6 +192,35 @@ def test_make_train_says_that_it_trains_one_agent_per_key_where_seeds_asks_for_m
         td3_jax.make_train(tiny_config())  # (one seed: nothing said)
 
 
+def test_the_trained_function_says_what_key_it_takes(tmp_path):
+    """An int seed, or a batch of keys to the unbatched function, was JAX's "invalid PRNG key
+    data"; one key of either kind trains, and so does a batch under jax.vmap."""
+    import jax
+
+    from td3_jax.core import training
+
+    train = td3_jax.make_train(tiny_config())
+    for wrong, shown in ((0, "got int 0"), (jax.random.split(jax.random.PRNGKey(0), 3),
+                                            "got an array of shape (3, 2)")):  # fmt: skip
+        with pytest.raises(TypeError) as refused:
+            train(wrong)
+        assert str(refused.value) == (
+            "train takes one PRNG key (td3_jax.key_for_seed(seed) or jax.random.PRNGKey(seed)), "
+            f"{shown}; for several keys, jax.vmap the function over them")  # fmt: skip
+    for key in (td3_jax.key_for_seed(0), jax.random.key(0)):
+        training.check_key(key)
+    jax.eval_shape(jax.vmap(train), jax.random.split(jax.random.PRNGKey(0), 2))
+
+
+def test_a_sweep_of_one_number_says_to_give_a_list(tmp_path):
+    with pytest.raises(ConfigError) as refused:
+        td3_jax.train(tiny_config(), tmp_path / "r", sweep={"actor_lr": 1e-3})
+    assert str(refused.value) == (
+        "sweep values are a list for each setting, e.g. {'actor_lr': [0.001, ...]}; got "
+        "{'actor_lr': 0.001}")  # fmt: skip
+    assert not (tmp_path / "r").exists()
+
+
 def test_train_refuses_a_preset_label_that_names_no_preset(tmp_path):
     """``preset=`` only labels the run in config.json; a misspelt one was recorded as it was."""
     with pytest.raises(ConfigError, match=r"unknown preset 'pendullum'; did you mean "
