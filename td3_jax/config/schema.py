@@ -97,9 +97,9 @@ class TrainConfig:
     follows every --checkpoint-every chunks). It runs as whole iterations of --num-envs x
     --steps-per-iter env steps: rounded down (to one iteration at least), or, in a fresh run
     (`td3-jax train`, `td3_jax.train`), up where whole chunks of that length run fewer steps
-    past --total-steps;
-    the run prints the value it uses. A fresh run also lowers it to --total-steps where it is
-    longer (not with --eval-in-chunk, whose chunk must hold a whole episode)."""
+    past --total-steps; the run prints the value it uses. A fresh run also lowers it to
+    --total-steps where it is longer (not with --eval-in-chunk, whose chunk must hold a whole
+    episode)."""
     eval_envs: int = 16
     """Episodes per evaluation (one per environment, deterministic policy)."""
     eval_in_chunk: bool = False

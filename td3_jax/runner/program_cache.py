@@ -55,7 +55,6 @@ from td3_jax.config.schema import SWEEPABLE, WANDB_SETTINGS, TrainConfig
 __all__ = [
     "FORMAT",
     "MAX_ENTRIES",
-    "NAMES",
     "PACKAGE_ROOT",
     "ROUND",
     "FlatProgram",
@@ -92,7 +91,6 @@ PACKAGES = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco", "mujoco-core", "
 #: other setting is in the key).
 UNTRACED_SETTINGS = ("cache", "log", "traceback", "debug", "profil", "topology", "platform",
                      "dump")  # fmt: skip
-NAMES = ("chunk", "evaluate", "init")
 #: The td3_jax package's folder, whose Python files :func:`source_digest` reads.
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 #: The program that starts a chunk's evaluation round, which runs with ``eval_in_chunk`` only.

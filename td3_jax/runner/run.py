@@ -74,7 +74,6 @@ from td3_jax.runner.rundir import (
     resume_command,
     run_info,
     save_config,
-    stopped_before_checkpoint,
 )
 from td3_jax.runner.sharding import (
     check_memory,
@@ -494,8 +493,7 @@ def _prepare(cfg: TrainConfig, out_dir: Path, resume: bool, sweep: Any, mesh: An
         population, changes = check_resume(out_dir, cfg, sweep, writer=writer)
     else:
         population, changes = members(cfg, sweep), {}
-        over = writer and stopped_before_checkpoint(out_dir, cfg, population)
-        check_fresh(out_dir, writer=writer, start_over=over)
+        check_fresh(out_dir, writer=writer, run=(cfg, population))
     source = programs.find(cfg, population, mesh, program_dir, with_init=not resume, env=env)
     if resume:  # (the environment just made, before anything is compiled)
         check_environment_unchanged(out_dir, cfg.env, source.env)

@@ -247,14 +247,15 @@ def previous_outputs(out_dir: Path) -> list[str]:
 
 
 def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False,
-                start_over: bool = False) -> None:  # fmt: skip
+                run: tuple[TrainConfig, list[Member]] | None = None) -> bool:  # fmt: skip
     """Raises one-line errors when a fresh run cannot start in ``out_dir``; creates nothing.
+    Returns whether the run starts over there: ``run``, its ``(cfg, population)``, finds the
+    outputs of the same run stopped before its first checkpoint
+    (:func:`stopped_before_checkpoint`), which it may replace.
 
     ``writer``: this process writes the logs (the lock and the outputs are its business; other
     processes of a multi-process run only check what cannot change under them). ``locked``:
     this process holds the lock already (a second flock of the file would fail).
-    ``start_over``: the outputs there are those of the same run stopped before its first
-    checkpoint (:func:`stopped_before_checkpoint`), which it may replace.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -262,12 +263,13 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False,
     if not out_dir.is_dir():
         if writer:  # (open_run_dir makes it later)
             _check_can_create(out_dir)
-        return
+        return False
     if writer and not locked:
         check_not_in_use(out_dir)
     if checkpoint_steps(out_dir):
         raise ConfigError(f"{out_dir} already holds a run; pass --resume or choose a new --out")
-    outputs = previous_outputs(out_dir) if writer and not start_over else []
+    over = writer and run is not None and stopped_before_checkpoint(out_dir, *run)
+    outputs = previous_outputs(out_dir) if writer and not over else []
     if outputs and not ended_before_recording(out_dir):
         raise ConfigError(
             f"{out_dir} holds a previous run's outputs ({', '.join(outputs)}) but no checkpoint "
@@ -280,6 +282,7 @@ def check_fresh(out_dir: Path, *, writer: bool = True, locked: bool = False,
             f"{', ...' if len(others) > 3 else ''}); a run needs a new or empty directory of "
             "its own"
         )
+    return over
 
 
 def stopped_before_checkpoint(out_dir: Path, cfg: TrainConfig, population: list[Member]) -> bool:
@@ -470,9 +473,7 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True,
     lock = acquire_lock(out_dir)
     if not resume:
         try:
-            over = run is not None and stopped_before_checkpoint(out_dir, *run)
-            check_fresh(out_dir, locked=True, start_over=over)
-            if over:
+            if check_fresh(out_dir, locked=True, run=run):
                 clear_outputs(out_dir)
                 print(f"td3-jax: starting over in {out_dir}: the run of these settings there "
                       "stopped before its first checkpoint", flush=True)  # fmt: skip

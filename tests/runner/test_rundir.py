@@ -1191,13 +1191,14 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_over_with_the_same_set
     for settings in (other, dataclasses.replace(cfg, actor_lr=1e-4)):
         assert not rundir.stopped_before_checkpoint(out, settings, members(settings))
         with pytest.raises(ConfigError, match="previous run's outputs"):
-            rundir.check_fresh(out, start_over=False)
+            rundir.check_fresh(out, run=(settings, members(settings)))
     assert not rundir.stopped_before_checkpoint(out, cfg, members(other))
     before = sorted(p.name for p in out.iterdir())
     with pytest.raises(ConfigError, match="previous run's outputs"):  # (checked under the lock)
         rundir.open_run_dir(out, resume=False, run=(other, members(other)))
     assert sorted(p.name for p in out.iterdir()) == before
-    rundir.check_fresh(out, start_over=True)
+    assert rundir.check_fresh(out, run=(cfg, members(cfg)))  # (it starts over there)
+    assert not rundir.check_fresh(tmp_path / "new", run=(cfg, members(cfg)))
     lock = rundir.open_run_dir(out, resume=False, run=(cfg, members(cfg)))
     try:
         assert sorted(p.name for p in out.iterdir()) == [".lock"]
