@@ -14,13 +14,17 @@ own glue is one: its module is made at MJX's first call).
 
 :func:`precompile_task` does this for a Playground task made on Warp (td3-jax's environments
 call it); ``TD3_JAX_WARP_PRECOMPILE=0`` turns it off. Inside :func:`beside_compile` (a
-training run's environment is made there), on a machine of 8 cores or more, it runs on a
-thread of its own, which begins once the caller has traced its programs
-(:func:`programs_traced`: Warp's code generation would slow the tracing, which needs the same
-interpreter) and runs while XLA compiles them; :func:`wait_ready` waits for it before the first
-physics step. Warp's compile then costs the run only what XLA's does not cover
-(``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). The start-up it saves is measured in
-docs/benchmarks.md ("Where a T1 iteration's time goes").
+training run's environment is made there), on a machine of 8 cores or more, it runs on threads
+of its own while the caller traces its programs and XLA compiles them; :func:`wait_ready` waits
+for it before the first physics step. The listing and the longest module (:data:`HEAD_START`,
+one code generation of under a second) begin at once; the other modules once the caller has
+traced its programs (:func:`programs_traced`: their code generation would slow the tracing,
+which needs the same interpreter), on threads of lower CPU priority (:data:`NICENESS`), so that
+the longest compile and XLA's, which bound the start, keep their cores. (Where Warp's kernel
+cache holds a head-start module already, :func:`head_start_cached`, all of it waits for the
+tracing.) Warp's compile then
+costs the run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's).
+The start-up it saves is measured in docs/benchmarks.md ("Where a T1 iteration's time goes").
 """
 
 from __future__ import annotations
@@ -44,16 +48,22 @@ __all__ = [
     "BESIDE",
     "BESIDE_MIN_CORES",
     "CGROUP_ROOT",
+    "HEAD_START",
     "MAX_WORKERS",
+    "NICENESS",
     "PRECOMPILE",
     "PROC_CGROUP",
     "SLOW_FIRST",
+    "Listing",
     "Precompiled",
     "beside_compile",
+    "compile_listed",
     "cores",
     "cpu_quota",
     "default_workers",
     "drop_pending",
+    "head_start_cached",
+    "list_step",
     "listed_modules",
     "longest_first",
     "precompile",
@@ -75,6 +85,14 @@ MAX_WORKERS = 16
 #: collision kernel took 31-39 s, the next ones 13-23 s, all of them 190-285 s summed.
 SLOW_FIRST = ("ccd_kernel", "_src.smooth", "_src.passive", "_src.sensor", "_src.forward",
               "_src.solver", "_update_gradient_cholesky", "_tile_cholesky")  # fmt: skip
+#: Parts of the names of the modules that a precompile beside a compile starts at once, each on
+#: a thread of its own, while the caller still traces its programs: the convex collision
+#: kernel's compile alone outlasts XLA's compile of T1's chunk.
+HEAD_START = ("ccd_kernel",)
+#: How much lower the CPU priority (Linux's niceness, added) of the threads compiling the other
+#: modules beside a compile is: they take the cores that the longest module's compile and XLA's
+#: compiles, which bound the start, leave idle.
+NICENESS = 10
 #: Set to 0 (or false, off, no), a training run's precompile runs first, then its XLA
 #: compile; otherwise (the default) on its own thread beside the XLA compile
 #: (:func:`beside_compile`).
@@ -305,59 +323,127 @@ def default_workers() -> int:
     return min(cores(), MAX_WORKERS)
 
 
+def _named(job: tuple[Any, Any], parts: tuple[str, ...]) -> int:
+    """The index in ``parts`` of the first that the name of ``job``'s module contains
+    (``len(parts)``: none)."""
+    name = str(getattr(job[0], "name", job[0]))
+    return next((i for i, part in enumerate(parts) if part in name), len(parts))
+
+
 def longest_first(groups: dict[Any, list[Any]]) -> list[tuple[Any, Any]]:
     """The ``(module, block size)`` pairs of ``groups`` (block size -> modules) in the order to
     compile them: those named in :data:`SLOW_FIRST` first, in its order, then the others as
     listed."""
-
-    def rank(job: tuple[Any, Any]) -> int:
-        name = str(getattr(job[0], "name", job[0]))
-        return next((i for i, part in enumerate(SLOW_FIRST) if part in name), len(SLOW_FIRST))
-
     return sorted(((module, block_dim) for block_dim, modules in groups.items()
-                   for module in modules), key=rank)  # fmt: skip
+                   for module in modules), key=lambda job: _named(job, SLOW_FIRST))  # fmt: skip
 
 
-def _compile_modules(groups: dict[Any, list[Any]], workers: int,
-                     cancel: threading.Event | None = None) -> int:  # fmt: skip
-    """Compiles and loads the modules of ``groups`` (block size -> modules) on Warp's default
-    device, ``workers`` threads taking one module at a time, the slowest first
-    (:func:`longest_first`); returns how many it loaded. A thread takes no new module once
-    ``cancel`` is set or the main thread has ended (a process that stops waits for the
-    modules in hand only); the first failure stops them all and is raised."""
-    import warp
+def _lower_priority() -> None:
+    """This thread's CPU priority lowered by :data:`NICENESS` (Linux sets it per thread; where
+    it cannot be set, nothing changes)."""
+    try:
+        thread = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, thread, os.getpriority(os.PRIO_PROCESS, thread) + NICENESS)
+    except (AttributeError, OSError):  # (not Linux, or refused: the same compile, unranked)
+        pass
 
-    device, jobs = warp.get_device(), queue.SimpleQueue()
-    for job in longest_first(groups):
-        jobs.put(job)
-    failures: list[BaseException] = []
-    loaded: list[None] = []
 
-    def stopped() -> bool:
-        cancelled = cancel is not None and cancel.is_set()
-        return bool(failures) or cancelled or not threading.main_thread().is_alive()
+class _Compiles:
+    """What the threads of one :func:`_compile_modules` share: the modules they loaded, their
+    failures, and when to take no new module (``cancel`` set, a failure, or the main thread
+    ended: a process that stops waits for the modules in hand only)."""
 
-    def work() -> None:
-        while not stopped():
+    def __init__(self, device: Any, cancel: threading.Event | None) -> None:
+        self.device, self.cancel = device, cancel
+        self.loaded: list[tuple[Any, Any]] = []
+        self.failures: list[BaseException] = []
+
+    def stopped(self) -> bool:
+        cancelled = self.cancel is not None and self.cancel.is_set()
+        return bool(self.failures) or cancelled or not threading.main_thread().is_alive()
+
+    def compile_one(self, job: tuple[Any, Any]) -> None:
+        """Compiles and loads ``job``'s ``(module, block size)`` unless stopped; a failure is
+        kept (raised by the caller, on its own thread)."""
+        import warp
+
+        if self.stopped():
+            return
+        try:
+            warp.force_load(self.device, modules=[job[0]], block_dim=job[1], max_workers=0)
+            self.loaded.append(job)
+        except Exception as err:
+            self.failures.append(err)
+
+    def take(self, jobs: queue.SimpleQueue, later: threading.Event | None) -> None:
+        """Compiles the ``jobs`` one at a time until none is left or stopped; with ``later``,
+        only once it is set, at a lower CPU priority (:func:`_lower_priority`)."""
+        if later is not None:
+            while not later.wait(0.5):
+                if self.stopped():
+                    return
+            _lower_priority()
+        while not self.stopped():
             try:
-                module, block_dim = jobs.get_nowait()
+                self.compile_one(jobs.get_nowait())
             except queue.Empty:
                 return
-            try:
-                warp.force_load(device, modules=[module], block_dim=block_dim, max_workers=0)
-                loaded.append(None)
-            except Exception as err:  # (raised below, on the calling thread)
-                failures.append(err)
 
-    threads = [threading.Thread(target=work, name=f"td3-jax-warp-compile-{i}")
-               for i in range(max(1, workers))]  # fmt: skip
+
+def _compile_modules(groups: dict[Any, list[Any]], workers: int, device: Any = None,
+                     cancel: threading.Event | None = None,
+                     later: threading.Event | None = None) -> int:  # fmt: skip
+    """Compiles and loads the modules of ``groups`` (block size -> modules) on Warp's ``device``
+    (``None``: its default), ``workers`` threads taking one module at a time, the slowest first
+    (:func:`longest_first`); returns how many it loaded. With ``later``, those named in
+    :data:`HEAD_START` begin at once, a thread each, and the others once ``later`` is set, on
+    threads of lower priority (:func:`_lower_priority`). A thread takes no new module once
+    ``cancel`` is set or the main thread has ended; the first failure stops them all and is
+    raised."""
+    import warp
+
+    jobs = longest_first(groups)
+    head = [job for job in jobs if later is not None and _named(job, HEAD_START) < len(HEAD_START)]
+    rest: queue.SimpleQueue = queue.SimpleQueue()
+    for job in jobs:
+        if job not in head:
+            rest.put(job)
+    compiles = _Compiles(warp.get_device(device), cancel)
+    threads = [threading.Thread(target=compiles.compile_one, args=(job,),
+                                name=f"td3-jax-warp-compile-head-{i}")
+               for i, job in enumerate(head)]  # fmt: skip
+    threads += [threading.Thread(target=compiles.take, args=(rest, later),
+                                 name=f"td3-jax-warp-compile-{i}")
+                for i in range(max(1, workers - len(head)))]  # fmt: skip
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
-    if failures:
-        raise failures[0]
-    return len(loaded)
+    if compiles.failures:
+        raise compiles.failures[0]
+    return len(compiles.loaded)
+
+
+class Listing(NamedTuple):
+    """MuJoCo Warp's step of a model (:func:`list_step`): ``run`` steps one world, ``groups``
+    are the modules it loads by block size (:func:`listed_modules`, block-size queries answered
+    by a placeholder), ``device`` is Warp's device they are for."""
+
+    run: Callable[[], Any]
+    groups: dict[Any, list[Any]]
+    device: Any
+
+
+def list_step(mj_model: Any, options: dict[str, Any] | None = None, njmax: int | None = None,
+              naconmax: int | None = None) -> Listing:  # fmt: skip
+    """The :class:`Listing` of MuJoCo Warp's forward and step of ``mj_model`` (a
+    ``mujoco.MjModel``) on Warp's default device, as :func:`precompile` takes them. Called on a
+    thread that is not inside a ``warp.ScopedDevice`` (Warp's default device is the process's:
+    MJX sets it to the CPU while it makes its data)."""
+    import warp
+
+    run = _mujoco_warp_step(mj_model, options or {}, njmax, naconmax)
+    return Listing(run, listed_modules(run, answer_queries=False), warp.get_device())
 
 
 def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: int | None = None,
@@ -368,30 +454,42 @@ def precompile(mj_model: Any, *, options: dict[str, Any] | None = None, njmax: i
     :func:`default_workers`). ``njmax``/``naconmax``: the constraint and contact buffers the
     run uses (they decide which kernels some steps launch); ``options``: MJX's
     (:func:`static_options`); ``cancel``: once set, no further module is started. The count
-    is of the modules loaded.
+    is of the modules loaded: :func:`list_step`, then :func:`compile_listed`."""
+    start = time.perf_counter()
+    listing = list_step(mj_model, options, njmax, naconmax)
+    return compile_listed(listing, workers=workers, cancel=cancel, start=start)
 
-    The step is listed twice: first with MuJoCo Warp's block-size queries answered by a
-    placeholder, so that the modules they ask about (the convex collision kernel, the slowest
-    to compile) compile on the threads with the others instead of one at a time inside the
-    listing; then, those loaded, with real answers, and any module only that listing names is
+
+def compile_listed(listing: Listing, *, workers: int | None = None,
+                   cancel: threading.Event | None = None, later: threading.Event | None = None,
+                   start: float | None = None) -> Precompiled:  # fmt: skip
+    """Compiles and loads the modules of ``listing`` on its device, ``workers`` at a time
+    (default: :func:`default_workers`); ``cancel``: once set, no further module is started;
+    ``later``: only the :data:`HEAD_START` modules begin before it is set, the others after, at
+    a lower CPU priority (:func:`_compile_modules`). ``start``: the ``time.perf_counter()`` the
+    seconds count from (default: now).
+
+    The listing answered MuJoCo Warp's block-size queries with a placeholder, so that the
+    modules they ask about (the convex collision kernel, the slowest to compile) compile on the
+    threads with the others instead of one at a time inside the listing. Those loaded, the
+    step is listed again with real answers, and any module only that listing names is
     compiled too (:func:`_listed_again`)."""
-    start, workers = time.perf_counter(), workers or default_workers()
-    run = _mujoco_warp_step(mj_model, options or {}, njmax, naconmax)
-    groups = listed_modules(run, answer_queries=False)
-    loaded = _compile_modules(groups, workers, cancel)
+    start = time.perf_counter() if start is None else start
+    workers = workers or default_workers()
+    loaded = _compile_modules(listing.groups, workers, listing.device, cancel, later)
     if cancel is None or not cancel.is_set():
-        loaded += _listed_again(run, groups, workers, cancel)
+        loaded += _listed_again(listing, workers, cancel)
     return Precompiled(loaded, time.perf_counter() - start)
 
 
-def _listed_again(run: Callable[[], Any], groups: dict[Any, list[Any]], workers: int,
-                  cancel: threading.Event | None) -> int:  # fmt: skip
-    """How many modules ``run``'s listing with real block-size answers names beyond ``groups``
-    (those the queries asked about are loaded by now), compiled on ``workers`` threads. A
-    failure here is left to the module's first launch (which raises it, should it be real):
-    the modules of ``groups`` are loaded already."""
+def _listed_again(listing: Listing, workers: int, cancel: threading.Event | None) -> int:
+    """How many modules the listing of ``listing.run`` with real block-size answers names
+    beyond ``listing.groups`` (those the queries asked about are loaded by now), compiled on
+    ``workers`` threads. A failure here is left to the module's first launch (which raises it,
+    should it be real): the modules of ``listing.groups`` are loaded already."""
     try:
-        return _compile_modules(_not_in(listed_modules(run), groups), workers, cancel)
+        extra = _not_in(listed_modules(listing.run), listing.groups)
+        return _compile_modules(extra, workers, listing.device, cancel)
     except Exception:  # (an optimisation: the first launch compiles what is missing)
         return 0
 
@@ -418,9 +516,9 @@ _BESIDE = threading.local()
 #: The precompiles started beside a compile and not yet waited for (wait_ready).
 _PENDING: list[_Pending] = []
 #: Set once the caller has traced its programs (:func:`programs_traced`): a precompile started
-#: beside a compile waits for it before its Python work (listing the modules, Warp's code
-#: generation), which holds the interpreter and slowed the tracing of T1's chunk from 3 s to
-#: 7-20 s; XLA's compile, which follows, leaves the interpreter free.
+#: beside a compile waits for it before the code generation of all but its :data:`HEAD_START`
+#: modules, which holds the interpreter and slowed the tracing of T1's chunk from 3 s to 7-20 s
+#: when every module began at once; XLA's compile, which follows, leaves the interpreter free.
 _TRACED = threading.Event()
 _TRACED.set()
 
@@ -429,8 +527,10 @@ _TRACED.set()
 def beside_compile() -> Iterator[None]:
     """Inside, unless :data:`BESIDE` is off (0, false, off, no), on :data:`BESIDE_MIN_CORES` cores,
     :func:`precompile_task` (called by this thread) starts the precompile on a thread of its
-    own and returns at once; its work begins once :func:`programs_traced`, :func:`wait_ready`
-    or :func:`drop_pending` is called, and :func:`wait_ready` waits for it. A training run makes
+    own and returns at once: it lists the modules and starts the :data:`HEAD_START` ones at
+    once (unless :func:`head_start_cached`), the others once :func:`programs_traced`,
+    :func:`wait_ready` or :func:`drop_pending` is called, and :func:`wait_ready` waits for it.
+    A training run makes
     its environment inside, then traces its programs and compiles them while Warp's kernels
     compile.
     An exception leaving it drops the precompiles started inside (:func:`drop_pending`)."""
@@ -513,14 +613,21 @@ def _task_precompile(task: Any, njmax: int | None, naconmax: int | None) -> Prec
 
 def _start_beside(task: Any, njmax: int | None, naconmax: int | None) -> None:
     """The task's precompile started on a thread of its own (:data:`_PENDING`); a failure to
-    start it is :func:`precompile_task`'s warning."""
+    start it is :func:`precompile_task`'s warning. Its listing is made here, on the caller's
+    thread, and its :data:`HEAD_START` modules begin at once, unless Warp's kernel cache holds
+    one of them already (:func:`head_start_cached`): the start is then likely warm, and the
+    whole precompile, its listing too, waits for the caller's programs to be traced."""
     try:
-        mj_model, options = _task_model(task)
+        start, (mj_model, options) = time.perf_counter(), _task_model(task)
         cancel = threading.Event()
-        work = functools.partial(precompile, mj_model, options=options, njmax=njmax,
-                                 naconmax=naconmax, cancel=cancel)  # fmt: skip
-        future = runtime.in_background(_once_traced, work, cancel,
-                                       name="td3-jax warp precompile")  # fmt: skip
+        if head_start_cached():
+            work = functools.partial(_once_traced, functools.partial(
+                precompile, mj_model, options=options, njmax=njmax, naconmax=naconmax,
+                cancel=cancel), cancel)  # fmt: skip
+        else:
+            work = functools.partial(compile_listed, list_step(mj_model, options, njmax, naconmax),
+                                     cancel=cancel, later=_TRACED, start=start)  # fmt: skip
+        future = runtime.in_background(work, name="td3-jax warp precompile")
     except Exception as err:  # (an optimisation: the run goes on without it)
         _warn_failed(err)
         return
@@ -532,6 +639,22 @@ def _once_traced(work: Callable[[], Precompiled], cancel: threading.Event) -> Pr
     where it was dropped (``cancel``) meanwhile."""
     _TRACED.wait()
     return Precompiled(0, 0.0) if cancel.is_set() else work()
+
+
+def head_start_cached(cache: str | os.PathLike | None = None) -> bool:
+    """Whether Warp's kernel cache (``cache``, default: Warp's ``config.kernel_cache_dir``)
+    holds a module named in :data:`HEAD_START`, of any model (a folder named after it). Where
+    it does, a start is likely warm: the head start's listing on the caller's thread (about
+    half a second on an H200) would cost more than it saves."""
+    if cache is None:
+        import warp
+
+        cache = warp.config.kernel_cache_dir
+    try:
+        names = os.listdir(cache) if cache else []
+    except OSError:  # (no cache folder yet: nothing cached)
+        return False
+    return any(part in name for name in names for part in HEAD_START)
 
 
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:

@@ -32,9 +32,10 @@ def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkey
 def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
     monkeypatch, capsys
 ):
-    """Inside ``beside_compile``, on 8 cores (TD3_JAX_WARP_BESIDE unset), the task's precompile
-    starts on another thread and the caller goes on at once; it begins its work once the
-    caller says its programs are traced (``programs_traced``); ``wait_ready`` waits for it and
+    """Inside ``beside_compile``, on 8 cores (TD3_JAX_WARP_BESIDE unset), the task's step is
+    listed on the caller's thread (outside MJX's CPU-device scopes) and its modules compile on
+    another thread, told to hold all but the head start until the caller says its programs are
+    traced (``programs_traced``); the caller goes on at once; ``wait_ready`` waits for it and
     says so; a failure there is the usual warning; an error leaving the block drops it.
     Outside, with the variable 0, or on 2 cores, it runs on the caller's thread."""
     import threading
@@ -42,7 +43,7 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     from td3_jax.common import runtime
     from td3_jax.envs import warp_kernels
 
-    unblock, ran_on = threading.Event(), []
+    unblock, ran_on, listed_on = threading.Event(), [], []
 
     def slow(task, njmax, naconmax):
         ran_on.append(threading.get_ident())
@@ -54,9 +55,20 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     def precompile(mj_model, options, njmax, naconmax, cancel=None):
         return slow(mj_model, njmax, naconmax)
 
+    def list_step(mj_model, options, njmax, naconmax):
+        listed_on.append(threading.get_ident())
+        return warp_kernels.Listing(mj_model, {None: [njmax]}, "gpu")
+
+    def compile_listed(listing, *, cancel=None, later=None, start=None):
+        assert later is warp_kernels._TRACED and not later.is_set() and start is not None
+        return slow(listing.run, listing.groups[None][0], None)
+
     monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
     monkeypatch.setattr(warp_kernels, "precompile", precompile)
+    monkeypatch.setattr(warp_kernels, "list_step", list_step)
+    monkeypatch.setattr(warp_kernels, "compile_listed", compile_listed)
     monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
+    monkeypatch.setattr(warp_kernels, "head_start_cached", lambda: False)
     for off in ("0", "Off"):
         monkeypatch.setenv(warp_kernels.BESIDE, off)
         with warp_kernels.beside_compile():  # (turned off: run first, as outside)
@@ -69,16 +81,15 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("t1", njmax=37, naconmax=4) is None
+    assert listed_on == [threading.get_ident()]  # (listed here, before the caller traces)
     assert warp_kernels._PENDING and not warp_kernels._PENDING[0].future.done()  # (running)
     assert runtime.background_work_running()  # (a stopped run exits without waiting for it)
-    time.sleep(0.3)
-    assert len(ran_on) == 3  # (it has not begun: the caller's programs are not traced yet)
-    warp_kernels.programs_traced()
-    for _ in range(100):  # (now it begins, and waits for `unblock`)
+    for _ in range(100):  # (it began at once, and waits for `unblock`)
         if len(ran_on) == 4:
             break
         time.sleep(0.05)
     assert len(ran_on) == 4 and ran_on[3] != threading.get_ident()
+    warp_kernels.programs_traced()
     unblock.set()
     assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(37, 2.0)]
     assert ran_on[3] != threading.get_ident()
@@ -107,6 +118,28 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
 
     assert warp_kernels.precompile_task("t1", njmax=5, naconmax=1) == (5, 2.0)
     assert ran_on[-1] == threading.get_ident() and not warp_kernels._PENDING
+
+    # a head-start module in Warp's cache (likely warm): nothing is listed here, and all of it
+    # waits for the tracing
+    monkeypatch.setattr(warp_kernels, "head_start_cached", lambda: True)
+    listed_on.clear()
+    with warp_kernels.beside_compile():
+        assert warp_kernels.precompile_task("quick", njmax=6, naconmax=1) is None
+    time.sleep(0.3)
+    assert listed_on == [] and ran_on[-1] == threading.get_ident()  # (not begun)
+    warp_kernels.programs_traced()
+    assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(6, 2.0)]
+    assert ran_on[-1] != threading.get_ident()
+
+
+def test_a_head_start_module_in_warps_cache_is_found_by_its_folder(tmp_path):
+    from td3_jax.envs import warp_kernels
+
+    assert not warp_kernels.head_start_cached(tmp_path / "none yet")
+    (tmp_path / "wp_mujoco_warp._src.smooth_1a2b3c4").mkdir()
+    assert not warp_kernels.head_start_cached(tmp_path)
+    (tmp_path / "wp_ccd_kernel_builder__locals__ccd_kernel_eff81976_6aab1fe").mkdir()
+    assert warp_kernels.head_start_cached(tmp_path)
 
 
 def test_the_cores_counted_are_at_most_the_cgroups_cpu_quota(tmp_path):
@@ -173,12 +206,96 @@ def test_the_slowest_modules_are_compiled_first_in_the_listed_order_otherwise(mo
     assert warp_kernels.longest_first(groups) == [(first, None), (solver, None), (smooth, None),
                                                   (last, 64), (ccd, 64)]  # fmt: skip
     started = []
-    fake_warp = SimpleNamespace(get_device=lambda: "gpu",
+    fake_warp = SimpleNamespace(get_device=lambda device=None: device or "gpu",
                                 force_load=lambda device, modules, **kw: started.append(modules))
     monkeypatch.setitem(sys.modules, "warp", fake_warp)
     monkeypatch.setattr(warp_kernels, "SLOW_FIRST", ("solver",))
     assert warp_kernels._compile_modules(groups, workers=1) == 5
     assert started[0] == [solver] and len(started) == 5
+
+
+def test_the_head_start_compiles_before_the_caller_is_traced_and_the_rest_after_ranked_lower(
+    monkeypatch,
+):
+    """With ``later``: the modules named in HEAD_START begin at once, a thread each, at the
+    caller's priority; the others only once ``later`` is set, on threads whose niceness rises
+    by NICENESS (Linux's per-thread priority), all on the device given. A cancel while they
+    wait: none of the others is compiled."""
+    from td3_jax.envs import warp_kernels
+
+    ccd, smooth, other = _Module("ccd_kernel_ab12"), _Module("x._src.smooth"), _Module("b")
+    groups = {None: [smooth, other], 64: [ccd]}
+    loads, lowered, head_loaded = [], [], threading.Event()
+
+    def force_load(device, modules, block_dim=None, max_workers=None):
+        loads.append((device, modules[0].name, block_dim, threading.current_thread().name))
+        if modules[0] is ccd:
+            head_loaded.set()
+
+    fake_warp = SimpleNamespace(get_device=lambda device=None: device, force_load=force_load)
+    monkeypatch.setitem(sys.modules, "warp", fake_warp)
+    monkeypatch.setattr(warp_kernels, "_lower_priority",
+                        lambda: lowered.append(threading.current_thread().name))  # fmt: skip
+    later = threading.Event()
+    done = []
+    worker = threading.Thread(target=lambda: done.append(warp_kernels._compile_modules(
+        groups, 3, "cuda:1", later=later)))  # fmt: skip
+    worker.start()
+    assert head_loaded.wait(10)
+    time.sleep(0.2)
+    assert [load[1:3] for load in loads] == [("ccd_kernel_ab12", 64)] and not lowered
+    later.set()
+    worker.join(10)
+    assert done == [3] and {load[0] for load in loads} == {"cuda:1"}
+    assert sorted(load[1] for load in loads[1:]) == ["b", "x._src.smooth"]
+    assert len(lowered) == 2 and loads[0][3] not in lowered  # (two waiting threads, lowered)
+    assert all(load[3] in lowered for load in loads[1:])
+
+    loads.clear()
+    cancel, later = threading.Event(), threading.Event()
+    worker = threading.Thread(target=lambda: done.append(warp_kernels._compile_modules(
+        groups, 3, "cuda:0", cancel=cancel, later=later)))  # fmt: skip
+    worker.start()
+    assert head_loaded.wait(10)
+    cancel.set()
+    worker.join(10)
+    assert not worker.is_alive() and done[-1] <= 1 and all(load[1] != "b" for load in loads)
+    monkeypatch.setattr(warp_kernels, "HEAD_START", ())  # (none named: all wait for `later`)
+    loads.clear()
+    later = threading.Event()
+    worker = threading.Thread(target=lambda: warp_kernels._compile_modules(
+        groups, 2, "cuda:0", later=later))  # fmt: skip
+    worker.start()
+    time.sleep(0.3)
+    assert loads == []
+    later.set()
+    worker.join(10)
+    assert len(loads) == 3
+
+
+def test_lowering_a_threads_priority_raises_its_niceness_by_the_constant(monkeypatch):
+    """On Linux a thread's niceness is its own: the compile threads' ``_lower_priority`` adds
+    NICENESS to this thread's and leaves the process's other threads as they were."""
+    import os
+
+    from td3_jax.envs import warp_kernels
+
+    if not hasattr(os, "getpriority"):
+        pytest.skip("no per-thread priority here")
+    main_before, seen = os.getpriority(os.PRIO_PROCESS, 0), []
+
+    def lower():
+        thread = threading.get_native_id()
+        before = os.getpriority(os.PRIO_PROCESS, thread)
+        warp_kernels._lower_priority()
+        seen.append((before, os.getpriority(os.PRIO_PROCESS, thread)))
+
+    thread = threading.Thread(target=lower)
+    thread.start()
+    thread.join()
+    before, after = seen[0]
+    assert after == min(19, before + warp_kernels.NICENESS)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main_before
 
 
 def test_the_listing_records_loads_as_warp_resolves_them_and_answers_gpu_queries_itself(
@@ -243,26 +360,28 @@ def test_the_precompile_compiles_what_the_second_listing_adds_unless_cancelled(m
         return {None: ["a", "b"], 64: ["c"]} if not answer_queries else {None: ["b", "d"],
                                                                          64: ["c", "e"]}
 
-    def compile_modules(groups, workers, cancel=None):
-        compiled.append(groups)
+    def compile_modules(groups, workers, device=None, cancel=None, later=None):
+        compiled.append((groups, device))
         return sum(len(modules) for modules in groups.values())
 
+    monkeypatch.setitem(sys.modules, "warp", SimpleNamespace(get_device=lambda: "cuda:0"))
     monkeypatch.setattr(warp_kernels, "_mujoco_warp_step", lambda *args: "step")
     monkeypatch.setattr(warp_kernels, "listed_modules", listed)
     monkeypatch.setattr(warp_kernels, "_compile_modules", compile_modules)
     done = warp_kernels.precompile("model", workers=2)
     assert listings == [False, True] and done.modules == 5
-    assert compiled == [{None: ["a", "b"], 64: ["c"]}, {None: ["d"], 64: ["e"]}]
+    assert compiled == [({None: ["a", "b"], 64: ["c"]}, "cuda:0"),
+                        ({None: ["d"], 64: ["e"]}, "cuda:0")]  # (the listing's own device)
     listings.clear()
     cancel = threading.Event()
     cancel.set()
     assert warp_kernels.precompile("model", workers=2, cancel=cancel).modules == 3
     assert listings == [False]  # (a second listing would compile the queried modules itself)
 
-    def second_fails(groups, workers, cancel=None):  # (left to the modules' first launch)
-        if compiled:
+    def second_fails(groups, workers, device=None, cancel=None, later=None):
+        if compiled:  # (left to the modules' first launch)
             raise RuntimeError("nvrtc: error")
-        return compile_modules(groups, workers, cancel)
+        return compile_modules(groups, workers, device, cancel)
 
     compiled.clear()
     monkeypatch.setattr(warp_kernels, "_compile_modules", second_fails)
