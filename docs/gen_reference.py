@@ -149,7 +149,7 @@ def cli_page() -> str:
 def other_names_section() -> str:
     """The flags of CleanRL, Stable-Baselines3 and FastTD3 that the command line answers with
     its own (``--gamma``: did you mean ``--discount``?), from the table the parser uses."""
-    from td3_jax.config.other_names import OTHER_NAMES  # (the parser's own table, read as is)
+    from td3_jax.common.other_names import OTHER_NAMES  # (the parser's own table, read as is)
 
     rows = ["| there | here |", "| --- | --- |"]
     for there, here in sorted(OTHER_NAMES.items()):

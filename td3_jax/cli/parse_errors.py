@@ -9,7 +9,7 @@ import difflib
 import re
 
 from td3_jax.cli.argv import flag_values, number_kinds
-from td3_jax.config.other_names import names_meant
+from td3_jax.common.other_names import names_meant
 from td3_jax.config.schema import SWEEPABLE, flag
 
 __all__ = ["parse_error"]

@@ -13,44 +13,15 @@ import numbers
 import re
 import types
 import typing
-from collections.abc import Iterable
 from typing import Any, Literal
 
 import numpy as np
 
 from td3_jax.common.errors import ConfigError
-from td3_jax.config.other_names import names_meant
+from td3_jax.common.keywords import keywords_named
 
 
-def _keywords_named(cls: type) -> type:
-    """``cls`` (a dataclass) whose ``__init__`` refuses a keyword that is none of its fields
-    with a ``TypeError`` naming the field most likely meant
-    (:func:`~td3_jax.config.other_names.names_meant`: ``gamma``, did you mean ``discount``?);
-    the signature stays the fields'."""
-    init = cls.__init__
-
-    @functools.wraps(init)
-    def checked(self: Any, *args: Any, **kwargs: Any) -> None:
-        fields = {field.name for field in dataclasses.fields(self)}
-        unknown = next((name for name in kwargs if name not in fields), None)
-        if unknown is not None:
-            raise TypeError(unknown_keyword(type(self).__name__, unknown, fields))
-        init(self, *args, **kwargs)
-
-    cls.__init__ = checked
-    return cls
-
-
-def unknown_keyword(owner: str, name: str, fields: Iterable[str]) -> str:
-    """``owner() got an unexpected keyword argument 'gamma'; did you mean discount?`` (the
-    guess only where one of ``fields`` is close)."""
-    dashed = {field.replace("_", "-"): field for field in fields}
-    meant = [dashed[n] for n in names_meant(name.replace("_", "-"), dashed)]
-    guess = f"; did you mean {' or '.join(meant[:4])}?" if meant else ""
-    return f"{owner}() got an unexpected keyword argument {name!r}{guess}"
-
-
-@_keywords_named
+@keywords_named
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Everything one training run needs. Sizes are static; the run compiles once for them.

@@ -25,10 +25,12 @@ from typing import Any
 
 from flax import struct
 
+from td3_jax.common.keywords import keywords_named
 from td3_jax.core.actor_critic import actor_critic, hyperparams, make_spec
 from td3_jax.core.types import Agent
 
 
+@keywords_named
 @struct.dataclass
 class TD3Config:
     """TD3 hyperparameters. Defaults are the TD3 paper's.
@@ -48,6 +50,7 @@ class TD3Config:
     hidden_sizes: Sequence[int] = struct.field(pytree_node=False, default=(400, 300))
 
 
+@keywords_named
 @struct.dataclass
 class DDPGConfig:
     """DDPG hyperparameters. Defaults suit Pendulum (256-256 networks)."""

@@ -65,6 +65,30 @@ def test_a_keyword_that_is_no_field_names_the_field_meant(name, meant):
     assert list(parameters) == [field.name for field in dataclasses.fields(TrainConfig)]
 
 
+@pytest.mark.parametrize(
+    ("owner", "name", "meant"),
+    [(td3_jax.TD3Config, "polcy_noise", "policy_noise"), (td3_jax.TD3Config, "gamma", "discount"),
+     (td3_jax.TD3Config, "policy_delay", "policy_freq"),
+     (td3_jax.DDPGConfig, "lr", "actor_lr or critic_lr"), (td3_jax.DDPGConfig, "zzz", None)],
+)  # fmt: skip
+def test_the_agents_configs_name_the_field_meant_too(owner, name, meant):
+    """TD3Config and DDPGConfig (flax dataclasses, JAX pytrees) refuse an unknown keyword as
+    TrainConfig does, and still build, copy and pass through JAX's tree functions."""
+    import jax
+
+    expected = f"{owner.__name__}() got an unexpected keyword argument {name!r}"
+    expected += f"; did you mean {meant}?" if meant else ""
+    with pytest.raises(TypeError) as refused:
+        owner(**{name: 0.1})
+    assert str(refused.value) == expected
+    config = owner(tau=0.1)
+    assert config.replace(discount=0.9).discount == 0.9 and config.tau == 0.1
+    assert jax.tree.map(lambda leaf: leaf, config) == config
+    assert pickle.loads(pickle.dumps(config)) == config
+    parameters = inspect.signature(owner).parameters
+    assert list(parameters) == [field.name for field in dataclasses.fields(owner)]
+
+
 def test_values_of_the_right_kind_are_taken_as_given():
     """Whole floats for counts (``total_steps=1e6``), ints and NumPy scalars for floats,
     lists for sizes: the kinds a Python caller or a config.json gives, kept as the field's own

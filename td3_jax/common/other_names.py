@@ -1,7 +1,7 @@
 """The settings a name not td3-jax's most likely means: another library's name for one
 (``gamma``: ``discount``), the end of ours (``lr``: ``actor-lr`` and ``critic-lr``), or the
-closest spelling. The command line offers them for an unknown flag, :class:`TrainConfig
-<td3_jax.config.schema.TrainConfig>` for an unknown keyword."""
+closest spelling. The command line offers them for an unknown flag, the config classes
+(:func:`~td3_jax.common.keywords.keywords_named`) for an unknown keyword."""
 
 from __future__ import annotations
 
