@@ -145,11 +145,14 @@ def exit_process(message: str | None, code: int, abandon_work: bool = True) -> N
     ``abandon_work`` (a stop): work that a Ctrl-C cannot stop is abandoned the same way rather
     than waited for: an XLA compile on a background thread, a chunk or evaluation left running
     on the device (the run's outputs are closed by then). Waiting took the rest of the chunk,
-    and tearing down XLA under it could end in SIGSEGV."""
+    and tearing down XLA under it could end in SIGSEGV. Work its owner dropped
+    (:func:`~td3_jax.common.runtime.drop`: MuJoCo Warp's kernel compiles of a run that ended
+    before its first step) is abandoned in either case."""
     if message is not None:
         print(message, file=sys.stderr, flush=True)
     left = leave_processes(FIRST_PROCESS_LEAVE_S if _first_of_several() else STOPPED_LEAVE_S)
-    if not left or (abandon_work and runtime.background_work_running()):
+    abandons = abandon_work and runtime.background_work_running()
+    if not left or abandons or runtime.dropped_work_running():
         sys.stdout.flush()
         library_noise.drain_filters()  # (what a filter of stderr still holds, this line too)
         runtime.forget_abandoned_work()  # (for a caller whose os._exit returns: tests)

@@ -202,6 +202,23 @@ def background_work_running() -> bool:
 
 
 _ABANDONED = threading.Event()
+#: The futures of :func:`in_background` whose owner no longer wants their result (:func:`drop`).
+_DROPPED: set[Future] = set()
+
+
+def drop(future: Future) -> None:
+    """Marks the work of ``future`` (of :func:`in_background`) as no longer wanted: a process
+    that ends need not wait for it (:func:`dropped_work_running`), even where it fails."""
+    if not future.done():
+        _DROPPED.add(future)
+
+
+def dropped_work_running() -> bool:
+    """Whether work marked by :func:`drop` still runs (the finished is forgotten)."""
+    for future in list(_DROPPED):
+        if future.done():
+            _DROPPED.discard(future)
+    return bool(_DROPPED)
 
 
 @contextlib.contextmanager

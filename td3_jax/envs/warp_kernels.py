@@ -20,11 +20,11 @@ for it before the first physics step. The listing and the longest module (:data:
 one code generation of under a second) begin at once; the other modules once the caller has
 traced its programs (:func:`programs_traced`: their code generation would slow the tracing,
 which needs the same interpreter), on threads of lower CPU priority (:data:`NICENESS`), so that
-the longest compile and XLA's, which bound the start, keep their cores. (Where Warp's kernel
-cache holds a head-start module already, :func:`head_start_cached`, all of it waits for the
-tracing.) Warp's compile then
-costs the run only what XLA's does not cover (``TD3_JAX_WARP_BESIDE=0``: first, then XLA's).
-The start-up it saves is measured in docs/benchmarks.md ("Where a T1 iteration's time goes").
+the longest compile and XLA's, which bound the start, come first on the cores. Where Warp's
+kernel cache holds a head-start module already (:func:`head_start_cached`), all of it waits
+for the tracing. Warp's compile then costs the run only what XLA's does not cover
+(``TD3_JAX_WARP_BESIDE=0``: first, then XLA's). The start-up it saves is measured in
+docs/benchmarks.md ("XLA's compile of the chunk").
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import functools
 import math
 import os
 import queue
+import re
 import sys
 import threading
 import time
@@ -323,7 +324,7 @@ def default_workers() -> int:
     return min(cores(), MAX_WORKERS)
 
 
-def _named(job: tuple[Any, Any], parts: tuple[str, ...]) -> int:
+def _rank(job: tuple[Any, Any], parts: tuple[str, ...]) -> int:
     """The index in ``parts`` of the first that the name of ``job``'s module contains
     (``len(parts)``: none)."""
     name = str(getattr(job[0], "name", job[0]))
@@ -335,7 +336,7 @@ def longest_first(groups: dict[Any, list[Any]]) -> list[tuple[Any, Any]]:
     compile them: those named in :data:`SLOW_FIRST` first, in its order, then the others as
     listed."""
     return sorted(((module, block_dim) for block_dim, modules in groups.items()
-                   for module in modules), key=lambda job: _named(job, SLOW_FIRST))  # fmt: skip
+                   for module in modules), key=lambda job: _rank(job, SLOW_FIRST))  # fmt: skip
 
 
 def _lower_priority() -> None:
@@ -403,7 +404,7 @@ def _compile_modules(groups: dict[Any, list[Any]], workers: int, device: Any = N
     import warp
 
     jobs = longest_first(groups)
-    head = [job for job in jobs if later is not None and _named(job, HEAD_START) < len(HEAD_START)]
+    head = [job for job in jobs if later is not None and _rank(job, HEAD_START) < len(HEAD_START)]
     rest: queue.SimpleQueue = queue.SimpleQueue()
     for job in jobs:
         if job not in head:
@@ -517,8 +518,8 @@ _BESIDE = threading.local()
 _PENDING: list[_Pending] = []
 #: Set once the caller has traced its programs (:func:`programs_traced`): a precompile started
 #: beside a compile waits for it before the code generation of all but its :data:`HEAD_START`
-#: modules, which holds the interpreter and slowed the tracing of T1's chunk from 3 s to 7-20 s
-#: when every module began at once; XLA's compile, which follows, leaves the interpreter free.
+#: modules, which holds the interpreter (all of them at once slow the tracing of T1's chunk
+#: from 3 s to 7-20 s); XLA's compile, which follows, leaves the interpreter free.
 _TRACED = threading.Event()
 _TRACED.set()
 
@@ -526,14 +527,14 @@ _TRACED.set()
 @contextlib.contextmanager
 def beside_compile() -> Iterator[None]:
     """Inside, unless :data:`BESIDE` is off (0, false, off, no), on :data:`BESIDE_MIN_CORES` cores,
-    :func:`precompile_task` (called by this thread) starts the precompile on a thread of its
-    own and returns at once: it lists the modules and starts the :data:`HEAD_START` ones at
-    once (unless :func:`head_start_cached`), the others once :func:`programs_traced`,
-    :func:`wait_ready` or :func:`drop_pending` is called, and :func:`wait_ready` waits for it.
-    A training run makes
-    its environment inside, then traces its programs and compiles them while Warp's kernels
-    compile.
-    An exception leaving it drops the precompiles started inside (:func:`drop_pending`)."""
+    :func:`precompile_task` (called by this thread) lists the step's modules here (about half a
+    second), starts them on threads of their own and returns: the :data:`HEAD_START` ones begin
+    at once, the others once :func:`programs_traced`, :func:`wait_ready` or
+    :func:`drop_pending` is called (where :func:`head_start_cached`, all of it, the listing
+    too, waits so, and it returns at once); :func:`wait_ready` waits for them. A training run
+    makes its environment inside, then traces its programs and compiles them while Warp's
+    kernels compile. An exception leaving it drops the precompiles started inside
+    (:func:`drop_pending`)."""
     before = getattr(_BESIDE, "on", False)
     _BESIDE.on = True
     _TRACED.clear()
@@ -575,16 +576,21 @@ def wait_ready(stop: Any = None) -> list[Precompiled]:
 
 def drop_pending() -> None:
     """Stops every precompile started beside a compile from taking further modules and forgets
-    it (a run that ends before its first physics step: nothing is said of them)."""
+    it (a run that ends before its first physics step: nothing is said of them); a process
+    that ends need not wait for the compiles in hand (:func:`~td3_jax.common.runtime.drop`)."""
     while _PENDING:
-        _PENDING.pop().cancel.set()
+        pending = _PENDING.pop()
+        pending.cancel.set()
+        runtime.drop(pending.future)  # (a compile in hand is not waited for at exit)
     _TRACED.set()
 
 
 def programs_traced() -> None:
     """Lets the precompiles started beside a compile (:func:`beside_compile`) begin: the
     caller's programs are traced and XLA compiles them now. (:func:`wait_ready` and
-    :func:`drop_pending` also let them.)"""
+    :func:`drop_pending` also let them.) The caller does no more MJX or Warp work until
+    :func:`wait_ready`: a second listing of the step (:func:`compile_listed`) launches on
+    Warp's process-wide default device, which MJX sets to the CPU while it makes its data."""
     _TRACED.set()
 
 
@@ -643,18 +649,29 @@ def _once_traced(work: Callable[[], Precompiled], cancel: threading.Event) -> Pr
 
 def head_start_cached(cache: str | os.PathLike | None = None) -> bool:
     """Whether Warp's kernel cache (``cache``, default: Warp's ``config.kernel_cache_dir``)
-    holds a module named in :data:`HEAD_START`, of any model (a folder named after it). Where
-    it does, a start is likely warm: the head start's listing on the caller's thread (about
-    half a second on an H200) would cost more than it saves."""
+    holds a GPU build of a module named in :data:`HEAD_START`, of any model: a folder named
+    after it with a ``.cubin`` or ``.ptx`` file in it (not a build under way, whose folder ends
+    ``_p<process>_t<thread>``). Where it does, a start is likely warm: the head start's
+    listing on the caller's thread (about half a second on an H200) would cost more than it
+    saves."""
     if cache is None:
         import warp
 
         cache = warp.config.kernel_cache_dir
     try:
-        names = os.listdir(cache) if cache else []
+        folders = [entry for entry in os.scandir(cache) if entry.is_dir()] if cache else []
     except OSError:  # (no cache folder yet: nothing cached)
         return False
-    return any(part in name for name in names for part in HEAD_START)
+    named = [folder for folder in folders if any(part in folder.name for part in HEAD_START)
+             and not re.search(r"_p\d+_t\d+$", folder.name)]  # fmt: skip
+    return any(_holds_gpu_build(folder.path) for folder in named)
+
+
+def _holds_gpu_build(folder: str) -> bool:
+    try:
+        return any(name.endswith((".cubin", ".ptx")) for name in os.listdir(folder))
+    except OSError:
+        return False
 
 
 def precompile_task(task: Any, *, njmax: int | None, naconmax: int | None) -> Precompiled | None:

@@ -1,7 +1,8 @@
-"""MuJoCo Warp's kernel precompile as a run drives it: off by its variable, on a thread of its
-own beside XLA's compile (started once the programs are traced), the order and the listings of
-its compile, and the CPU cores it counts. Warp itself is not needed: the precompile, or Warp's
-functions it calls, are replaced where they would run."""
+"""MuJoCo Warp's kernel precompile as a run drives it: off by its variable, on threads of its
+own beside XLA's compile (the head start at once, the other modules once the programs are
+traced), the order and the listings of its compile, and the CPU cores it counts. Warp itself
+is not needed: the precompile, or Warp's functions it calls, are replaced where they would
+run."""
 
 from __future__ import annotations
 
@@ -29,6 +30,43 @@ def test_the_precompile_is_off_by_its_variable_and_a_failure_is_a_warning(monkey
     assert err.rstrip().endswith("each compiles at its first use instead")
 
 
+def _fake_precompiles(monkeypatch) -> SimpleNamespace:
+    """The task's precompile replaced where it would run Warp: ``slow`` records its thread in
+    ``ran_on`` and, but for the task "quick", waits for ``unblock``; "broken" fails. The fake
+    ``list_step`` records its thread in ``listed_on``, the fake ``compile_listed`` the
+    ``cancel`` it was given in ``cancels``. 8 cores; no head-start module cached."""
+    from td3_jax.envs import warp_kernels
+
+    fakes = SimpleNamespace(unblock=threading.Event(), ran_on=[], listed_on=[], cancels=[])
+
+    def slow(task, njmax, naconmax):
+        fakes.ran_on.append(threading.get_ident())
+        assert task == "quick" or fakes.unblock.wait(10)
+        if task == "broken":
+            raise RuntimeError("no such kernel")
+        return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
+
+    def precompile(mj_model, options, njmax, naconmax, cancel=None):
+        return slow(mj_model, njmax, naconmax)
+
+    def list_step(mj_model, options, njmax, naconmax):
+        fakes.listed_on.append(threading.get_ident())
+        return warp_kernels.Listing(mj_model, {None: [njmax]}, "gpu")
+
+    def compile_listed(listing, *, cancel=None, later=None, start=None):
+        assert later is warp_kernels._TRACED and not later.is_set() and start is not None
+        fakes.cancels.append(cancel)
+        return slow(listing.run, listing.groups[None][0], None)
+
+    monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
+    monkeypatch.setattr(warp_kernels, "precompile", precompile)
+    monkeypatch.setattr(warp_kernels, "list_step", list_step)
+    monkeypatch.setattr(warp_kernels, "compile_listed", compile_listed)
+    monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
+    monkeypatch.setattr(warp_kernels, "head_start_cached", lambda: False)
+    return fakes
+
+
 def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for(
     monkeypatch, capsys
 ):
@@ -38,37 +76,11 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     traced (``programs_traced``); the caller goes on at once; ``wait_ready`` waits for it and
     says so; a failure there is the usual warning; an error leaving the block drops it.
     Outside, with the variable 0, or on 2 cores, it runs on the caller's thread."""
-    import threading
-
     from td3_jax.common import runtime
     from td3_jax.envs import warp_kernels
 
-    unblock, ran_on, listed_on = threading.Event(), [], []
-
-    def slow(task, njmax, naconmax):
-        ran_on.append(threading.get_ident())
-        assert task == "quick" or unblock.wait(10)
-        if task == "broken":
-            raise RuntimeError("no such kernel")
-        return warp_kernels.Precompiled(modules=njmax, seconds=2.0)
-
-    def precompile(mj_model, options, njmax, naconmax, cancel=None):
-        return slow(mj_model, njmax, naconmax)
-
-    def list_step(mj_model, options, njmax, naconmax):
-        listed_on.append(threading.get_ident())
-        return warp_kernels.Listing(mj_model, {None: [njmax]}, "gpu")
-
-    def compile_listed(listing, *, cancel=None, later=None, start=None):
-        assert later is warp_kernels._TRACED and not later.is_set() and start is not None
-        return slow(listing.run, listing.groups[None][0], None)
-
-    monkeypatch.setattr(warp_kernels, "_task_model", lambda task: (task, {}))
-    monkeypatch.setattr(warp_kernels, "precompile", precompile)
-    monkeypatch.setattr(warp_kernels, "list_step", list_step)
-    monkeypatch.setattr(warp_kernels, "compile_listed", compile_listed)
-    monkeypatch.setattr(warp_kernels, "cores", lambda: 8)
-    monkeypatch.setattr(warp_kernels, "head_start_cached", lambda: False)
+    fakes = _fake_precompiles(monkeypatch)
+    unblock, ran_on, listed_on = fakes.unblock, fakes.ran_on, fakes.listed_on
     for off in ("0", "Off"):
         monkeypatch.setenv(warp_kernels.BESIDE, off)
         with warp_kernels.beside_compile():  # (turned off: run first, as outside)
@@ -97,6 +109,18 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     assert "MuJoCo Warp: 37 kernel modules ready in 2 s" in out and "waited" in out
     assert warp_kernels.wait_ready() == [] and capsys.readouterr().out == ""  # (nothing left)
 
+
+def test_a_precompile_beside_a_compile_that_fails_or_cannot_start_is_a_warning(
+    monkeypatch, capsys
+):
+    """A failure of the compile is the usual warning at ``wait_ready``; a failure to start it
+    (reading the task's model, or listing its step on the caller's thread) is the warning at
+    once, nothing left pending; an error leaving ``beside_compile`` drops what it started; and
+    outside it the precompile runs on the caller's thread."""
+    from td3_jax.envs import warp_kernels
+
+    fakes = _fake_precompiles(monkeypatch)
+    fakes.unblock.set()
     with warp_kernels.beside_compile():
         warp_kernels.precompile_task("broken", njmax=1, naconmax=1)
     assert warp_kernels.wait_ready() == []
@@ -110,6 +134,14 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
         assert warp_kernels.precompile_task("t1", njmax=1, naconmax=1) is None
     assert not warp_kernels._PENDING and "(no model here)" in capsys.readouterr().err
 
+    def unlisted(*args):
+        raise RuntimeError("no step to list")
+
+    with monkeypatch.context() as patched, warp_kernels.beside_compile():
+        patched.setattr(warp_kernels, "list_step", unlisted)
+        assert warp_kernels.precompile_task("t1", njmax=1, naconmax=1) is None
+    assert not warp_kernels._PENDING and "(no step to list)" in capsys.readouterr().err
+
     # an error leaving beside_compile (the run will not wait) drops what it started
     with pytest.raises(RuntimeError, match="busy"), warp_kernels.beside_compile():
         warp_kernels.precompile_task("t1", njmax=9, naconmax=1)
@@ -117,28 +149,81 @@ def test_beside_a_compile_the_precompile_runs_on_its_own_thread_until_waited_for
     assert not warp_kernels._PENDING
 
     assert warp_kernels.precompile_task("t1", njmax=5, naconmax=1) == (5, 2.0)
-    assert ran_on[-1] == threading.get_ident() and not warp_kernels._PENDING
+    assert fakes.ran_on[-1] == threading.get_ident() and not warp_kernels._PENDING
 
-    # a head-start module in Warp's cache (likely warm): nothing is listed here, and all of it
-    # waits for the tracing
+
+def test_a_dropped_precompile_is_cancelled_and_an_exit_does_not_wait_for_it(monkeypatch):
+    """A run that ends before its first step drops its precompile: the compile is told to stop
+    (the ``cancel`` it was given is set), and the work still in hand is marked dropped, so the
+    command's exit, even a failure's, ends the process at once (os._exit) instead of joining a
+    collision kernel's compile; once that work ends, nothing is left marked."""
+    from td3_jax.cli import interrupts
+    from td3_jax.common import runtime
+    from td3_jax.envs import warp_kernels
+
+    fakes, exits = _fake_precompiles(monkeypatch), []
+
+    def fake_exit(code):
+        exits.append(code)
+        raise SystemExit(code)
+
+    monkeypatch.setattr(interrupts, "leave_processes", lambda wait_s: True)
+    monkeypatch.setattr(interrupts.os, "_exit", fake_exit)
+    with pytest.raises(RuntimeError, match="busy"), warp_kernels.beside_compile():
+        warp_kernels.precompile_task("t1", njmax=9, naconmax=1)
+        raise RuntimeError("busy run directory")
+    assert not warp_kernels._PENDING and fakes.cancels[-1].is_set()
+    assert runtime.dropped_work_running()  # (the fake compile waits for `unblock`)
+    with pytest.raises(SystemExit):
+        interrupts.exit_process(None, 2, abandon_work=False)
+    assert exits == [2]
+    fakes.unblock.set()
+    for _ in range(100):
+        if not runtime.dropped_work_running():
+            break
+        time.sleep(0.05)
+    assert not runtime.dropped_work_running()
+    with pytest.raises(SystemExit):  # (nothing dropped runs: a plain exit)
+        interrupts.exit_process(None, 2, abandon_work=False)
+    assert exits == [2]
+
+
+def test_with_a_head_start_module_cached_the_whole_precompile_waits_for_the_tracing(
+    monkeypatch,
+):
+    """A head-start module in Warp's cache (likely a warm start): nothing is listed on the
+    caller's thread, and the precompile begins only once the programs are traced."""
+    from td3_jax.envs import warp_kernels
+
+    fakes = _fake_precompiles(monkeypatch)
     monkeypatch.setattr(warp_kernels, "head_start_cached", lambda: True)
-    listed_on.clear()
     with warp_kernels.beside_compile():
         assert warp_kernels.precompile_task("quick", njmax=6, naconmax=1) is None
     time.sleep(0.3)
-    assert listed_on == [] and ran_on[-1] == threading.get_ident()  # (not begun)
+    assert fakes.listed_on == [] and fakes.ran_on == []  # (not begun)
     warp_kernels.programs_traced()
     assert warp_kernels.wait_ready() == [warp_kernels.Precompiled(6, 2.0)]
-    assert ran_on[-1] != threading.get_ident()
+    assert fakes.ran_on and fakes.ran_on[0] != threading.get_ident()
 
 
-def test_a_head_start_module_in_warps_cache_is_found_by_its_folder(tmp_path):
+def test_a_head_start_module_in_warps_cache_is_found_by_its_gpu_build(tmp_path):
+    """A folder named after a HEAD_START module counts where it holds a .cubin or .ptx file;
+    not a CPU build, an empty folder, a build under way (``_p<pid>_t<tid>``) or other modules."""
     from td3_jax.envs import warp_kernels
 
+    def folder(name: str, *files: str) -> None:
+        (tmp_path / name).mkdir()
+        for file in files:
+            (tmp_path / name / file).write_text("")
+
+    ccd = "wp_ccd_kernel_builder__locals__ccd_kernel_eff81976_6aab1fe"
     assert not warp_kernels.head_start_cached(tmp_path / "none yet")
-    (tmp_path / "wp_mujoco_warp._src.smooth_1a2b3c4").mkdir()
+    folder("wp_mujoco_warp._src.smooth_1a2b3c4", "wp_smooth.sm90.cubin")
+    folder(ccd, f"{ccd}.cpu0eee9287.o", f"{ccd}.meta")
+    folder(f"{ccd}_p4242_t1397", f"{ccd}.sm90.cubin")
+    folder("wp_ccd_kernel_builder__locals__ccd_kernel_0badc0de_1234567")
     assert not warp_kernels.head_start_cached(tmp_path)
-    (tmp_path / "wp_ccd_kernel_builder__locals__ccd_kernel_eff81976_6aab1fe").mkdir()
+    folder("wp_ccd_kernel_builder__locals__ccd_kernel_eff81976_7bbb2ff", "x.sm90.ptx")
     assert warp_kernels.head_start_cached(tmp_path)
 
 
@@ -239,13 +324,14 @@ def test_the_head_start_compiles_before_the_caller_is_traced_and_the_rest_after_
     later = threading.Event()
     done = []
     worker = threading.Thread(target=lambda: done.append(warp_kernels._compile_modules(
-        groups, 3, "cuda:1", later=later)))  # fmt: skip
+        groups, 3, "cuda:1", later=later)), daemon=True)  # fmt: skip
     worker.start()
     assert head_loaded.wait(10)
     time.sleep(0.2)
     assert [load[1:3] for load in loads] == [("ccd_kernel_ab12", 64)] and not lowered
     later.set()
     worker.join(10)
+    assert not worker.is_alive()
     assert done == [3] and {load[0] for load in loads} == {"cuda:1"}
     assert sorted(load[1] for load in loads[1:]) == ["b", "x._src.smooth"]
     assert len(lowered) == 2 and loads[0][3] not in lowered  # (two waiting threads, lowered)
@@ -254,7 +340,7 @@ def test_the_head_start_compiles_before_the_caller_is_traced_and_the_rest_after_
     loads.clear()
     cancel, later = threading.Event(), threading.Event()
     worker = threading.Thread(target=lambda: done.append(warp_kernels._compile_modules(
-        groups, 3, "cuda:0", cancel=cancel, later=later)))  # fmt: skip
+        groups, 3, "cuda:0", cancel=cancel, later=later)), daemon=True)  # fmt: skip
     worker.start()
     assert head_loaded.wait(10)
     cancel.set()
@@ -264,7 +350,7 @@ def test_the_head_start_compiles_before_the_caller_is_traced_and_the_rest_after_
     loads.clear()
     later = threading.Event()
     worker = threading.Thread(target=lambda: warp_kernels._compile_modules(
-        groups, 2, "cuda:0", later=later))  # fmt: skip
+        groups, 2, "cuda:0", later=later), daemon=True)  # fmt: skip
     worker.start()
     time.sleep(0.3)
     assert loads == []
