@@ -110,7 +110,8 @@ class SweepCommand(TrainCommand):
     """Train every combination of the swept values x --seeds seeds, all in one program.
 
     Ends with a table of final evaluation returns per setting, ranked, with 95% bootstrap CIs
-    over seeds. Settings not swept take their single value (preset, flag or default).
+    over seeds (from 3 seeds or fewer, their range). Settings not swept take their single
+    value (preset, flag or default).
     """
 
     sweep_actor_lr: SweptValues = ()

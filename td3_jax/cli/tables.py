@@ -37,11 +37,21 @@ def print_sweep_ranking(record: dict) -> None:
     for rank, (label, (_, n, diverged, summary)) in enumerate(zip(labels, rows, strict=True), 1):
         cells = ["-", "-", "-"]
         if summary is not None:
-            interval = (f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
-                        if n - diverged > 1 else "- (1 seed)")  # (no interval from one return)
+            interval = _interval_cell(summary, n - diverged)
             cells = [f"{summary['mean']:.1f}", interval, f"{summary['iqm']:.1f}"]
         table.add_row(str(rank), label, str(n), str(diverged), *cells)
     _print_titled(f"final evaluation return after {record['env_steps']} env steps", table)
+
+
+def _interval_cell(summary: dict, finite: int) -> str:
+    """A setting's 95% CI of its ``finite`` returns' mean; "(range)" after it where, from 3 or
+    fewer, it is their [min, max] (:func:`~td3_jax.core.stats.interval_name`); none from one."""
+    from td3_jax.core import stats  # lazy: NumPy, only for a table
+
+    if finite <= 1:
+        return "- (1 seed)"
+    interval = f"[{summary['ci95_low']:.1f}, {summary['ci95_high']:.1f}]"
+    return interval if stats.interval_name(finite) == "95% CI" else f"{interval} (range)"
 
 
 def _print_titled(title: str, table: Any) -> Any:
@@ -91,6 +101,8 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
     import numpy as np  # lazy: NumPy, only for a table
     from rich.table import Table  # lazy: rich, only for a table
 
+    from td3_jax.core import stats  # lazy: NumPy, only for a table
+
     table = Table()
     for column in ("member", "mean", "std", "min", "max"):
         table.add_column(column, justify="right")
@@ -104,7 +116,8 @@ def print_returns_table(title: str, rows: list, aggregate: dict | None) -> None:
         alive = sum(returns is not None for _, returns in rows)
         console.print(
             f"over {alive} members: mean {aggregate['eval_return_mean']:.1f} "
-            f"[95% CI {aggregate['eval_return_ci95_low']:.1f}, "
+            f"[{stats.interval_name(alive)} {aggregate['eval_return_ci95_low']:.1f}, "
             f"{aggregate['eval_return_ci95_high']:.1f}], median "
-            f"{aggregate['eval_return_median']:.1f}, IQM {aggregate['eval_return_iqm']:.1f}"
+            f"{aggregate['eval_return_median']:.1f}, IQM {aggregate['eval_return_iqm']:.1f}",
+            markup=False,  # (the bracketed interval is text, not rich's markup)
         )

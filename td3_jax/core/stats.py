@@ -42,6 +42,18 @@ def bootstrap_ci(
     return float(np.quantile(stats, alpha)), float(np.quantile(stats, 1.0 - alpha))
 
 
+#: The fewest values whose percentile bootstrap 95% interval of the mean is narrower than their
+#: range: with 3 or fewer, a resample of all the smallest (or all the largest) value is at
+#: least (1/3)**3 = 3.7% likely, above the 2.5% tail, so the interval is [min, max].
+CI_NARROWER_FROM = 4
+
+
+def interval_name(count: int) -> str:
+    """What :func:`summary`'s interval of ``count`` values is, for a label: ``"95% CI"``, or
+    ``"range"`` where it is their [min, max] (:data:`CI_NARROWER_FROM`)."""
+    return "95% CI" if count >= CI_NARROWER_FROM else "range"
+
+
 def summary(values: np.ndarray) -> dict[str, float]:
     """Mean, median, IQM, standard deviation (of the values themselves, ``ddof=0``: NumPy's
     ``std``; not the sample estimate) and 95% bootstrap CI of the mean."""
@@ -83,7 +95,9 @@ def population_stats(returns: np.ndarray) -> dict[str, float]:
 
 
 __all__ = [
+    "CI_NARROWER_FROM",
     "bootstrap_ci",
+    "interval_name",
     "iqm",
     "population_stats",
     "return_stats",

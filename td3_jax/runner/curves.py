@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from td3_jax.common.errors import ConfigError
+from td3_jax.core import stats
 from td3_jax.runner.logger import evaluated_steps, read_metrics
 
 __all__ = [
@@ -119,7 +120,8 @@ def read_curve(run_dir: Path) -> Curve | None:
         count = len(records[-1]["per_member"])
         members = [[_number(r["per_member"][i]["eval_return_mean"]) for r in records]
                    for i in range(count)]  # fmt: skip
-        band = "mean over members, 95% bootstrap CI"
+        band = ("mean over members, 95% bootstrap CI" if count >= stats.CI_NARROWER_FROM
+                else "mean over members, their range")  # fmt: skip
         swept = tuple(_swept_text(m) for m in records[-1]["per_member"])
     else:
         std = [_number(r["eval_return_std"]) for r in records]
@@ -252,5 +254,5 @@ def no_return_warning(curve: Curve, run_dir: Path) -> str | None:
 def _band_name(curve: Curve) -> str:
     """What a run's band is, briefly, for a comparison's legend."""
     if curve.members:
-        return f"{len(curve.members)} members, 95% CI"
+        return f"{len(curve.members)} members, {stats.interval_name(len(curve.members))}"
     return "± std over episodes"

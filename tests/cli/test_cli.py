@@ -801,7 +801,7 @@ def test_eval_of_a_sweep_gives_statistics_per_setting_not_pooled(monkeypatch, ca
                         lambda run, episodes, seed: (TrainConfig(), seeds, {"env_steps": 1},
                                                      returns[:2]))  # fmt: skip
     code, stdout, _ = main(["eval", "--run", "x", "--episodes", "2"], capsys)
-    assert code == 0 and "over 2 members: mean -350.0" in stdout
+    assert code == 0 and "over 2 members: mean -350.0 [range -500.0, -200.0]" in stdout
 
 
 def test_second_train_to_the_same_out_exits_2(finished_run, capsys):
@@ -2035,7 +2035,7 @@ def test_a_run_cut_into_over_a_thousand_chunks_is_warned_about():
 
 def test_the_sweep_table_gives_no_interval_for_one_seed(capsys):
     """A setting with one finite return (one seed, or the others diverged) has no 95% CI; two
-    seeds get their bootstrap interval, which spans their returns."""
+    seeds get their bootstrap interval, which is their range and says so."""
     members = [{"settings": {"tau": 0.005}, "eval_return_mean": -10.0},
                {"settings": {"tau": 0.01}, "eval_return_mean": -20.0},
                {"settings": {"tau": 0.01}, "eval_return_mean": None},
@@ -2048,5 +2048,6 @@ def test_the_sweep_table_gives_no_interval_for_one_seed(capsys):
            for tau in ("0.005", "0.01", "0.02")}  # fmt: skip
     assert "- (1 seed)" in row["0.005"] and "- (1 seed)" in row["0.01"]  # (one diverged)
     assert "(1 seed)" not in row["0.02"]
-    low, high = map(float, re.search(r"\[(-?[\d.]+), (-?[\d.]+)\]", row["0.02"]).groups())
-    assert -40.0 <= low <= -35.0 <= high <= -30.0
+    low, high = map(float, re.search(r"\[(-?[\d.]+), (-?[\d.]+)\] \(range\)",
+                                     row["0.02"]).groups())  # fmt: skip
+    assert (low, high) == (-40.0, -30.0)

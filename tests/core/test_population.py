@@ -187,6 +187,18 @@ def test_bootstrap_ci_covers_the_mean_and_narrows_with_more_seeds():
     assert stats.bootstrap_ci([3.0]) == (3.0, 3.0)
 
 
+@pytest.mark.parametrize("count", [2, 3, 4, 6])
+def test_the_interval_is_named_a_range_where_the_bootstrap_gives_the_values_range(count):
+    """With 3 or fewer distinct values the percentile bootstrap's 95% interval of the mean is
+    exactly [min, max] (an all-min resample is at least 1/27 likely, above the 2.5% tail), and
+    its label says "range"; from 4 on it lies inside the range and is a "95% CI"."""
+    values = np.arange(count, dtype=np.float64) * 3.0 - 1.0
+    low, high = stats.bootstrap_ci(values)
+    is_range = (low, high) == (values.min(), values.max())
+    assert is_range == (count < stats.CI_NARROWER_FROM)
+    assert stats.interval_name(count) == ("range" if is_range else "95% CI")
+
+
 def test_population_keeps_reset_and_warmup_branches():
     """Under the seed vmap the batch-level conditions are reduced over members and stay conds
     (and loops)."""

@@ -60,6 +60,10 @@ def test_a_run_of_several_members_keeps_each_member_and_the_ci_band(tmp_path):
     assert curve.lower == [0.5, 2.5] and curve.upper == [3.5, 5.5]
     assert curve.steps == [10, 20] and not curve.policy_steps
     assert curve.swept == ("", "")  # (seeds alone: no swept values)
+    assert curve.band == "mean over members, their range"  # (2 members: the CI is the range)
+    four = [{**r, "per_member": r["per_member"] * 2} for r in records]
+    assert read_curve(_write_records(tmp_path / "four", four)).band == (
+        "mean over members, 95% bootstrap CI")  # fmt: skip
 
 
 class _Axes:
