@@ -40,6 +40,7 @@ from td3_jax.config.schema import (
     SWITCHED_ON_BY_THEIR_FLAG,
     TrainConfig,
     check_is_config,
+    eval_every_within_run,
     flag,
     flag_pattern,
     unused_settings,
@@ -298,19 +299,29 @@ def make_train(
         states, metrics = train(jax.random.split(jax.random.PRNGKey(0), 8))
 
     ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
-    ``td3-jax train --seed s`` (same keys). Unlike the command it writes nothing and cannot be
-    resumed, and ``cfg.seeds`` is not used (a warning where it asks for more than one).
+    ``td3-jax train --seed s`` (same keys; ``eval_every`` as whole iterations, as the command
+    runs it: :func:`~td3_jax.config.schema.eval_every_within_run`). Unlike the command it writes
+    nothing and cannot be resumed, its chunks are all whole (``cfg.chunked_steps`` env steps,
+    where the command shortens the last to end at ``cfg.run_steps``: a warning where they
+    differ), and ``cfg.seeds`` is not used (a warning where it asks for more than one).
     Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here keeps the
     reset and warm-up branches as real branches. ``env``: the environment instead
     of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`). ``cfg`` is validated
     first (:func:`~td3_jax.config.schema.validate`: a setting that cannot work is a ConfigError, as
     on the command line).
     """
-    spec = make_spec(validated(cfg, env), env, axis_name)
+    cfg = eval_every_within_run(validated(cfg, env))
+    spec = make_spec(cfg, env, axis_name)
     if cfg.seeds > 1:  # (the command line and td3_jax.train run them; this, one per key)
         warnings.warn(f"make_train trains one agent per key: seeds={cfg.seeds} is for "
                       "td3_jax.train and the command line; jax.vmap the function over keys "
                       "for several", UserWarning, stacklevel=outside_stacklevel())  # fmt: skip
+    if cfg.chunked_steps != cfg.run_steps:
+        warnings.warn(f"make_train runs {cfg.num_chunks} whole chunks of {cfg.iters_per_chunk} "
+                      f"iterations: {cfg.chunked_steps} env steps per key, where the command "
+                      f"line stops at {cfg.run_steps} (total_steps={cfg.total_steps}); "
+                      "total_steps a whole number of chunks runs the same",
+                      UserWarning, stacklevel=outside_stacklevel())  # fmt: skip
     return training.make_train(spec, hyperparams(cfg), cfg.num_chunks)
 
 

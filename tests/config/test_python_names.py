@@ -216,6 +216,21 @@ def test_make_train_says_that_it_trains_one_agent_per_key_where_seeds_asks_for_m
         td3_jax.make_train(tiny_config())  # (one seed: nothing said)
 
 
+def test_make_train_rounds_eval_every_as_the_command_does_and_says_where_it_runs_past():
+    """7 environments, eval_every=64, total_steps=128: the command runs chunks of 10 iterations
+    (70 steps: 2 chunks, against 3 of 9 iterations, 189 steps) and stops at 19 iterations (133
+    steps). make_train runs the same 2 chunks, whole (140 steps), and says so."""
+    import jax
+
+    cfg = tiny_config(num_envs=7, eval_every=64, total_steps=128)
+    with pytest.warns(UserWarning, match=r"2 whole chunks of 10 iterations: 140 env steps per "
+                      r"key, where the command line stops at 133 \(total_steps=128\)") as said:
+        train = td3_jax.make_train(cfg)
+    assert [w.filename for w in said] == [__file__]
+    _, metrics = jax.eval_shape(train, td3_jax.key_for_seed(0))
+    assert metrics["eval_returns"].shape == (2, cfg.eval_envs)  # (one row per chunk)
+
+
 def test_the_trained_function_says_what_key_it_takes(tmp_path):
     """An int seed, or a batch of keys to the unbatched function, was JAX's "invalid PRNG key
     data"; one key of either kind trains, and so does a batch under jax.vmap."""
