@@ -239,7 +239,9 @@ class TrainConfig:
     keep_checkpoints: int = 3
     """Checkpoints kept on disk (the newest ones)."""
     checkpoint_every: int = 1
-    """Evaluations between checkpoints (the last chunk is always checkpointed)."""
+    """Evaluations between checkpoints (the last chunk is always checkpointed). A Ctrl-C
+    stops at once and resumes from the last checkpoint (the chunks after it are lost); a
+    SIGTERM, or the run's time budget, finishes the chunk and checkpoints it."""
     early_evaluation: bool = True
     """In a fresh run, evaluate once more after the first eighth of the first chunk when that
     has 64 iterations or more (the same compiled program runs both parts), so a first return
@@ -403,6 +405,8 @@ def unused_settings(cfg: TrainConfig) -> dict[str, str]:
          f"--critic {cfg.critic}"),
         (("policy_noise", "noise_clip", "policy_freq"), cfg.algo == "ddpg", "--algo ddpg"),
         (("env_backend",), not cfg.env.startswith("brax/"), f"--env {cfg.env}"),
+        (("actor_obs_key", "critic_obs_key"), cfg.env.startswith(("gymnax/", "brax/")),
+         f"--env {cfg.env} (its observations are one array, not a dict)"),
         (("lr_final_fraction",), cfg.lr_schedule != "cosine", f"--lr-schedule {cfg.lr_schedule}"),
         *(((name,), getattr(cfg, name) is None, f"no {flag(name)} (that flag turns it on)")
           for name in SWITCHED_ON_BY_THEIR_FLAG),

@@ -443,6 +443,12 @@ def test_typed_flags_that_change_nothing_are_named_with_the_reason():
     assert idle_flags(TrainConfig(), {"env_backend"}) == [
         "--env-backend does nothing with --env gymnax/Pendulum-v1"
     ]
+    assert idle_flags(TrainConfig(env="brax/ant"), {"critic_obs_key"}) == [
+        "--critic-obs-key does nothing with --env brax/ant (its observations are one array, "
+        "not a dict)"
+    ]
+    robot = TrainConfig(env="playground/T1JoystickFlatTerrain")  # (dict observations: used)
+    assert idle_flags(robot, {"actor_obs_key", "critic_obs_key"}) == []
     # An option typed as None turns a preset's value off: not idle (`--preset g1
     # --max-weight-norm None`); a typed value beside its option off still is.
     assert idle_flags(TrainConfig(max_weight_norm=None), {"max_weight_norm"}) == []
