@@ -26,7 +26,7 @@ def record(members: int, diverged: int = 0) -> dict:
 @pytest.mark.parametrize(
     ("members", "diverged", "sweeping", "note"),
     [
-        (1, 0, False, ""),  # (one seed: ± is over its evaluation episodes)
+        (1, 0, False, " over its evaluation episodes"),  # (one seed)
         (4, 0, False, " over all 4 seeds"),
         (4, 1, False, " over the 3 seeds that did not diverge (1 of 4 diverged)"),
         (4, 0, True, " over all 4 members (per setting below)"),
