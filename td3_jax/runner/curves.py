@@ -24,6 +24,7 @@ __all__ = [
     "plot_curve",
     "read_curve",
     "run_labels",
+    "setting_means",
 ]
 
 #: The image formats a figure is written in, by the file's suffix.
@@ -150,13 +151,40 @@ def _draw_members(ax: Any, x: list, curve: Curve, colors: Sequence[Any]) -> None
                 label=curve.swept[i] if first else None)  # fmt: skip
 
 
+def setting_means(curve: Curve) -> list[tuple[str, list[float]]]:
+    """A sweep's mean return per setting at each point: ``(swept values, means)`` in the order
+    the settings first appear, each the mean over that setting's members that did not diverge
+    (NaN where all did); ``[]`` for a run that is no sweep."""
+    import numpy as np
+
+    if not any(curve.swept):
+        return []
+    means = []
+    for setting in dict.fromkeys(curve.swept):
+        rows = np.array([m for m, s in zip(curve.members, curve.swept, strict=True)
+                         if s == setting], np.float64)  # fmt: skip
+        finite = np.isfinite(rows)
+        count = finite.sum(axis=0)
+        total = np.where(finite, rows, 0.0).sum(axis=0)
+        means.append((setting, np.where(count > 0, total / np.maximum(count, 1), np.nan).tolist()))
+    return means
+
+
 def _draw(axes: Sequence[Any], curve: Curve, label: str | None, color: Any,
           colors: Sequence[Any] = ()) -> None:  # fmt: skip
     """``curve`` on both axes (env steps, wall-clock): its members thin, its mean with a
-    marker, its band shaded; ``label`` names it in a comparison (else the band does)."""
+    marker, its band shaded; ``label`` names it in a comparison (else the band does). A sweep
+    on its own draws each setting's mean (:func:`setting_means`) instead: one mean over
+    different settings would pool them."""
+    palette = list(colors) or [color]
+    sweep = setting_means(curve) if label is None else []
     for ax, x in zip(axes, (curve.steps, curve.wall), strict=True):
         if label is None:  # (a comparison draws only each run's mean and band)
-            _draw_members(ax, x, curve, colors or [color])
+            _draw_members(ax, x, curve, palette)
+        for k, (_, mean) in enumerate(sweep):  # (coloured as its members)
+            ax.plot(x, mean, marker="o", ms=3, lw=2.0, color=palette[k % len(palette)])
+        if sweep:
+            continue
         ax.plot(x, curve.mean, marker="o", ms=3, label=label or curve.band,
                 color=color if label or not curve.members else "black")  # fmt: skip
         ax.fill_between(x, curve.lower, curve.upper, alpha=0.2 if label else 0.25,

@@ -107,6 +107,34 @@ def test_a_sweeps_members_are_coloured_and_named_by_their_swept_values(tmp_path)
     assert [line[1:] for line in ax.lines] == [(None, None)] * 4
 
 
+def test_a_sweep_on_its_own_draws_each_settings_mean_not_one_over_all(tmp_path):
+    """Two rates x two seeds over two points, one seed diverged at the second: each setting's
+    mean line (over its finite members) in its members' colour, and no line or band pooled
+    over the settings; a run of seeds keeps its mean and band."""
+    from td3_jax.runner.curves import _draw, setting_means
+
+    swept = [{"actor_lr": 0.001}] * 2 + [{"actor_lr": 0.0003}] * 2
+    returns = [(1.0, 3.0, 10.0, 20.0), (2.0, None, 30.0, 50.0)]  # (per point, per member)
+    records = [{"env": "e", "env_steps": 10 * (p + 1), "wall_time_s": p + 1.0,
+                "eval_return_mean": 0.0, "eval_return_ci95_low": -1.0,
+                "eval_return_ci95_high": 1.0,
+                "per_member": [{"eval_return_mean": r, "settings": swept[i]}
+                               for i, r in enumerate(returns[p])]}
+               for p in range(2)]  # fmt: skip
+    curve = read_curve(_write_records(tmp_path / "sweep", records))
+    assert setting_means(curve) == [("actor_lr=0.001", [2.0, 2.0]),
+                                    ("actor_lr=0.0003", [15.0, 40.0])]  # fmt: skip
+    ax, wall, filled = _Axes(), _Axes(), []
+    ax.fill_between = wall.fill_between = lambda *args, **kwargs: filled.append(args)
+    _draw([ax, wall], curve, None, "black", ["red", "blue"])
+    assert ax.lines[4:] == [([2.0, 2.0], "red", None), ([15.0, 40.0], "blue", None)]
+    assert not filled and all(line[1] != "black" for line in ax.lines)
+    seeds = curve._replace(swept=("", "", "", ""))
+    assert setting_means(seeds) == []
+    _draw([ax, wall], seeds, None, "black", ["red"])
+    assert ax.lines[-1][1] == "black" and len(filled) == 2  # (its band, on both axes)
+
+
 def test_no_record_is_no_curve_and_an_edited_record_is_named(tmp_path):
     assert read_curve(tmp_path) is None and plot_curve(tmp_path) is None
     assert not (tmp_path / "curve.png").exists()
