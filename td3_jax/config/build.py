@@ -35,6 +35,7 @@ import numpy as np
 
 from td3_jax import envs
 from td3_jax.common.errors import ConfigError, outside_stacklevel
+from td3_jax.common.other_names import names_meant
 from td3_jax.config.schema import (
     SWEEPABLE,
     SWITCHED_ON_BY_THEIR_FLAG,
@@ -407,7 +408,10 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     sweep = {k: v for k, v in _sweep_lists(sweep).items() if v}
     unknown = sorted(set(sweep) - set(SWEEPABLE))
     if unknown:
-        raise ConfigError(f"cannot sweep {unknown}; sweepable: {', '.join(SWEEPABLE)}")
+        dashed = {name.replace("_", "-"): name for name in SWEEPABLE}
+        meant = [dashed[n] for n in names_meant(unknown[0].replace("_", "-"), dashed)]
+        guess = f"did you mean {' or '.join(meant[:4])}? " if meant else ""
+        raise ConfigError(f"cannot sweep {unknown}; {guess}sweepable: {', '.join(SWEEPABLE)}")
     _check_sweep_does_something(cfg, sweep)
     bad = {n: v for n, values in sweep.items() for v in values if not math.isfinite(float(v))}
     if bad:

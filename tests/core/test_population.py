@@ -134,8 +134,13 @@ def test_member_keys_are_each_seeds_own_key():
 
 
 def test_sweep_of_an_unknown_setting_is_refused():
-    with pytest.raises(ConfigError, match="cannot sweep"):
+    with pytest.raises(ConfigError, match="cannot sweep") as refused:
         members(TINY, {"batch_size": [32, 64]})
+    assert "did you mean" not in str(refused.value)  # (nothing close: the list alone)
+    for name, meant in (("actr_lr", "actor_lr"), ("gamma", "discount")):
+        with pytest.raises(ConfigError, match=rf"cannot sweep \['{name}'\]; did you mean "
+                           rf"{meant}\? sweepable: actor_lr, "):  # fmt: skip
+            members(TINY, {name: [0.1, 0.2]})
 
 
 @pytest.mark.runs
