@@ -300,28 +300,31 @@ def make_train(
         states, metrics = train(jax.random.split(jax.random.PRNGKey(0), 8))
 
     ``make_train(cfg)(key_for_seed(s))`` runs the chunks and evaluations of
-    ``td3-jax train --seed s`` (same keys; ``eval_every`` as whole iterations, as the command
-    runs it: :func:`~td3_jax.config.schema.eval_every_within_run`). Unlike the command it writes
-    nothing and cannot be resumed, its chunks are all whole (``cfg.chunked_steps`` env steps,
-    where the command shortens the last to end at ``cfg.run_steps``: a warning where they
-    differ), and ``cfg.seeds`` is not used (a warning where it asks for more than one).
+    ``td3-jax train --seed s`` (same keys) where ``eval_every`` is whole iterations and whole
+    chunks of it make ``total_steps``. Otherwise it runs ``cfg.num_chunks`` whole chunks of
+    ``cfg.iters_per_chunk`` iterations (``eval_every`` rounded down; ``cfg.chunked_steps`` env
+    steps), where the command rounds ``eval_every`` as
+    :func:`~td3_jax.config.schema.eval_every_within_run` says and ends its last chunk at
+    ``cfg.run_steps``: a warning says so where the steps differ. Unlike the command it writes
+    nothing and cannot be resumed, and ``cfg.seeds`` is not used (a warning where it asks for
+    more than one).
     Vmapping with ``jax.vmap(train, axis_name=name)`` and ``axis_name=name`` here keeps the
     reset and warm-up branches as real branches. ``env``: the environment instead
     of ``cfg.env``'s, e.g. an object of your own (:func:`make_env`). ``cfg`` is validated
     first (:func:`~td3_jax.config.schema.validate`: a setting that cannot work is a ConfigError, as
     on the command line).
     """
-    cfg = eval_every_within_run(validated(cfg, env))
-    spec = make_spec(cfg, env, axis_name)
+    spec = make_spec(validated(cfg, env), env, axis_name)
     if cfg.seeds > 1:  # (the command line and td3_jax.train run them; this, one per key)
         warnings.warn(f"make_train trains one agent per key: seeds={cfg.seeds} is for "
                       "td3_jax.train and the command line; jax.vmap the function over keys "
                       "for several", UserWarning, stacklevel=outside_stacklevel())  # fmt: skip
-    if cfg.chunked_steps != cfg.run_steps:
+    ran = eval_every_within_run(cfg).run_steps  # (what the command line runs)
+    if cfg.chunked_steps != ran:
         warnings.warn(f"make_train runs {cfg.num_chunks} whole chunks of {cfg.iters_per_chunk} "
                       f"iterations: {cfg.chunked_steps} env steps per key, where the command "
-                      f"line stops at {cfg.run_steps} (total_steps={cfg.total_steps}); "
-                      "total_steps a whole number of chunks runs the same",
+                      f"line stops at {ran} (total_steps={cfg.total_steps}); an eval_every "
+                      "of whole iterations whose whole chunks make total_steps runs the same",
                       UserWarning, stacklevel=outside_stacklevel())  # fmt: skip
     return training.make_train(spec, hyperparams(cfg), cfg.num_chunks)
 
@@ -409,9 +412,12 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     unknown = sorted(set(sweep) - set(SWEEPABLE))
     if unknown:
         dashed = {name.replace("_", "-"): name for name in SWEEPABLE}
-        meant = [dashed[n] for n in names_meant(unknown[0].replace("_", "-"), dashed)]
-        guess = f"did you mean {' or '.join(meant[:4])}? " if meant else ""
-        raise ConfigError(f"cannot sweep {unknown}; {guess}sweepable: {', '.join(SWEEPABLE)}")
+        guesses = [(name, [dashed[n] for n in names_meant(name.replace("_", "-"), dashed)])
+                   for name in unknown]  # fmt: skip
+        said = [f"{name}: did you mean {' or '.join(meant[:4])}? " if len(unknown) > 1
+                else f"did you mean {' or '.join(meant[:4])}? " for name, meant in guesses if meant]
+        raise ConfigError(f"cannot sweep {unknown}; {''.join(said)}sweepable: "
+                          f"{', '.join(SWEEPABLE)}")  # fmt: skip
     _check_sweep_does_something(cfg, sweep)
     bad = {n: v for n, values in sweep.items() for v in values if not math.isfinite(float(v))}
     if bad:

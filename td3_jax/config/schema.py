@@ -240,8 +240,8 @@ class TrainConfig:
     """Checkpoints kept on disk (the newest ones)."""
     checkpoint_every: int = 1
     """Evaluations between checkpoints (the last chunk is always checkpointed). A Ctrl-C
-    stops at once and resumes from the last checkpoint (the chunks after it are lost); a
-    SIGTERM, or the run's time budget, finishes the chunk and checkpoints it."""
+    that stops the run mid-chunk resumes from the last checkpoint (the chunks after it are
+    lost); a SIGTERM, or the run's time budget, finishes the chunk and checkpoints it."""
     early_evaluation: bool = True
     """In a fresh run, evaluate once more after the first eighth of the first chunk when that
     has 64 iterations or more (the same compiled program runs both parts), so a first return

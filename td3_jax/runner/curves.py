@@ -121,7 +121,8 @@ def read_curve(run_dir: Path) -> Curve | None:
         count = len(records[-1]["per_member"])
         members = [[_number(r["per_member"][i]["eval_return_mean"]) for r in records]
                    for i in range(count)]  # fmt: skip
-        band = ("mean over members, 95% bootstrap CI" if count >= stats.CI_NARROWER_FROM
+        alive = sum(math.isfinite(member[-1]) for member in members)  # (the band's, at the end)
+        band = ("mean over members, 95% bootstrap CI" if alive >= stats.CI_NARROWER_FROM
                 else "mean over members, their range")  # fmt: skip
         swept = tuple(_swept_text(m) for m in records[-1]["per_member"])
     else:
@@ -228,7 +229,7 @@ def _save(labelled: Sequence[tuple[Curve, str | None]], path: Path, title: str) 
 
 def draw_curve(curve: Curve, path: Path) -> Path:
     """Writes one run's ``curve`` to ``path`` (its suffix picks the format): its members thin,
-    their mean (or the run's) with its band."""
+    their mean (or the run's) with its band; a sweep's, each setting's mean instead."""
     return _save([(curve, None)], Path(path), curve.env)
 
 
@@ -282,5 +283,6 @@ def no_return_warning(curve: Curve, run_dir: Path) -> str | None:
 def _band_name(curve: Curve) -> str:
     """What a run's band is, briefly, for a comparison's legend."""
     if curve.members:
-        return f"{len(curve.members)} members, {stats.interval_name(len(curve.members))}"
+        alive = sum(math.isfinite(member[-1]) for member in curve.members)  # (not diverged)
+        return f"{len(curve.members)} members, {stats.interval_name(alive)}"
     return "± std over episodes"

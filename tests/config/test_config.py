@@ -447,6 +447,10 @@ def test_typed_flags_that_change_nothing_are_named_with_the_reason():
         "--critic-obs-key does nothing with --env brax/ant (its observations are one array, "
         "not a dict)"
     ]
+    assert idle_flags(TrainConfig(), {"actor_obs_key"}) == [
+        "--actor-obs-key does nothing with --env gymnax/Pendulum-v1 (its observations are one "
+        "array, not a dict)"
+    ]
     robot = TrainConfig(env="playground/T1JoystickFlatTerrain")  # (dict observations: used)
     assert idle_flags(robot, {"actor_obs_key", "critic_obs_key"}) == []
     # An option typed as None turns a preset's value off: not idle (`--preset g1

@@ -216,19 +216,25 @@ def test_make_train_says_that_it_trains_one_agent_per_key_where_seeds_asks_for_m
         td3_jax.make_train(tiny_config())  # (one seed: nothing said)
 
 
-def test_make_train_rounds_eval_every_as_the_command_does_and_says_where_it_runs_past():
-    """7 environments, eval_every=64, total_steps=128: the command runs chunks of 10 iterations
-    (70 steps: 2 chunks, against 3 of 9 iterations, 189 steps) and stops at 19 iterations (133
-    steps). make_train runs the same 2 chunks, whole (140 steps), and says so."""
+def test_make_train_says_where_its_whole_chunks_run_other_steps_than_the_command():
+    """7 environments, eval_every=64, total_steps=128: make_train runs cfg's 3 chunks of 9
+    iterations (63 steps each, eval_every rounded down: 189 steps), one row of metrics each,
+    and says so; the command runs chunks of 10 iterations (fewer steps past the end) and stops
+    at 19 iterations, 133 steps. Whole chunks of whole iterations: nothing said."""
+    import warnings
+
     import jax
 
     cfg = tiny_config(num_envs=7, eval_every=64, total_steps=128)
-    with pytest.warns(UserWarning, match=r"2 whole chunks of 10 iterations: 140 env steps per "
+    with pytest.warns(UserWarning, match=r"3 whole chunks of 9 iterations: 189 env steps per "
                       r"key, where the command line stops at 133 \(total_steps=128\)") as said:
         train = td3_jax.make_train(cfg)
     assert [w.filename for w in said] == [__file__]
     _, metrics = jax.eval_shape(train, td3_jax.key_for_seed(0))
-    assert metrics["eval_returns"].shape == (2, cfg.eval_envs)  # (one row per chunk)
+    assert metrics["eval_returns"].shape == (cfg.num_chunks, cfg.eval_envs) == (3, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        td3_jax.make_train(tiny_config(num_envs=8, eval_every=64, total_steps=128))
 
 
 def test_the_trained_function_says_what_key_it_takes(tmp_path):

@@ -141,6 +141,9 @@ def test_sweep_of_an_unknown_setting_is_refused():
         with pytest.raises(ConfigError, match=rf"cannot sweep \['{name}'\]; did you mean "
                            rf"{meant}\? sweepable: actor_lr, "):  # fmt: skip
             members(TINY, {name: [0.1, 0.2]})
+    with pytest.raises(ConfigError, match=r"cannot sweep \['actr_lr', 'gamma'\]; actr_lr: did "
+                       r"you mean actor_lr\? gamma: did you mean discount\? sweepable"):
+        members(TINY, {"actr_lr": [0.1, 0.2], "gamma": [0.9, 0.99]})
 
 
 @pytest.mark.runs

@@ -10,6 +10,7 @@ import pytest
 
 from td3_jax.common.errors import ConfigError
 from td3_jax.runner.curves import (
+    _band_name,
     _draw_members,
     is_td3_jax_figure,
     mixed_envs_warning,
@@ -64,6 +65,13 @@ def test_a_run_of_several_members_keeps_each_member_and_the_ci_band(tmp_path):
     four = [{**r, "per_member": r["per_member"] * 2} for r in records]
     assert read_curve(_write_records(tmp_path / "four", four)).band == (
         "mean over members, 95% bootstrap CI")  # fmt: skip
+    # one of four diverged by the end: the band is over the other three, their range
+    diverged = [{**r, "per_member": [*(r["per_member"] * 2)[:3], {"eval_return_mean": None}]}
+                for r in records]  # fmt: skip
+    curve = read_curve(_write_records(tmp_path / "diverged", diverged))
+    assert curve.band == "mean over members, their range"
+    assert _band_name(curve) == "4 members, range"
+    assert _band_name(read_curve(_write_records(tmp_path / "four", four))) == "4 members, 95% CI"
 
 
 class _Axes:
