@@ -1,6 +1,8 @@
-"""Stopping a run from outside: Ctrl-C or SIGTERM stops training at the next chunk (a second
-signal at once), and the command ends with one line saying what the run directory holds and
-the shell's exit status for the signal."""
+"""Stopping a run from outside: a SIGTERM (or, in a run of several processes, a Ctrl-C) stops
+training at the next chunk boundary, that chunk checkpointed; a Ctrl-C in a run of one process
+stops at once, the run left at its last checkpoint; a second signal stops at once
+(:func:`td3_jax.common.runtime.stop_signals`). The command ends with one line saying what the
+run directory holds and the shell's exit status for the signal."""
 
 from __future__ import annotations
 
