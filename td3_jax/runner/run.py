@@ -217,8 +217,10 @@ def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
         saved = Path(out_dir) / CONFIG_FILE
         return eval_every_as_saved(cfg, load_config(out_dir)) if saved.is_file() else cfg
     changed = eval_every_within_run(cfg)
-    if say and changed.eval_every != cfg.eval_every:
-        print(field_names(rounding_note(changed, cfg.eval_every)), flush=True)
+    whole = cfg.env_steps_per_iter > 0 and cfg.eval_every % cfg.env_steps_per_iter == 0
+    note = rounding_note(changed, cfg.eval_every)
+    if say and note and (changed.eval_every != cfg.eval_every or not whole):
+        print(field_names(note), flush=True)
     return changed
 
 

@@ -237,6 +237,20 @@ def test_make_train_says_where_its_whole_chunks_run_other_steps_than_the_command
         td3_jax.make_train(tiny_config(num_envs=8, eval_every=64, total_steps=128))
 
 
+def test_python_train_says_how_an_eval_every_of_part_iterations_runs(tmp_path, capsys):
+    """16 environments: eval_every=100 runs as 96 (6 iterations; 112 would run more steps past
+    256), which the library says as the command does, in field names; a whole eval_every (what
+    the command hands over, rounded and said already) says nothing."""
+    cfg = tiny_config(num_envs=16, eval_every=100, total_steps=256)
+    kept = run_module._eval_every_within_run(cfg, tmp_path / "a", resume=False, say=True)
+    assert kept == cfg and kept.steps_per_chunk == 96
+    assert capsys.readouterr().out == ("eval_every=100 runs as 96 (whole iterations of 16 env "
+                                       "steps)\n")  # fmt: skip
+    whole = tiny_config(num_envs=16, eval_every=96, total_steps=256)
+    assert run_module._eval_every_within_run(whole, tmp_path / "b", resume=False, say=True) == whole
+    assert capsys.readouterr().out == ""
+
+
 def test_the_trained_function_says_what_key_it_takes(tmp_path):
     """An int seed, or a batch of keys to the unbatched function, was JAX's "invalid PRNG key
     data"; one key of either kind trains, and so does a batch under jax.vmap."""
