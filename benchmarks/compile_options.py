@@ -102,32 +102,28 @@ def timed_compile(lowered, options: dict) -> tuple[object, float]:
     return executable, time.perf_counter() - start
 
 
-def loop_rate(executable, hyperparams, state, iterations: int, steps_per_iteration: int,
-              start_round=None):  # fmt: skip
-    """Env steps/s of ``iterations`` chunk iterations from ``state`` (donated; after one untimed
-    call), and the state they end in. ``start_round``: the compiled start of an evaluation
-    round, run before each call as a run runs it before each chunk (timed with it)."""
-    state, metrics = executable(hyperparams, _round_started(start_round, state), np.int32(1))
+def loop_rate(programs, state, iterations: int, steps_per_iteration: int):
+    """Env steps/s of ``iterations`` chunk iterations of ``programs`` (its compiled chunk, and
+    the start of its evaluation round where there is one, run as a run runs them:
+    :meth:`~td3_jax.runner.programs.Programs.train_chunk`) from ``state`` (donated; after one
+    untimed call), and the state they end in."""
+    state, metrics = programs.train_chunk(state, np.int32(1))
     jax.block_until_ready(metrics)
     start = time.perf_counter()
-    state = _round_started(start_round, state)
-    state, metrics = executable(hyperparams, state, np.int32(iterations))
+    state, metrics = programs.train_chunk(state, np.int32(iterations))
     jax.block_until_ready((state, metrics))
     return iterations * steps_per_iteration / (time.perf_counter() - start), state
 
 
-def _round_started(start_round, state):
-    return state if start_round is None else start_round(state)
-
-
 def past_warmup(lowered, base: dict, jitted, cfg, start_round=None):
     """The initial state run past the warm-up (random actions, no updates), so that every
-    timed iteration learns; compiled with the run's own options (not timed)."""
+    timed iteration learns; compiled with the run's own options (not timed). ``start_round``:
+    the compiled start of an evaluation round, run first as a run does."""
     state = jax.block_until_ready(jitted.init())
     executable = lowered.compile(compiler_options=dict(base))
     iterations = -(-cfg.warmup_steps // cfg.env_steps_per_iter) + 1
-    state = _round_started(start_round, state)
-    state, metrics = executable(jitted.hyperparams, state, np.int32(iterations))
+    programs = jitted._replace(chunk=executable, start_round=start_round)
+    state, metrics = programs.train_chunk(state, np.int32(iterations))
     jax.block_until_ready(metrics)
     return state
 
@@ -150,8 +146,8 @@ def main() -> None:
     for round_index in range(args.rounds):
         for name, options in args.variants:
             executable, seconds = timed_compile(lowered, {**base, **options})
-            rate, state = loop_rate(executable, jitted.hyperparams, state, args.iterations,
-                                    steps, start_round)  # fmt: skip
+            compiled = jitted._replace(chunk=executable, start_round=start_round)
+            rate, state = loop_rate(compiled, state, args.iterations, steps)
             results[name].append((round(seconds, 1), round(rate)))
             row = {"round": round_index, "variant": name, "options": options,
                    "compile_s": round(seconds, 1), "env_steps_per_s": round(rate)}
@@ -159,7 +155,7 @@ def main() -> None:
                 row["round_compile_s"] = round(timed_compile(round_program,
                                                              {**base, **options})[1], 1)
             print(json.dumps(row), flush=True)
-            del executable
+            del executable, compiled
     for name, rows in results.items():
         print(json.dumps({"variant": name, "compile_s": [r[0] for r in rows],
                           "env_steps_per_s": [r[1] for r in rows]}), flush=True)  # fmt: skip

@@ -346,11 +346,11 @@ def abstract_inputs(compiled, program) -> tuple[Any, Any]:
     return state, jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
 
 
-def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
-    """``(chunk, init executable, hyperparams, seconds)``: built, traced and compiled ahead,
-    before any state exists. ``chunk`` is the chunk's iterations, a compiled executable, with
-    ``chunk.start_round``: the compiled start of its evaluation round (``None`` without
-    in-chunk evaluation), which :func:`run_chunk` runs first, as a run does."""
+def compile_point(cfg, devices: int) -> tuple[Any, dict[str, float]]:
+    """``(programs, seconds)``: the run's :class:`~td3_jax.runner.programs.Programs` built,
+    traced and compiled ahead, before any state exists (its ``chunk``, ``init`` and, with
+    in-chunk evaluation, ``start_round`` compiled executables, which
+    :meth:`~td3_jax.runner.programs.Programs.train_chunk` runs as a run does)."""
     from td3_jax.common import upstream
     from td3_jax.config.build import make_population, members
     from td3_jax.config.schema import validate
@@ -375,31 +375,17 @@ def compile_point(cfg, devices: int) -> tuple[Any, Any, Any, dict[str, float]]:
     if compiled.start_round is not None:  # (a program of its own, as in a run)
         start_round = compiled.start_round.lower(state).compile(compiler_options=options)
         seconds["compile_round_s"] = time.perf_counter() - clock
-    return _Chunk(chunk, start_round), init, compiled.hyperparams, seconds
+    return compiled._replace(chunk=chunk, init=init, start_round=start_round), seconds
 
 
-class _Chunk:
-    """A compiled chunk's iterations and the compiled start of its evaluation round."""
-
-    def __init__(self, iterations: Any, start_round: Any) -> None:
-        self.iterations, self.start_round = iterations, start_round
-
-    def as_text(self) -> str:
-        return self.iterations.as_text()
-
-    def __call__(self, hp: Any, state: Any, iterations: Any) -> tuple[Any, Any]:
-        if self.start_round is not None:
-            state = self.start_round(state)
-        return self.iterations(hp, state, iterations)
-
-
-def run_chunk(chunk, hp, state, iterations: int) -> tuple[Any, dict[str, Any], float]:
-    """One call of the chunk, waited for: ``(state, metrics, seconds)``."""
+def run_chunk(programs, state, iterations: int) -> tuple[Any, dict[str, Any], float]:
+    """One chunk of the compiled ``programs`` (its round started first, as a run does),
+    waited for: ``(state, metrics, seconds)``."""
     import jax
     import numpy as np
 
     start = time.perf_counter()
-    state, metrics = chunk(hp, state, np.int32(iterations))
+    state, metrics = programs.train_chunk(state, np.int32(iterations))
     jax.block_until_ready((state, metrics))
     return state, metrics, time.perf_counter() - start
 
@@ -464,17 +450,17 @@ def measure_point(point: dict[str, Any]) -> dict[str, Any]:
     """The point's numbers: compile seconds, then (holding the device lock) init, a filling
     chunk, the timed chunk and, when asked, a profiled one."""
     cfg, name = point_config(point)
-    chunk, init, hp, seconds = compile_point(cfg, point["devices"])
-    found = collectives(chunk.as_text())
+    programs, seconds = compile_point(cfg, point["devices"])
+    found = collectives(programs.chunk.as_text())
     arrive(point)
     wait_for_compiles(point)
     with open(point["lock"]) as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        state = init()
-        state, _, fill_s = run_chunk(chunk, hp, state, fill_iterations(cfg))
-        state, metrics, chunk_s = run_chunk(chunk, hp, state, point["iterations"])
+        state = programs.init()
+        state, _, fill_s = run_chunk(programs, state, fill_iterations(cfg))
+        state, metrics, chunk_s = run_chunk(programs, state, point["iterations"])
         if point["profile"]:
-            profiled_s = profile_chunk(chunk, hp, state, point)
+            profiled_s = profile_chunk(programs, state, point)
         peak = peak_gib_per_device()
     iters = point["iterations"]
     updates = iters * cfg.updates_per_iter
@@ -509,14 +495,14 @@ def wait_for_compiles(point: dict[str, Any], limit_s: float = 900.0) -> None:
         time.sleep(0.5)
 
 
-def profile_chunk(chunk, hp, state, point: dict[str, Any]) -> float:
+def profile_chunk(programs, state, point: dict[str, Any]) -> float:
     """One more timed chunk under ``jax.profiler.trace``; its seconds (profiler included)."""
     import jax
 
     name = f"{point['env'].replace('/', '_')}_{point['mode']}_d{point['devices']}"
     where = Path(point["profile"]) / name
     with jax.profiler.trace(str(where)):
-        _, _, seconds = run_chunk(chunk, hp, state, point["iterations"])
+        _, _, seconds = run_chunk(programs, state, point["iterations"])
     return seconds
 
 
