@@ -150,13 +150,17 @@ def abstract_state(source: Source) -> Any:
 
 
 def compiled(source: Source, stop: StopToken | None = None,
-             check: Callable[[Any], None] | None = None) -> Programs:  # fmt: skip
+             check: Callable[[Any], None] | None = None,
+             traced: Callable[[], None] | None = None) -> Programs:  # fmt: skip
     """The run's :class:`Programs`, compiled side by side: stored ones read back, otherwise
     each is traced, handed to a thread to compile while the next is traced, then stored.
 
     ``check(abstract_state)``, if given, runs once the state's shapes are known and before any
     compile is waited for (before tracing; for stored programs, while they compile): e.g. that
-    the state fits in memory and its checkpoints on the disk. Without a directory (or when
+    the state fits in memory and its checkpoints on the disk. ``traced()``, if given, runs
+    once every program is traced and handed to a thread to compile (for stored programs,
+    after ``check``), before any compile is waited for: the caller's own work that would
+    otherwise delay the tracing (e.g. lowering a checkpoint's program). Without a directory (or when
     exporting fails) the programs are compiled as jitted functions (:func:`compile_ahead`),
     the same programs, stored nowhere. Stored programs that fail to compile are given up and
     the programs traced instead. Once ``stop`` is set, nothing more is traced or waited for
@@ -168,19 +172,21 @@ def compiled(source: Source, stop: StopToken | None = None,
     shapes = abstract_state(source)
     if check is not None:
         check(shapes)
+    if source.stored is not None and traced is not None:
+        traced()
     if source.stored is not None:
         try:
             return _stored_programs(source, futures, stop)
         except Exception as err:  # e.g. a program that reads back but does not compile
             _give_up_stored(source, err)
     if source.directory is None:
-        return _compile_plain(source, stop)
+        return _compile_plain(source, stop, traced)
     try:
-        return _compile_traced(source, stop)
+        return _compile_traced(source, stop, traced)
     except _ExportFailed as err:
         program_cache.warn(f"the traced programs cannot be kept ({err.__cause__}); compiling "
                            "them as usual")  # fmt: skip
-        return _compile_plain(source, stop)
+        return _compile_plain(source, stop, traced)
 
 
 def _give_up_stored(source: Source, err: BaseException) -> None:
@@ -245,11 +251,12 @@ def out_of_memory_as_config_error(device: Any, doing: str, advice: str) -> Itera
                           f"use {advice}") from None  # fmt: skip
 
 
-def _compile_plain(source: Source, stop: StopToken) -> Programs:
+def _compile_plain(source: Source, stop: StopToken, traced: Callable[[], None] | None = None
+                   ) -> Programs:  # fmt: skip
     """The traced population jitted for the mesh and compiled now (stored nowhere)."""
     programs = jitted(source.program, source.mesh)
     return compile_ahead(programs, source.program, with_init="init" in source.names, stop=stop,
-                         options=compile_options(source))  # fmt: skip
+                         options=compile_options(source), traced=traced)  # fmt: skip
 
 
 def _compile_stored(source: Source) -> dict[str, Future]:
@@ -271,10 +278,13 @@ def _stored_programs(source: Source, futures: dict[str, Future], stop: StopToken
     return _flat_programs(source, executables, trees, *inputs)
 
 
-def _compile_traced(source: Source, stop: StopToken) -> Programs:
+def _compile_traced(source: Source, stop: StopToken, traced: Callable[[], None] | None = None
+                    ) -> Programs:  # fmt: skip
     """The programs traced and exported (all of them, so the stored entry is complete), the
     run's compiled side by side, then stored."""
     futures, flat, trees = _export_each(source, stop)
+    if traced is not None:
+        traced()
     program_cache.save(source.directory, source.key, flat, trees)
     inputs = _placed_inputs(source)
     executables = {name: result(future, stop) for name, future in futures.items()}
@@ -385,8 +395,8 @@ def chunk_argument_specs(program: Population, shardings: Any) -> tuple[Any, Any,
 
 
 def compile_ahead(programs: Programs, program: Population, with_init: bool = True,
-                  stop: StopToken | None = None,
-                  options: dict | None = None) -> Programs:  # fmt: skip
+                  stop: StopToken | None = None, options: dict | None = None,
+                  traced: Callable[[], None] | None = None) -> Programs:  # fmt: skip
     """``programs`` (:func:`jitted`) with their functions compiled now, side by side, instead
     of at their first call.
 
@@ -396,7 +406,8 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
     which the chunk holds.) The returned functions are the compiled executables: calling them
     with other shapes or shardings raises instead of recompiling. Once ``stop`` is set, the
     compiles are no longer waited for (KeyboardInterrupt). ``options``: XLA compile options
-    (:func:`compile_options`).
+    (:func:`compile_options`). ``traced()``, if given, runs once every program is handed to
+    its thread, before any is waited for.
     """
     stop = stop if stop is not None else StopToken()
     hp_spec, state_spec, iterations = chunk_argument_specs(program, programs.shardings)
@@ -411,4 +422,6 @@ def compile_ahead(programs: Programs, program: Population, with_init: bool = Tru
         futures[name] = in_background(functools.partial(lower().compile, compiler_options=options))
         stop.raise_if_set()
     warp_kernels.programs_traced()  # (Warp's kernels compile beside XLA's from here)
+    if traced is not None:
+        traced()
     return programs._replace(**{name: result(f, stop) for name, f in futures.items()})

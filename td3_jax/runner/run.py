@@ -392,8 +392,10 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
     (:func:`td3_jax.runner.programs.compiled`), and its state: ``state`` restored, else initialised;
     KeyboardInterrupt where this process or another of the run was stopped meanwhile
     (:func:`_agree_to_start`).
-    The checksum program of its checkpoints compiles beside them (:func:`_state_shapes_known`)
-    and is waited for before anything runs on the devices (no compile runs beside a chunk).
+    The checksum program of its checkpoints is lowered once the programs are traced (it would
+    delay the chunk's compile by about a second on a robot: :func:`_prepare_save`), compiles
+    beside them and is waited for before anything runs on the devices (no compile runs beside
+    a chunk).
     ``say``: print that it compiles first (a log then shows where the time goes), and from
     which stored programs (:func:`td3_jax.runner.programs.find`). XLA's slow-compile alarm,
     MLIR's lines about a damaged stored program and XLA's GSPMD notice are left out of stderr
@@ -406,19 +408,31 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
             print(f"using the traced programs stored in {source.directory / source.key}")
         print(f"compiling the training program{cached}...", flush=True)
     with filtered_stderr():
-        check = partial(_state_shapes_known, run, source.mesh)
-        compiled = programs.compiled(source, run.stop, check=check)
+        shapes: list[Any] = []  # (the state's, once known)
+        check = partial(_state_shapes_known, run, source.mesh, shapes)
+        compiled = programs.compiled(source, run.stop, check=check,
+                                     traced=partial(_prepare_save, run, source.mesh, shapes))
     _wait_for_save_warmup(run)  # (before anything runs on the device)
     warp_kernels.wait_ready(run.stop)  # (before the first physics step)
     _agree_to_start(run)  # (a stop while the programs loaded from the cache too)
     return compiled, compiled.init() if state is None else state
 
 
-def _state_shapes_known(run: _Run, mesh: Any, state: Any) -> None:
+def _state_shapes_known(run: _Run, mesh: Any, shapes: list[Any], state: Any) -> None:
     """Once the state's shapes are known, before the programs compile: the room checks
-    (:func:`_check_room`), then the first checkpoint's checksum program lowered here and
-    compiled on a thread beside them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
+    (:func:`_check_room`); the shapes are kept in ``shapes`` for :func:`_prepare_save`."""
     _check_room(run, mesh, state)
+    shapes.append(state)
+
+
+def _prepare_save(run: _Run, mesh: Any, shapes: list[Any]) -> None:
+    """Once the programs are traced: the first checkpoint's checksum program, for the state
+    of ``shapes`` (:func:`_state_shapes_known`), lowered here and compiled on a thread beside
+    them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`); once per run (programs
+    traced again after stored ones failed reuse it)."""
+    if run.save_warmup is not None:
+        return
+    state = shapes[-1]
     specs = programs.with_sharding(state, state_shardings(state, mesh))
     run.save_warmup = run.checkpointer.prepare(specs)
 

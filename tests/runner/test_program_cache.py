@@ -158,19 +158,27 @@ def test_the_source_digest_reads_every_subpackage(tmp_path):
 
 def test_the_programs_are_one_type_whatever_their_origin(tmp_path):
     """programs.compiled gives the same Programs traced and read back from the store (shapes,
-    shardings, numbers), calling the room check once with the state's shapes either way."""
-    population, mesh, checked = build.members(TINY), make_mesh(None), {}
+    shardings, numbers), calling the room check once with the state's shapes either way, then
+    the caller's ``traced`` once."""
+    population, mesh, checked, order = build.members(TINY), make_mesh(None), {}, []
 
     def compile_from(origin: str):
         source = find(TINY, population, mesh, tmp_path / "programs")
-        check = lambda shapes: checked.setdefault(origin, []).append(shapes)
-        return source, compiled(source, check=check)
+
+        def check(shapes):
+            order.append(("check", origin))
+            checked.setdefault(origin, []).append(shapes)
+
+        traced = lambda: order.append(("traced", origin))
+        return source, compiled(source, check=check, traced=traced)
 
     (traced_source, traced), (stored_source, stored) = map(compile_from, ("traced", "stored"))
     assert traced_source.stored is None and traced_source.env is not None
     assert stored_source.stored is not None and stored_source.env is None  # nothing made
     shapes = lambda tree: jax.tree.map(lambda x: (x.shape, x.dtype), tree)
     assert [len(calls) for calls in checked.values()] == [1, 1]
+    steps = ("check", "traced")
+    assert order == [(step, origin) for origin in ("traced", "stored") for step in steps]
     assert shapes(checked["traced"][0]) == shapes(checked["stored"][0])
     assert shapes(traced.abstract_state) == shapes(stored.abstract_state)
     assert jax.tree.leaves(traced.shardings) == jax.tree.leaves(stored.shardings)
@@ -284,3 +292,11 @@ def test_every_compile_path_of_a_run_gets_its_compile_options(tmp_path, monkeypa
         source = find(TINY, population, mesh, directory)
         with pytest.raises(Exception, match="no_such_option"):
             compiled(source)
+
+
+def test_traced_runs_once_without_a_store():
+    """Without a store (the programs jitted and compiled as usual) ``traced`` runs once too,
+    after the room check."""
+    source, order = find(TINY, build.members(TINY), make_mesh(None), None), []
+    compiled(source, check=lambda _: order.append("check"), traced=lambda: order.append("traced"))
+    assert source.stored is None and order == ["check", "traced"]
