@@ -153,14 +153,18 @@ def train(
       preset: the preset ``cfg`` came from, a label for config.json that changes no setting
         (those: ``td3_jax.config.presets.preset(NAME)``); no preset's name: a ConfigError.
       program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
-      on_prepared: called once settings and environment are checked (nothing compiled yet).
+      on_prepared: called once settings and environment are checked (nothing compiled yet);
+        a caller that gives it says the run's settings itself (the command), so the run does
+        not print how ``eval_every`` rounds to whole iterations.
       on_started: called with the env steps the run starts from (0 when fresh).
       stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
     out_dir, writer = _checked(cfg, out_dir, time_budget_s, preset), jax.process_index() == 0
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
-    cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer)
+    said_by_caller = on_prepared is not None  # (the command says the settings itself)
+    cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer
+                                 and not said_by_caller)  # fmt: skip
     prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
                                               program_dir, env, stop, call)  # fmt: skip
     cfg, population, changes, source = prepared
@@ -211,8 +215,8 @@ def _eval_every_within_run(cfg: TrainConfig, out_dir: Path, resume: bool,
                            say: bool) -> TrainConfig:  # fmt: skip
     """A fresh run's ``cfg`` with ``eval_every`` as whole iterations and at most the run
     (:func:`~td3_jax.config.schema.eval_every_within_run`; a resume keeps the chunk its checkpoints
-    were written with: :func:`~td3_jax.runner.rundir.eval_every_as_saved`); ``say``: print what
-    changed (the CLI hands it over changed already, and says so itself)."""
+    were written with: :func:`~td3_jax.runner.rundir.eval_every_as_saved`); ``say``: print how
+    it runs where it changed or is not whole iterations (the command says so itself)."""
     if resume:  # (without a config.json: the resume says there is nothing to resume)
         saved = Path(out_dir) / CONFIG_FILE
         return eval_every_as_saved(cfg, load_config(out_dir)) if saved.is_file() else cfg

@@ -2051,3 +2051,13 @@ def test_the_sweep_table_gives_no_interval_for_one_seed(capsys):
     low, high = map(float, re.search(r"\[(-?[\d.]+), (-?[\d.]+)\] \(range\)",
                                      row["0.02"]).groups())  # fmt: skip
     assert (low, high) == (-40.0, -30.0)
+
+
+def test_an_eval_every_of_part_iterations_is_said_once(tmp_path, capsys):
+    """4 environments: --eval-every 66 runs as 64; the command says so once, in flag names (the
+    library, which says it to a Python caller in field names, leaves it to the command)."""
+    flags = with_flags(TINY_FLAGS, eval_every="66")
+    code, out, err = main(["train", *flags, "--out", str(tmp_path / "run")], capsys)
+    assert code == 0, err
+    said = [line for line in out.splitlines() if "runs as" in line]
+    assert said == ["--eval-every 66 runs as 64 (whole iterations of 4 env steps)"], out
