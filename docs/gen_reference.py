@@ -338,9 +338,10 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     (
         "train_return_mean",
         "always",
-        "mean return of those episodes (NaN, written `NaN`, when none ended)",
+        "mean return of those episodes (null when none ended, as is every number that is "
+        "not finite: JSON has no NaN)",
     ),
-    ("train_length_mean", "always", "mean length of those episodes"),
+    ("train_length_mean", "always", "mean length of those episodes (null when none ended)"),
     ("reward_mean", "always", "mean reward per environment step in this chunk"),
     (
         "physics_overflow",
