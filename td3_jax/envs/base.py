@@ -151,8 +151,9 @@ def refuse_locomotion_options(name: str, options: EnvOptions) -> None:
     locomotion tasks take, for the environment ``name`` (which is not one)."""
     refused = options.locomotion_only()
     if refused:
+        verb = "applies" if len(refused) == 1 else "apply"
         raise EnvironmentOptionError(
-            f"{', '.join(refused)} apply to Playground's locomotion tasks, not {name}"
+            f"{', '.join(refused)} {verb} to Playground's locomotion tasks, not {name}"
         )
 
 

@@ -33,6 +33,9 @@ import os
 import pkgutil
 import re
 import sys
+import sysconfig
+import traceback
+import types
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -236,11 +239,18 @@ def _attribute(module: Any, path: str, spec: str) -> Any:
 
 def _public_callables(value: Any) -> list[str]:
     """The callables a factory could be among ``value``'s public names (its ``__all__`` where
-    it has one, else its names not starting with ``_``), sorted."""
+    it has one, else its names not starting with ``_``), sorted; of a module without
+    ``__all__``, those it defines itself where it defines any (not what it imported)."""
     names = getattr(value, "__all__", None)
-    if not isinstance(names, list | tuple):
-        names = [name for name in dir(value) if not name.startswith("_")]
-    return sorted(name for name in names if _names_a_callable(value, name))
+    if isinstance(names, list | tuple):
+        return sorted(name for name in names if _names_a_callable(value, name))
+    found = sorted(name for name in dir(value)
+                   if not name.startswith("_") and _names_a_callable(value, name))  # fmt: skip
+    if not isinstance(value, types.ModuleType):
+        return found
+    own = [name for name in found
+           if getattr(getattr(value, name), "__module__", None) == value.__name__]  # fmt: skip
+    return own or found
 
 
 def _names_a_callable(value: Any, name: str) -> bool:
@@ -545,10 +555,29 @@ def _described(value: Any) -> str:
 
 
 def _one_line(err: BaseException) -> str:
-    """``Type: first line of the message`` (at most 300 characters)."""
+    """``Type: first line of the message`` (at most 300 characters), then where in the caller's
+    own code it was raised (:func:`_where_in_own_code`)."""
     lines = [line.strip() for line in str(err).splitlines() if line.strip()]
     text = f"{type(err).__name__}: {lines[0]}" if lines else type(err).__name__
-    return text if len(text) <= 300 else text[:297] + "..."
+    text = text if len(text) <= 300 else text[:297] + "..."
+    return text + _where_in_own_code(err)
+
+
+#: Folders whose frames are not the caller's own code: JAX's, NumPy's, td3-jax's and Python's.
+_LIBRARY_FOLDERS = tuple(
+    str(Path(folder).resolve()) + os.sep
+    for folder in (Path(jax.__file__).parent, Path(np.__file__).parent,
+                   Path(__file__).parent.parent, sysconfig.get_paths()["stdlib"])
+)  # fmt: skip
+
+
+def _where_in_own_code(err: BaseException) -> str:
+    """`` (at FILE:LINE)``: the deepest frame of ``err``'s traceback outside JAX, NumPy, td3-jax
+    and Python's own library (a line of the environment's code), or ``""``."""
+    frames = [frame for frame in traceback.extract_tb(err.__traceback__)
+              if not frame.filename.startswith("<")
+              and not str(Path(frame.filename).resolve()).startswith(_LIBRARY_FOLDERS)]  # fmt: skip
+    return f" (at {frames[-1].filename}:{frames[-1].lineno})" if frames else ""
 
 
 __all__ = [

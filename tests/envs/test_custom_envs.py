@@ -4,6 +4,7 @@ the check that reports a wrong part in one line, seeds, several devices and the 
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import os
 import re
@@ -752,3 +753,59 @@ def test_python_train_rounds_eval_every_as_the_cli_does_and_says_so(tmp_path, ca
     lowered = run._eval_every_within_run(longer, tmp_path / "new", resume=False, say=True)
     assert lowered.eval_every == 64 and lowered.run_steps == 64
     assert "eval_every=200 is longer than total_steps=64" in capsys.readouterr().out
+
+
+def _line_of(function, text: str) -> int:
+    """The file line of ``function``'s source holding ``text``."""
+    lines, first = inspect.getsourcelines(function)
+    return first + next(i for i, line in enumerate(lines) if text in line)
+
+
+@pytest.mark.parametrize(
+    ("change", "function", "text"),
+    [
+        (dict(action_size=3), drift, "x = x + 0.1 * action"),  # (a shape error in JAX)
+        (dict(step=_branching_step), _branching_step, "if x[0] > 0"),  # (not jittable)
+    ],
+)
+def test_a_failure_in_the_environments_own_code_names_its_line(change, function, text):
+    with pytest.raises(errors.CustomEnvironmentError) as caught:
+        envs.make(dataclasses.replace(drift(), **change))
+    assert f" (at {__file__}:{_line_of(function, text)})" in str(caught.value)
+
+
+def test_a_factory_that_raises_names_the_line(tmp_path, monkeypatch):
+    (tmp_path / "my_factories.py").write_text(FACTORIES)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "my_factories", raising=False)
+    line = FACTORIES.splitlines().index('    raise RuntimeError("no robot here")') + 1
+    with pytest.raises(errors.CustomEnvironmentError) as caught:
+        envs.make("my_factories:broken")
+    assert str(caught.value) == ("my_factories:broken: calling it raised RuntimeError: no robot "
+                                 f"here (at {tmp_path / 'my_factories.py'}:{line})")  # fmt: skip
+
+
+IMPORTING_FACTORIES = """
+from json import dumps
+from td3_jax import TrainConfig
+
+def make_arm():
+    return None
+"""
+
+
+def test_a_mistyped_factory_lists_what_its_module_defines_not_what_it_imported(
+    tmp_path, monkeypatch
+):
+    (tmp_path / "importing_factories.py").write_text(IMPORTING_FACTORIES)
+    (tmp_path / "only_imports.py").write_text("from json import dumps, loads\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("importing_factories", "only_imports"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    said = {}
+    for spec in ("importing_factories:nope", "only_imports:nope"):
+        with pytest.raises(errors.CustomEnvironmentError) as caught:
+            envs.make(spec)
+        said[spec] = str(caught.value)
+    assert said["importing_factories:nope"].endswith("its public callables: make_arm")
+    assert said["only_imports:nope"].endswith("its public callables: dumps, loads")

@@ -9,7 +9,7 @@ import pytest
 
 from td3_jax.common import upstream
 from td3_jax.envs import locomotion
-from td3_jax.envs.base import EnvironmentOptionError
+from td3_jax.envs.base import EnvironmentOptionError, EnvOptions, refuse_locomotion_options
 
 mjx = pytest.importorskip("mujoco.mjx")
 mujoco = pytest.importorskip("mujoco")
@@ -54,3 +54,18 @@ def test_mjx_warp_lists_the_fields_playground_randomisers_draw_as_per_world():
              "dof_damping", "dof_frictionloss", "actuator_gainprm", "actuator_biasprm"}  # fmt: skip
     assert drawn <= per_world, f"no longer per world: {sorted(drawn - per_world)}"
     assert not {"actuator_trntype", "dof_jntid", "body_parentid"} & per_world
+
+
+@pytest.mark.parametrize(
+    ("options", "said"),
+    [
+        (dict(domain_randomization=True), "--domain-randomization applies to"),
+        (dict(pushes=False), "--no-pushes applies to"),
+        (dict(domain_randomization=True, pushes=True), "--domain-randomization, --pushes apply to"),
+    ],
+)
+def test_locomotion_options_refused_elsewhere_are_named_in_one_sentence(options, said):
+    with pytest.raises(EnvironmentOptionError) as err:
+        refuse_locomotion_options("brax/ant", EnvOptions(**options))
+    assert str(err.value) == f"{said} Playground's locomotion tasks, not brax/ant"
+    refuse_locomotion_options("brax/ant", EnvOptions())  # (nothing set: nothing refused)
