@@ -158,9 +158,11 @@ def compiled(source: Source, stop: StopToken | None = None,
     ``check(abstract_state)``, if given, runs once the state's shapes are known and before any
     compile is waited for (before tracing; for stored programs, while they compile): e.g. that
     the state fits in memory and its checkpoints on the disk. ``traced()``, if given, runs
-    once every program is traced and handed to a thread to compile (for stored programs,
-    after ``check``), before any compile is waited for: the caller's own work that would
-    otherwise delay the tracing (e.g. lowering a checkpoint's program). Without a directory (or when
+    once (also where stored programs are given up and traced instead) as soon as every program
+    is traced and handed to a thread to compile (for stored programs, after ``check``), before
+    any compile is waited for: the caller's own work that would otherwise delay the tracing
+    (e.g. lowering a checkpoint's program); where it raises, the compiles already handed over
+    run to their end unused. Without a directory (or when
     exporting fails) the programs are compiled as jitted functions (:func:`compile_ahead`),
     the same programs, stored nowhere. Stored programs that fail to compile are given up and
     the programs traced instead. Once ``stop`` is set, nothing more is traced or waited for
@@ -168,6 +170,7 @@ def compiled(source: Source, stop: StopToken | None = None,
     """
     stop = stop if stop is not None else StopToken()
     stop.raise_if_set()  # a Ctrl-C Python discarded while tracing
+    traced = _at_most_once(traced)
     futures = _compile_stored(source)  # compiling while the state's structure is read back
     shapes = abstract_state(source)
     if check is not None:
@@ -187,6 +190,20 @@ def compiled(source: Source, stop: StopToken | None = None,
         program_cache.warn(f"the traced programs cannot be kept ({err.__cause__}); compiling "
                            "them as usual")  # fmt: skip
         return _compile_plain(source, stop, traced)
+
+
+def _at_most_once(function: Callable[[], None] | None) -> Callable[[], None] | None:
+    """``function`` that runs on its first call only (``None`` stays ``None``)."""
+    if function is None:
+        return None
+    calls = []
+
+    def once() -> None:
+        if not calls:
+            calls.append(None)
+            function()
+
+    return once
 
 
 def _give_up_stored(source: Source, err: BaseException) -> None:
@@ -253,7 +270,8 @@ def out_of_memory_as_config_error(device: Any, doing: str, advice: str) -> Itera
 
 def _compile_plain(source: Source, stop: StopToken, traced: Callable[[], None] | None = None
                    ) -> Programs:  # fmt: skip
-    """The traced population jitted for the mesh and compiled now (stored nowhere)."""
+    """The traced population jitted for the mesh and compiled now (stored nowhere);
+    ``traced()`` once all are handed to their compiles."""
     programs = jitted(source.program, source.mesh)
     return compile_ahead(programs, source.program, with_init="init" in source.names, stop=stop,
                          options=compile_options(source), traced=traced)  # fmt: skip
@@ -281,7 +299,7 @@ def _stored_programs(source: Source, futures: dict[str, Future], stop: StopToken
 def _compile_traced(source: Source, stop: StopToken, traced: Callable[[], None] | None = None
                     ) -> Programs:  # fmt: skip
     """The programs traced and exported (all of them, so the stored entry is complete), the
-    run's compiled side by side, then stored."""
+    run's compiled side by side (``traced()`` once all are handed over), then stored."""
     futures, flat, trees = _export_each(source, stop)
     if traced is not None:
         traced()

@@ -432,17 +432,14 @@ def _state_shapes_known(run: _Run, mesh: Any, shapes: list[Any], state: Any) -> 
 def _prepare_save(run: _Run, mesh: Any, shapes: list[Any]) -> None:
     """Once the programs are traced: the first checkpoint's checksum program, for the state
     of ``shapes`` (:func:`_state_shapes_known`), lowered here and compiled on a thread beside
-    them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`); once per run (programs
-    traced again after stored ones failed reuse it)."""
-    if run.save_warmup is not None:
-        return
+    them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
     state = shapes[-1]
     specs = programs.with_sharding(state, state_shardings(state, mesh))
     run.save_warmup = run.checkpointer.prepare(specs)
 
 
 def _wait_for_save_warmup(run: _Run) -> None:
-    """Waits for :func:`_state_shapes_known`'s compile; one that failed is said in one line (the
+    """Waits for :func:`_prepare_save`'s compile; one that failed is said in one line (the
     first checkpoint then compiles it itself, and reports what stops it)."""
     if run.save_warmup is None:
         return

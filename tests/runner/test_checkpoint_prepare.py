@@ -108,3 +108,30 @@ def test_a_warm_up_that_fails_is_said_in_one_line_and_the_run_goes_on(
         "td3-jax: warning: the first checkpoint could not be prepared ahead (RESOURCE_EXHAUSTED: "
         "out of memory compiling); it does that work when it is written"
     ]
+
+
+@pytest.mark.runs
+def test_a_run_prepares_its_checksums_once_its_programs_are_traced(tmp_path, monkeypatch):
+    """The run's room check (``check``) prepares nothing; its ``traced`` callback prepares the
+    checksum program, once (the programs' tracing is not delayed by it)."""
+    events, real_compiled, real_prepare = [], programs.compiled, Checkpointer.prepare
+
+    def spied(source, stop=None, check=None, traced=None):
+        def check_spied(shapes):
+            check(shapes)
+            events.append("checked")
+
+        def traced_spied():
+            events.append("traced")
+            traced()
+
+        return real_compiled(source, stop, check=check_spied, traced=traced_spied)
+
+    def prepare_spied(self, specs):
+        events.append("prepared")
+        return real_prepare(self, specs)
+
+    monkeypatch.setattr(programs, "compiled", spied)
+    monkeypatch.setattr(Checkpointer, "prepare", prepare_spied)
+    run.train(tiny_config(), tmp_path / "run", progress=False)
+    assert events == ["checked", "traced", "prepared"]

@@ -13,7 +13,7 @@ import pytest
 
 from td3_jax.config import build
 from td3_jax.config.schema import TrainConfig
-from td3_jax.runner import program_cache
+from td3_jax.runner import program_cache, programs
 from td3_jax.runner.programs import compiled, find
 from td3_jax.runner.run import train
 from td3_jax.runner.sharding import make_mesh
@@ -300,3 +300,40 @@ def test_traced_runs_once_without_a_store():
     source, order = find(TINY, build.members(TINY), make_mesh(None), None), []
     compiled(source, check=lambda _: order.append("check"), traced=lambda: order.append("traced"))
     assert source.stored is None and order == ["check", "traced"]
+
+
+@pytest.mark.parametrize("store", [False, True])
+def test_traced_runs_once_every_compile_is_handed_over_and_before_any_is_waited_for(
+    tmp_path, monkeypatch, store
+):
+    """Without a store, then traced and stored, then read back: ``traced`` runs once each time,
+    after every compile is submitted and before the first is waited for."""
+    events = []
+    real_background, real_result = programs.in_background, programs.result
+    monkeypatch.setattr(programs, "in_background",
+                        lambda *a, **k: events.append("submit") or real_background(*a, **k))
+    monkeypatch.setattr(programs, "result", lambda *a: events.append("wait") or real_result(*a))
+    population, mesh = build.members(TINY), make_mesh(None)
+    for origin in ("traced", "stored") if store else ("plain",):
+        events.clear()
+        source = find(TINY, population, mesh, tmp_path / "programs" if store else None)
+        compiled(source, traced=lambda: events.append("traced"))
+        at = events.index("traced")
+        assert events.count("traced") == 1 and events.count("submit") >= 3, (origin, events)
+        assert "wait" not in events[:at] and "submit" not in events[at:], (origin, events)
+
+
+def test_traced_runs_once_where_stored_programs_are_given_up(tmp_path, monkeypatch):
+    """Stored programs that read back but fail to compile are traced again: ``traced`` still
+    runs once, after those are handed over."""
+    population, mesh = build.members(TINY), make_mesh(None)
+    compiled(find(TINY, population, mesh, tmp_path / "programs"))  # (stores them)
+
+    def failing(*_):
+        raise RuntimeError("a stored program that does not compile")
+
+    monkeypatch.setattr(programs, "_stored_programs", failing)
+    source, calls = find(TINY, population, mesh, tmp_path / "programs"), []
+    assert source.stored is not None
+    compiled(source, traced=lambda: calls.append(source.program is not None))
+    assert calls == [False]  # (once, where the stored programs were still held)
