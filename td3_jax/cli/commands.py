@@ -79,7 +79,7 @@ class TrainCommand(TrainConfig):
     where one exists (said in one line), else settings for the device (a GPU gets thousands of
     environments)."""
     quiet: bool = False
-    """No progress display (a live bar on a terminal, else one line per evaluation)."""
+    """No progress display (one line per evaluation; on a terminal, a live bar below)."""
     time_budget_s: float | None = None
     """Stop after the first chunk that ends past this wall-clock budget (compile included),
     counted over the whole run: a resume's budget includes the time of the calls before it.

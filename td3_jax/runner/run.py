@@ -143,7 +143,7 @@ def train(
       resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
         the saved config only in :data:`td3_jax.runner.rundir.SAFE_ON_RESUME` (and
         ``eval_every`` as :func:`~td3_jax.runner.rundir.eval_every_as_saved` takes it).
-      progress: show progress (a live bar on a terminal, else one line per evaluation).
+      progress: show progress (one line per evaluation; on a terminal, a live bar below).
       sweep: float settings to vary (``{"actor_lr": [1e-3, 3e-4]}``), ``cfg.seeds`` seeds of
         each in one program; a member gone non-finite is marked diverged (all: the run stops).
       stop_after_chunks: stop (as if interrupted) after this many chunks of this call.
@@ -901,10 +901,11 @@ def _check_physics(run: _Run, metrics: dict[str, np.ndarray], env_steps: int) ->
 
 
 class _Progress:
-    """A rich progress bar (env steps, env steps/s, last evaluation return, time left) that fits
-    80 columns; where the output is not a terminal (a log file, a batch job), one plain line per
-    evaluation. A part of the run spent in the random warm-up says so instead of a rate (it
-    steps without updates, far faster than training)."""
+    """One line per evaluation and, on a terminal, below them a rich progress bar (env steps,
+    env steps/s, last evaluation return, time left) that fits 80 columns; where the output is
+    not a terminal (a log file, a batch job), the lines alone. A part of the run spent in the
+    random warm-up says so instead of a rate (it steps without updates, far faster than
+    training)."""
 
     def __init__(self, cfg: TrainConfig, start_steps: int, enabled: bool, console: Any = None):
         from rich.console import Console
@@ -921,16 +922,20 @@ class _Progress:
 
     def update(self, record: dict) -> None:
         start, self.done = self.done, record["env_steps"]
-        rate = _rate_text(record, start, self.warmup, compact=not self.lines)
-        if self.lines:  # the run's wall-clock: compile included, counted across resumes
-            print(f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, {rate}, "
-                  f"eval {_evaluation_text(record)}, {record['wall_time_s']:.0f} s"
-                  f"{_slow_evaluation(record)}", flush=True)  # fmt: skip
-        elif self.enabled:
-            steps = f"{_count(record['env_steps'])}/{_count(self.total)}"
-            self._progress.update(self._task, completed=record["env_steps"], steps=steps,
-                                  rate=rate,
-                                  ret=_evaluation_text(record, short=True))  # fmt: skip
+        if not self.enabled:
+            return
+        # (the run's wall-clock: compile included, counted across resumes)
+        line = (f"{self.title}: {record['env_steps']:,}/{self.total:,} env steps, "
+                f"{_rate_text(record, start, self.warmup)}, eval {_evaluation_text(record)}, "
+                f"{record['wall_time_s']:.0f} s{_slow_evaluation(record)}")  # fmt: skip
+        if self.lines:
+            print(line, flush=True)
+            return
+        self._progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
+        steps = f"{_count(record['env_steps'])}/{_count(self.total)}"
+        self._progress.update(self._task, completed=record["env_steps"], steps=steps,
+                              rate=_rate_text(record, start, self.warmup, compact=True),
+                              ret=_evaluation_text(record, short=True))  # fmt: skip
 
     def close(self) -> None:
         if self.enabled and not self.lines:

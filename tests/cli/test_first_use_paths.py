@@ -295,6 +295,28 @@ def test_the_progress_bar_fits_80_columns():
         assert part in line, line
 
 
+def test_a_terminal_keeps_the_logs_line_for_each_evaluation_above_the_bar(capsys):
+    """On a terminal each evaluation leaves the line a log gets (the bar alone kept only the
+    last return), whole, however wide."""
+    cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=16, eval_every=4000, total_steps=12000,
+                      warmup_steps=2000)  # fmt: skip
+    evaluations = ((4000, -1200.25, 10.0), (8000, -150.5, 14.0))
+    records = [{"env_steps": steps, "eval_return_mean": value, "wall_time_s": seconds,
+                "env_steps_per_s": 1234.5} for steps, value, seconds in evaluations]  # fmt: skip
+    log = _Progress(cfg, 0, enabled=True, console=Console(file=io.StringIO()))
+    for record in records:
+        log.update(record)
+    logged = [line for line in capsys.readouterr().out.splitlines() if line]
+    assert len(logged) == 2 and "eval -150.5" in logged[1], logged
+    console = Console(width=40, file=io.StringIO(), force_terminal=True, color_system=None)
+    terminal = _Progress(cfg, 0, enabled=True, console=console)
+    for record in records:
+        terminal.update(record)
+    terminal.close()
+    shown = console.file.getvalue()
+    assert all(line in shown for line in logged), (logged, shown)
+
+
 def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     # 64 iterations of 4 envs a chunk: the early evaluation after 8 (32 steps), all warm-up
     flags = ["--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--eval-every", "256",
