@@ -158,11 +158,11 @@ def compiled(source: Source, stop: StopToken | None = None,
     ``check(abstract_state)``, if given, runs once the state's shapes are known and before any
     compile is waited for (before tracing; for stored programs, while they compile): e.g. that
     the state fits in memory and its checkpoints on the disk. ``traced()``, if given, runs
-    once (also where stored programs are given up and traced instead) as soon as every program
-    is traced and handed to a thread to compile (for stored programs, after ``check``), before
-    any compile is waited for: the caller's own work that would otherwise delay the tracing
-    (e.g. lowering a checkpoint's program); where it raises, the compiles already handed over
-    run to their end unused. Without a directory (or when
+    once, as soon as every program is traced and handed to a thread to compile (for stored
+    programs, after ``check``, and not again where they are given up and traced instead),
+    before any compile is waited for: the caller's own work that would otherwise delay the
+    tracing (e.g. lowering a checkpoint's program); where it raises, the compiles already
+    handed over run to their end unused. Without a directory (or when
     exporting fails) the programs are compiled as jitted functions (:func:`compile_ahead`),
     the same programs, stored nowhere. Stored programs that fail to compile are given up and
     the programs traced instead. Once ``stop`` is set, nothing more is traced or waited for
