@@ -230,6 +230,7 @@ def _attribute(module: Any, path: str, spec: str) -> Any:
             callables = _public_callables(value)
             hint = did_you_mean(part, callables)
             if not hint:
+                callables = _defined_here(value, callables)
                 listed = ", ".join(callables[:10]) + (", ..." if len(callables) > 10 else "")
                 hint = f"; its public callables: {listed}" if callables else ""
             raise CustomEnvironmentError(f"{spec}: {where} has no {part!r}{hint}")
@@ -239,18 +240,24 @@ def _attribute(module: Any, path: str, spec: str) -> Any:
 
 def _public_callables(value: Any) -> list[str]:
     """The callables a factory could be among ``value``'s public names (its ``__all__`` where
-    it has one, else its names not starting with ``_``), sorted; of a module without
-    ``__all__``, those it defines itself where it defines any (not what it imported)."""
+    it has one, else its names not starting with ``_``), sorted."""
     names = getattr(value, "__all__", None)
-    if isinstance(names, list | tuple):
-        return sorted(name for name in names if _names_a_callable(value, name))
-    found = sorted(name for name in dir(value)
-                   if not name.startswith("_") and _names_a_callable(value, name))  # fmt: skip
-    if not isinstance(value, types.ModuleType):
-        return found
-    own = [name for name in found
-           if getattr(getattr(value, name), "__module__", None) == value.__name__]  # fmt: skip
-    return own or found
+    if not isinstance(names, list | tuple):
+        names = [name for name in dir(value) if not name.startswith("_")]
+    return sorted(name for name in names if _names_a_callable(value, name))
+
+
+def _defined_here(value: Any, callables: list[str]) -> list[str]:
+    """Of ``callables`` (names in ``value``), those a module without ``__all__`` defines itself
+    or in its own submodules (not what it imported from elsewhere), where there are any; else
+    all of them."""
+    if not isinstance(value, types.ModuleType) or hasattr(value, "__all__"):
+        return callables
+    def own(callable_name: str) -> bool:
+        home = getattr(getattr(value, callable_name), "__module__", None) or ""
+        return home == value.__name__ or home.startswith(value.__name__ + ".")
+
+    return [c for c in callables if own(c)] or callables
 
 
 def _names_a_callable(value: Any, name: str) -> bool:
@@ -563,21 +570,38 @@ def _one_line(err: BaseException) -> str:
     return text + _where_in_own_code(err)
 
 
-#: Folders whose frames are not the caller's own code: JAX's, NumPy's, td3-jax's and Python's.
+#: Folders whose frames are never the caller's own code: JAX's, NumPy's, td3-jax's and
+#: Python's library (wherever they are installed).
 _LIBRARY_FOLDERS = tuple(
-    str(Path(folder).resolve()) + os.sep
+    Path(folder).resolve()
     for folder in (Path(jax.__file__).parent, Path(np.__file__).parent,
                    Path(__file__).parent.parent, sysconfig.get_paths()["stdlib"])
 )  # fmt: skip
 
 
 def _where_in_own_code(err: BaseException) -> str:
-    """`` (at FILE:LINE)``: the deepest frame of ``err``'s traceback outside JAX, NumPy, td3-jax
-    and Python's own library (a line of the environment's code), or ``""``."""
+    """`` (at FILE:LINE)``: the deepest frame of ``err``'s traceback in the caller's own code,
+    or ``""`` where none is (:func:`_is_own_file`)."""
     frames = [frame for frame in traceback.extract_tb(err.__traceback__)
-              if not frame.filename.startswith("<")
-              and not str(Path(frame.filename).resolve()).startswith(_LIBRARY_FOLDERS)]  # fmt: skip
+              if _is_own_file(frame.filename)]  # fmt: skip
     return f" (at {frames[-1].filename}:{frames[-1].lineno})" if frames else ""
+
+
+def _is_own_file(filename: str) -> bool:
+    """Whether ``filename`` is a user's own code: under ``PYTHONPATH``'s folders, or under
+    :func:`_own_folders` and outside Python's installation and environment (where other
+    libraries are installed); never in :data:`_LIBRARY_FOLDERS`."""
+    if filename.startswith("<"):
+        return False
+    path = Path(filename).resolve()
+    inside = lambda folders: any(path.is_relative_to(folder) for folder in folders)
+    if inside(_LIBRARY_FOLDERS):
+        return False
+    given = [Path(entry).resolve() for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+             if entry]  # fmt: skip
+    installed = [Path(root).resolve() for root in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
+    own = [Path(folder).resolve() for folder in _own_folders()]
+    return inside(given) or (inside(own) and not inside(installed))
 
 
 __all__ = [

@@ -136,8 +136,7 @@ def train(
     refused), until ``cfg.total_steps`` rounded up to a whole iteration
     (:attr:`TrainConfig.run_steps`). Returns this call's records (also in metrics.jsonl; none
     for a resumed run already complete, which warns: :class:`RunCompleteWarning`). A full disk
-    stops it with ``OutputWriteError``; a ``cfg`` not a :class:`TrainConfig`, or an ``out_dir``
-    not a path, with ``TypeError``.
+    stops it with ``OutputWriteError``; a ``cfg`` or ``out_dir`` of a wrong type, ``TypeError``.
 
     Args:
       resume: continue from the newest good checkpoint in ``out_dir``; ``cfg`` may differ from
@@ -153,18 +152,15 @@ def train(
       preset: the preset ``cfg`` came from, a label for config.json that changes no setting
         (those: ``td3_jax.config.presets.preset(NAME)``); no preset's name: a ConfigError.
       program_dir: the traced programs' store (:mod:`td3_jax.runner.program_cache`).
-      on_prepared: called once settings and environment are checked (nothing compiled yet);
-        a caller that gives it says the run's settings itself (the command), so the run does
-        not print how ``eval_every`` rounds to whole iterations.
+      on_prepared: called once settings and environment are checked (nothing compiled yet); its
+        caller says how ``eval_every`` rounds (the command), the run then does not.
       on_started: called with the env steps the run starts from (0 when fresh).
       stop: a :class:`~td3_jax.common.runtime.StopToken` that stops the run as a Ctrl-C would.
       env: an environment object instead of ``cfg.env`` (recorded as ``object/<name>``).
     """
     out_dir, writer = _checked(cfg, out_dir, time_budget_s, preset), jax.process_index() == 0
     stop, call = stop if stop is not None else StopToken(), next(_TRAIN_CALLS)
-    said_by_caller = on_prepared is not None  # (the command says the settings itself)
-    cfg = _eval_every_within_run(cfg, out_dir, resume, say=progress and writer
-                                 and not said_by_caller)  # fmt: skip
+    cfg = _eval_every_within_run(cfg, out_dir, resume, progress and writer and on_prepared is None)
     prepared, run_lock = _prepared_and_opened(cfg, out_dir, resume, sweep, devices, writer,
                                               program_dir, env, stop, call)  # fmt: skip
     cfg, population, changes, source = prepared
@@ -931,11 +927,11 @@ class _Progress:
         if self.lines:
             print(line, flush=True)
             return
-        self._progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
         steps = f"{_count(record['env_steps'])}/{_count(self.total)}"
         self._progress.update(self._task, completed=record["env_steps"], steps=steps,
                               rate=_rate_text(record, start, self.warmup, compact=True),
                               ret=_evaluation_text(record, short=True))  # fmt: skip
+        self._progress.console.print(line, markup=False, highlight=False, soft_wrap=True)
 
     def close(self) -> None:
         if self.enabled and not self.lines:

@@ -761,11 +761,26 @@ def _line_of(function, text: str) -> int:
     return first + next(i for i, line in enumerate(lines) if text in line)
 
 
+def _einsum_step(x, action):
+    x = jnp.einsum("i,ij->j", x, jnp.ones((3, 2)))  # (3 rows for 2 entries: raised in opt_einsum)
+    return x, x, 0.0, False
+
+
+def _parsing_step(x, action):
+    return _parsed(x), x, 0.0, False
+
+
+def _parsed(x):
+    return x + json.loads("{not json")  # (raised in Python's json: this line is the own one)
+
+
 @pytest.mark.parametrize(
     ("change", "function", "text"),
     [
         (dict(action_size=3), drift, "x = x + 0.1 * action"),  # (a shape error in JAX)
         (dict(step=_branching_step), _branching_step, "if x[0] > 0"),  # (not jittable)
+        (dict(step=_einsum_step), _einsum_step, "jnp.einsum"),  # (another library's frames)
+        (dict(step=_parsing_step), _parsed, "json.loads"),  # (the deepest own frame)
     ],
 )
 def test_a_failure_in_the_environments_own_code_names_its_line(change, function, text):
@@ -792,6 +807,21 @@ from td3_jax import TrainConfig
 def make_arm():
     return None
 """
+
+
+def test_a_package_that_re_exports_its_factories_still_gets_the_closest(tmp_path, monkeypatch):
+    (tmp_path / "armpkg").mkdir()
+    (tmp_path / "armpkg" / "arms.py").write_text("def make_arm():\n    return None\n")
+    (tmp_path / "armpkg" / "__init__.py").write_text(
+        "from json import dumps\nfrom .arms import make_arm\n\ndef register():\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for spec, said in (("armpkg:make_arn", "did you mean 'make_arm'?"),
+                       ("armpkg:zzz", "its public callables: make_arm, register")):  # fmt: skip
+        with pytest.raises(errors.CustomEnvironmentError) as caught:
+            envs.make(spec)
+        assert str(caught.value).endswith(said), caught.value
+    for name in [n for n in sys.modules if n.partition(".")[0] == "armpkg"]:
+        del sys.modules[name]
 
 
 def test_a_mistyped_factory_lists_what_its_module_defines_not_what_it_imported(
