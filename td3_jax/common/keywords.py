@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 
 from td3_jax.common.other_names import names_meant
 
-__all__ = ["keywords_named", "unknown_keyword"]
+__all__ = ["fields_meant", "keywords_named", "unknown_keyword"]
 
 Cls = TypeVar("Cls", bound=type)
 
@@ -37,7 +37,13 @@ def keywords_named(cls: Cls) -> Cls:
 def unknown_keyword(owner: str, name: str, fields: Iterable[str]) -> str:
     """``owner() got an unexpected keyword argument 'gamma'; did you mean discount?`` (the
     guess only where one of ``fields`` is close)."""
-    dashed = {field.replace("_", "-"): field for field in fields}
-    meant = [dashed[n] for n in names_meant(name.replace("_", "-"), dashed)]
+    meant = fields_meant(name, fields)
     guess = f"; did you mean {' or '.join(meant[:4])}?" if meant else ""
     return f"{owner}() got an unexpected keyword argument {name!r}{guess}"
+
+
+def fields_meant(name: str, fields: Iterable[str]) -> list[str]:
+    """The ``fields`` (Python names) that ``name`` most likely means, best first
+    (:func:`~td3_jax.common.other_names.names_meant` on their dashed spellings)."""
+    dashed = {field.replace("_", "-"): field for field in fields}
+    return [dashed[n] for n in names_meant(name.replace("_", "-"), dashed)]

@@ -35,7 +35,7 @@ import numpy as np
 
 from td3_jax import envs
 from td3_jax.common.errors import ConfigError, outside_stacklevel
-from td3_jax.common.other_names import names_meant
+from td3_jax.common.keywords import fields_meant
 from td3_jax.config.schema import (
     SWEEPABLE,
     SWITCHED_ON_BY_THEIR_FLAG,
@@ -411,9 +411,7 @@ def members(cfg: TrainConfig, sweep: dict[str, Sequence[float]] | None = None) -
     sweep = {k: v for k, v in _sweep_lists(sweep).items() if v}
     unknown = sorted(set(sweep) - set(SWEEPABLE))
     if unknown:
-        dashed = {name.replace("_", "-"): name for name in SWEEPABLE}
-        guesses = [(name, [dashed[n] for n in names_meant(name.replace("_", "-"), dashed)])
-                   for name in unknown]  # fmt: skip
+        guesses = [(name, fields_meant(name, SWEEPABLE)) for name in unknown]
         said = [f"{name}: did you mean {' or '.join(meant[:4])}? " if len(unknown) > 1
                 else f"did you mean {' or '.join(meant[:4])}? " for name, meant in guesses if meant]
         raise ConfigError(f"cannot sweep {unknown}; {''.join(said)}sweepable: "

@@ -281,11 +281,16 @@ def _sibling_modules(name: str) -> list[str]:
     return [f"{parent}.{found.name}" for found in pkgutil.iter_modules(list(where))]
 
 
+def _installation() -> list[Path]:
+    """Python's installation and environment (its prefixes), where other libraries live."""
+    return [Path(root) for root in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
+
+
 def _own_folders() -> list[str]:
     """Where a user's own modules are imported from: the current directory, ``PYTHONPATH``'s
     folders (wherever they are: a container's ``/usr/src/app`` lies under a system Python's
     prefix) and the Python path's other folders outside Python's installation and environment."""
-    installed = [Path(root) for root in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
+    installed = _installation()
     given = os.environ.get("PYTHONPATH", "").split(os.pathsep)
     added = [entry for entry in sys.path if entry and Path(entry).is_dir()
              and not any(Path(entry).is_relative_to(root) for root in installed)]  # fmt: skip
@@ -582,26 +587,26 @@ _LIBRARY_FOLDERS = tuple(
 def _where_in_own_code(err: BaseException) -> str:
     """`` (at FILE:LINE)``: the deepest frame of ``err``'s traceback in the caller's own code,
     or ``""`` where none is (:func:`_is_own_file`)."""
+    own = [Path(folder).resolve() for folder in _own_folders()]
+    given = [Path(entry).resolve() for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+             if entry]  # fmt: skip
+    installed = [root.resolve() for root in _installation()]
     frames = [frame for frame in traceback.extract_tb(err.__traceback__)
-              if _is_own_file(frame.filename)]  # fmt: skip
+              if _is_own_file(frame.filename, own, given, installed)]  # fmt: skip
     return f" (at {frames[-1].filename}:{frames[-1].lineno})" if frames else ""
 
 
-def _is_own_file(filename: str) -> bool:
-    """Whether ``filename`` is a user's own code: under ``PYTHONPATH``'s folders, or under
-    :func:`_own_folders` and outside Python's installation and environment (where other
-    libraries are installed); never in :data:`_LIBRARY_FOLDERS`."""
+def _is_own_file(filename: str, own: list[Path], given: list[Path],
+                 installed: list[Path]) -> bool:  # fmt: skip
+    """Whether ``filename`` is a user's own code: under ``PYTHONPATH``'s folders (``given``),
+    or under :func:`_own_folders` (``own``) and outside Python's installation and environment
+    (``installed``: where other libraries are); never in :data:`_LIBRARY_FOLDERS`."""
     if filename.startswith("<"):
         return False
     path = Path(filename).resolve()
     inside = lambda folders: any(path.is_relative_to(folder) for folder in folders)
-    if inside(_LIBRARY_FOLDERS):
-        return False
-    given = [Path(entry).resolve() for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep)
-             if entry]  # fmt: skip
-    installed = [Path(root).resolve() for root in {sys.prefix, sys.base_prefix, sys.exec_prefix}]
-    own = [Path(folder).resolve() for folder in _own_folders()]
-    return inside(given) or (inside(own) and not inside(installed))
+    return not inside(_LIBRARY_FOLDERS) and (
+        inside(given) or (inside(own) and not inside(installed)))
 
 
 __all__ = [

@@ -121,8 +121,7 @@ def read_curve(run_dir: Path) -> Curve | None:
         count = len(records[-1]["per_member"])
         members = [[_number(r["per_member"][i]["eval_return_mean"]) for r in records]
                    for i in range(count)]  # fmt: skip
-        alive = sum(math.isfinite(member[-1]) for member in members)  # (the band's, at the end)
-        band = ("mean over members, 95% bootstrap CI" if alive >= stats.CI_NARROWER_FROM
+        band = ("mean over members, 95% bootstrap CI" if _interval_name(members) == "95% CI"
                 else "mean over members, their range")  # fmt: skip
         swept = tuple(_swept_text(m) for m in records[-1]["per_member"])
     else:
@@ -283,6 +282,11 @@ def no_return_warning(curve: Curve, run_dir: Path) -> str | None:
 def _band_name(curve: Curve) -> str:
     """What a run's band is, briefly, for a comparison's legend."""
     if curve.members:
-        alive = sum(math.isfinite(member[-1]) for member in curve.members)  # (not diverged)
-        return f"{len(curve.members)} members, {stats.interval_name(alive)}"
+        return f"{len(curve.members)} members, {_interval_name(curve.members)}"
     return "± std over episodes"
+
+
+def _interval_name(members: list[list[float]]) -> str:
+    """What the band over ``members`` (each one's returns) is at the end: over those that did
+    not diverge (:func:`~td3_jax.core.stats.interval_name`)."""
+    return stats.interval_name(sum(math.isfinite(member[-1]) for member in members))

@@ -151,30 +151,29 @@ def abstract_state(source: Source) -> Any:
 
 def compiled(source: Source, stop: StopToken | None = None,
              check: Callable[[Any], None] | None = None,
-             traced: Callable[[], None] | None = None) -> Programs:  # fmt: skip
+             traced: Callable[[Any], None] | None = None) -> Programs:  # fmt: skip
     """The run's :class:`Programs`, compiled side by side: stored ones read back, otherwise
     each is traced, handed to a thread to compile while the next is traced, then stored.
 
     ``check(abstract_state)``, if given, runs once the state's shapes are known and before any
     compile is waited for (before tracing; for stored programs, while they compile): e.g. that
-    the state fits in memory and its checkpoints on the disk. ``traced()``, if given, runs
-    once, as soon as every program is traced and handed to a thread to compile (for stored
-    programs, after ``check``, and not again where they are given up and traced instead),
-    before any compile is waited for: the caller's own work that would otherwise delay the
-    tracing (e.g. lowering a checkpoint's program); where it raises, the compiles already
-    handed over run to their end unused. Without a directory (or when
-    exporting fails) the programs are compiled as jitted functions (:func:`compile_ahead`),
-    the same programs, stored nowhere. Stored programs that fail to compile are given up and
-    the programs traced instead. Once ``stop`` is set, nothing more is traced or waited for
-    (KeyboardInterrupt).
+    the state fits in memory and its checkpoints on the disk. ``traced(abstract_state)``, if
+    given, runs once, as soon as every program is traced and handed to a thread to compile (for
+    stored programs, after ``check``, and not again where they are given up and traced
+    instead), before any compile is waited for: the caller's own work that would otherwise
+    delay the tracing (e.g. lowering a checkpoint's program); where it raises, the compiles
+    already handed over run to their end unused. Without a directory (or when exporting fails)
+    the programs are compiled as jitted functions (:func:`compile_ahead`), the same programs,
+    stored nowhere. Stored programs that fail to compile are given up and the programs traced
+    instead. Once ``stop`` is set, nothing more is traced or waited for (KeyboardInterrupt).
     """
     stop = stop if stop is not None else StopToken()
     stop.raise_if_set()  # a Ctrl-C Python discarded while tracing
-    traced = _at_most_once(traced)
     futures = _compile_stored(source)  # compiling while the state's structure is read back
     shapes = abstract_state(source)
     if check is not None:
         check(shapes)
+    traced = _at_most_once(None if traced is None else functools.partial(traced, shapes))
     if source.stored is not None and traced is not None:
         traced()
     if source.stored is not None:

@@ -408,28 +408,18 @@ def _compiled_and_state(run: _Run, source: Source, state: Any, say: bool = False
             print(f"using the traced programs stored in {source.directory / source.key}")
         print(f"compiling the training program{cached}...", flush=True)
     with filtered_stderr():
-        shapes: list[Any] = []  # (the state's, once known)
-        check = partial(_state_shapes_known, run, source.mesh, shapes)
-        compiled = programs.compiled(source, run.stop, check=check,
-                                     traced=partial(_prepare_save, run, source.mesh, shapes))
+        check, traced = (partial(step, run, source.mesh) for step in (_check_room, _prepare_save))
+        compiled = programs.compiled(source, run.stop, check=check, traced=traced)
     _wait_for_save_warmup(run)  # (before anything runs on the device)
     warp_kernels.wait_ready(run.stop)  # (before the first physics step)
     _agree_to_start(run)  # (a stop while the programs loaded from the cache too)
     return compiled, compiled.init() if state is None else state
 
 
-def _state_shapes_known(run: _Run, mesh: Any, shapes: list[Any], state: Any) -> None:
-    """Once the state's shapes are known, before the programs compile: the room checks
-    (:func:`_check_room`); the shapes are kept in ``shapes`` for :func:`_prepare_save`."""
-    _check_room(run, mesh, state)
-    shapes.append(state)
-
-
-def _prepare_save(run: _Run, mesh: Any, shapes: list[Any]) -> None:
-    """Once the programs are traced: the first checkpoint's checksum program, for the state
-    of ``shapes`` (:func:`_state_shapes_known`), lowered here and compiled on a thread beside
-    them (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
-    state = shapes[-1]
+def _prepare_save(run: _Run, mesh: Any, state: Any) -> None:
+    """Once the programs are traced: the first checkpoint's checksum program, for the state of
+    these shapes, lowered here and compiled on a thread beside them
+    (:meth:`~td3_jax.runner.checkpoint.Checkpointer.prepare`)."""
     specs = programs.with_sharding(state, state_shardings(state, mesh))
     run.save_warmup = run.checkpointer.prepare(specs)
 
@@ -454,7 +444,8 @@ def _wait_for_save_warmup(run: _Run) -> None:
 def _check_room(run: _Run, mesh: Any, state: Any) -> None:
     """The state (its shapes) and the programs' working memory fit in the memory a device has
     available now (a restored state is there already: only the working memory is checked) and
-    its checkpoints on the disk."""
+    its checkpoints on the disk: checked once the shapes are known, before the programs
+    compile."""
     working = working_bytes(state, run.cfg, mesh.size)
     check_memory(state, mesh, working, resident=run.start_chunk > 0)
     run.checkpointer.check_space(state)

@@ -121,9 +121,9 @@ def test_a_run_prepares_its_checksums_once_its_programs_are_traced(tmp_path, mon
             check(shapes)
             events.append("checked")
 
-        def traced_spied():
+        def traced_spied(shapes):
             events.append("traced")
-            traced()
+            traced(shapes)
 
         return real_compiled(source, stop, check=check_spied, traced=traced_spied)
 

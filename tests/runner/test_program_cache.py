@@ -169,7 +169,7 @@ def test_the_programs_are_one_type_whatever_their_origin(tmp_path):
             order.append(("check", origin))
             checked.setdefault(origin, []).append(shapes)
 
-        traced = lambda: order.append(("traced", origin))
+        traced = lambda shapes: order.append(("traced", origin))
         return source, compiled(source, check=check, traced=traced)
 
     (traced_source, traced), (stored_source, stored) = map(compile_from, ("traced", "stored"))
@@ -298,7 +298,7 @@ def test_traced_runs_once_without_a_store():
     """Without a store (the programs jitted and compiled as usual) ``traced`` runs once too,
     after the room check."""
     source, order = find(TINY, build.members(TINY), make_mesh(None), None), []
-    compiled(source, check=lambda _: order.append("check"), traced=lambda: order.append("traced"))
+    compiled(source, check=lambda _: order.append("check"), traced=lambda _: order.append("traced"))
     assert source.stored is None and order == ["check", "traced"]
 
 
@@ -317,7 +317,7 @@ def test_traced_runs_once_every_compile_is_handed_over_and_before_any_is_waited_
     for origin in ("traced", "stored") if store else ("plain",):
         events.clear()
         source = find(TINY, population, mesh, tmp_path / "programs" if store else None)
-        compiled(source, traced=lambda: events.append("traced"))
+        compiled(source, traced=lambda _: events.append("traced"))
         at = events.index("traced")
         assert events.count("traced") == 1 and events.count("submit") >= 3, (origin, events)
         assert "wait" not in events[:at] and "submit" not in events[at:], (origin, events)
@@ -335,5 +335,5 @@ def test_traced_runs_once_where_stored_programs_are_given_up(tmp_path, monkeypat
     monkeypatch.setattr(programs, "_stored_programs", failing)
     source, calls = find(TINY, population, mesh, tmp_path / "programs"), []
     assert source.stored is not None
-    compiled(source, traced=lambda: calls.append(source.program is not None))
+    compiled(source, traced=lambda _: calls.append(source.program is not None))
     assert calls == [False]  # (once, where the stored programs were still held)
