@@ -64,8 +64,10 @@ class TrainCommand(TrainConfig):
 
     hidden_sizes: Widths = (256, 256)  # (None, for a library caller: the algorithm's own)
     """Hidden widths of actor and critics (the TD3 paper used 400 300)."""
-    out: Path = Path("runs/latest")
-    """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/."""
+    out: Path | None = None
+    """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/.
+    Default: a new folder runs/NAME-DATE-TIME, NAME the --preset or --env (a --resume names
+    its run's)."""
     resume: bool = False
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
     --total-steps (to extend or shorten the run; not with --lr-schedule cosine), --matmuls,
@@ -79,7 +81,9 @@ class TrainCommand(TrainConfig):
     where one exists (said in one line), else settings for the device (a GPU gets thousands of
     environments)."""
     quiet: bool = False
-    """No progress display (one line per evaluation; on a terminal, a live bar below)."""
+    """No progress display: none of the lines that each evaluation prints (nor, on a terminal,
+    the live bar below them); the notes on the settings, the warnings and the last line still
+    print."""
     time_budget_s: float | None = None
     """Stop after the first chunk that ends past this wall-clock budget (compile included),
     counted over the whole run: a resume's budget includes the time of the calls before it.

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from td3_jax.cli.argv import out_chosen_note, with_run_directory
 from td3_jax.common import runtime
 from td3_jax.common.errors import ConfigError
 
@@ -88,6 +89,9 @@ def main(subcommand: str, args: list[str]) -> None:
     one's message is shown once. Exits with the processes' status."""
     count = asked_count(args)
     assert count is not None, f"{FLAG} not in {args}"
+    args, chosen_out = with_run_directory(args)  # (one folder for all of them)
+    if chosen_out is not None:
+        print(out_chosen_note(chosen_out), flush=True)
     raise SystemExit(run_local_processes(subcommand, args, count))
 
 

@@ -9,6 +9,7 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
+from td3_jax.cli.argv import out_chosen_note
 from td3_jax.cli.messages import warn
 from td3_jax.config.presets import PRESETS, preset
 from td3_jax.config.schema import (
@@ -235,15 +236,18 @@ def no_learning_warning(cfg: TrainConfig) -> str | None:
 
 def when_prepared(cfg: TrainConfig, preset_name: str | None, source: str,
                   asked_eval_every: int | None = None, given: frozenset[str] = frozenset(),
-                  resumed: bool = False) -> None:  # fmt: skip
+                  resumed: bool = False, chosen_out: Path | None = None) -> None:  # fmt: skip
     """Once the run's settings, directory and environment are good (a run they stop says
-    nothing else): which settings it got, and warnings (a GPU-sized run on a CPU, an
-    evaluation that dwarfs the training, no updates). A resume says how its steps round only
-    where ``--total-steps`` was typed (its fresh start said so already)."""
+    nothing else): where the run goes when no ``--out`` named it (``chosen_out``), which
+    settings it got, and warnings (a GPU-sized run on a CPU, an evaluation that dwarfs the
+    training, no updates). A resume says how its steps round only where ``--total-steps`` was
+    typed (its fresh start said so already)."""
     import jax  # lazy: JAX, only for a run
 
     if jax.process_index() != 0:
         return
+    if chosen_out is not None:
+        print(out_chosen_note(chosen_out), flush=True)
     rounding = not resumed or "total_steps" in given
     _announce(cfg, preset_name, source, asked_eval_every, rounding)
     warnings = (unnamed_env_warning(cfg, preset_name, source, given),

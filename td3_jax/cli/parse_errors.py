@@ -33,8 +33,17 @@ def parse_error(text: str, command_type: type, args: list[str], prog: str) -> st
     elif title == "Required options":  # "Missing from PROG:", each flag 4 deeper, its help 8
         flag = " " * (len(sections[0][0]) - len(sections[0][0].lstrip()) + 4) + "-"
         missing = [line.split()[0] for line in sections[0] if line.startswith(flag)]
-        said = missing and f"{prog} needs {', '.join(missing)} (see {prog} --help)"
+        said = missing and (f"{prog} needs {', '.join(missing)} ({_word_meant(args, missing)}"
+                            f"see {prog} --help)")  # fmt: skip
     return said or first or title or f"could not parse {' '.join(args)} (see {prog} --help)"
+
+
+def _word_meant(args: list[str], missing: list[str]) -> str:
+    """Where the one missing flag's value was given as a word of its own, before any flag
+    (``td3-jax eval runs/x``): ``"as a flag: --run runs/x; "``, else nothing."""
+    if len(missing) != 1 or not args or args[0].startswith("-"):
+        return ""
+    return f"as a flag: {missing[0]} {args[0]}; "
 
 
 def _tyro_box(text: str) -> tuple[str, list[list[str]]]:

@@ -9,7 +9,6 @@ import dataclasses
 from pathlib import Path
 
 from td3_jax.cli.argv import flag_value, given_fields
-from td3_jax.cli.commands import TrainCommand
 from td3_jax.config.presets import device_defaults, env_preset, preset
 from td3_jax.config.schema import ConfigError, TrainConfig
 
@@ -24,7 +23,7 @@ def base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     accelerator's once JAX is up)."""
     from td3_jax.runner.rundir import CONFIG_FILE, load_config  # lazy: imports JAX
 
-    out = flag_value(args, "--out") or str(TrainCommand.out)
+    out = flag_value(args, "--out") or ""  # (given with --resume: argv.with_run_directory)
     name = flag_value(args, "--preset")
     if "--resume" in args:
         if name:

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from td3_jax.cli import notes, settings
-from td3_jax.cli.argv import given_fields
+from td3_jax.cli.argv import given_fields, with_run_directory
 from td3_jax.cli.commands import SweepCommand, TrainCommand
 from td3_jax.cli.interrupts import leave_processes, process_stop, train_stoppably
 from td3_jax.cli.local_processes import joins_others
@@ -46,6 +46,7 @@ def _train_command(
     args: list[str], sweeping: bool, stop: runtime.StopToken, received: list[int]
 ) -> None:
     """:func:`train_main` with the stop token and signals of its process."""
+    args, chosen_out = with_run_directory(args)  # (no --out: a new folder under runs/)
     command, cfg, preset_name, source = parse_train(args, sweeping)
     sweep = sweep_values(command, args) if sweeping else None
     from td3_jax import envs  # lazy: imports JAX
@@ -70,7 +71,7 @@ def _train_command(
                 check_total_steps_reach(command.out, cfg)
             validate(cfg)  # (said once the directory and the environment are good too)
     prepared = functools.partial(notes.when_prepared, cfg, preset_name, source, asked_eval_every,
-                                 frozenset(typed), command.resume)  # fmt: skip
+                                 frozenset(typed), command.resume, chosen_out)  # fmt: skip
     started, started_at = time.perf_counter(), []
     with notes.preset_noted(cfg, preset_name, given):
         records = train_stoppably(cfg, command, stop, received, devices=devices,

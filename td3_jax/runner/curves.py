@@ -24,6 +24,7 @@ __all__ = [
     "plot_curve",
     "read_curve",
     "run_labels",
+    "setting_curves",
     "setting_means",
 ]
 
@@ -254,10 +255,31 @@ def run_labels(run_dirs: Sequence[Path]) -> list[str]:
 def plot_comparison(curves: Sequence[Curve], labels: Sequence[str], path: Path) -> Path:
     """Writes one figure of several runs' curves to ``path``, each run's mean return and its
     band in a colour of its own, named by ``labels`` (the bands are those of
-    :attr:`Curve.band`: over episodes for a run of one member, over members for several)."""
+    :attr:`Curve.band`: over episodes for a run of one member, over members for several). A
+    sweep is a curve per setting (:func:`setting_curves`), never one mean over settings."""
     envs = list(dict.fromkeys(curve.env for curve in curves))
-    named = [f"{label} ({_band_name(curve)})" for curve, label in zip(curves, labels, strict=True)]
-    return _save(list(zip(curves, named, strict=True)), Path(path), " / ".join(envs))
+    named = []
+    for curve, label in zip(curves, labels, strict=True):
+        parts = setting_curves(curve) or [("", curve)]
+        named += [(part, " ".join(filter(None, (label, setting))) + f" ({_band_name(part)})")
+                  for setting, part in parts]  # fmt: skip
+    return _save(named, Path(path), " / ".join(envs))
+
+
+def setting_curves(curve: Curve) -> list[tuple[str, Curve]]:
+    """A sweep as a curve per setting, ``(swept values, curve)`` in the order the settings
+    first appear: its members, their mean (:func:`setting_means`) and, at each point, the
+    95% bootstrap CI of that mean over the members that did not diverge (their range where
+    3 or fewer: :func:`~td3_jax.core.stats.interval_name`); ``[]`` for a run that is no
+    sweep."""
+    parts = []
+    for setting, mean in setting_means(curve):
+        rows = [m for m, s in zip(curve.members, curve.swept, strict=True) if s == setting]
+        points = [[v for v in column if math.isfinite(v)] for column in zip(*rows, strict=True)]
+        lower, upper = zip(*(stats.bootstrap_ci(values) for values in points), strict=True)
+        parts.append((setting, curve._replace(mean=mean, lower=list(lower), upper=list(upper),
+                                              members=rows, swept=(setting,) * len(rows))))
+    return parts
 
 
 def mixed_envs_warning(curves: Sequence[Curve]) -> str | None:

@@ -442,6 +442,8 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "unrecognized option --episode (did you mean --episodes?)",
         ("eval", "--run", out, "extra"): "unexpected argument extra (see td3-jax eval --help)",
         ("eval",): "td3-jax eval needs --run (see td3-jax eval --help)",
+        ("eval", "runs/x"):  # (a run given as a word, as other tools take it)
+            "td3-jax eval needs --run (as a flag: --run runs/x; see td3-jax eval --help)",
         ("train", "--num-envs", "many", "--out", out):
             "--num-envs takes a whole number, got 'many'",
         ("train", "--num-envs", "4", "--total-steps=800", "--num-envs", "x", "--out", out):

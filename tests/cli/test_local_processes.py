@@ -566,9 +566,12 @@ def test_the_command_starts_its_processes_before_importing_jax():
     out = subprocess.run([sys.executable, "-c", _LAUNCH_ALONE, "sweep", "--preset", "t1",
                           "--local-processes", "2"], capture_output=True, text=True,
                          timeout=120)  # fmt: skip
-    assert out.stdout.splitlines() == [
-        "launched sweep ['--preset', 't1', '--local-processes', '2'] 2", "exit 0",
-        "jax imported: False"], out.stderr  # fmt: skip
+    note, *rest = out.stdout.splitlines()
+    assert note.startswith("no --out given: the run goes to runs/t1-"), out.stderr
+    chosen = note.rsplit(" ", 1)[1]  # (one folder for all the processes, chosen here)
+    assert rest == [
+        f"launched sweep ['--preset', 't1', '--local-processes', '2', '--out', '{chosen}'] 2",
+        "exit 0", "jax imported: False"], out.stderr  # fmt: skip
 
 
 def test_its_help_is_the_subcommands_and_a_bad_count_one_line(capsys):

@@ -115,21 +115,26 @@ def test_a_sweeps_members_are_coloured_and_named_by_their_swept_values(tmp_path)
     assert [line[1:] for line in ax.lines] == [(None, None)] * 4
 
 
+def _two_rates_two_seeds() -> list[dict]:
+    """The records of a sweep of two rates x two seeds over two points, the second seed of
+    the first rate diverged at the second point."""
+    swept = [{"actor_lr": 0.001}] * 2 + [{"actor_lr": 0.0003}] * 2
+    returns = [(1.0, 3.0, 10.0, 20.0), (2.0, None, 30.0, 50.0)]  # (per point, per member)
+    return [{"env": "e", "env_steps": 10 * (p + 1), "wall_time_s": p + 1.0,
+             "eval_return_mean": 0.0, "eval_return_ci95_low": -1.0,
+             "eval_return_ci95_high": 1.0,
+             "per_member": [{"eval_return_mean": r, "settings": swept[i]}
+                            for i, r in enumerate(returns[p])]}
+            for p in range(2)]  # fmt: skip
+
+
 def test_a_sweep_on_its_own_draws_each_settings_mean_not_one_over_all(tmp_path):
     """Two rates x two seeds over two points, one seed diverged at the second: each setting's
     mean line (over its finite members) in its members' colour, and no line or band pooled
     over the settings; a run of seeds keeps its mean and band."""
     from td3_jax.runner.curves import _draw, setting_means
 
-    swept = [{"actor_lr": 0.001}] * 2 + [{"actor_lr": 0.0003}] * 2
-    returns = [(1.0, 3.0, 10.0, 20.0), (2.0, None, 30.0, 50.0)]  # (per point, per member)
-    records = [{"env": "e", "env_steps": 10 * (p + 1), "wall_time_s": p + 1.0,
-                "eval_return_mean": 0.0, "eval_return_ci95_low": -1.0,
-                "eval_return_ci95_high": 1.0,
-                "per_member": [{"eval_return_mean": r, "settings": swept[i]}
-                               for i, r in enumerate(returns[p])]}
-               for p in range(2)]  # fmt: skip
-    curve = read_curve(_write_records(tmp_path / "sweep", records))
+    curve = read_curve(_write_records(tmp_path / "sweep", _two_rates_two_seeds()))
     assert setting_means(curve) == [("actor_lr=0.001", [2.0, 2.0]),
                                     ("actor_lr=0.0003", [15.0, 40.0])]  # fmt: skip
     ax, wall, filled = _Axes(), _Axes(), []
@@ -141,6 +146,29 @@ def test_a_sweep_on_its_own_draws_each_settings_mean_not_one_over_all(tmp_path):
     assert setting_means(seeds) == []
     _draw([ax, wall], seeds, None, "black", ["red"])
     assert ax.lines[-1][1] == "black" and len(filled) == 2  # (its band, on both axes)
+
+
+def test_a_compared_sweep_is_a_curve_per_setting_with_its_members_range(tmp_path, monkeypatch):
+    """In a comparison a sweep is one curve per setting (its mean, and the range of its 3 or
+    fewer finite members: their bootstrap CI), labelled with the run and the setting; a run of
+    one member beside it keeps its own curve."""
+    from td3_jax.runner import curves as module
+
+    sweep = read_curve(_write_records(tmp_path / "sweep", _two_rates_two_seeds()))
+    parts = module.setting_curves(sweep)
+    assert [setting for setting, _ in parts] == ["actor_lr=0.001", "actor_lr=0.0003"]
+    first, second = (part for _, part in parts)
+    assert first.mean == [2.0, 2.0] and first.lower == [1.0, 2.0] and first.upper == [3.0, 2.0]
+    assert second.mean == [15.0, 40.0] and second.lower == [10.0, 30.0]
+    assert second.upper == [20.0, 50.0] and len(second.members) == 2
+    single = read_curve(_write_records(tmp_path / "one", [_one_member(10, -5.0, 1.0, 1.0)]))
+    saved = []
+    monkeypatch.setattr(module, "_save", lambda labelled, path, title: saved.extend(labelled))
+    plot_comparison([sweep, single], ["sweep", "one"], tmp_path / "both.png")
+    assert [label for _, label in saved] == [
+        "sweep actor_lr=0.001 (2 members, range)", "sweep actor_lr=0.0003 (2 members, range)",
+        f"one ({_band_name(single)})"]  # fmt: skip
+    assert module.setting_curves(single) == []
 
 
 def test_no_record_is_no_curve_and_an_edited_record_is_named(tmp_path):
