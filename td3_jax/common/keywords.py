@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Iterable
+import inspect
+from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
 
 from td3_jax.common.other_names import names_meant
 
-__all__ = ["fields_meant", "keywords_named", "unknown_keyword"]
+__all__ = ["fields_meant", "keywords_named", "parameters_named", "unknown_keyword"]
 
 Cls = TypeVar("Cls", bound=type)
+Fn = TypeVar("Fn", bound=Callable[..., Any])
 
 
 def keywords_named(cls: Cls) -> Cls:
@@ -32,6 +34,23 @@ def keywords_named(cls: Cls) -> Cls:
 
     cls.__init__ = checked
     return cls
+
+
+def parameters_named(function: Fn) -> Fn:
+    """``function`` (of named parameters, no ``**kwargs``) refusing a keyword that names none
+    of them with a ``TypeError`` naming the parameter most likely meant
+    (:func:`unknown_keyword`: ``train(..., resum=True)``, did you mean resume?), before it
+    runs; its signature and docstring stay its own."""
+    names = set(inspect.signature(function).parameters)
+
+    @functools.wraps(function)
+    def checked(*args: Any, **kwargs: Any) -> Any:
+        unknown = next((name for name in kwargs if name not in names), None)
+        if unknown is not None:
+            raise TypeError(unknown_keyword(function.__name__, unknown, names))
+        return function(*args, **kwargs)
+
+    return checked  # type: ignore[return-value]
 
 
 def unknown_keyword(owner: str, name: str, fields: Iterable[str]) -> str:

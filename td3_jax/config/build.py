@@ -35,7 +35,7 @@ import numpy as np
 
 from td3_jax import envs
 from td3_jax.common.errors import ConfigError, outside_stacklevel
-from td3_jax.common.keywords import fields_meant
+from td3_jax.common.keywords import fields_meant, parameters_named
 from td3_jax.config.schema import (
     SWEEPABLE,
     SWITCHED_ON_BY_THEIR_FLAG,
@@ -286,6 +286,7 @@ def hyperparams(cfg: TrainConfig) -> training.Hyperparams:
     )
 
 
+@parameters_named
 def make_train(
     cfg: TrainConfig, env: Any = None, axis_name: str | None = None
 ) -> Callable[[PRNGKey], tuple[training.TrainState, Metrics]]:

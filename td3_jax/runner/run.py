@@ -33,6 +33,7 @@ from td3_jax.common.errors import (
     ProcessLostError,
     outside_stacklevel,
 )
+from td3_jax.common.keywords import parameters_named
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.common.runtime import StopToken, awaiting_device, result
 from td3_jax.config import presets
@@ -114,6 +115,7 @@ def stop_before_next_training(reason: str) -> None:
     stop_before_training(reason, call=_TRAIN_CALLS.made)
 
 
+@parameters_named
 def train(
     cfg: TrainConfig,
     out_dir: Path,

@@ -305,3 +305,25 @@ def test_a_misspelt_name_is_said_before_a_size_that_does_not_fit(wrong, said, tm
             call()
         assert str(refused.value).startswith(said)
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    ("function", "name", "meant"),
+    [(td3_jax.train, "resum", "resume"), (td3_jax.train, "time_budget", "time_budget_s"),
+     (td3_jax.make_train, "axisname", "axis_name"), (td3_jax.train, "zzz", None)],
+)  # fmt: skip
+def test_train_and_make_train_name_the_keyword_meant_before_they_run(
+    function, name, meant, tmp_path
+):
+    """``tj.train(cfg, out, resum=True)`` says ``resume`` before it touches ``out``; the
+    signature shown by help() and the reference stays the function's own."""
+    import inspect
+
+    expected = f"{function.__name__}() got an unexpected keyword argument {name!r}"
+    expected += f"; did you mean {meant}?" if meant else ""
+    with pytest.raises(TypeError) as refused:
+        function(TrainConfig(), **({"out_dir": tmp_path / "run"} if function is td3_jax.train
+                                   else {}), **{name: True})  # fmt: skip
+    assert str(refused.value) == expected
+    assert not (tmp_path / "run").exists()
+    assert "cfg" in inspect.signature(function).parameters
