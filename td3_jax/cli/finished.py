@@ -4,13 +4,21 @@ runs compared)."""
 
 from __future__ import annotations
 
+import json
+import math
 import os
 from pathlib import Path
+from typing import Any
 
 from td3_jax.cli.commands import EvalCommand, ExportCommand, PlotCommand, RenderCommand
 from td3_jax.cli.messages import warn
 from td3_jax.cli.parsing import parse
-from td3_jax.cli.tables import print_returns_table, print_sweep_ranking, sweep_record
+from td3_jax.cli.tables import (
+    print_returns_table,
+    print_sweep_ranking,
+    ranked_settings,
+    sweep_record,
+)
 from td3_jax.common.library_noise import filtered_stderr
 from td3_jax.config.schema import ConfigError, check_seed
 from td3_jax.runner.curves import (
@@ -38,6 +46,8 @@ def eval_main(args: list[str]) -> None:
     if command.episodes <= 0:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
     check_seed(command.seed)
+    if command.json is not None:
+        _check_writable(command.json)  # (before the evaluation, not after it)
     with filtered_stderr():  # (XLA's slow-compile alarm: a robot's evaluation on a CPU)
         cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
     title = (
@@ -53,8 +63,61 @@ def eval_main(args: list[str]) -> None:
     swept = any(member.overrides for member in population)
     pooled = population_stats(returns[alive]) if len(alive) > 1 and not swept else None
     print_returns_table(title, rows, pooled)
+    ranking = sweep_record(population, returns, diverged, meta["env_steps"])
     if swept:  # statistics per setting over its seeds, never pooled over settings
-        print_sweep_ranking(sweep_record(population, returns, diverged, meta["env_steps"]))
+        print_sweep_ranking(ranking)
+    if command.json is not None:
+        from td3_jax.runner.logger import write_atomically  # lazy: imports JAX
+
+        written = evaluation_json(command, cfg, meta["env_steps"], rows, pooled,
+                                  ranking if swept else None)  # fmt: skip
+        write_atomically(command.json, json.dumps(written, indent=2) + "\n")
+
+
+def _check_writable(path: Path) -> None:
+    """A ConfigError naming ``--json PATH`` where this process cannot write it."""
+    from td3_jax.runner.logger import probe_write  # lazy: imports JAX
+
+    try:
+        probe_write(path)
+    except OSError as err:
+        raise ConfigError(f"--json {path}: cannot write it ({err.strerror or err})") from None
+
+
+def evaluation_json(command: EvalCommand, cfg: Any, env_steps: int, rows: list,
+                    pooled: dict | None, ranking: dict | None) -> dict[str, Any]:  # fmt: skip
+    """What ``td3-jax eval --json`` writes: the evaluation's settings, each member's returns
+    (``rows``: ``(label, returns [episodes] or None where it diverged)``) and statistics, the
+    ``pooled`` statistics over members and, for a sweep, the ``ranking`` per setting, best
+    first; numbers that are not finite as null."""
+    from td3_jax.core.stats import return_stats  # lazy: NumPy, only for this subcommand
+
+    members = [{"member": i, "label": label, "diverged": returns is None,
+                "returns": None if returns is None else [float(r) for r in returns],
+                **({} if returns is None else return_stats(returns))}
+               for i, (label, returns) in enumerate(rows)]  # fmt: skip
+    settings = None
+    if ranking is not None:
+        settings = [{"settings": dict(setting), "seeds": seeds, "diverged": diverged,
+                     **(summary or {})}
+                    for setting, seeds, diverged, summary in ranked_settings(
+                        ranking["per_member"])]  # fmt: skip
+    written = {"run": str(command.run), "env": cfg.env, "algo": cfg.algo,
+               "env_steps": env_steps, "episodes": command.episodes,
+               "seed": command.seed, "members": members, "over_members": pooled,
+               "per_setting": settings}  # fmt: skip
+    return _finite_or_null(written)
+
+
+def _finite_or_null(value: Any) -> Any:
+    """``value`` with every float that is not finite, however deep, as None (JSON's null)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_null(v) for v in value]
+    return value
 
 
 def export_main(args: list[str]) -> None:

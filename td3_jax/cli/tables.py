@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["output_console", "print_returns_table", "print_sweep_ranking", "sweep_record"]
+__all__ = ["output_console", "print_returns_table", "print_sweep_ranking", "ranked_settings",
+           "sweep_record"]
 
 
 def output_console() -> Any:
@@ -28,7 +29,7 @@ def print_sweep_ranking(record: dict) -> None:
     """
     from rich.table import Table  # lazy: rich, only for a table
 
-    rows = _ranked_settings(record["per_member"])
+    rows = ranked_settings(record["per_member"])
     labels = [" ".join(f"{k}={v:g}" for k, v in row[0]) for row in rows]
     table = Table()
     for column in ("rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"):
@@ -63,7 +64,7 @@ def _print_titled(title: str, table: Any) -> Any:
     return console
 
 
-def _ranked_settings(per_member: list[dict]) -> list[tuple[tuple, int, int, dict | None]]:
+def ranked_settings(per_member: list[dict]) -> list[tuple[tuple, int, int, dict | None]]:
     """``(setting, seeds, diverged, summary)`` per swept setting of ``per_member``, the best
     mean first: ``setting`` its sorted ``(name, value)`` pairs, ``summary``
     :func:`~td3_jax.core.stats.summary` of its finite returns (None where every seed

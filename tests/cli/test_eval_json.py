@@ -1,0 +1,46 @@
+"""``td3-jax eval --json``: the file holds what the tables show, recomputable from its own
+episode returns, with a diverged member as nulls; an unwritable path is refused first."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from support import TINY_FLAGS, assert_one_line_error, main, read_records
+
+
+@pytest.mark.runs
+def test_a_sweeps_evaluation_file_holds_each_member_and_each_setting_best_first(
+    tmp_path, capsys
+):
+    out = tmp_path / "sweep"
+    code, _, err = main(["sweep", *TINY_FLAGS, "--sweep-critic-lr", "1e-3", "1e30",
+                         "--out", str(out), "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    path = tmp_path / "eval.json"
+    code, _, err = main(["eval", "--run", str(out), "--episodes", "3", "--json", str(path)],
+                        capsys)  # fmt: skip
+    assert code == 0, err
+    written = json.loads(path.read_text())
+    assert (written["run"], written["episodes"], written["seed"]) == (str(out), 3, 12345)
+    assert written["env_steps"] == read_records(out)[-1]["env_steps"]
+    assert written["over_members"] is None  # (a sweep: never pooled over settings)
+    alive, gone = written["members"]
+    assert (alive["diverged"], gone["diverged"], gone["returns"]) == (False, True, None)
+    returns = np.asarray(alive["returns"])
+    assert returns.shape == (3,)
+    assert alive["eval_return_mean"] == pytest.approx(returns.mean())
+    assert alive["eval_return_std"] == pytest.approx(returns.std())
+    assert (alive["eval_return_min"], alive["eval_return_max"]) == (returns.min(), returns.max())
+    best, last = written["per_setting"]
+    assert best["settings"] == {"critic_lr": 1e-3} and last["settings"] == {"critic_lr": 1e30}
+    assert (best["seeds"], best["diverged"], last["diverged"]) == (1, 0, 1)
+    assert best["mean"] == pytest.approx(alive["eval_return_mean"]) and "mean" not in last
+
+
+def test_an_unwritable_json_path_is_refused_before_the_evaluation(tmp_path, capsys):
+    path = tmp_path / "no such folder" / "eval.json"
+    code, _, err = main(["eval", "--run", str(tmp_path / "missing"), "--json", str(path)],
+                        capsys)  # fmt: skip
+    assert_one_line_error(code, err, f"--json {path}: cannot write it")
