@@ -317,6 +317,24 @@ def test_a_terminal_keeps_the_logs_line_for_each_evaluation_above_the_bar(capsys
     assert all(line in shown for line in logged), (logged, shown)
 
 
+def test_a_sweeps_line_names_its_best_setting_beside_the_mean_over_all(capsys):
+    """A sweep's line keeps the mean over all members and adds the setting with the highest
+    mean over its members that did not diverge; a run of seeds alone adds nothing."""
+    cfg = TrainConfig(env="gymnax/Pendulum-v1", num_envs=16, eval_every=4000, total_steps=8000)
+    members = [({"actor_lr": 0.001}, -1500.0), ({"actor_lr": 0.001}, -1400.0),
+               ({"actor_lr": 0.0003}, -1300.0), ({"actor_lr": 0.0003}, None)]  # (diverged)
+    record = {"env_steps": 4000, "eval_return_mean": -1400.0, "wall_time_s": 10.0,
+              "env_steps_per_s": 1234.5,
+              "per_member": [{"settings": s, "eval_return_mean": r} for s, r in members]}
+    log = _Progress(cfg, 0, enabled=True, console=Console(file=io.StringIO()))
+    log.update(record)
+    seeds = {**record, "per_member": [{"eval_return_mean": r} for _, r in members]}
+    log.update({**seeds, "env_steps": 8000})
+    swept, alone = capsys.readouterr().out.splitlines()
+    assert "eval -1400.0 over all 4 members; best actor_lr=0.0003 at -1300.0, 10 s" in swept
+    assert "eval -1400.0, 10 s" in alone
+
+
 def test_a_log_shows_compiling_warm_up_and_a_resumes_own_time(tmp_path, capsys):
     # 64 iterations of 4 envs a chunk: the early evaluation after 8 (32 steps), all warm-up
     flags = ["--env", "gymnax/Pendulum-v1", "--num-envs", "4", "--eval-every", "256",
