@@ -1,6 +1,7 @@
 """The argument list as typed, read and rewritten around the parser: a flag's values, the
-settings the flags name, whole numbers written in scientific notation, and the checks made on
-the raw list before any subcommand parses it (empty paths, ``~``, repeated list flags)."""
+settings the flags name, whole numbers written in scientific notation, whether the process
+joins others of a run, and the checks made on the raw list before any subcommand parses it
+(empty paths, ``~``, repeated list flags)."""
 
 from __future__ import annotations
 
@@ -9,25 +10,23 @@ import decimal
 import itertools
 import os
 import re
-import time
 import types
 import typing
-from pathlib import Path
 
+from td3_jax.common import runtime
 from td3_jax.config.schema import ConfigError, TrainConfig
 
 __all__ = [
     "check_no_empty_path",
     "expand_home",
+    "flag_name",
     "flag_value",
     "flag_values",
     "given_fields",
-    "new_run_directory",
+    "joins_others",
     "number_kinds",
-    "out_chosen_note",
     "repeated_flags_warning",
     "whole_numbers_written_out",
-    "with_run_directory",
 ]
 
 #: A number in scientific notation (``1e6``, ``2.5E+4``), as users write step counts.
@@ -37,13 +36,6 @@ _SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d{1,4}", re.ASCII)
 #: the working directory. (An empty --compile-cache means off and an empty --menagerie not
 #: given, as before.)
 _PATH_FLAGS = ("--out", "--run")
-
-#: Where a train or sweep command without ``--out`` writes its run: a new folder in it.
-RUNS_FOLDER = Path("runs")
-
-#: What makes a process one of several of a run (flags, or JAX's variables for them).
-_SEVERAL_PROCESSES = ("--coordinator-address", "--num-processes", "--process-id")
-_SEVERAL_PROCESSES_ENV = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
 
 #: The flags that take a list of values (besides ``--sweep-*``), whose repetition might be
 #: read as adding to the list.
@@ -184,39 +176,24 @@ def repeated_flags_warning(args: list[str]) -> str | None:
             "(the lists are not added together)")  # fmt: skip
 
 
-def with_run_directory(args: list[str], now: float | None = None) -> tuple[list[str], Path | None]:
-    """The train (or sweep) flags ``args`` with ``--out`` of a new folder where none is given,
-    and that folder (:func:`new_run_directory`); ``(args, None)`` where ``--out`` or ``--help``
-    is given. A ``--resume``, or one process of a run of several, without ``--out`` is a
-    ConfigError: a resume continues a run it must name, and the processes must write one."""
-    if {"-h", "--help"} & set(args) or any(a == "--out" or a.startswith("--out=") for a in args):
-        return args, None
-    if "--resume" in args:
-        raise ConfigError("--resume continues the run in --out DIR: name it with --out (a run "
-                          f"started without --out went to a new folder in {RUNS_FOLDER}/)")
-    several = [a.split("=", 1)[0] for a in args if a.split("=", 1)[0] in _SEVERAL_PROCESSES]
-    several += [name for name in _SEVERAL_PROCESSES_ENV if os.environ.get(name)]
-    if several:
-        raise ConfigError(f"{several[0]} makes this one process of several, which write one run "
-                          "directory: give each the same --out DIR")  # fmt: skip
-    name = flag_value(args, "--preset") or flag_value(args, "--env") or TrainConfig.env
-    out = new_run_directory(name, RUNS_FOLDER, now)
-    return [*args, "--out", str(out)], out
+def flag_name(arg: str) -> str:
+    """The flag an argument names, as the help spells it (``--local_processes=2``:
+    ``--local-processes``; the parser takes either spelling)."""
+    name = arg.partition("=")[0]
+    return name.replace("_", "-") if name.startswith("--") else name
 
 
-def out_chosen_note(out: Path) -> str:
-    """The line saying where a run that no ``--out`` named goes (:func:`with_run_directory`)."""
-    return f"no --out given: the run goes to {out}"
-
-
-def new_run_directory(name: str, folder: Path, now: float | None = None) -> Path:
-    """``folder/NAME-YYYYmmdd-HHMMSS`` (local time ``now``, default the present), ``NAME``
-    being ``name`` (a preset, an environment) in letters, digits, ``.``, ``_`` and ``-``;
-    ``-2``, ``-3``, ... after it where that path exists."""
-    label = re.sub(r"[^A-Za-z0-9._-]+", "-", name).strip("-.")[:60] or "run"
-    stem = f"{label}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}"
-    path, count = folder / stem, 1
-    while path.exists():
-        count += 1
-        path = folder / f"{stem}-{count}"
-    return path
+def joins_others(args: list[str]) -> bool:
+    """Whether a train or sweep process of ``args`` joins other processes: started by
+    ``--local-processes``, or given ``jax.distributed``'s coordinator or process id, or a
+    process count above 1 (flags, or JAX's variables)."""
+    given = {flag_name(arg): i for i, arg in enumerate(args)}
+    counts = [os.environ.get("JAX_NUM_PROCESSES", "")]
+    if "--num-processes" in given:
+        at = given["--num-processes"]
+        _, equals, value = args[at].partition("=")
+        counts.append(value if equals else (args[at + 1] if at + 1 < len(args) else ""))
+    return (runtime.local_processes() is not None
+            or bool({"--coordinator-address", "--process-id"} & set(given))
+            or bool(os.environ.get("JAX_COORDINATOR_ADDRESS"))
+            or any(count.isdigit() and int(count) > 1 for count in counts))  # fmt: skip

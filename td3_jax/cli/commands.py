@@ -64,10 +64,10 @@ class TrainCommand(TrainConfig):
 
     hidden_sizes: Widths = (256, 256)  # (None, for a library caller: the algorithm's own)
     """Hidden widths of actor and critics (the TD3 paper used 400 300)."""
-    out: Path | None = None
-    """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/.
-    Default: a new folder runs/NAME-DATE-TIME, NAME the --preset or --env (a --resume names
-    its run's)."""
+    out: Annotated[Path | None, default_in_help("PATH")] = None
+    """Run directory: config.json, metrics.jsonl, tensorboard/, curve.png, checkpoints/
+    (default: a new folder runs/NAME-DATE-TIME, NAME the --preset or --env; --resume needs
+    --out)."""
     resume: bool = False
     """Continue the run in --out exactly where its newest good checkpoint left it. Only
     --total-steps (to extend or shorten the run; not with --lr-schedule cosine), --matmuls,

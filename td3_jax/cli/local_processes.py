@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from td3_jax.cli.argv import out_chosen_note, with_run_directory
+from td3_jax.cli.argv import flag_name, joins_others
 from td3_jax.common import runtime
 from td3_jax.common.errors import ConfigError
 
@@ -59,13 +59,6 @@ _PR_SET_PDEATHSIG = 1  # (linux/prctl.h)
 _SET_HERE = ("--coordinator-address", "--num-processes", "--process-id", "--devices")
 
 
-def flag_name(arg: str) -> str:
-    """The flag an argument names, as the help spells it (``--local_processes=2``:
-    ``--local-processes``; the parser takes either spelling)."""
-    name = arg.partition("=")[0]
-    return name.replace("_", "-") if name.startswith("--") else name
-
-
 def asked_count(args: list[str]) -> int | None:
     """The N of ``--local-processes N`` (or ``=N``) in ``args``, the last where it is given
     more than once (as the parser takes any flag); None without it. ConfigError when it is not
@@ -87,12 +80,21 @@ def main(subcommand: str, args: list[str]) -> None:
     """``td3-jax train|sweep ... --local-processes N``, started before anything heavy is
     imported here (JAX, the environments): the processes check the flags themselves, and
     one's message is shown once. Exits with the processes' status."""
+    from td3_jax.cli.run_folder import out_chosen_note, remove_if_empty, with_run_directory
+
     count = asked_count(args)
     assert count is not None, f"{FLAG} not in {args}"
+    check_local_processes(count, args)  # (its own refusals before a folder is made)
     args, chosen_out = with_run_directory(args)  # (one folder for all of them)
     if chosen_out is not None:
         print(out_chosen_note(chosen_out), flush=True)
-    raise SystemExit(run_local_processes(subcommand, args, count))
+    status = 1
+    try:
+        status = run_local_processes(subcommand, args, count)
+    finally:
+        if status:
+            remove_if_empty(chosen_out)  # (refused or stopped before writing anything)
+    raise SystemExit(status)
 
 
 def check_local_processes(count: int, args: list[str]) -> list[str]:
@@ -170,22 +172,6 @@ def process_env(gpu: str | None, count: int) -> dict[str, str]:
         env["CUDA_VISIBLE_DEVICES"] = gpu
     env[runtime.LOCAL_PROCESSES_ENV] = str(count)
     return env
-
-
-def joins_others(args: list[str]) -> bool:
-    """Whether a train or sweep process of ``args`` joins other processes: started by
-    ``--local-processes``, or given ``jax.distributed``'s coordinator or process id, or a
-    process count above 1 (flags, or JAX's variables)."""
-    given = {flag_name(arg): i for i, arg in enumerate(args)}
-    counts = [os.environ.get("JAX_NUM_PROCESSES", "")]
-    if "--num-processes" in given:
-        at = given["--num-processes"]
-        _, equals, value = args[at].partition("=")
-        counts.append(value if equals else (args[at + 1] if at + 1 < len(args) else ""))
-    return (runtime.local_processes() is not None
-            or bool({"--coordinator-address", "--process-id"} & set(given))
-            or bool(os.environ.get("JAX_COORDINATOR_ADDRESS"))
-            or any(count.isdigit() and int(count) > 1 for count in counts))  # fmt: skip
 
 
 def run_local_processes(subcommand: str, args: list[str], count: int) -> int:

@@ -9,8 +9,8 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
-from td3_jax.cli.argv import out_chosen_note
 from td3_jax.cli.messages import warn
+from td3_jax.cli.run_folder import out_chosen_note
 from td3_jax.config.presets import PRESETS, preset
 from td3_jax.config.schema import (
     ConfigError,

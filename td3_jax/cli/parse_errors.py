@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import itertools
 import re
+import shlex
 
 from td3_jax.cli.argv import flag_values, number_kinds
 from td3_jax.common.other_names import names_meant
@@ -39,11 +41,13 @@ def parse_error(text: str, command_type: type, args: list[str], prog: str) -> st
 
 
 def _word_meant(args: list[str], missing: list[str]) -> str:
-    """Where the one missing flag's value was given as a word of its own, before any flag
-    (``td3-jax eval runs/x``): ``"as a flag: --run runs/x; "``, else nothing."""
-    if len(missing) != 1 or not args or args[0].startswith("-"):
+    """Where ``--run`` is missing and the command began with words of their own, as other
+    tools take a run (``td3-jax eval runs/x``): ``"as a flag: --run runs/x; "``, else
+    nothing."""
+    words = list(itertools.takewhile(lambda arg: not arg.startswith("-"), args))
+    if "--run" not in missing or not words:
         return ""
-    return f"as a flag: {missing[0]} {args[0]}; "
+    return f"as a flag: {shlex.join(['--run', *words])}; "
 
 
 def _tyro_box(text: str) -> tuple[str, list[list[str]]]:

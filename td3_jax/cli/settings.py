@@ -23,9 +23,11 @@ def base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     accelerator's once JAX is up)."""
     from td3_jax.runner.rundir import CONFIG_FILE, load_config  # lazy: imports JAX
 
-    out = flag_value(args, "--out") or ""  # (given with --resume: argv.with_run_directory)
+    out = flag_value(args, "--out")
     name = flag_value(args, "--preset")
     if "--resume" in args:
+        if not out:  # (the command names it: run_folder.with_run_directory)
+            raise ConfigError("--resume continues the run in --out DIR: name it with --out")
         if name:
             _check_resumed_preset(name, Path(out))
         if (Path(out) / CONFIG_FILE).exists():

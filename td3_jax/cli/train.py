@@ -12,11 +12,12 @@ from pathlib import Path
 from typing import Any
 
 from td3_jax.cli import notes, settings
-from td3_jax.cli.argv import given_fields, with_run_directory
+from td3_jax.cli.argv import given_fields
 from td3_jax.cli.commands import SweepCommand, TrainCommand
 from td3_jax.cli.interrupts import leave_processes, process_stop, train_stoppably
 from td3_jax.cli.local_processes import joins_others
 from td3_jax.cli.parsing import parse
+from td3_jax.cli.run_folder import remove_if_empty, with_run_directory
 from td3_jax.cli.tables import print_sweep_ranking
 from td3_jax.common import library_noise, runtime
 from td3_jax.config.schema import (
@@ -38,16 +39,23 @@ def train_main(args: list[str], sweeping: bool = False) -> None:
     one run leave JAX's runtime together when it ends (stopped or failed, the command's exit
     does: :func:`~td3_jax.cli.interrupts.exit_process`)."""
     stop, received = process_stop()
-    _train_command(args, sweeping, stop, received)
+    args, chosen_out = with_run_directory(args)  # (no --out: a new folder under runs/)
+    try:
+        _train_command(args, sweeping, stop, received, chosen_out)
+    except BaseException:
+        remove_if_empty(chosen_out)  # (a run refused or stopped before writing anything)
+        raise
     leave_processes(None)
 
 
-def _train_command(
-    args: list[str], sweeping: bool, stop: runtime.StopToken, received: list[int]
-) -> None:
-    """:func:`train_main` with the stop token and signals of its process."""
-    args, chosen_out = with_run_directory(args)  # (no --out: a new folder under runs/)
+def _train_command(args: list[str], sweeping: bool, stop: runtime.StopToken,
+                   received: list[int], chosen_out: Path | None = None) -> None:  # fmt: skip
+    """:func:`train_main` with the stop token and signals of its process (``chosen_out``: the
+    folder made for a run that no ``--out`` named)."""
     command, cfg, preset_name, source = parse_train(args, sweeping)
+    if command.out is None:  # (--out None: no folder at all)
+        raise ConfigError("--out None names no folder: give the run's, or leave --out out for "
+                          "a new one under runs/")  # fmt: skip
     sweep = sweep_values(command, args) if sweeping else None
     from td3_jax import envs  # lazy: imports JAX
 

@@ -276,7 +276,7 @@ def setting_curves(curve: Curve) -> list[tuple[str, Curve]]:
     for setting, mean in setting_means(curve):
         rows = [m for m, s in zip(curve.members, curve.swept, strict=True) if s == setting]
         points = [[v for v in column if math.isfinite(v)] for column in zip(*rows, strict=True)]
-        lower, upper = zip(*(stats.bootstrap_ci(values) for values in points), strict=True)
+        lower, upper = zip(*(_interval(values) for values in points), strict=True)
         parts.append((setting, curve._replace(mean=mean, lower=list(lower), upper=list(upper),
                                               members=rows, swept=(setting,) * len(rows))))
     return parts
@@ -301,8 +301,21 @@ def no_return_warning(curve: Curve, run_dir: Path) -> str | None:
             "so its curve is empty")  # fmt: skip
 
 
+def _interval(values: list[float]) -> tuple[float, float]:
+    """:func:`~td3_jax.core.stats.bootstrap_ci` of ``values``, which is their [min, max] for
+    fewer than :data:`~td3_jax.core.stats.CI_NARROWER_FROM` (taken at once: the bootstrap's
+    resamples cost milliseconds a point); NaN for none."""
+    if not values:
+        return math.nan, math.nan
+    if len(values) < stats.CI_NARROWER_FROM:
+        return min(values), max(values)
+    return stats.bootstrap_ci(values)
+
+
 def _band_name(curve: Curve) -> str:
     """What a run's band is, briefly, for a comparison's legend."""
+    if len(curve.members) == 1:  # (a sweep's setting of one seed: no band)
+        return "1 member"
     if curve.members:
         return f"{len(curve.members)} members, {_interval_name(curve.members)}"
     return "± std over episodes"

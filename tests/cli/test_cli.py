@@ -406,15 +406,9 @@ def test_eval_of_a_dir_that_is_not_a_run_exits_2(tmp_path, capsys):
                                           "train wrote to)")  # fmt: skip
 
 
-@pytest.mark.subprocess  # a child process that imports JAX: 4 s
-def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsys):
-    out = str(tmp_path / "run")
-    code, _, err = main(["train", "--totl-steps", "5", "--out", out], capsys)
-    assert_one_line_error(code, err)
-    assert err.strip() == (
-        "td3-jax: error: unrecognized option --totl-steps (did you mean --total-steps?)"
-    )
-    cases = {
+def _mistyped(out: str) -> dict[tuple[str, ...], str]:
+    """Command lines with a mistyped or unreadable flag, each with the one line it gets."""
+    return {
         ("sweep", "--sweep-taus", "0.1", "--out", out):
             "unrecognized option --sweep-taus (did you mean --sweep-tau?)",
         ("train", "--no-normalise-obs", "--frobnicate=3", "--out", out):
@@ -444,6 +438,11 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
         ("eval",): "td3-jax eval needs --run (see td3-jax eval --help)",
         ("eval", "runs/x"):  # (a run given as a word, as other tools take it)
             "td3-jax eval needs --run (as a flag: --run runs/x; see td3-jax eval --help)",
+        ("export", "my runs/x"):
+            "td3-jax export needs --run, --format (as a flag: --run 'my runs/x'; see td3-jax "
+            "export --help)",
+        ("plot", "runs/a", "runs/b"):
+            "td3-jax plot needs --run (as a flag: --run runs/a runs/b; see td3-jax plot --help)",
         ("train", "--num-envs", "many", "--out", out):
             "--num-envs takes a whole number, got 'many'",
         ("train", "--num-envs", "4", "--total-steps=800", "--num-envs", "x", "--out", out):
@@ -464,6 +463,17 @@ def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsy
             "--exploration 'OU' is not one of gaussian, ou; did you mean ou?",
         ("train", "--out", out, "--seed"): "--seed needs a value (see td3-jax train --help)",
     }  # fmt: skip
+
+
+@pytest.mark.subprocess  # a child process that imports JAX: 4 s
+def test_a_mistyped_flag_is_one_clean_line_with_the_closest_flag(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    code, _, err = main(["train", "--totl-steps", "5", "--out", out], capsys)
+    assert_one_line_error(code, err)
+    assert err.strip() == (
+        "td3-jax: error: unrecognized option --totl-steps (did you mean --total-steps?)"
+    )
+    cases = _mistyped(out)
     for args, message in cases.items():
         code, _, err = main(list(args), capsys)
         repeated = argv.repeated_flags_warning(list(args))  # (said first: the next test)

@@ -13,6 +13,7 @@ import time
 
 import pytest
 
+import td3_jax
 from td3_jax.cli import local_processes as lp
 from td3_jax.common.errors import ConfigError, ProcessLostError
 
@@ -548,6 +549,7 @@ def test_a_count_that_is_not_a_number_is_refused_in_one_line(args, message):
     assert str(err.value) == message
 
 
+_CHECKOUT = os.path.dirname(os.path.dirname(os.path.abspath(td3_jax.__file__)))
 _LAUNCH_ALONE = """
 import sys
 from td3_jax.cli import app, local_processes
@@ -560,18 +562,21 @@ print("jax imported:", "jax" in sys.modules)
 """
 
 
-def test_the_command_starts_its_processes_before_importing_jax():
+def test_the_command_starts_its_processes_before_importing_jax(tmp_path):
     """The launching process imports neither JAX nor any environment (seconds that each
-    process would wait for it); the processes check the flags themselves."""
+    process would wait for it); the processes check the flags themselves. Without --out it
+    makes one folder for them all."""
     out = subprocess.run([sys.executable, "-c", _LAUNCH_ALONE, "sweep", "--preset", "t1",
                           "--local-processes", "2"], capture_output=True, text=True,
-                         timeout=120)  # fmt: skip
+                         timeout=120, cwd=tmp_path,
+                         env={**os.environ, "PYTHONPATH": _CHECKOUT})  # fmt: skip
     note, *rest = out.stdout.splitlines()
     assert note.startswith("no --out given: the run goes to runs/t1-"), out.stderr
     chosen = note.rsplit(" ", 1)[1]  # (one folder for all the processes, chosen here)
     assert rest == [
         f"launched sweep ['--preset', 't1', '--local-processes', '2', '--out', '{chosen}'] 2",
         "exit 0", "jax imported: False"], out.stderr  # fmt: skip
+    assert (tmp_path / chosen).is_dir()
 
 
 def test_its_help_is_the_subcommands_and_a_bad_count_one_line(capsys):

@@ -169,6 +169,12 @@ def test_a_compared_sweep_is_a_curve_per_setting_with_its_members_range(tmp_path
         "sweep actor_lr=0.001 (2 members, range)", "sweep actor_lr=0.0003 (2 members, range)",
         f"one ({_band_name(single)})"]  # fmt: skip
     assert module.setting_curves(single) == []
+    one_seed = sweep._replace(members=sweep.members[::2], swept=sweep.swept[::2])
+    saved.clear()
+    plot_comparison([one_seed], ["sweep"], tmp_path / "one.png")
+    assert [label for _, label in saved] == ["sweep actor_lr=0.001 (1 member)",
+                                             "sweep actor_lr=0.0003 (1 member)"]  # fmt: skip
+    assert all(part.lower == part.upper == part.mean for part, _ in saved)  # (no band)
 
 
 def test_no_record_is_no_curve_and_an_edited_record_is_named(tmp_path):
