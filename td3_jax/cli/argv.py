@@ -35,7 +35,7 @@ _SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d{1,4}", re.ASCII)
 #: The flags whose value is a run's folder or an output file: given empty, each would mean
 #: the working directory. (An empty --compile-cache means off and an empty --menagerie not
 #: given, as before.)
-_PATH_FLAGS = ("--out", "--run")
+_PATH_FLAGS = ("--out", "--run", "--json")
 
 #: The flags that take a list of values (besides ``--sweep-*``), whose repetition might be
 #: read as adding to the list.

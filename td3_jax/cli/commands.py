@@ -168,9 +168,10 @@ class EvalCommand:
     """Seed of the evaluation environments: new episodes, not those of the run's own
     evaluations, so the mean may differ from its last record."""
     json: Annotated[Path | None, default_in_help("PATH")] = None
-    """Also write what the tables show to this JSON file: each member's episode returns with
-    their mean, std, min and max, the statistics over members (a sweep's per setting, best
-    first), the checkpoint's env steps and the evaluation's seed (default: no file)."""
+    """Also write what the tables show to this JSON file, outside the run's folder: each
+    member's episode returns with their mean, std, min and max, the statistics over members
+    (none for one; a sweep's per setting, best first), the checkpoint's env steps and the
+    evaluation's seed (default: no file)."""
 
 
 @dataclasses.dataclass(frozen=True)

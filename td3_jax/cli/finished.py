@@ -33,7 +33,8 @@ from td3_jax.runner.curves import (
     run_labels,
 )
 
-__all__ = ["check_mujoco_gl", "eval_main", "export_main", "plot_main", "render_main"]
+__all__ = ["check_mujoco_gl", "eval_main", "evaluation_json", "export_main", "plot_main",
+           "render_main"]
 
 
 def eval_main(args: list[str]) -> None:
@@ -47,7 +48,7 @@ def eval_main(args: list[str]) -> None:
         raise ConfigError(f"--episodes must be positive, got {command.episodes}")
     check_seed(command.seed)
     if command.json is not None:
-        _check_writable(command.json)  # (before the evaluation, not after it)
+        _check_writable(command.json, command.run)  # (before the evaluation, not after it)
     with filtered_stderr():  # (XLA's slow-compile alarm: a robot's evaluation on a CPU)
         cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
     title = (
@@ -69,44 +70,64 @@ def eval_main(args: list[str]) -> None:
     if command.json is not None:
         from td3_jax.runner.logger import write_atomically  # lazy: imports JAX
 
-        written = evaluation_json(command, cfg, meta["env_steps"], rows, pooled,
+        labelled = [(m.label() or f"seed={m.seed}", returns[i] if i not in diverged else None)
+                    for i, m in enumerate(population)]  # fmt: skip
+        written = evaluation_json(command, cfg, meta["env_steps"], labelled, pooled,
                                   ranking if swept else None)  # fmt: skip
         write_atomically(command.json, json.dumps(written, indent=2) + "\n")
 
 
-def _check_writable(path: Path) -> None:
-    """A ConfigError naming ``--json PATH`` where this process cannot write it."""
+def _check_writable(path: Path, run: Path) -> None:
+    """A ConfigError naming ``--json PATH`` where it lies in the run's own folder (whose files
+    it would replace), is not a plain file, or cannot be written (its folder, where the file
+    is written first and renamed)."""
     from td3_jax.runner.logger import probe_write  # lazy: imports JAX
 
+    target = path.resolve()
+    if target.is_relative_to(run.resolve()):
+        raise ConfigError(f"--json {path} is inside the run's folder {run}: write it elsewhere")
+    if target.exists() and not target.is_file():
+        raise ConfigError(f"--json {path} is not a plain file: give a file's path")
     try:
         probe_write(path)
+        probe_write(path.with_name(path.name + ".tmp"))
     except OSError as err:
         raise ConfigError(f"--json {path}: cannot write it ({err.strerror or err})") from None
 
 
-def evaluation_json(command: EvalCommand, cfg: Any, env_steps: int, rows: list,
+def evaluation_json(command: EvalCommand, cfg: Any, env_steps: int, members: list,
                     pooled: dict | None, ranking: dict | None) -> dict[str, Any]:  # fmt: skip
-    """What ``td3-jax eval --json`` writes: the evaluation's settings, each member's returns
-    (``rows``: ``(label, returns [episodes] or None where it diverged)``) and statistics, the
-    ``pooled`` statistics over members and, for a sweep, the ``ranking`` per setting, best
-    first; numbers that are not finite as null."""
-    from td3_jax.core.stats import return_stats  # lazy: NumPy, only for this subcommand
+    """What ``td3-jax eval --json`` writes: the evaluation's settings; each member's returns
+    (``members``: ``(label, returns [episodes] or None where it diverged)``) and statistics;
+    the ``pooled`` statistics over members (None for one member or a sweep) and, for a sweep,
+    the ``ranking`` per setting, best first, its interval named (``interval``: "95% CI", or
+    "range" where it is the [min, max] of 3 or fewer, None for one seed); every statistic
+    named as in metrics.jsonl (``eval_return_*``), numbers that are not finite as null."""
+    from td3_jax.core.stats import interval_name, return_stats  # lazy: NumPy, only for this
 
-    members = [{"member": i, "label": label, "diverged": returns is None,
-                "returns": None if returns is None else [float(r) for r in returns],
-                **({} if returns is None else return_stats(returns))}
-               for i, (label, returns) in enumerate(rows)]  # fmt: skip
+    rows = [{"member": i, "label": label, "diverged": returns is None,
+             "returns": None if returns is None else [float(r) for r in returns],
+             **({} if returns is None else return_stats(returns))}
+            for i, (label, returns) in enumerate(members)]  # fmt: skip
     settings = None
     if ranking is not None:
         settings = [{"settings": dict(setting), "seeds": seeds, "diverged": diverged,
-                     **(summary or {})}
+                     "interval": interval_name(seeds - diverged) if seeds - diverged > 1
+                     else None, **_named_summary(summary, seeds - diverged)}
                     for setting, seeds, diverged, summary in ranked_settings(
                         ranking["per_member"])]  # fmt: skip
-    written = {"run": str(command.run), "env": cfg.env, "algo": cfg.algo,
-               "env_steps": env_steps, "episodes": command.episodes,
-               "seed": command.seed, "members": members, "over_members": pooled,
-               "per_setting": settings}  # fmt: skip
-    return _finite_or_null(written)
+    return _finite_or_null({
+        "run": str(command.run), "env": cfg.env, "algo": cfg.algo, "env_steps": env_steps,
+        "episodes": command.episodes, "seed": command.seed, "members": rows,
+        "over_members": pooled, "per_setting": settings})  # fmt: skip
+
+
+def _named_summary(summary: dict | None, finite: int) -> dict[str, Any]:
+    """A setting's statistics named ``eval_return_*``; no interval from one finite return."""
+    named = {f"eval_return_{k}": v for k, v in (summary or {}).items()}
+    if finite <= 1:
+        named.update(eval_return_ci95_low=None, eval_return_ci95_high=None)
+    return named
 
 
 def _finite_or_null(value: Any) -> Any:

@@ -35,19 +35,19 @@ def parse_error(text: str, command_type: type, args: list[str], prog: str) -> st
     elif title == "Required options":  # "Missing from PROG:", each flag 4 deeper, its help 8
         flag = " " * (len(sections[0][0]) - len(sections[0][0].lstrip()) + 4) + "-"
         missing = [line.split()[0] for line in sections[0] if line.startswith(flag)]
-        said = missing and (f"{prog} needs {', '.join(missing)} ({_word_meant(args, missing)}"
-                            f"see {prog} --help)")  # fmt: skip
+        meant = _word_meant(args, missing, several=prog.endswith(" plot"))
+        said = missing and f"{prog} needs {', '.join(missing)} ({meant}see {prog} --help)"
     return said or first or title or f"could not parse {' '.join(args)} (see {prog} --help)"
 
 
-def _word_meant(args: list[str], missing: list[str]) -> str:
+def _word_meant(args: list[str], missing: list[str], several: bool) -> str:
     """Where ``--run`` is missing and the command began with words of their own, as other
-    tools take a run (``td3-jax eval runs/x``): ``"as a flag: --run runs/x; "``, else
-    nothing."""
+    tools take a run (``td3-jax eval runs/x``): ``"as a flag: --run runs/x; "`` (every such
+    word where the command takes ``several`` runs, else the first), else nothing."""
     words = list(itertools.takewhile(lambda arg: not arg.startswith("-"), args))
     if "--run" not in missing or not words:
         return ""
-    return f"as a flag: {shlex.join(['--run', *words])}; "
+    return f"as a flag: {shlex.join(['--run', *(words if several else words[:1])])}; "
 
 
 def _tyro_box(text: str) -> tuple[str, list[list[str]]]:

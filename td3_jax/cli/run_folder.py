@@ -41,7 +41,11 @@ def with_run_directory(args: list[str], now: float | None = None) -> tuple[list[
         raise ConfigError("this process joins others of one run, which write one folder: give "
                           "each the same --out DIR")  # fmt: skip
     name = _last(args, "--preset") or _last(args, "--env") or TrainConfig.env
-    out = new_run_directory(name, RUNS_FOLDER, now)
+    try:
+        out = new_run_directory(name, RUNS_FOLDER, now)
+    except OSError as err:  # (a file named runs, a folder this process cannot write)
+        raise ConfigError(f"cannot make a folder for the run in {RUNS_FOLDER}/ "
+                          f"({err.strerror or err}): give one with --out DIR") from None
     return [*args, "--out", str(out)], out
 
 

@@ -26,7 +26,9 @@ def base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
     out = flag_value(args, "--out")
     name = flag_value(args, "--preset")
     if "--resume" in args:
-        if not out:  # (the command names it: run_folder.with_run_directory)
+        if not out:  # (the command names it: run_folder.with_run_directory; --help shows
+            if {"-h", "--help"} & set(args):  # the flags over the defaults)
+                return TrainConfig(), None, "resume"
             raise ConfigError("--resume continues the run in --out DIR: name it with --out")
         if name:
             _check_resumed_preset(name, Path(out))

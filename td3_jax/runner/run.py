@@ -972,21 +972,24 @@ def _evaluation_text(record: dict, short: bool = False) -> str:
 
 def _best_setting(record: dict) -> str:
     """For a sweep's record: `` over all 4 members; best actor_lr=0.0003 at -1475.6`` (the
-    setting whose members that did not diverge have the highest mean return), else nothing:
-    the record's mean pools different settings."""
-    groups: dict[str, list[float]] = {}
+    record's mean is over the members that did not diverge: ``over the 3 of 4 members that
+    did not diverge``; the best setting has the highest mean of its members among those), else
+    nothing: the record's mean pools different settings."""
+    groups: dict[tuple, list[float]] = {}
     for member in record.get("per_member") or []:
-        settings = member.get("settings") or {}
-        name = " ".join(f"{k}={v:g}" for k, v in sorted(settings.items()))
+        setting = tuple(sorted((member.get("settings") or {}).items()))
         value = member.get("eval_return_mean")
-        groups.setdefault(name, [])
-        if value is not None and math.isfinite(value):
-            groups[name].append(value)
-    means = {name: sum(v) / len(v) for name, v in groups.items() if v and name}
+        finite = value is not None and math.isfinite(value)
+        groups.setdefault(setting, []).extend([value] if finite else [])
+    means = {setting: sum(v) / len(v) for setting, v in groups.items() if v and setting}
     if not means:
         return ""
     best = max(means, key=means.__getitem__)
-    return f" over all {len(record['per_member'])} members; best {best} at {means[best]:.1f}"
+    named = " ".join(f"{k}={v:g}" for k, v in best)
+    count, alive = len(record["per_member"]), sum(len(v) for v in groups.values())
+    over = (f"all {count} members" if alive == count
+            else f"the {alive} of {count} members that did not diverge")  # fmt: skip
+    return f" over {over}; best {named} at {means[best]:.1f}"
 
 
 def _progress_bar(total: int, completed: int, console: Any) -> tuple[Any, Any]:

@@ -441,6 +441,8 @@ def _mistyped(out: str) -> dict[tuple[str, ...], str]:
         ("export", "my runs/x"):
             "td3-jax export needs --run, --format (as a flag: --run 'my runs/x'; see td3-jax "
             "export --help)",
+        ("eval", "runs/a", "runs/b"):  # (eval takes one run: the first word)
+            "td3-jax eval needs --run (as a flag: --run runs/a; see td3-jax eval --help)",
         ("plot", "runs/a", "runs/b"):
             "td3-jax plot needs --run (as a flag: --run runs/a runs/b; see td3-jax plot --help)",
         ("train", "--num-envs", "many", "--out", out):

@@ -33,14 +33,23 @@ def test_a_sweeps_evaluation_file_holds_each_member_and_each_setting_best_first(
     assert alive["eval_return_mean"] == pytest.approx(returns.mean())
     assert alive["eval_return_std"] == pytest.approx(returns.std())
     assert (alive["eval_return_min"], alive["eval_return_max"]) == (returns.min(), returns.max())
+    assert (alive["label"], gone["label"]) == ("critic_lr=0.001 seed=7", "critic_lr=1e+30 seed=7")
     best, last = written["per_setting"]
     assert best["settings"] == {"critic_lr": 1e-3} and last["settings"] == {"critic_lr": 1e30}
     assert (best["seeds"], best["diverged"], last["diverged"]) == (1, 0, 1)
-    assert best["mean"] == pytest.approx(alive["eval_return_mean"]) and "mean" not in last
+    assert best["eval_return_mean"] == pytest.approx(alive["eval_return_mean"])
+    assert best["interval"] is None and best["eval_return_ci95_low"] is None  # (one seed)
+    assert "eval_return_mean" not in last
+    code, _, err = main(["eval", "--run", str(out), "--json", str(out / "config.json")], capsys)
+    assert_one_line_error(code, err, "is inside the run's folder")
 
 
-def test_an_unwritable_json_path_is_refused_before_the_evaluation(tmp_path, capsys):
-    path = tmp_path / "no such folder" / "eval.json"
+@pytest.mark.parametrize(("where", "message"), [
+    ("no such folder/eval.json", "cannot write it"), ("a folder", "is not a plain file")])
+def test_an_unwritable_json_path_is_refused_before_the_evaluation(where, message, tmp_path,
+                                                                  capsys):  # fmt: skip
+    (tmp_path / "a folder").mkdir()
+    path = tmp_path / where
     code, _, err = main(["eval", "--run", str(tmp_path / "missing"), "--json", str(path)],
                         capsys)  # fmt: skip
-    assert_one_line_error(code, err, f"--json {path}: cannot write it")
+    assert_one_line_error(code, err, f"--json {path}", message)

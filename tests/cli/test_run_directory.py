@@ -116,3 +116,17 @@ def test_the_command_refuses_in_one_line(args, message, tmp_path, capsys):
     code, _, err = main(["train", *args], capsys)
     assert_one_line_error(code, err, message)
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_file_named_runs_is_one_line_naming_out(tmp_path, capsys):
+    (tmp_path / "runs").write_text("not a folder")
+    code, _, err = main(["train", *TINY_FLAGS], capsys)
+    assert_one_line_error(code, err, "cannot make a folder for the run in runs/",
+                          "give one with --out DIR")  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["train", "sweep"])
+def test_a_resumes_help_is_the_help(command, capsys):
+    code, out, err = main([command, "--resume", "--help"], capsys)
+    assert code == 0, err
+    assert out.startswith(f"usage: td3-jax {command}") and "--out" in out
