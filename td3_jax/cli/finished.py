@@ -57,9 +57,9 @@ def eval_main(args: list[str]) -> None:
         "the run's own evaluations)"
     )
     diverged = set(meta.get("diverged_members", []))
-    rows = [((m.label() or f"seed={m.seed}") + (" (diverged)" if i in diverged else ""),
-             None if i in diverged else returns[i])
-            for i, m in enumerate(population)]  # fmt: skip
+    labelled = [(m.label() or f"seed={m.seed}", None if i in diverged else returns[i])
+                for i, m in enumerate(population)]  # fmt: skip
+    rows = [(label + (" (diverged)" if r is None else ""), r) for label, r in labelled]
     alive = [i for i in range(len(population)) if i not in diverged]
     swept = any(member.overrides for member in population)
     pooled = population_stats(returns[alive]) if len(alive) > 1 and not swept else None
@@ -70,8 +70,6 @@ def eval_main(args: list[str]) -> None:
     if command.json is not None:
         from td3_jax.runner.logger import write_atomically  # lazy: imports JAX
 
-        labelled = [(m.label() or f"seed={m.seed}", returns[i] if i not in diverged else None)
-                    for i, m in enumerate(population)]  # fmt: skip
         written = evaluation_json(command, cfg, meta["env_steps"], labelled, pooled,
                                   ranking if swept else None)  # fmt: skip
         write_atomically(command.json, json.dumps(written, indent=2) + "\n")

@@ -14,11 +14,13 @@ from pathlib import Path
 from td3_jax.cli.argv import flag_name, flag_values, joins_others
 from td3_jax.config.schema import ConfigError, TrainConfig
 
-__all__ = ["RUNS_FOLDER", "new_run_directory", "out_chosen_note", "remove_if_empty",
-           "with_run_directory"]  # fmt: skip
+__all__ = ["RESUME_NEEDS_OUT", "RUNS_FOLDER", "new_run_directory", "out_chosen_note",
+           "remove_if_empty", "with_run_directory"]  # fmt: skip
 
 #: The folder that holds the runs started without ``--out``.
 RUNS_FOLDER = Path("runs")
+#: What a ``--resume`` without ``--out`` is told.
+RESUME_NEEDS_OUT = "--resume continues the run in --out DIR: name it with --out"
 #: Where a run started without ``--out`` went before each got a folder of its own.
 _FORMER_DEFAULT = RUNS_FOLDER / "latest"
 
@@ -36,7 +38,7 @@ def with_run_directory(args: list[str], now: float | None = None) -> tuple[list[
         former = (f"; {shlex.join(['--out', str(_FORMER_DEFAULT)])} for the run an earlier "
                   "td3-jax wrote without it" if (_FORMER_DEFAULT / "config.json").exists()
                   else "")  # fmt: skip
-        raise ConfigError(f"--resume continues the run in --out DIR: name it with --out{former}")
+        raise ConfigError(RESUME_NEEDS_OUT + former)
     if joins_others(args):
         raise ConfigError("this process joins others of one run, which write one folder: give "
                           "each the same --out DIR")  # fmt: skip

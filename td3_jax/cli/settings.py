@@ -9,6 +9,7 @@ import dataclasses
 from pathlib import Path
 
 from td3_jax.cli.argv import flag_value, given_fields
+from td3_jax.cli.run_folder import RESUME_NEEDS_OUT
 from td3_jax.config.presets import device_defaults, env_preset, preset
 from td3_jax.config.schema import ConfigError, TrainConfig
 
@@ -29,7 +30,7 @@ def base_config(args: list[str]) -> tuple[TrainConfig, str | None, str]:
         if not out:  # (the command names it: run_folder.with_run_directory; --help shows
             if {"-h", "--help"} & set(args):  # the flags over the defaults)
                 return TrainConfig(), None, "resume"
-            raise ConfigError("--resume continues the run in --out DIR: name it with --out")
+            raise ConfigError(RESUME_NEEDS_OUT)
         if name:
             _check_resumed_preset(name, Path(out))
         if (Path(out) / CONFIG_FILE).exists():

@@ -72,13 +72,10 @@ def ranked_settings(per_member: list[dict]) -> list[tuple[tuple, int, int, dict 
     import numpy as np  # lazy: NumPy, only for a table
 
     from td3_jax.core import stats  # lazy: NumPy, only for a table
+    from td3_jax.runner.logger import returns_by_setting  # lazy: imports JAX
 
-    groups: dict[tuple, list[float | None]] = {}
-    for member in per_member:
-        setting = tuple(sorted(member.get("settings", {}).items()))
-        groups.setdefault(setting, []).append(member["eval_return_mean"])
     rows = []
-    for setting, returns in groups.items():
+    for setting, returns in returns_by_setting(per_member).items():
         finite = np.asarray([r for r in returns if r is not None], np.float64)
         summary = stats.summary(finite) if finite.size else None
         rows.append((setting, len(returns), len(returns) - finite.size, summary))

@@ -25,6 +25,7 @@ __all__ = [
     "evaluated_steps",
     "is_return",
     "read_metrics",
+    "returns_by_setting",
     "write_atomically",
 ]
 
@@ -263,6 +264,17 @@ def evaluated_steps(record: dict) -> int:
     evaluation inside the chunk those of its round's policy (once a round has finished)."""
     policy = record.get("eval_policy_env_steps", -1)
     return int(policy) if policy is not None and policy >= 0 else int(record["env_steps"])
+
+
+def returns_by_setting(per_member: list[dict]) -> dict[tuple, list[float | None]]:
+    """A record's ``per_member`` grouped by swept setting: its sorted ``(name, value)`` pairs
+    (``()`` for seeds alone), in the order the settings first appear, to its members' mean
+    returns (None, or not finite, where a member diverged)."""
+    groups: dict[tuple, list[float | None]] = {}
+    for member in per_member:
+        setting = tuple(sorted((member.get("settings") or {}).items()))
+        groups.setdefault(setting, []).append(member.get("eval_return_mean"))
+    return groups
 
 
 def is_return(key: str) -> bool:

@@ -53,7 +53,7 @@ from td3_jax.runner import programs, tracking
 from td3_jax.runner.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.runner.critic_growth import growth_warning
 from td3_jax.runner.curves import plot_curve
-from td3_jax.runner.logger import MetricsLogger
+from td3_jax.runner.logger import MetricsLogger, returns_by_setting
 from td3_jax.runner.memory import working_bytes
 from td3_jax.runner.programs import Programs, Source
 from td3_jax.runner.rundir import (
@@ -975,12 +975,8 @@ def _best_setting(record: dict) -> str:
     record's mean is over the members that did not diverge: ``over the 3 of 4 members that
     did not diverge``; the best setting has the highest mean of its members among those), else
     nothing: the record's mean pools different settings."""
-    groups: dict[tuple, list[float]] = {}
-    for member in record.get("per_member") or []:
-        setting = tuple(sorted((member.get("settings") or {}).items()))
-        value = member.get("eval_return_mean")
-        finite = value is not None and math.isfinite(value)
-        groups.setdefault(setting, []).extend([value] if finite else [])
+    groups = {setting: [r for r in returns if r is not None and math.isfinite(r)]
+              for setting, returns in returns_by_setting(record.get("per_member") or []).items()}
     means = {setting: sum(v) / len(v) for setting, v in groups.items() if v and setting}
     if not means:
         return ""
