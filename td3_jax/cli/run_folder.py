@@ -23,6 +23,9 @@ RUNS_FOLDER = Path("runs")
 RESUME_NEEDS_OUT = "--resume continues the run in --out DIR: name it with --out"
 #: Where a run started without ``--out`` went before each got a folder of its own.
 _FORMER_DEFAULT = RUNS_FOLDER / "latest"
+#: The folders of runs that :func:`new_run_directory` made (not there before), so that
+#: :func:`remove_if_empty` leaves none of them behind empty.
+_MADE_FOLDERS: set[Path] = set()
 
 
 def with_run_directory(args: list[str], now: float | None = None) -> tuple[list[str], Path | None]:
@@ -69,7 +72,11 @@ def new_run_directory(name: str, folder: Path, now: float | None = None) -> Path
     run, even one started in the same second)."""
     label = re.sub(r"[^A-Za-z0-9._-]+", "-", name)[:60].strip("-.") or "run"
     stem = f"{label}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}"
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True)
+        _MADE_FOLDERS.add(folder.absolute())
+    except FileExistsError:
+        pass  # (there before, or made by a run started beside this one)
     path, count = folder / stem, 1
     while True:
         try:
@@ -81,7 +88,13 @@ def new_run_directory(name: str, folder: Path, now: float | None = None) -> Path
 
 
 def remove_if_empty(path: Path | None) -> None:
-    """Removes the folder ``path`` where it holds nothing (a run refused before writing)."""
-    if path is not None:
-        with contextlib.suppress(OSError):
-            os.rmdir(path)
+    """Removes the folder ``path`` where it holds nothing (a run refused before writing), and
+    its parent where :func:`new_run_directory` made that and it is then empty too."""
+    if path is None:
+        return
+    with contextlib.suppress(OSError):
+        os.rmdir(path)
+        made = path.parent.absolute()
+        if made in _MADE_FOLDERS:
+            _MADE_FOLDERS.discard(made)
+            os.rmdir(made)

@@ -105,6 +105,13 @@ def test_two_runs_in_one_second_write_two_folders_and_say_where(tmp_path, monkey
 def test_a_refused_run_leaves_no_folder(tmp_path, capsys):
     code, _, err = main(["train", *TINY_FLAGS, "--batch-size", "0"], capsys)
     assert code == 2, err
+    assert not (tmp_path / "runs").exists()  # (made for the run, so removed with it)
+
+
+def test_a_refused_run_keeps_a_runs_folder_that_was_there(tmp_path, capsys):
+    (tmp_path / "runs").mkdir()
+    code, _, err = main(["train", *TINY_FLAGS, "--batch-size", "0"], capsys)
+    assert code == 2, err
     assert list((tmp_path / "runs").iterdir()) == []
 
 
