@@ -84,13 +84,13 @@ def main(subcommand: str, args: list[str]) -> None:
 
     count = asked_count(args)
     assert count is not None, f"{FLAG} not in {args}"
-    check_local_processes(count, args)  # (its own refusals before a folder is made)
+    gpus = check_local_processes(count, args)  # (its own refusals before a folder is made)
     args, chosen_out = with_run_directory(args)  # (one folder for all of them)
     if chosen_out is not None:
         print(out_chosen_note(chosen_out), flush=True)
     status = 1
     try:
-        status = run_local_processes(subcommand, args, count)
+        status = run_local_processes(subcommand, args, count, gpus)
     finally:
         if status:
             remove_if_empty(chosen_out)  # (refused or stopped before writing anything)
@@ -174,14 +174,17 @@ def process_env(gpu: str | None, count: int) -> dict[str, str]:
     return env
 
 
-def run_local_processes(subcommand: str, args: list[str], count: int) -> int:
+def run_local_processes(subcommand: str, args: list[str], count: int,
+                        gpus: list[str] | None = None) -> int:  # fmt: skip
     """Runs ``td3-jax SUBCOMMAND ARGS`` as ``count`` processes of this host and returns the exit
     status: 0 when all end with 0, else the first failure's (the others stopped, if they do
     not end by themselves within :data:`GRACE_S`). The first process's output is this one's;
     another's is shown only where it ended otherwise than the first (its own failure). The
     processes get this one's SIGINT, SIGTERM and SIGHUP (as SIGTERM), and a SIGTERM when it
-    ends before them (Linux), so none is left running without it."""
-    gpus = check_local_processes(count, args)
+    ends before them (Linux), so none is left running without it. ``gpus``: what
+    :func:`check_local_processes` gave for these flags (default: it is asked now)."""
+    if gpus is None:
+        gpus = check_local_processes(count, args)
     port = free_port()
     where = f"one per GPU ({', '.join(gpus)})" if gpus else "on this host's CPU (no GPU found)"
     print(f"td3-jax: starting {count} processes {where}, joined at 127.0.0.1:{port}", flush=True)

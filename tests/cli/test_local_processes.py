@@ -574,7 +574,7 @@ def test_the_command_starts_its_processes_before_importing_jax(tmp_path):
     assert note.startswith("no --out given: the run goes to runs/t1-"), out.stderr
     chosen = note.rsplit(" ", 1)[1]  # (one folder for all the processes, chosen here)
     assert rest == [
-        f"launched sweep ['--preset', 't1', '--local-processes', '2', '--out', '{chosen}'] 2",
+        f"launched sweep ['--preset', 't1', '--local-processes', '2', '--out', '{chosen}'] 2 []",
         "exit 0", "jax imported: False"], out.stderr  # fmt: skip
     assert (tmp_path / chosen).is_dir()
 
