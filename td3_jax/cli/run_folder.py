@@ -23,9 +23,9 @@ RUNS_FOLDER = Path("runs")
 RESUME_NEEDS_OUT = "--resume continues the run in --out DIR: name it with --out"
 #: Where a run started without ``--out`` went before each got a folder of its own.
 _FORMER_DEFAULT = RUNS_FOLDER / "latest"
-#: The folders of runs that :func:`new_run_directory` made (not there before), so that
-#: :func:`remove_if_empty` leaves none of them behind empty.
-_MADE_FOLDERS: set[Path] = set()
+#: Each folder :func:`new_run_directory` made, as it was returned: its absolute path and the
+#: folder of runs where that was made for it (else None), for :func:`remove_if_empty`.
+_MADE: dict[Path, tuple[Path, Path | None]] = {}
 
 
 def with_run_directory(args: list[str], now: float | None = None) -> tuple[list[str], Path | None]:
@@ -69,32 +69,43 @@ def new_run_directory(name: str, folder: Path, now: float | None = None) -> Path
     """Makes and returns ``folder/NAME-YYYYmmdd-HHMMSS`` (local time ``now``, default the
     present), ``NAME`` being ``name`` (a preset, an environment) in letters, digits, ``.``,
     ``_`` and ``-``; ``-2``, ``-3``, ... after it where that folder exists (made by another
-    run, even one started in the same second)."""
+    run, even one started in the same second). ``folder`` is made where it is missing, again
+    where a run refused beside this one removes it meanwhile."""
     label = re.sub(r"[^A-Za-z0-9._-]+", "-", name)[:60].strip("-.") or "run"
     stem = f"{label}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}"
-    try:
-        folder.mkdir(parents=True)
-        _MADE_FOLDERS.add(folder.absolute())
-    except FileExistsError:
-        pass  # (there before, or made by a run started beside this one)
+    made = _make_folder(folder)
     path, count = folder / stem, 1
     while True:
         try:
             path.mkdir()
-            return path
         except FileExistsError:
             count += 1
             path = folder / f"{stem}-{count}"
+            continue
+        except FileNotFoundError:  # (folder removed by a refused run started beside this one)
+            made = _make_folder(folder) or made
+            continue
+        _MADE[path] = (path.absolute(), folder.absolute() if made else None)
+        return path
+
+
+def _make_folder(folder: Path) -> bool:
+    """Makes ``folder`` (and its parents); False where it was there already."""
+    try:
+        folder.mkdir(parents=True)
+    except FileExistsError:
+        return False
+    return True
 
 
 def remove_if_empty(path: Path | None) -> None:
     """Removes the folder ``path`` where it holds nothing (a run refused before writing), and
-    its parent where :func:`new_run_directory` made that and it is then empty too."""
+    the folder of runs where :func:`new_run_directory` made it for ``path`` and it is then
+    empty too."""
     if path is None:
         return
+    run, made = _MADE.pop(path, (path, None))
     with contextlib.suppress(OSError):
-        os.rmdir(path)
-        made = path.parent.absolute()
-        if made in _MADE_FOLDERS:
-            _MADE_FOLDERS.discard(made)
+        os.rmdir(run)
+        if made is not None:
             os.rmdir(made)

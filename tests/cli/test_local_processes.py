@@ -551,32 +551,49 @@ def test_a_count_that_is_not_a_number_is_refused_in_one_line(args, message):
 
 _CHECKOUT = os.path.dirname(os.path.dirname(os.path.abspath(td3_jax.__file__)))
 _LAUNCH_ALONE = """
+import os
 import sys
 from td3_jax.cli import app, local_processes
-local_processes.run_local_processes = lambda *a: print("launched", *a) or 0
+asked = []
+listed = local_processes.local_gpus
+local_processes.local_gpus = lambda: asked.append(1) or listed()
+status = int(os.environ.get("FAKE_STATUS", "0"))
+local_processes.run_local_processes = lambda *a: print("launched", *a) or status
 try:
     app.main(sys.argv[1:])
 except SystemExit as end:
     print("exit", end.code)
-print("jax imported:", "jax" in sys.modules)
+print("jax imported:", "jax" in sys.modules, "GPUs asked:", len(asked))
 """
 
 
 def test_the_command_starts_its_processes_before_importing_jax(tmp_path):
     """The launching process imports neither JAX nor any environment (seconds that each
     process would wait for it); the processes check the flags themselves. Without --out it
-    makes one folder for them all."""
+    makes one folder for them all, and asks for the host's GPUs once."""
     out = subprocess.run([sys.executable, "-c", _LAUNCH_ALONE, "sweep", "--preset", "t1",
                           "--local-processes", "2"], capture_output=True, text=True,
                          timeout=120, cwd=tmp_path,
-                         env={**os.environ, "PYTHONPATH": _CHECKOUT})  # fmt: skip
+                         env={**os.environ, "PYTHONPATH": _CHECKOUT,
+                              "CUDA_VISIBLE_DEVICES": "3,5"})  # fmt: skip
     note, *rest = out.stdout.splitlines()
     assert note.startswith("no --out given: the run goes to runs/t1-"), out.stderr
     chosen = note.rsplit(" ", 1)[1]  # (one folder for all the processes, chosen here)
     assert rest == [
-        f"launched sweep ['--preset', 't1', '--local-processes', '2', '--out', '{chosen}'] 2 []",
-        "exit 0", "jax imported: False"], out.stderr  # fmt: skip
+        f"launched sweep ['--preset', 't1', '--local-processes', '2', '--out', '{chosen}'] 2 "
+        "['3', '5']", "exit 0", "jax imported: False GPUs asked: 1"], out.stderr  # fmt: skip
     assert (tmp_path / chosen).is_dir()
+
+
+def test_processes_that_refuse_leave_no_folder(tmp_path):
+    """Processes that end with a refusal (status 2) before writing: the folder chosen for them
+    goes, with the runs/ made for it."""
+    out = subprocess.run([sys.executable, "-c", _LAUNCH_ALONE, "train", "--local-processes",
+                          "2"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         env={**os.environ, "PYTHONPATH": _CHECKOUT, "FAKE_STATUS": "2",
+                              "CUDA_VISIBLE_DEVICES": "0,1"})  # fmt: skip
+    assert "exit 2" in out.stdout.splitlines(), out.stderr
+    assert not (tmp_path / "runs").exists()
 
 
 def test_its_help_is_the_subcommands_and_a_bad_count_one_line(capsys):

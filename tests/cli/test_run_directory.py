@@ -108,6 +108,30 @@ def test_a_refused_run_leaves_no_folder(tmp_path, capsys):
     assert not (tmp_path / "runs").exists()  # (made for the run, so removed with it)
 
 
+def test_an_earlier_runs_made_folder_is_not_removed_by_a_later_refused_run(tmp_path, capsys):
+    """A runs/ made for an earlier run of this process is there before the next one."""
+    _, out = run_folder.with_run_directory([], MOMENT)
+    out.rmdir()  # (that run's folder gone, runs/ left empty)
+    code, _, err = main(["train", *TINY_FLAGS, "--batch-size", "0"], capsys)
+    assert code == 2, err
+    assert (tmp_path / "runs").is_dir()
+
+
+def test_a_runs_folder_removed_meanwhile_is_made_again(tmp_path, monkeypatch):
+    """Another run's removal of runs/ between this one's look and its mkdir."""
+    real, calls = run_folder._make_folder, []
+
+    def already_there_then_real(folder):
+        calls.append(folder)
+        return False if len(calls) == 1 else real(folder)  # (first: "there", made by no one)
+
+    monkeypatch.setattr(run_folder, "_make_folder", already_there_then_real)
+    out = run_folder.new_run_directory("t1", tmp_path / "runs", MOMENT)
+    assert out == tmp_path / "runs" / f"t1-{STAMP}" and out.is_dir() and len(calls) == 2
+    run_folder.remove_if_empty(out)
+    assert not (tmp_path / "runs").exists()  # (made by this run the second time)
+
+
 def test_a_refused_run_keeps_a_runs_folder_that_was_there(tmp_path, capsys):
     (tmp_path / "runs").mkdir()
     code, _, err = main(["train", *TINY_FLAGS, "--batch-size", "0"], capsys)
