@@ -65,6 +65,7 @@ from td3_jax.runner.rundir import (
     check_total_steps_reach,
     check_unedited,
     checkpoint_steps,
+    ended_before_recording,
     environment_record,
     eval_every_as_saved,
     fixed_settings,
@@ -850,12 +851,20 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int,
     except CheckpointWriteError as err:  # the write before this chunk failed as well
         last, failed = run.checkpointer.latest_step(), f"; also, {err}"
     kept = _kept_checkpoint(run, last)
-    again = "" if last else (f"; {run.out_dir} holds none to resume: remove it (or choose "
-                             "another --out) to start again, with other settings")  # fmt: skip
+    again = "" if last else f"; {run.out_dir} holds none to resume: {_starting_again(run)}"
     who = lambda i: f" ({population[i].label()})" if len(population) > 1 else ""
     described = "; ".join(", ".join(names) + who(i) for i, names in bad.items())
     raise NonFiniteError(f"non-finite {described} in the chunk ending at env step {env_steps}; "
                          f"stopped, {kept}{failed}{again}")  # fmt: skip
+
+
+def _starting_again(run: Any) -> str:
+    """How a run stopped before its first checkpoint starts again with other settings: in its
+    folder where it wrote no record yet (a fresh run replaces what is there), else after
+    moving the folder away."""
+    if ended_before_recording(run.out_dir):
+        return "with no record written either, a run of other settings may start there"
+    return "remove it (or choose another --out) to start again, with other settings"
 
 
 def _kept_checkpoint(run: _Run, last: int | None) -> str:

@@ -473,14 +473,25 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True,
     lock = acquire_lock(out_dir)
     if not resume:
         try:
-            if check_fresh(out_dir, locked=True, run=run):
-                clear_outputs(out_dir)
-                print(f"td3-jax: starting over in {out_dir}: the run of these settings there "
-                      "stopped before its first checkpoint", flush=True)  # fmt: skip
+            _start_over(out_dir, check_fresh(out_dir, locked=True, run=run))
         except BaseException:
             lock.unlock()
             raise
     return lock
+
+
+def _start_over(out_dir: Path, same_run: bool) -> None:
+    """Removes, with a line that says so, the outputs a fresh run may replace in ``out_dir``:
+    those of the same run stopped before its first checkpoint (``same_run``), or of any run
+    that ended before its first record (:func:`ended_before_recording`)."""
+    if same_run:
+        why = "the run of these settings there stopped before its first checkpoint"
+    elif previous_outputs(out_dir) and ended_before_recording(out_dir):
+        why = "the run there ended before its first record"
+    else:
+        return
+    clear_outputs(out_dir)
+    print(f"td3-jax: starting over in {out_dir}: {why}", flush=True)
 
 
 #: What to do with a directory that holds a run's outputs but no checkpoint: a fresh run is

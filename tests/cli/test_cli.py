@@ -1231,11 +1231,39 @@ def test_divergence_before_the_first_checkpoint_says_how_to_start_again(
     assert code == 3 and "Traceback" not in err, err
     assert err.strip().splitlines()[-1] == (
         "td3-jax: error: non-finite critic_loss in the chunk ending at env step 64; stopped, no "
-        f"checkpoint had been written yet; {out} holds none to resume: remove it (or choose "
-        "another --out) to start again, with other settings"
+        f"checkpoint had been written yet; {out} holds none to resume: with no record written "
+        "either, a run of other settings may start there"
     )
     code, _, err = main(["train", "--resume", "--out", str(out), "--quiet"], capsys)
     assert_one_line_error(code, err, "has no checkpoint")
+    code, stdout, err = main(["train", *TINY_FLAGS, "--actor-lr", "1e-4", "--out", str(out),
+                              "--quiet"], capsys)  # fmt: skip
+    assert code == 0, err
+    assert f"starting over in {out}: the run there ended before its first record" in stdout
+    assert json.loads((out / "config.json").read_text())["actor_lr"] == 1e-4
+
+
+def test_divergence_after_a_record_says_to_move_the_folder_away(tmp_path, capsys, monkeypatch):
+    """A run that recorded something before it diverged keeps its records: a fresh run of
+    other settings is refused there until the folder is moved away."""
+    calls = []
+
+    def second_chunk_diverges(metrics, i, finite=None):
+        calls.append(i)
+        return ["critic_loss"] if len(calls) > 1 else []
+
+    monkeypatch.setattr(run_module, "_nonfinite", second_chunk_diverges)
+    out = tmp_path / "run"
+    code, _, err = main(["train", *TINY_FLAGS, "--eval-every", "32", "--checkpoint-every", "3",
+                         "--out", str(out), "--quiet"], capsys)  # fmt: skip
+    monkeypatch.undo()
+    assert code == 3, err
+    assert err.strip().splitlines()[-1].endswith(
+        "no checkpoint had been written yet; "
+        f"{out} holds none to resume: remove it (or choose another --out) to start again, with "
+        "other settings")  # fmt: skip
+    code, _, err = main(["train", *TINY_FLAGS, "--actor-lr", "1e-4", "--out", str(out)], capsys)
+    assert_one_line_error(code, err, "holds a previous run's outputs")
     shutil.rmtree(out)
     code, _, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
     assert code == 0, err
