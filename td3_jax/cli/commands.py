@@ -171,7 +171,8 @@ class EvalCommand:
     """Also write what the tables show to this JSON file, outside the run's folder: each
     member's episode returns with their mean, std, min and max, the statistics over members
     (none for one; a sweep's per setting, best first), the checkpoint's env steps and the
-    evaluation's seed (default: no file)."""
+    evaluation's seed. A file there already is replaced only where td3-jax eval wrote it
+    (default: no file)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -86,6 +86,9 @@ def _check_writable(path: Path, run: Path) -> None:
         raise ConfigError(f"--json {path} is inside the run's folder {run}: write it elsewhere")
     if target.exists() and not target.is_file():
         raise ConfigError(f"--json {path} is not a plain file: give a file's path")
+    if target.exists() and not _written_by_eval(target):
+        raise ConfigError(f"--json {path} exists and is not an evaluation td3-jax eval wrote: "
+                          "remove it or choose another name")  # fmt: skip
     try:
         probe_write(path)
         probe_write(path.with_name(path.name + ".tmp"))
@@ -118,6 +121,21 @@ def evaluation_json(command: EvalCommand, cfg: Any, env_steps: int, members: lis
         "run": str(command.run), "env": cfg.env, "algo": cfg.algo, "env_steps": env_steps,
         "episodes": command.episodes, "seed": command.seed, "members": rows,
         "over_members": pooled, "per_setting": settings})  # fmt: skip
+
+
+#: The keys of every file :func:`evaluation_json` writes.
+_EVALUATION_KEYS = frozenset({"run", "env", "algo", "env_steps", "episodes", "seed", "members",
+                              "over_members", "per_setting"})  # fmt: skip
+
+
+def _written_by_eval(path: Path) -> bool:
+    """Whether ``path`` holds what ``td3-jax eval --json`` writes (a JSON object of its keys),
+    which a later evaluation may replace."""
+    try:
+        found = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(found, dict) and set(found) == _EVALUATION_KEYS
 
 
 def _named_summary(summary: dict | None, finite: int) -> dict[str, Any]:

@@ -42,6 +42,10 @@ def test_a_sweeps_evaluation_file_holds_each_member_and_each_setting_best_first(
     assert "eval_return_mean" not in last
     code, _, err = main(["eval", "--run", str(out), "--json", str(out / "config.json")], capsys)
     assert_one_line_error(code, err, "is inside the run's folder")
+    code, _, err = main(["eval", "--run", str(out), "--episodes", "2", "--json", str(path)],
+                        capsys)  # fmt: skip
+    assert code == 0, err  # (an evaluation's file is replaced by the next)
+    assert json.loads(path.read_text())["episodes"] == 2
 
 
 @pytest.mark.parametrize(("where", "message"), [
@@ -53,3 +57,13 @@ def test_an_unwritable_json_path_is_refused_before_the_evaluation(where, message
     code, _, err = main(["eval", "--run", str(tmp_path / "missing"), "--json", str(path)],
                         capsys)  # fmt: skip
     assert_one_line_error(code, err, f"--json {path}", message)
+
+
+@pytest.mark.parametrize("held", ["my notes\n", "{}\n", '{"members": []}\n'])
+def test_a_file_eval_did_not_write_is_refused_and_kept(held, tmp_path, capsys):
+    path = tmp_path / "notes.json"
+    path.write_text(held)
+    code, _, err = main(["eval", "--run", str(tmp_path / "missing"), "--json", str(path)],
+                        capsys)  # fmt: skip
+    assert_one_line_error(code, err, f"--json {path} exists and is not an evaluation")
+    assert path.read_text() == held
