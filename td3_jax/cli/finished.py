@@ -51,10 +51,10 @@ def eval_main(args: list[str]) -> None:
         _check_writable(command.json, command.run)  # (before the evaluation, not after it)
     with filtered_stderr():  # (XLA's slow-compile alarm: a robot's evaluation on a CPU)
         cfg, population, meta, returns = evaluate_run(command.run, command.episodes, command.seed)
+    episodes = f"{command.episodes} episode" + ("s" if command.episodes != 1 else "")
     title = (
-        f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, "
-        f"{command.episodes} episodes each, evaluation seed {command.seed} (not the episodes of "
-        "the run's own evaluations)"
+        f"{cfg.algo} on {cfg.env} after {meta['env_steps']} env steps, {episodes} each, "
+        f"evaluation seed {command.seed} (not the episodes of the run's own evaluations)"
     )
     diverged = set(meta.get("diverged_members", []))
     labelled = [(m.label() or f"seed={m.seed}", None if i in diverged else returns[i])

@@ -264,10 +264,11 @@ def members_note(last: dict, sweeping: bool = False) -> str:
     """What the ± of the done line of a run of several members is over (the spread of their
     mean returns): `` over 4 seeds``, a sweep's `` over all 4 members (per setting below)``,
     and, where some diverged, that only the others count and how many did not (``last``: the
-    run's last record, its ``members`` and ``diverged_members``); for a run of one seed
-    outside a sweep, `` over its evaluation episodes``."""
+    run's last record, its ``members`` and ``diverged_members``); for a run of one member
+    (a sweep of one setting too, which has no table per setting), `` over its evaluation
+    episodes``."""
     count = last["members"]
-    if count == 1 and not sweeping:
+    if count == 1:
         return " over its evaluation episodes"
     unit = "member" if sweeping else "seed"
     diverged = len(last.get("diverged_members") or [])

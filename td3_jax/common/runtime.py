@@ -14,6 +14,7 @@ import _thread
 import contextlib
 import importlib.util
 import logging
+import math
 import os
 import signal
 import sys
@@ -301,10 +302,10 @@ def stop_signals(
     ``stop`` (so the run stops at its next chunk boundary even where Python discards that
     exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a kill) sets
     ``stop`` alone, so the chunk in flight finishes and is checkpointed before the run stops.
-    A second signal of either kind ends the process at once, except a SIGTERM within
-    :data:`REPEAT_SIGTERM_S` of the first: GNU ``timeout`` signals its child and then its own
-    process group, so one request arrives twice. The signals received are appended to
-    ``received``; ``say``: whether this process prints (several processes: one speaks).
+    A second signal of either kind ends the process at once, except the same signal within
+    :data:`REPEAT_SIGNAL_S` of the first: GNU ``timeout`` (``-s INT`` too) signals its child
+    and then its own process group, so one request arrives twice. The signals received are
+    appended to ``received``; ``say``: whether this process prints (several processes: one speaks).
     ``aftermath(cause)``: the line said when a second signal ends the process (what it leaves
     behind: the newest checkpoint, how to resume); default: ``cause`` alone. ``several``: a
     process of a several-process run, where a first Ctrl-C sets ``stop`` alone too, so that
@@ -377,8 +378,9 @@ class _Rearm:
             pass
 
 
-#: Seconds after a SIGTERM in which another SIGTERM is the same request, delivered twice.
-REPEAT_SIGTERM_S = 0.5
+#: Seconds after a SIGTERM or SIGINT in which the same signal again is the same request,
+#: delivered twice.
+REPEAT_SIGNAL_S = 0.5
 
 
 def _signal_handler(
@@ -392,7 +394,7 @@ def _signal_handler(
     """The SIGINT/SIGTERM handler of :func:`stop_signals`; ``rearm``: a discarded Ctrl-C that
     its next SIGINT raises again (:class:`_Rearm`); ``several``: a first Ctrl-C only sets
     ``stop``, as a SIGTERM does."""
-    first_sigterm: list[float] = []
+    first_at: dict[int, float] = {}  # (when each signal first came)
     rearm = _Rearm() if rearm is None else rearm
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -400,8 +402,8 @@ def _signal_handler(
             if not rearm.closed:
                 raise KeyboardInterrupt
             return
-        repeat = signum == signal.SIGTERM and first_sigterm
-        if repeat and time.monotonic() - first_sigterm[0] < REPEAT_SIGTERM_S:
+        since = time.monotonic() - first_at.get(signum, -math.inf)
+        if stop.is_set() and since < REPEAT_SIGNAL_S:
             return  # the same request delivered twice (timeout: child, then process group)
         if stop.is_set():
             if say:
@@ -409,8 +411,8 @@ def _signal_handler(
             os._exit(128 + signum)
         received.append(signum)
         stop.set()
+        first_at[signum] = time.monotonic()
         if signum == signal.SIGTERM:
-            first_sigterm.append(time.monotonic())
             if say:
                 print(f"td3-jax: terminated (SIGTERM): {_what_stopping_does(stop)} (SIGTERM "
                       "again to stop at once)", file=sys.stderr, flush=True)  # fmt: skip

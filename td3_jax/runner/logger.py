@@ -224,20 +224,21 @@ def _summary_writer_class() -> type:
 def read_metrics(path: Path, warn: bool = True) -> list[dict[str, Any]]:
     """The records of a ``metrics.jsonl`` (an empty list when there is none yet).
 
-    A last line cut short (a run killed, or a disk that filled, while appending it) is left
-    out (with a warning where ``warn``); any other line that is not JSON raises
-    :class:`~td3_jax.config.schema.ConfigError`.
+    A last line cut short (a run killed, or a disk that filled, while appending it: no line
+    end after it, as a record's own comes last) is left out (with a warning where ``warn``);
+    any other line that is not JSON raises :class:`~td3_jax.config.schema.ConfigError`.
     """
     path = Path(path)
     if not path.exists():
         return []
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    text = path.read_text()
+    lines = [line for line in text.splitlines() if line.strip()]
     records = []
     for number, line in enumerate(lines, start=1):
         try:
             records.append(json.loads(line))
         except json.JSONDecodeError as err:
-            if number < len(lines):
+            if number < len(lines) or text.endswith("\n"):  # (a whole line: not cut short)
                 raise ConfigError(f"line {number} of {path} is not a JSON record ({err}); "
                                   "was the file edited? Repair or delete that "
                                   "line") from err  # fmt: skip

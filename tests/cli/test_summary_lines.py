@@ -30,7 +30,7 @@ def record(members: int, diverged: int = 0) -> dict:
         (4, 0, False, " over all 4 seeds"),
         (4, 1, False, " over the 3 seeds that did not diverge (1 of 4 diverged)"),
         (4, 0, True, " over all 4 members (per setting below)"),
-        (1, 0, True, " over its 1 member (per setting below)"),
+        (1, 0, True, " over its evaluation episodes"),  # (a sweep of one: no table)
         (2, 1, True, " over the 1 member that did not diverge (1 of 2 diverged" + BELOW),
         (6, 2, True, " over the 4 members that did not diverge (2 of 6 diverged" + BELOW),
     ],

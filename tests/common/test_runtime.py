@@ -181,7 +181,7 @@ def test_stop_signals_set_the_token_and_are_put_back(monkeypatch, capsys):
         assert stop.is_set() and received == [signal.SIGTERM] and exits == []
         signal.raise_signal(signal.SIGTERM)  # at once: timeout's second delivery, ignored
         assert exits == [] and received == [signal.SIGTERM]
-        time.sleep(runtime.REPEAT_SIGTERM_S + 0.1)
+        time.sleep(runtime.REPEAT_SIGNAL_S + 0.1)
         signal.raise_signal(signal.SIGTERM)
         assert exits == [128 + signal.SIGTERM]
     assert {s: signal.getsignal(s) for s in handlers} == handlers and sys.unraisablehook is hook
@@ -204,6 +204,9 @@ def test_in_several_processes_a_first_ctrl_c_sets_the_token_alone(monkeypatch, c
     with runtime.stop_signals(stop, received, say=True, several=True):
         signal.raise_signal(signal.SIGINT)
         assert stop.is_set() and received == [signal.SIGINT] and exits == []
+        signal.raise_signal(signal.SIGINT)  # at once: timeout -s INT's second delivery, ignored
+        assert exits == [] and received == [signal.SIGINT]
+        time.sleep(runtime.REPEAT_SIGNAL_S + 0.1)
         signal.raise_signal(signal.SIGINT)
         assert exits == [128 + signal.SIGINT]
     assert capsys.readouterr().err.startswith(
@@ -226,7 +229,7 @@ def test_a_second_signal_says_what_the_stop_leaves(monkeypatch, capsys):
     stop = runtime.StopToken()
     with pytest.raises(SystemExit) as ended, runtime.stop_signals(stop, [], aftermath=leaves):
         signal.raise_signal(signal.SIGTERM)
-        time.sleep(runtime.REPEAT_SIGTERM_S + 0.1)
+        time.sleep(runtime.REPEAT_SIGNAL_S + 0.1)
         signal.raise_signal(signal.SIGTERM)
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert ended.value.code == 128 + signal.SIGTERM

@@ -14,6 +14,8 @@ import types
 import pytest
 from support import tensorboard_events
 
+from td3_jax.config.schema import ConfigError
+
 # A process that logs one record, then finds the disk full: TensorBoard's flush fails.
 _FULL_DISK = textwrap.dedent(
     """
@@ -188,3 +190,22 @@ def test_two_writers_open_at_once_in_one_folder_each_keep_their_points(tmp_path,
         writer.close()
     points = _tensorboard_points(tmp_path)["critic_loss"]
     assert sorted(points) == [(8, 0.0), (8, 1.0), (16, 0.0), (16, 1.0)]
+
+
+@pytest.mark.parametrize(("tail", "cut_short"), [
+    ('{"env_steps": 64, "eval_ret', True),  # (no line end: an append cut short)
+    ("garbage\n", False),  # (a whole line that is not JSON: an edited file)
+    ('{"env_steps": 64\n', False),
+])  # fmt: skip
+def test_only_a_last_line_without_its_line_end_counts_as_cut_short(tail, cut_short, tmp_path,
+                                                                   capsys):  # fmt: skip
+    from td3_jax.runner.logger import read_metrics
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"env_steps": 32}\n' + tail)
+    if cut_short:
+        assert read_metrics(path) == [{"env_steps": 32}]
+        assert f"the last line of {path} is incomplete" in capsys.readouterr().err
+    else:
+        with pytest.raises(ConfigError, match=f"line 2 of {path} is not a JSON record"):
+            read_metrics(path)
