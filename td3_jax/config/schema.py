@@ -407,6 +407,8 @@ def unused_settings(cfg: TrainConfig) -> dict[str, str]:
         (("env_backend",), not cfg.env.startswith("brax/"), f"--env {cfg.env}"),
         (("actor_obs_key", "critic_obs_key"), cfg.env.startswith(("gymnax/", "brax/")),
          f"--env {cfg.env} (its observations are one array, not a dict)"),
+        (("menagerie",), cfg.env.startswith(("gymnax/", "brax/")),
+         f"--env {cfg.env} (it loads no robot)"),
         (("lr_final_fraction",), cfg.lr_schedule != "cosine", f"--lr-schedule {cfg.lr_schedule}"),
         *(((name,), getattr(cfg, name) is None, f"no {flag(name)} (that flag turns it on)")
           for name in SWITCHED_ON_BY_THEIR_FLAG),

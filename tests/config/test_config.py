@@ -452,7 +452,10 @@ def test_typed_flags_that_change_nothing_are_named_with_the_reason():
         "array, not a dict)"
     ]
     robot = TrainConfig(env="playground/T1JoystickFlatTerrain")  # (dict observations: used)
-    assert idle_flags(robot, {"actor_obs_key", "critic_obs_key"}) == []
+    assert idle_flags(robot, {"actor_obs_key", "critic_obs_key", "menagerie"}) == []
+    assert idle_flags(TrainConfig(env="brax/ant"), {"menagerie"}) == [
+        "--menagerie does nothing with --env brax/ant (it loads no robot)"
+    ]
     # An option typed as None turns a preset's value off: not idle (`--preset g1
     # --max-weight-norm None`); a typed value beside its option off still is.
     assert idle_flags(TrainConfig(max_weight_norm=None), {"max_weight_norm"}) == []
