@@ -97,7 +97,7 @@ def _dispatch(argv: list[str]) -> None:
     if argv[0] not in COMMANDS:
         hint = did_you_mean(argv[0], list(COMMANDS))
         names = ", ".join(COMMANDS)
-        print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint}\n(subcommands: {names}; "
+        print(f"td3-jax: error: unknown subcommand {argv[0]!r}{hint} (subcommands: {names}; "
               "td3-jax --help says what each does)", file=sys.stderr)  # fmt: skip
         sys.exit(2)
     if _launched(argv[0], argv[1:]):

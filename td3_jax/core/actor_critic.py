@@ -32,6 +32,7 @@ import numpy as np
 import optax
 
 from td3_jax.common.axes import any_member
+from td3_jax.common.errors import ConfigError
 from td3_jax.core import distributional, losses
 from td3_jax.core.agent_spec import (  # noqa: F401  (re-exported: ac.AgentSpec, ...)
     ACTOR_Q,
@@ -53,10 +54,10 @@ from td3_jax.core.types import Agent, AgentState, Metrics, Params, PRNGKey, Tran
 def _check_sizes(observation_size: Any, action_size: Any, hidden_sizes: Any) -> None:
     for name, value in (("observation_size", observation_size), ("action_size", action_size)):
         if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            raise ConfigError(f"{name} must be a positive integer, got {value!r}")
     hidden = tuple(hidden_sizes or ())
     if not hidden or any(not isinstance(h, int | np.integer) or h <= 0 for h in hidden):
-        raise ValueError(f"hidden_sizes must be positive integers, got {hidden_sizes}")
+        raise ConfigError(f"hidden_sizes must be positive integers, got {hidden_sizes}")
 
 
 def _check_hyperparams(hp: AgentHyperparams) -> None:
@@ -85,17 +86,17 @@ def _check_hyperparams(hp: AgentHyperparams) -> None:
         finite = np.all(np.isfinite(v)) or unbounded
         if not finite or np.any(v > high) or np.any(below):
             bound = "[" if low_ok else "("
-            raise ValueError(f"{name} must be finite and in {bound}{low}, {high}], got {value}")
+            raise ConfigError(f"{name} must be finite and in {bound}{low}, {high}], got {value}")
     if not any(isinstance(x, jax.core.Tracer) for x in (hp.v_min, hp.v_max)) and np.any(
         np.asarray(hp.v_min) >= np.asarray(hp.v_max)
     ):
-        raise ValueError(f"v_min must be below v_max, got {hp.v_min} and {hp.v_max}")
+        raise ConfigError(f"v_min must be below v_max, got {hp.v_min} and {hp.v_max}")
 
 
 def _check_options(options: AgentOptions) -> None:
-    """``ValueError`` naming the first impossible option."""
+    """``ConfigError`` naming the first impossible option."""
     if options.num_atoms < 0 or options.num_atoms == 1:
-        raise ValueError(f"num_atoms must be 0 (a plain critic) or >= 2, got {options.num_atoms}")
+        raise ConfigError(f"num_atoms must be 0 (a plain critic) or >= 2, got {options.num_atoms}")
     choices = {
         "precision": tuple(PRECISIONS),
         "actor_q": ACTOR_Q,
@@ -107,10 +108,10 @@ def _check_options(options: AgentOptions) -> None:
     }
     for name, allowed in choices.items():
         if getattr(options, name) not in allowed:
-            raise ValueError(f"unknown {name} {getattr(options, name)!r}; choose one of "
+            raise ConfigError(f"unknown {name} {getattr(options, name)!r}; choose one of "
                              f"{', '.join(allowed)}")  # fmt: skip
     if options.lr_schedule == "cosine" and (options.schedule_updates or 0) < 1:
-        raise ValueError("lr_schedule cosine needs schedule_updates >= 1 (the schedule's "
+        raise ConfigError("lr_schedule cosine needs schedule_updates >= 1 (the schedule's "
                          f"length in updates), got {options.schedule_updates}")  # fmt: skip
 
 
@@ -126,7 +127,7 @@ def make_spec(
     options: AgentOptions = AgentOptions(),
     critic_observation_size: int | None = None,
 ) -> AgentSpec:
-    """The static structure of an actor-critic agent (sizes checked, ``ValueError`` if bad).
+    """The static structure of an actor-critic agent (sizes checked, ``ConfigError`` if bad).
 
     ``hidden_sizes``: the widths of actor and critics unless ``options`` gives their own.
     ``critic_observation_size``: the critics learn from observations of this size
@@ -140,7 +141,7 @@ def make_spec(
     if critic_observation_size is not None:
         _check_sizes(critic_observation_size, action_size, critic_hidden)
     if int(policy_freq) < 1:
-        raise ValueError(f"policy_freq must be >= 1, got {policy_freq}")
+        raise ConfigError(f"policy_freq must be >= 1, got {policy_freq}")
     _check_options(options)
     actor, critic = _networks(options, actor_hidden, critic_hidden, action_size, max_action,
                               num_critics)  # fmt: skip
@@ -166,7 +167,7 @@ def _networks(
     max_action: Any,
     num_critics: int,
 ) -> tuple[Actor, CriticEnsemble]:
-    """The actor and the critics' ensemble of ``options``; ``ValueError`` where a residual
+    """The actor and the critics' ensemble of ``options``; ``ConfigError`` where a residual
     network's hidden sizes are not one width (:func:`~td3_jax.core.networks.residual_layout`)."""
     for network, sizes in ((options.critic_network, critic_hidden),
                            (options.actor_network, actor_hidden)):  # fmt: skip
@@ -398,7 +399,7 @@ def delayed_actor_step(
 
 
 def check_batch(spec: AgentSpec, batch: Transition) -> None:
-    """Raises ``ValueError`` naming the field when ``batch`` is not ``[batch, ...]``-shaped, or
+    """Raises ``ConfigError`` naming the field when ``batch`` is not ``[batch, ...]``-shaped, or
     the field whose batch size differs from the other fields'."""
     o, a = spec.observation_size, spec.action_size
     expected = {"obs": (o,), "action": (a,), "reward": (), "next_obs": (o,), "done": ()}
@@ -412,7 +413,7 @@ def check_batch(spec: AgentSpec, batch: Transition) -> None:
         if shape is None or len(shape) != len(tail) + 1 or shape[1:] != tail:
             want = f"[batch{''.join(f', {t}' for t in tail)}]"
             has = "is missing" if shape is None else f"has shape {list(shape)}"
-            raise ValueError(
+            raise ConfigError(
                 f"Transition.{name} {has}; expected {want} for an agent with observation_size "
                 f"{o}, critic observation size {critic_input_size(spec)} and action_size {a} "
                 "(a batch, rows first)"
@@ -421,7 +422,7 @@ def check_batch(spec: AgentSpec, batch: Transition) -> None:
     odd = next((name for name, shape in shapes.items() if shape[0] != rows), None)
     if odd is not None:
         others = [name for name, shape in shapes.items() if shape[0] == rows]
-        raise ValueError(
+        raise ConfigError(
             f"Transition.{odd} has a batch of {shapes[odd][0]} rows (shape "
             f"{list(shapes[odd])}) while {', '.join(others)} have {rows}; every field needs the "
             "same batch size (rows first)"
@@ -440,7 +441,7 @@ def update(
 
     Metrics (float32 scalars, :data:`METRIC_NAMES`): ``critic_loss``, ``actor_loss`` (0 where
     the actor was not updated), ``actor_updated``, ``q_mean``, ``target_mean``.
-    Raises ``ValueError`` for a batch of other shapes (:func:`check_batch`) and ``TypeError``
+    Raises ``ConfigError`` for a batch of other shapes (:func:`check_batch`) and ``TypeError``
     for a ``key`` that is no PRNG key (:func:`check_key`), where it is traced.
     """
     check_batch(spec, batch)
@@ -473,12 +474,12 @@ def actor_critic(
 
 
 def _act(spec: AgentSpec, params: Params, obs: jax.Array) -> jax.Array:
-    """The actor on ``obs [..., observation_size]``; a ``ValueError`` with both sizes for
+    """The actor on ``obs [..., observation_size]``; a ``ConfigError`` with both sizes for
     observations of another width (flax would raise its internal ``ScopeParamShapeError``)."""
     shape = tuple(jnp.shape(obs))
     if not shape or shape[-1] != spec.observation_size:
         given = f"of size {shape[-1]}" if shape else "that are a scalar"
-        raise ValueError(
+        raise ConfigError(
             f"act got observations {given} (shape {list(shape)}); this agent's actor takes "
             f"observation_size {spec.observation_size} ([..., {spec.observation_size}])"
         )
@@ -488,20 +489,20 @@ def _act(spec: AgentSpec, params: Params, obs: jax.Array) -> jax.Array:
 def _critic_apply(spec: AgentSpec, hp: AgentHyperparams, params: Params, obs: jax.Array,
                   action: jax.Array) -> jax.Array:  # fmt: skip
     """Every critic head's Q-value ``[heads, ...]`` of ``obs [..., o]`` and ``action [..., a]``
-    (:func:`td3_jax.core.losses.q_values`); a ``ValueError`` naming the argument whose width
+    (:func:`td3_jax.core.losses.q_values`); a ``ConfigError`` naming the argument whose width
     or leading shape is not the critics' (flax would raise its ``ScopeParamShapeError``)."""
     obs_shape, action_shape = tuple(jnp.shape(obs)), tuple(jnp.shape(action))
     sizes = {"obs": critic_input_size(spec), "action": spec.action_size}
     for name, shape in (("obs", obs_shape), ("action", action_shape)):
         if not shape or shape[-1] != sizes[name]:
             given = f"of size {shape[-1]}" if shape else "that is a scalar"
-            raise ValueError(
+            raise ConfigError(
                 f"critic_apply got {name} {given} (shape {list(shape)}); this agent's critics "
                 f"take observations of size {sizes['obs']} and actions of size "
                 f"{sizes['action']} ([..., {sizes['obs']}] and [..., {sizes['action']}])"
             )
     if obs_shape[:-1] != action_shape[:-1]:
-        raise ValueError(
+        raise ConfigError(
             f"critic_apply got obs of shape {list(obs_shape)} and action of shape "
             f"{list(action_shape)}; their leading axes must be the same (one action per "
             "observation)"

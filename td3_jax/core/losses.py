@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import jax
 import jax.numpy as jnp
 
+from td3_jax.common.errors import ConfigError
 from td3_jax.core import distributional
 from td3_jax.core.types import Params, PRNGKey, Transition, critic_observations
 
@@ -147,7 +148,7 @@ def reduce_heads(q: jax.Array, how: str) -> jax.Array:
         return jnp.min(q, axis=0)
     if how == "mean":
         return jnp.mean(q, axis=0)
-    raise ValueError(f"unknown actor_q {how!r}; choose first, min or mean")
+    raise ConfigError(f"unknown actor_q {how!r}; choose first, min or mean")
 
 
 def actor_loss(

@@ -20,6 +20,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from td3_jax.common.errors import ConfigError
+
 
 def sphere_features(x: jax.Array, eps: float = 1e-6) -> jax.Array:
     """``[..., width]`` features scaled to Euclidean norm ``sqrt(width)`` (root mean square 1);
@@ -91,11 +93,11 @@ class ResidualMLP(nn.Module):
 
 def residual_layout(hidden_sizes: Sequence[int]) -> tuple[int, int]:
     """``(width, blocks)`` of a :class:`ResidualMLP` given as hidden sizes: one block per
-    entry, every entry the width (``256 256``: two blocks of 256); ``ValueError`` otherwise."""
+    entry, every entry the width (``256 256``: two blocks of 256); ``ConfigError`` otherwise."""
     sizes = tuple(int(h) for h in hidden_sizes)
     if len(set(sizes)) != 1:
         shown = " ".join(map(str, sizes))
-        raise ValueError("a residual network's hidden sizes are one width, a block each (256 "
+        raise ConfigError("a residual network's hidden sizes are one width, a block each (256 "
                          f"256: two blocks of 256), not {shown or 'none'}")  # fmt: skip
     return sizes[0], len(sizes)
 

@@ -9,9 +9,9 @@ seed) and ``scan``.
 
 Edge cases (documented behaviour):
 
-* ``add`` of more transitions than ``capacity`` at once raises ``ValueError`` (shapes are static,
+* ``add`` of more transitions than ``capacity`` at once raises ``ConfigError`` (shapes are static,
   so this is known when tracing).
-* ``sample`` from an empty buffer raises ``ValueError`` when the size is known on the host; inside
+* ``sample`` from an empty buffer raises ``ConfigError`` when the size is known on the host; inside
   a compiled program (where it cannot raise) it returns the zero-filled slot 0. The trainer never
   samples before its warm-up steps have been added.
 """
@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from td3_jax.common.errors import ConfigError
 from td3_jax.core import n_step
 from td3_jax.core.types import PRNGKey, Transition
 
@@ -57,7 +58,7 @@ def init(capacity: int, example_transition: Any) -> ReplayBuffer:
     """
     capacity = int(capacity)
     if capacity <= 0:
-        raise ValueError(f"replay capacity must be positive, got {capacity}")
+        raise ConfigError(f"replay capacity must be positive, got {capacity}")
     data = jax.tree.map(
         lambda x: jnp.zeros((capacity, *jnp.shape(x)), jnp.result_type(x)), example_transition
     )
@@ -73,7 +74,7 @@ def add(buffer: ReplayBuffer, transitions: Any) -> ReplayBuffer:
     n = jax.tree.leaves(transitions)[0].shape[0]
     capacity = buffer.capacity
     if n > capacity:
-        raise ValueError(
+        raise ConfigError(
             f"cannot add {n} transitions at once to a replay buffer of capacity {capacity}"
         )
     indices = (buffer.position + jnp.arange(n, dtype=jnp.int32)) % capacity
@@ -90,10 +91,10 @@ def add(buffer: ReplayBuffer, transitions: Any) -> ReplayBuffer:
 
 
 def _check_rows(buffer: ReplayBuffer, transitions: Any) -> None:
-    """``ValueError`` naming the field unless ``transitions`` is the buffer's structure with one
+    """``ConfigError`` naming the field unless ``transitions`` is the buffer's structure with one
     leading batch axis of the same size on every leaf."""
     if jax.tree.structure(transitions) != jax.tree.structure(buffer.data):
-        raise ValueError(
+        raise ConfigError(
             f"added transitions have the structure {jax.tree.structure(transitions)}, the buffer "
             f"holds {jax.tree.structure(buffer.data)}"
         )
@@ -104,7 +105,7 @@ def _check_rows(buffer: ReplayBuffer, transitions: Any) -> None:
         shape = tuple(jnp.shape(leaf))
         if n is None or shape != (n, *store.shape[1:]):
             want = "".join(f", {d}" for d in store.shape[1:])
-            raise ValueError(
+            raise ConfigError(
                 f"added transitions{jax.tree_util.keystr(path)} has shape {list(shape)}; "
                 f"expected [n{want}] (a batch of rows shaped like the buffer's, the same n "
                 "for every field)"
@@ -116,13 +117,13 @@ def sample(buffer: ReplayBuffer, key: PRNGKey, batch_size: int) -> Any:
 
     Returns a pytree shaped like ``buffer.data`` with leading axis ``batch_size``.
 
-    An empty buffer is a ``ValueError`` when its size is known here (outside ``jax.jit``).
+    An empty buffer is a ``ConfigError`` when its size is known here (outside ``jax.jit``).
     Inside a compiled function the size is not known until it runs, and an empty buffer
     gives rows of its initial zeros: sample only once transitions were added (td3-jax's
     own loop adds each iteration's transitions before its updates).
     """
     if not isinstance(buffer.size, jax.core.Tracer) and int(buffer.size) == 0:
-        raise ValueError("cannot sample from an empty replay buffer; add transitions first")
+        raise ConfigError("cannot sample from an empty replay buffer; add transitions first")
     indices = jax.random.randint(key, (batch_size,), 0, jnp.maximum(buffer.size, 1))
     return jax.tree.map(lambda store: store[indices], buffer.data)
 
@@ -139,11 +140,11 @@ def sample_runs(
     uniform over the filled slots, like :func:`sample`.
 
     Returns a pytree shaped like ``buffer.data`` with leading axes ``[batch_size, length]``.
-    Too few filled slots are a ``ValueError`` outside ``jax.jit`` only, as in :func:`sample`.
+    Too few filled slots are a ``ConfigError`` outside ``jax.jit`` only, as in :func:`sample`.
     """
     span = (length - 1) * stride
     if not isinstance(buffer.size, jax.core.Tracer) and int(buffer.size) <= span:
-        raise ValueError(
+        raise ConfigError(
             f"runs of {length} rows {stride} apart need more than {span} filled slots, "
             f"the buffer holds {int(buffer.size)}"
         )
@@ -167,7 +168,7 @@ def init_slices(capacity: int, shards: int, example_transition: Any) -> ReplayBu
     stay on each device.
     """
     if capacity % shards:
-        raise ValueError(f"replay capacity {capacity} is not divisible into {shards} slices")
+        raise ConfigError(f"replay capacity {capacity} is not divisible into {shards} slices")
     one = init(capacity // shards, example_transition)
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (shards, *x.shape)), one)
 
@@ -223,7 +224,7 @@ def resize_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
     zeros after them, the next write after the last filled row (``position = size``, 0 when
     full). The result is the buffer a ring of ``rows`` rows would be after the same adds
     (leading member axes kept): a run that ``--resume`` extends grows its ring, one it shortens
-    cuts it. A slice with more filled rows than ``rows`` raises ``ValueError`` where the sizes
+    cuts it. A slice with more filled rows than ``rows`` raises ``ConfigError`` where the sizes
     are concrete; under tracing the caller guarantees it (a resume never shortens a run below
     the steps it has taken).
     """
@@ -238,14 +239,14 @@ def resize_slices(buffer: ReplayBuffer, rows: int) -> ReplayBuffer:
 
 
 def _check_fits(buffer: ReplayBuffer, rows: int) -> None:
-    """``ValueError`` where a slice holds more filled rows than ``rows`` (nothing to check
+    """``ConfigError`` where a slice holds more filled rows than ``rows`` (nothing to check
     while tracing)."""
     try:
         filled = int(np.max(np.asarray(buffer.size)))
     except jax.errors.TracerArrayConversionError:
         return
     if filled > rows:
-        raise ValueError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to {rows}: "
+        raise ConfigError(f"cannot shrink a replay ring of {slice_rows(buffer)} rows to {rows}: "
                          f"{filled} rows of a slice are filled")  # fmt: skip
 
 

@@ -35,6 +35,7 @@ from flax import struct
 
 from td3_jax import envs
 from td3_jax.common.axes import any_member
+from td3_jax.common.errors import ConfigError
 from td3_jax.core import actor_critic as ac
 from td3_jax.core import eval_worlds, noise, normalization, replay, return_scale
 from td3_jax.core.types import AgentState, Metrics, PRNGKey, Transition
@@ -119,7 +120,7 @@ class TrainSpec:
     def __post_init__(self) -> None:
         steps, length = self.iters_per_chunk * self.steps_per_iter, self.env.episode_length
         if self.eval_in_chunk and steps < length:
-            raise ValueError(f"eval_in_chunk needs chunks of at least one episode ({length} "
+            raise ConfigError(f"eval_in_chunk needs chunks of at least one episode ({length} "
                              f"steps per environment), not {steps}")  # fmt: skip
 
     @property
@@ -155,7 +156,7 @@ class Hyperparams:
 
 def key_for_seed(seed: int) -> PRNGKey:
     """The key a run of ``seed`` starts from (``td3-jax train --seed`` uses the same);
-    ``ValueError`` for a seed outside ``[0, 2**32 - 1]``, which JAX would wrap onto another
+    ``ConfigError`` for a seed outside ``[0, 2**32 - 1]``, which JAX would wrap onto another
     seed's key (``-1`` and ``2**32 - 1`` give the same key; a traced seed, as in
     ``jax.vmap(key_for_seed)(seeds)``, is not checked)."""
     if isinstance(seed, float | np.floating):
@@ -165,7 +166,7 @@ def key_for_seed(seed: int) -> PRNGKey:
     except TypeError:  # (a traced seed; anything else is PRNGKey's to refuse)
         value = 0
     if not 0 <= value <= 2**32 - 1:
-        raise ValueError(f"seed {seed} must be in [0, {2**32 - 1}]: JAX's random keys hold 32 "
+        raise ConfigError(f"seed {seed} must be in [0, {2**32 - 1}]: JAX's random keys hold 32 "
                          "bits of a seed")  # fmt: skip
     return jax.random.PRNGKey(seed)
 
@@ -701,9 +702,9 @@ def evaluate_recorded(
     Needs an environment with a ``qpos_fn``; ``record`` is static, at most ``eval_envs``.
     """
     if spec.env.qpos_fn is None:
-        raise ValueError(f"{spec.env.name} has no qpos_fn: nothing to record")
+        raise ConfigError(f"{spec.env.name} has no qpos_fn: nothing to record")
     if not 0 < record <= spec.eval_envs:
-        raise ValueError(f"record must be in 1..{spec.eval_envs}, got {record}")
+        raise ConfigError(f"record must be in 1..{spec.eval_envs}, got {record}")
     return _evaluation(spec, state, key, record)
 
 

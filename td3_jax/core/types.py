@@ -74,14 +74,14 @@ class Agent(NamedTuple):
         ``jax.random.PRNGKey(seed)``), anything else raises ``TypeError``.
       update: ``update(state, batch: Transition, key) -> (state, metrics)``; one gradient step
         on a batch ``[batch_size, ...]``. Pure: jit, vmap and scan it. A batch of other shapes
-        raises ``ValueError`` naming the field, a ``key`` that is no PRNG key ``TypeError``.
+        raises ``ConfigError`` naming the field, a ``key`` that is no PRNG key ``TypeError``.
       act: ``act(actor_params, obs[..., obs_size]) -> action[..., action_size]``, deterministic;
-        observations of another size raise ``ValueError``.
+        observations of another size raise ``ConfigError``.
       actor_apply: ``actor_apply(actor_params, obs) -> action`` (the same function as ``act``).
       critic_apply: ``critic_apply(critic_params, obs[..., o], action[..., a]) -> q[heads, ...]``
         (a distributional critic head's Q-value is its distribution's mean; ``o`` is the
         critic observation size); an ``obs`` or ``action`` of another width, or leading axes
-        that differ, raise ``ValueError`` naming the argument.
+        that differ, raise ``ConfigError`` naming the argument.
       config: the config the agent was built from.
       spec: the agent's static structure (:class:`td3_jax.core.actor_critic.AgentSpec`).
       hyperparams: the float settings bound into ``update``

@@ -19,6 +19,7 @@ import optax
 import pytest
 
 from td3_jax.cli import app as cli
+from td3_jax.common.errors import Td3JaxError
 from td3_jax.config.build import agent_options, agent_settings
 from td3_jax.config.presets import preset
 from td3_jax.config.schema import ConfigError, TrainConfig, validate
@@ -608,8 +609,21 @@ def test_target_critics_follow_their_update_rule(rule):
     ],
 )
 def test_impossible_options_are_refused(options, message):
-    with pytest.raises(ValueError, match=message):
+    """Refused as td3-jax's own ConfigError, which is also a ValueError."""
+    with pytest.raises(ConfigError, match=message) as err:
         spec_of(**options)
+    assert isinstance(err.value, Td3JaxError) and isinstance(err.value, ValueError)
+
+
+def test_the_python_agents_impossible_settings_are_td3_jaxs_errors():
+    """``tj.td3`` with an impossible size or hyperparameter: one ConfigError (errors.md: every
+    failure td3-jax foresees is a Td3JaxError), not a bare ValueError."""
+    import td3_jax as tj
+
+    with pytest.raises(ConfigError, match="observation_size must be a positive integer"):
+        tj.td3(tj.TD3Config(), observation_size=0, action_size=2)
+    with pytest.raises(ConfigError, match="tau must be finite"):
+        tj.td3(tj.TD3Config(tau=-1.0), observation_size=3, action_size=2)
 
 
 def test_impossible_float_options_are_refused():
