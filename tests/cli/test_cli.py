@@ -1772,9 +1772,13 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
 ):
     """The CLI's Ctrl-C handler raises KeyboardInterrupt and sets the stop token the CLI passes
     to train; a run whose interrupt was swallowed (as in a garbage-collection callback) stops
-    at its next chunk boundary; a second Ctrl-C ends the process at once; the handler is
-    removed afterwards."""
+    at its next chunk boundary; a second Ctrl-C ends the process at once (not one that comes
+    with the first, as ``timeout -s INT`` delivers it twice); the handler is removed
+    afterwards."""
     import signal
+    import time
+
+    from td3_jax.common import runtime
 
     exits = []
     handler_before = signal.getsignal(signal.SIGINT)  # SIG_IGN in a shell's background job
@@ -1806,6 +1810,8 @@ def test_ctrl_c_stops_the_run_even_where_python_discards_the_interrupt(
         try:
             signal.raise_signal(signal.SIGINT)
         except KeyboardInterrupt:
+            signal.raise_signal(signal.SIGINT)  # (at once: one Ctrl-C delivered twice, ignored)
+            time.sleep(runtime.REPEAT_SIGNAL_S + 0.1)
             signal.raise_signal(signal.SIGINT)
 
     monkeypatch.setattr(run_module, "train", train_with_two_ctrl_c)
