@@ -129,13 +129,13 @@ _EVALUATION_KEYS = frozenset({"run", "env", "algo", "env_steps", "episodes", "se
 
 
 def _written_by_eval(path: Path) -> bool:
-    """Whether ``path`` holds what ``td3-jax eval --json`` writes (a JSON object of its keys),
-    which a later evaluation may replace."""
+    """Whether ``path`` holds what ``td3-jax eval --json`` writes (a JSON object with its
+    keys, and any a later version adds), which a later evaluation may replace."""
     try:
         found = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(found, dict) and set(found) == _EVALUATION_KEYS
+    return isinstance(found, dict) and _EVALUATION_KEYS <= set(found)
 
 
 def _named_summary(summary: dict | None, finite: int) -> dict[str, Any]:

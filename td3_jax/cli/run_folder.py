@@ -83,7 +83,10 @@ def new_run_directory(name: str, folder: Path, now: float | None = None) -> Path
             path = folder / f"{stem}-{count}"
             continue
         except FileNotFoundError:  # (folder removed by a refused run started beside this one)
-            made = _make_folder(folder) or made
+            remade = _make_folder(folder)
+            if not remade and not folder.is_dir():
+                raise  # (a link to a folder that is gone: nowhere to make it)
+            made = made or remade
             continue
         _MADE[path] = (path.absolute(), folder.absolute() if made else None)
         return path

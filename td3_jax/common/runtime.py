@@ -303,8 +303,9 @@ def stop_signals(
     exception); SIGTERM (what ``timeout``, SLURM and Kubernetes send before a kill) sets
     ``stop`` alone, so the chunk in flight finishes and is checkpointed before the run stops.
     A second signal of either kind ends the process at once, except the same signal within
-    :data:`REPEAT_SIGNAL_S` of the first: GNU ``timeout`` (``-s INT`` too) signals its child
-    and then its own process group, so one request arrives twice. The signals received are
+    :data:`REPEAT_SIGNAL_S` (SIGINT: :data:`REPEAT_SIGINT_S`) of the first: GNU ``timeout``
+    (``-s INT`` too) signals its child and then its own process group, so one request arrives
+    twice. The signals received are
     appended to ``received``; ``say``: whether this process prints (several processes: one speaks).
     ``aftermath(cause)``: the line said when a second signal ends the process (what it leaves
     behind: the newest checkpoint, how to resume); default: ``cause`` alone. ``several``: a
@@ -378,9 +379,11 @@ class _Rearm:
             pass
 
 
-#: Seconds after a SIGTERM or SIGINT in which the same signal again is the same request,
-#: delivered twice.
+#: Seconds after a SIGTERM in which another is the same request, delivered twice.
 REPEAT_SIGNAL_S = 0.5
+#: The same for SIGINT, shorter: a person's second Ctrl-C comes a tenth of a second or more
+#: after the first, ``timeout``'s second delivery within a millisecond.
+REPEAT_SIGINT_S = 0.05
 
 
 def _signal_handler(
@@ -403,15 +406,16 @@ def _signal_handler(
                 raise KeyboardInterrupt
             return
         since = time.monotonic() - first_at.get(signum, -math.inf)
-        if stop.is_set() and since < REPEAT_SIGNAL_S:
+        window = REPEAT_SIGINT_S if signum == signal.SIGINT else REPEAT_SIGNAL_S
+        if stop.is_set() and since < window:
             return  # the same request delivered twice (timeout: child, then process group)
         if stop.is_set():
             if say:
                 print(f"td3-jax: {_last_words(signum, aftermath)}", file=sys.stderr, flush=True)
             os._exit(128 + signum)
+        first_at[signum] = time.monotonic()  # (before the token: a repeat may come at once)
         received.append(signum)
         stop.set()
-        first_at[signum] = time.monotonic()
         if signum == signal.SIGTERM:
             if say:
                 print(f"td3-jax: terminated (SIGTERM): {_what_stopping_does(stop)} (SIGTERM "

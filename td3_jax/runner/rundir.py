@@ -334,7 +334,8 @@ def _recorded_steps(path: Path) -> list[int]:
 
 def clear_outputs(out_dir: Path) -> None:
     """Removes a run's outputs from ``out_dir`` (:data:`OUTPUTS`; its lock and W&B's folder
-    stay), for a run that starts over there (:func:`stopped_before_checkpoint`)."""
+    stay), for a run that starts over there (:func:`stopped_before_checkpoint`,
+    :func:`ended_before_recording`)."""
     for name in OUTPUTS:
         path = Path(out_dir) / name
         if path.is_dir():
@@ -459,8 +460,9 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True,
     """Creates (fresh run) and locks ``out_dir``, re-checking a fresh one under the lock.
 
     ``run``: the fresh run's ``(cfg, population)``; where ``out_dir`` holds the outputs of the
-    same run stopped before its first checkpoint (:func:`stopped_before_checkpoint`), they
-    are removed under the lock, with a line that says so, and the run starts over there.
+    same run stopped before its first checkpoint (:func:`stopped_before_checkpoint`), or of
+    any run that ended before its first record (:func:`_start_over`), they are removed under
+    the lock, with a line that says so, and the run starts over there.
     Processes other than the writer neither lock nor check; they get a lock that holds nothing.
     """
     out_dir = Path(out_dir)
@@ -483,10 +485,12 @@ def open_run_dir(out_dir: Path, *, resume: bool, writer: bool = True,
 def _start_over(out_dir: Path, same_run: bool) -> None:
     """Removes, with a line that says so, the outputs a fresh run may replace in ``out_dir``:
     those of the same run stopped before its first checkpoint (``same_run``), or of any run
-    that ended before its first record (:func:`ended_before_recording`)."""
+    that ended before its first record (:func:`ended_before_recording`) where its checkpoints
+    and TensorBoard folders hold only what a run writes there (else nothing is removed)."""
     if same_run:
         why = "the run of these settings there stopped before its first checkpoint"
-    elif previous_outputs(out_dir) and ended_before_recording(out_dir):
+    elif (previous_outputs(out_dir) and ended_before_recording(out_dir)
+          and _only_run_files(out_dir)):  # fmt: skip
         why = "the run there ended before its first record"
     else:
         return

@@ -1244,6 +1244,22 @@ def test_divergence_before_the_first_checkpoint_says_how_to_start_again(
     assert json.loads((out / "config.json").read_text())["actor_lr"] == 1e-4
 
 
+def test_files_of_others_in_a_run_that_recorded_nothing_are_kept(tmp_path, capsys, monkeypatch):
+    """A run that ended before its first record, where someone has since put a file of their
+    own in checkpoints/: a fresh run there keeps it (nothing is cleared, nothing said)."""
+    monkeypatch.setattr(run_module, "_nonfinite", lambda metrics, i, finite=None: ["critic_loss"])
+    out = tmp_path / "run"
+    code, _, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
+    monkeypatch.undo()
+    assert code == 3, err
+    mine = out / "checkpoints" / "best_policy" / "params.npz"
+    mine.parent.mkdir(parents=True)
+    mine.write_bytes(b"kept")
+    code, stdout, err = main(["train", *TINY_FLAGS, "--out", str(out), "--quiet"], capsys)
+    assert code == 0, err
+    assert mine.read_bytes() == b"kept" and "starting over" not in stdout
+
+
 def test_divergence_after_a_record_says_to_move_the_folder_away(tmp_path, capsys, monkeypatch):
     """A run that recorded something before it diverged keeps its records: a fresh run of
     other settings is refused there until the folder is moved away."""

@@ -132,6 +132,13 @@ def test_a_runs_folder_removed_meanwhile_is_made_again(tmp_path, monkeypatch):
     assert not (tmp_path / "runs").exists()  # (made by this run the second time)
 
 
+def test_a_runs_link_to_a_folder_that_is_gone_is_one_line(tmp_path, capsys):
+    (tmp_path / "runs").symlink_to(tmp_path / "purged scratch")
+    code, _, err = main(["train", *TINY_FLAGS], capsys)
+    assert_one_line_error(code, err, "cannot make a folder for the run in runs/",
+                          "give one with --out DIR")  # fmt: skip
+
+
 def test_a_refused_run_keeps_a_runs_folder_that_was_there(tmp_path, capsys):
     (tmp_path / "runs").mkdir()
     code, _, err = main(["train", *TINY_FLAGS, "--batch-size", "0"], capsys)
