@@ -305,13 +305,12 @@ def stop_signals(
     A second signal of either kind ends the process at once, except the same signal within
     :data:`REPEAT_SIGNAL_S` (SIGINT: :data:`REPEAT_SIGINT_S`) of the first: GNU ``timeout``
     (``-s INT`` too) signals its child and then its own process group, so one request arrives
-    twice. The signals received are
-    appended to ``received``; ``say``: whether this process prints (several processes: one speaks).
-    ``aftermath(cause)``: the line said when a second signal ends the process (what it leaves
-    behind: the newest checkpoint, how to resume); default: ``cause`` alone. ``several``: a
-    process of a several-process run, where a first Ctrl-C sets ``stop`` alone too, so that
-    the processes stop together at a chunk boundary (one that left at once would leave the
-    others waiting for it at a collective).
+    twice. The signals received are appended to ``received``; ``say``: whether this process
+    prints (several processes: one speaks). ``aftermath(cause)``: the line said when a second
+    signal ends the process (what it leaves behind: the newest checkpoint, how to resume);
+    default: ``cause`` alone. ``several``: a process of a several-process run, where a first
+    Ctrl-C sets ``stop`` alone too, so that the processes stop together at a chunk boundary
+    (one that left at once would leave the others waiting for it at a collective).
 
     The handlers, and an unraisable-exception hook for a Ctrl-C Python discarded (raised
     inside a finalizer, as during a garbage collection), are installed only on the main thread,

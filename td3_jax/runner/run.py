@@ -858,7 +858,7 @@ def _check_finite(run: _Run, metrics: dict[str, np.ndarray], env_steps: int,
                          f"stopped, {kept}{failed}{again}")  # fmt: skip
 
 
-def _starting_again(run: Any) -> str:
+def _starting_again(run: _Run) -> str:
     """How a run stopped before its first checkpoint starts again with other settings: in its
     folder where it wrote no record yet (a fresh run replaces what is there), else after
     moving the folder away."""
