@@ -111,7 +111,8 @@ def _dispatch(argv: list[str]) -> None:
 def _launched(name: str, args: list[str]) -> bool:
     """Whether ``td3-jax NAME ARGS`` is a train or sweep of ``--local-processes`` (not its
     ``--help``)."""
-    from td3_jax.cli.local_processes import FLAG, flag_name  # (no JAX: quick)
+    from td3_jax.cli.argv import flag_name
+    from td3_jax.cli.local_processes import FLAG  # (no JAX: quick)
 
     return name in ("train", "sweep") and not {"-h", "--help"} & set(args) and any(
         flag_name(arg) == FLAG for arg in args)  # fmt: skip

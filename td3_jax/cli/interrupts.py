@@ -79,13 +79,13 @@ _STARTING: list[tuple[runtime.StopToken, list[int]]] = []
 
 @contextlib.contextmanager
 def signals_while_starting(args: list[str]) -> Iterator[None]:
-    """For a train or sweep process that joins others (:func:`~td3_jax.cli.local_processes.
-    joins_others`), from before it imports JAX: the handlers of a run of several processes, so
-    that a Ctrl-C while it imports, joins or compiles sets the stop token of
-    :func:`process_stop` (the processes then stop together before training, :func:`~td3_jax.
-    runner.sharding.start_agreed`) instead of raising where Python may discard it; a second
-    signal stops at once. Nothing for a process of its own."""
-    from td3_jax.cli.local_processes import joins_others
+    """For a train or sweep process that joins others (:func:`~td3_jax.cli.argv.joins_others`),
+    from before it imports JAX: the handlers of a run of several processes, so that a Ctrl-C
+    while it imports, joins or compiles sets the stop token of :func:`process_stop` (the
+    processes then stop together before training, :func:`~td3_jax.runner.sharding.
+    start_agreed`) instead of raising where Python may discard it; a second signal stops at
+    once. Nothing for a process of its own."""
+    from td3_jax.cli.argv import joins_others
 
     if not joins_others(args):
         yield

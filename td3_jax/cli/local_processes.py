@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from td3_jax.cli.argv import flag_name, joins_others
+from td3_jax.cli.argv import flag_name
 from td3_jax.common import runtime
 from td3_jax.common.errors import ConfigError
 
@@ -39,9 +39,7 @@ __all__ = [
     "asked_count",
     "check_local_processes",
     "child_args",
-    "flag_name",
     "free_port",
-    "joins_others",
     "local_gpus",
     "main",
     "process_env",

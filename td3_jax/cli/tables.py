@@ -29,8 +29,10 @@ def print_sweep_ranking(record: dict) -> None:
     """
     from rich.table import Table  # lazy: rich, only for a table
 
+    from td3_jax.runner.logger import setting_label  # lazy: imports JAX
+
     rows = ranked_settings(record["per_member"])
-    labels = [" ".join(f"{k}={v:g}" for k, v in row[0]) for row in rows]
+    labels = [setting_label(row[0]) for row in rows]
     table = Table()
     for column in ("rank", "setting", "seeds", "diverged", "mean", "95% CI", "IQM"):
         width = max(map(len, labels)) if column == "setting" else None

@@ -12,10 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from td3_jax.cli import notes, settings
-from td3_jax.cli.argv import given_fields
+from td3_jax.cli.argv import given_fields, joins_others
 from td3_jax.cli.commands import SweepCommand, TrainCommand
 from td3_jax.cli.interrupts import leave_processes, process_stop, train_stoppably
-from td3_jax.cli.local_processes import joins_others
 from td3_jax.cli.parsing import parse
 from td3_jax.cli.run_folder import remove_if_empty, with_run_directory
 from td3_jax.cli.tables import print_sweep_ranking

@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 
 from td3_jax.common.errors import ConfigError
 from td3_jax.core import stats
-from td3_jax.runner.logger import evaluated_steps, read_metrics
+from td3_jax.runner.logger import evaluated_steps, read_metrics, setting_label
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -88,8 +88,7 @@ def _swept_text(member: Any) -> str:
     """A per-member record's swept values as ``actor_lr=0.001 tau=0.01`` (a hand-edited value
     that is not a number shown as it is)."""
     settings = member.get("settings") if isinstance(member, dict) else None
-    items = sorted(settings.items()) if isinstance(settings, dict) else []
-    return " ".join(f"{k}={v:g}" if isinstance(v, int | float) else f"{k}={v}" for k, v in items)
+    return setting_label(sorted(settings.items()) if isinstance(settings, dict) else [])
 
 
 def _check_plottable(records: list, path: Path, band_keys: tuple[str, ...]) -> None:
@@ -158,17 +157,23 @@ def setting_means(curve: Curve) -> list[tuple[str, list[float]]]:
     (NaN where all did); ``[]`` for a run that is no sweep."""
     import numpy as np
 
-    if not any(curve.swept):
-        return []
     means = []
-    for setting in dict.fromkeys(curve.swept):
-        rows = np.array([m for m, s in zip(curve.members, curve.swept, strict=True)
-                         if s == setting], np.float64)  # fmt: skip
+    for setting, members in _setting_rows(curve):
+        rows = np.array(members, np.float64)
         finite = np.isfinite(rows)
         count = finite.sum(axis=0)
         total = np.where(finite, rows, 0.0).sum(axis=0)
         means.append((setting, np.where(count > 0, total / np.maximum(count, 1), np.nan).tolist()))
     return means
+
+
+def _setting_rows(curve: Curve) -> list[tuple[str, list[list[float]]]]:
+    """A sweep's members grouped by setting, ``(swept values, members' returns)`` in the order
+    the settings first appear; ``[]`` for a run that is no sweep."""
+    if not any(curve.swept):
+        return []
+    return [(setting, [m for m, s in zip(curve.members, curve.swept, strict=True) if s == setting])
+            for setting in dict.fromkeys(curve.swept)]  # fmt: skip
 
 
 def _draw(axes: Sequence[Any], curve: Curve, label: str | None, color: Any,
@@ -273,8 +278,7 @@ def setting_curves(curve: Curve) -> list[tuple[str, Curve]]:
     3 or fewer: :func:`~td3_jax.core.stats.interval_name`); ``[]`` for a run that is no
     sweep."""
     parts = []
-    for setting, mean in setting_means(curve):
-        rows = [m for m, s in zip(curve.members, curve.swept, strict=True) if s == setting]
+    for (setting, mean), (_, rows) in zip(setting_means(curve), _setting_rows(curve), strict=True):
         points = [[v for v in column if math.isfinite(v)] for column in zip(*rows, strict=True)]
         lower, upper = zip(*(_interval(values) for values in points), strict=True)
         parts.append((setting, curve._replace(mean=mean, lower=list(lower), upper=list(upper),

@@ -12,6 +12,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ __all__ = [
     "is_return",
     "read_metrics",
     "returns_by_setting",
+    "setting_label",
     "write_atomically",
 ]
 
@@ -276,6 +278,13 @@ def returns_by_setting(per_member: list[dict]) -> dict[tuple, list[float | None]
         setting = tuple(sorted((member.get("settings") or {}).items()))
         groups.setdefault(setting, []).append(member.get("eval_return_mean"))
     return groups
+
+
+def setting_label(setting: Iterable[tuple[str, Any]]) -> str:
+    """Swept values, as :func:`returns_by_setting` groups them, as ``actor_lr=0.001 tau=0.01``
+    (a value that is not a number, as a hand-edited record may hold, shown as it is)."""
+    return " ".join(f"{k}={v:g}" if isinstance(v, int | float) else f"{k}={v}"
+                    for k, v in setting)  # fmt: skip
 
 
 def is_return(key: str) -> bool:

@@ -53,7 +53,7 @@ from td3_jax.runner import programs, tracking
 from td3_jax.runner.checkpoint import Checkpointer, CheckpointWriteError
 from td3_jax.runner.critic_growth import growth_warning
 from td3_jax.runner.curves import plot_curve
-from td3_jax.runner.logger import MetricsLogger, returns_by_setting
+from td3_jax.runner.logger import MetricsLogger, returns_by_setting, setting_label
 from td3_jax.runner.memory import working_bytes
 from td3_jax.runner.programs import Programs, Source
 from td3_jax.runner.rundir import (
@@ -990,7 +990,7 @@ def _best_setting(record: dict) -> str:
     if not means:
         return ""
     best = max(means, key=means.__getitem__)
-    named = " ".join(f"{k}={v:g}" for k, v in best)
+    named = setting_label(best)
     count, alive = len(record["per_member"]), sum(len(v) for v in groups.values())
     over = (f"all {count} members" if alive == count
             else f"the {alive} of {count} members that did not diverge")  # fmt: skip

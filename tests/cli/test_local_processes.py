@@ -14,6 +14,7 @@ import time
 import pytest
 
 import td3_jax
+from td3_jax.cli import argv
 from td3_jax.cli import local_processes as lp
 from td3_jax.common.errors import ConfigError, ProcessLostError
 
@@ -60,7 +61,7 @@ def test_a_process_joins_others_where_a_join_flag_variable_or_the_launcher_says_
         monkeypatch.delenv(name, raising=False)
     for name, value in variables.items():
         monkeypatch.setenv(name, value)
-    assert lp.joins_others(args) is joins
+    assert argv.joins_others(args) is joins
 
 
 def test_a_process_of_its_own_starts_with_its_signal_handlers_untouched(monkeypatch, capsys):
